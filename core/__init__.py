@@ -1,0 +1,122 @@
+"""faceretarget: facial animation retargeting behind one plugin interface.
+
+    import faceretarget as fr
+    case = fr.cases.synthetic(seed=0)
+    anim = fr.get("spacetime").fit(case.source, case.target).retarget(case.source)
+
+Public API: :func:`available`, :func:`get`, the model types, :class:`Retargeter`,
+:class:`Capabilities`, :data:`hookimpl`, the error types (``faceretarget.errors``)
+and the readers/writers (``faceretarget.load``, ``faceretarget.save``).
+"""
+from __future__ import annotations
+
+from importlib import import_module
+from typing import Any
+
+__version__ = "0.1.0"
+
+from .errors import CapabilityError, FaceRetargetError, NotFittedError, UnknownNameError  # noqa: E402
+from .hookspecs import Metric, Reader, Writer, hookimpl, hookspec  # noqa: E402
+from .model import (  # noqa: E402
+    Animation,
+    BlendshapeRig,
+    LayeredRig,
+    Landmarks,
+    MarkerSequence,
+    Mesh,
+    MeshSequence,
+    Source,
+    TargetRig,
+    WeightSequence,
+)
+from .retargeter import Capabilities, Retargeter, clone  # noqa: E402
+
+__all__ = [
+    "__version__",
+    "available",
+    "get",
+    "info",
+    "load",
+    "save",
+    "Animation",
+    "BlendshapeRig",
+    "Capabilities",
+    "CapabilityError",
+    "FaceRetargetError",
+    "Landmarks",
+    "LayeredRig",
+    "MarkerSequence",
+    "Mesh",
+    "MeshSequence",
+    "Metric",
+    "NotFittedError",
+    "Reader",
+    "Retargeter",
+    "Source",
+    "TargetRig",
+    "UnknownNameError",
+    "WeightSequence",
+    "Writer",
+    "clone",
+    "hookimpl",
+    "hookspec",
+]
+
+
+def available() -> list[dict[str, Any]]:
+    """Every registered retargeter: name, aliases, summary, paper, capabilities, origin.
+
+    Reads capabilities from the classes without compiling any numba kernel.
+    """
+    from .registry import registry
+
+    return [entry.as_dict() for _, entry in sorted(registry().retargeters.items())]
+
+
+def get(name: str, **params) -> Retargeter:
+    """An unfitted retargeter by name or alias, with ``params`` set.
+
+    Raises :class:`UnknownNameError` listing the valid names (or parameters).
+    """
+    from .registry import registry
+
+    entry = registry().resolve(name)
+    defaults = entry.cls.default_params()
+    unknown = sorted(set(params) - set(defaults))
+    if unknown:
+        raise UnknownNameError(
+            f"{entry.name} has no parameter(s) {', '.join(unknown)}; valid parameters: {', '.join(sorted(defaults)) or '(none)'}"
+        )
+    return entry.cls(**params)
+
+
+def info(name: str):
+    """The :class:`~faceretarget.registry.RetargeterInfo` of a retargeter (parameters, docs, origin)."""
+    from .registry import registry
+
+    return registry().resolve(name)
+
+
+def load(path, kind: str | None = None, **options):
+    """Read a file with the registered reader for its extension (see ``faceretarget.io``)."""
+    from .io import load as _load
+
+    return _load(path, kind=kind, **options)
+
+
+def save(obj, path, **options):
+    """Write ``obj`` atomically with the registered writer for the path's extension."""
+    from .io import save as _save
+
+    return _save(obj, path, **options)
+
+
+_LAZY = {"cases": ".cases", "testing": ".testing", "evaluation": ".evaluation", "correspond": ".correspond", "io": ".io", "geometry": ".geometry", "registry": ".registry", "errors": ".errors", "model": ".model", "naming": ".naming"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        module = import_module(_LAZY[name], __name__)
+        globals()[name] = module
+        return module
+    raise AttributeError(f"module 'faceretarget' has no attribute {name!r}")

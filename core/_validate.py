@@ -1,0 +1,135 @@
+"""Array checks shared by the model types, readers and retargeters.
+
+Each helper returns a *read-only view or copy* of the array (never the caller's
+array with its flags changed) and raises a typed error whose message names the
+argument, what was wrong and how to fix it.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from .errors import IndexRangeError, InputError, NonFiniteError, ShapeError
+
+
+def readonly(array: np.ndarray) -> np.ndarray:
+    """A read-only view of ``array`` (the caller's array keeps its own flags)."""
+    view = array.view()
+    view.flags.writeable = False
+    return view
+
+
+def as_float_array(
+    value,
+    name: str,
+    shape: Sequence[int | None],
+    *,
+    allow_nan: bool = False,
+    dtype=np.float64,
+    copy: bool = False,
+) -> np.ndarray:
+    """Validate a floating-point array of the given shape (``None`` = any length).
+
+    float32 input is accepted and converted; memory-mapped float64 input is viewed,
+    not copied, so long sequences stay on disk. ``allow_nan`` permits NaN (missing
+    samples) but never infinity.
+    """
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:  # ragged lists and other non-array input
+        raise ShapeError(f"{name}: could not read as an array ({exc}); pass a numpy array of shape {_fmt(shape)}") from None
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+        raise ShapeError(f"{name}: expected numbers, got dtype {arr.dtype}; pass a float array of shape {_fmt(shape)}")
+    if np.iscomplexobj(arr):
+        raise ShapeError(f"{name}: complex values are not supported; pass real coordinates")
+    check_shape(arr, name, shape)
+    if arr.dtype != dtype:
+        arr = arr.astype(dtype)
+    elif copy:
+        arr = arr.copy()
+    check_finite(arr, name, allow_nan=allow_nan)
+    return readonly(arr)
+
+
+def as_index_array(value, name: str, shape: Sequence[int | None], upper: int | None = None) -> np.ndarray:
+    """Validate an integer index array with every entry in ``[0, upper)``."""
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:
+        raise ShapeError(f"{name}: could not read as an array ({exc})") from None
+    if arr.size == 0 and arr.dtype.kind not in "iu":
+        arr = arr.astype(np.int64)
+    if arr.dtype.kind == "f":
+        if not np.all(np.isfinite(arr)) or not np.all(arr == np.round(arr)):
+            raise ShapeError(f"{name}: indices must be whole numbers, got non-integer floats")
+    elif arr.dtype.kind not in "iu":
+        raise ShapeError(f"{name}: expected integer indices, got dtype {arr.dtype}")
+    check_shape(arr, name, shape)
+    arr = arr.astype(np.int64)
+    if arr.size:
+        lo, hi = int(arr.min()), int(arr.max())
+        if lo < 0:
+            raise IndexRangeError(f"{name}: negative index {lo}; indices are 0-based and must be >= 0")
+        if upper is not None and hi >= upper:
+            raise IndexRangeError(
+                f"{name}: index {hi} out of range for {upper} items (valid 0..{upper - 1}); "
+                "check that the indices refer to this mesh (0-based)"
+            )
+    return readonly(arr)
+
+
+def check_shape(arr: np.ndarray, name: str, shape: Sequence[int | None]) -> None:
+    if arr.ndim != len(shape) or any(s is not None and a != s for a, s in zip(arr.shape, shape)):
+        raise ShapeError(f"{name}: expected shape {_fmt(shape)}, got {tuple(arr.shape)}")
+
+
+def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False) -> None:
+    if arr.dtype.kind != "f":
+        return
+    if allow_nan:
+        bad = np.isinf(arr)
+        what = "infinite values"
+    else:
+        bad = ~np.isfinite(arr)
+        what = "NaN or infinite values"
+    if bad.any():
+        first = tuple(int(i) for i in np.argwhere(bad)[0])
+        hint = " (missing samples must be NaN, never inf)" if allow_nan else ""
+        raise NonFiniteError(f"{name}: {int(bad.sum())} {what}, first at index {first}{hint}")
+
+
+def as_names(value, name: str, count: int | None = None, *, default_prefix: str | None = None) -> tuple[str, ...]:
+    """Validate a sequence of unique, non-empty string names (optionally of a given count)."""
+    if value is None:
+        if default_prefix is None or count is None:
+            raise InputError(f"{name}: names are required")
+        return tuple(f"{default_prefix}{i}" for i in range(count))
+    if isinstance(value, str):
+        raise InputError(f"{name}: expected a sequence of names, got a single string {value!r}")
+    names = tuple(str(v) for v in np.asarray(value, dtype=object).ravel().tolist())
+    if count is not None and len(names) != count:
+        raise ShapeError(f"{name}: expected {count} names, got {len(names)}")
+    for n in names:
+        if not n.strip():
+            raise InputError(f"{name}: empty name; every entry needs a non-blank name")
+    seen: dict[str, int] = {}
+    for i, n in enumerate(names):
+        if n in seen:
+            raise InputError(f"{name}: duplicate name {n!r} at positions {seen[n]} and {i}; names must be unique")
+        seen[n] = i
+    return names
+
+
+def as_fps(value, name: str = "fps") -> float:
+    try:
+        fps = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected a positive number of frames per second, got {value!r}") from None
+    if not np.isfinite(fps) or fps <= 0:
+        raise InputError(f"{name}: expected a positive number of frames per second, got {value!r}")
+    return fps
+
+
+def _fmt(shape: Sequence[int | None]) -> str:
+    return "(" + ", ".join("*" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"

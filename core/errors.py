@@ -1,0 +1,134 @@
+"""The one exception hierarchy of faceretarget.
+
+Every error the library raises on purpose is a :class:`FaceRetargetError`. The
+subclasses also derive from the closest built-in exception (``ValueError``,
+``KeyError``, ``OSError``...) so code written against the standard library keeps
+working. Messages say what was wrong *and* how to fix it.
+
+::
+
+    FaceRetargetError
+    ├── InputError (ValueError)               bad arrays or model objects
+    │   ├── ShapeError                        wrong rank, length or shape
+    │   ├── NonFiniteError                    NaN / inf where not allowed
+    │   ├── IndexRangeError                   indices outside their range
+    │   ├── DegenerateGeometryError           zero-area / duplicate triangles ...
+    │   └── TopologyMismatchError             vertex or triangle counts disagree
+    ├── UnknownNameError (KeyError)           a name (method, shape, format) not known
+    ├── CapabilityError                       a method asked for what it cannot do
+    ├── NotFittedError (AttributeError)       retarget() before fit()
+    ├── NumericalError (ArithmeticError)      a solve failed or is singular
+    ├── FileFormatError (ValueError)          a file is malformed, truncated, unsupported
+    ├── OutputError (OSError)                 writing refused (would overwrite an input ...)
+    ├── ResourceLimitError (MemoryError)      a file would exceed the memory budget
+    ├── ConfigError (ValueError)              registry.toml, manifests, settings
+    └── PluginError                           a plugin failed to load or misbehaved
+        ├── PluginLoadError
+        ├── DuplicatePluginError
+        └── PluginOutputError
+"""
+from __future__ import annotations
+
+__all__ = [
+    "FaceRetargetError",
+    "InputError",
+    "ShapeError",
+    "NonFiniteError",
+    "IndexRangeError",
+    "DegenerateGeometryError",
+    "TopologyMismatchError",
+    "UnknownNameError",
+    "CapabilityError",
+    "NotFittedError",
+    "NumericalError",
+    "FileFormatError",
+    "OutputError",
+    "ResourceLimitError",
+    "ConfigError",
+    "PluginError",
+    "PluginLoadError",
+    "DuplicatePluginError",
+    "PluginOutputError",
+]
+
+
+class FaceRetargetError(Exception):
+    """Base class of every error faceretarget raises on purpose."""
+
+
+class InputError(FaceRetargetError, ValueError):
+    """An array or model object given to faceretarget is not valid."""
+
+
+class ShapeError(InputError):
+    """An array has the wrong rank, length or trailing dimension."""
+
+
+class NonFiniteError(InputError):
+    """An array holds NaN or infinity where only finite values are allowed."""
+
+
+class IndexRangeError(InputError, IndexError):
+    """Indices (triangle corners, landmark ids, frames) fall outside their range."""
+
+
+class DegenerateGeometryError(InputError):
+    """Geometry a method cannot work with: zero-area or repeated triangles, coincident points."""
+
+
+class TopologyMismatchError(InputError):
+    """Two meshes, frames or rig shapes that must share topology do not."""
+
+
+class UnknownNameError(FaceRetargetError, KeyError):
+    """A name (retargeter, shape, format, metric, case) that is not known.
+
+    The message lists the valid choices.
+    """
+
+    def __str__(self) -> str:  # KeyError quotes its message; we want plain text
+        return str(self.args[0]) if self.args else ""
+
+
+class CapabilityError(FaceRetargetError, TypeError):
+    """A retargeter was asked for something it cannot do; the message names what is missing."""
+
+
+class NotFittedError(FaceRetargetError, AttributeError):
+    """A retargeter was used before :meth:`fit`."""
+
+
+class NumericalError(FaceRetargetError, ArithmeticError):
+    """A numerical step failed (singular system, no convergence)."""
+
+
+class FileFormatError(FaceRetargetError, ValueError):
+    """A file is malformed, truncated or not of a supported format; the message names the file."""
+
+
+class OutputError(FaceRetargetError, OSError):
+    """Writing was refused or failed (it would overwrite an input, the folder is missing ...)."""
+
+
+class ResourceLimitError(FaceRetargetError, MemoryError):
+    """A file declares sizes that would exceed the memory budget (``FACERETARGET_MEMORY_BUDGET``)."""
+
+
+class ConfigError(FaceRetargetError, ValueError):
+    """A configuration file (``registry.toml``, a batch manifest, a mapping file) is malformed."""
+
+
+class PluginError(FaceRetargetError):
+    """A plugin failed to load or misbehaved; the message names the plugin and its distribution."""
+
+
+class PluginLoadError(PluginError, ImportError):
+    """A plugin's entry point could not be imported or its hooks are invalid."""
+
+
+class DuplicatePluginError(PluginError):
+    """Two plugins registered the same name; the message names both origins."""
+
+
+class PluginOutputError(PluginError):
+    """A plugin returned something invalid (wrong shapes, NaN, wrong types)."""

@@ -1,0 +1,1 @@
+"""Evaluation: metrics, the comparison harness and its report."""

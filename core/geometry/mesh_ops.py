@@ -1,0 +1,67 @@
+"""Basic per-triangle and per-vertex quantities of a triangle mesh (vectorized numpy).
+
+All functions take ``vertices : (V, 3) float64`` and ``triangles : (T, 3) int``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def triangle_cross(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(T, 3) cross products (v1 - v0) x (v2 - v0); length = twice the area."""
+    v = np.asarray(vertices, dtype=np.float64)
+    a, b, c = v[triangles[:, 0]], v[triangles[:, 1]], v[triangles[:, 2]]
+    return np.cross(b - a, c - a)
+
+
+def face_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(T,) triangle areas."""
+    return 0.5 * np.linalg.norm(triangle_cross(vertices, triangles), axis=1)
+
+
+def face_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(T, 3) unit triangle normals; zero rows for zero-area triangles."""
+    cross = triangle_cross(vertices, triangles)
+    norm = np.linalg.norm(cross, axis=1, keepdims=True)
+    return np.divide(cross, norm, out=np.zeros_like(cross), where=norm > 0)
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(V, 3) area-weighted unit vertex normals (zero for isolated vertices)."""
+    cross = triangle_cross(vertices, triangles)
+    n = len(vertices)
+    acc = np.zeros((n, 3))
+    for k in range(3):
+        np.add.at(acc, triangles[:, k], cross)
+    norm = np.linalg.norm(acc, axis=1, keepdims=True)
+    return np.divide(acc, norm, out=np.zeros_like(acc), where=norm > 0)
+
+
+def directed_edges(triangles: np.ndarray) -> np.ndarray:
+    """(3T, 2) directed half-edges (i -> j) of every triangle, in triangle order."""
+    t = np.asarray(triangles)
+    return np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+
+
+def unique_edges(triangles: np.ndarray) -> np.ndarray:
+    """(E, 2) unique undirected edges, smaller index first, sorted."""
+    e = np.sort(directed_edges(triangles), axis=1)
+    return np.unique(e, axis=0)
+
+
+def boundary_edges(triangles: np.ndarray) -> np.ndarray:
+    """(B, 2) directed boundary edges (used by exactly one triangle), in that triangle's order."""
+    d = directed_edges(triangles)
+    key = np.sort(d, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return d[counts[inverse.ravel()] == 1]
+
+
+def vertex_adjacency(triangles: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """(V, V) symmetric CSR 0/1 adjacency matrix."""
+    e = unique_edges(triangles)
+    data = np.ones(2 * len(e))
+    rows = np.concatenate([e[:, 0], e[:, 1]])
+    cols = np.concatenate([e[:, 1], e[:, 0]])
+    return sp.csr_matrix((data, (rows, cols)), shape=(n_vertices, n_vertices))

@@ -1,0 +1,112 @@
+"""The plugin hooks of faceretarget (pluggy project name ``"faceretarget"``).
+
+A plugin is a module (or object) exposed through an entry point in the group
+``faceretarget``; it implements any of these hooks with ``@faceretarget.hookimpl``.
+Hooks are called with keyword arguments only (they take none) and each returns a
+list. The built-in methods, formats and metrics use exactly these hooks.
+
+Example::
+
+    import faceretarget
+
+    @faceretarget.hookimpl
+    def faceretarget_retargeters():
+        return [MyRetargeter]
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Callable
+
+import pluggy
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .retargeter import Retargeter
+
+PROJECT = "faceretarget"
+hookspec = pluggy.HookspecMarker(PROJECT)
+hookimpl = pluggy.HookimplMarker(PROJECT)
+
+#: The kinds of thing a reader produces / a writer consumes.
+DATA_KINDS = ("mesh", "mesh_sequence", "rig", "markers", "weights", "animation")
+
+
+@dataclass(frozen=True)
+class Reader:
+    """A file format a plugin can read.
+
+    name : short unique name, e.g. ``"obj"``
+    kind : what ``read`` returns: one of ``DATA_KINDS`` (``"mesh"`` -> Mesh,
+        ``"mesh_sequence"`` -> MeshSequence, ``"rig"`` -> BlendshapeRig,
+        ``"markers"`` -> MarkerSequence, ``"weights"`` -> WeightSequence)
+    extensions : lower-case suffixes with the dot (``(".obj",)``); ``("/",)`` for a folder format
+    read : ``read(path, **options)`` -> the model object; raises FileFormatError naming the file
+    description : one line for ``faceretarget formats``
+    """
+
+    name: str
+    kind: str
+    extensions: tuple[str, ...]
+    read: Callable[..., Any]
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class Writer:
+    """A file format a plugin can write (atomically; never over an input).
+
+    kind : what ``write`` accepts: one of ``DATA_KINDS``
+    write : ``write(obj, path, **options)`` -> None
+    """
+
+    name: str
+    kind: str
+    extensions: tuple[str, ...]
+    write: Callable[..., Any]
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class Metric:
+    """An evaluation metric.
+
+    compute : ``compute(animation, case, context)`` -> float, or None when it does not
+        apply (then ``why_not(animation, case)`` says why); ``context`` is a dict with
+        timings and memory measured by the harness
+    better : "lower" or "higher"
+    unit : e.g. "% face height", "s", "MiB"
+    """
+
+    name: str
+    compute: Callable[..., Any]
+    description: str
+    better: str = "lower"
+    unit: str = ""
+    why_not: Callable[..., str | None] | None = None
+
+
+class FaceRetargetSpec:
+    """Hook specifications."""
+
+    @hookspec
+    def faceretarget_retargeters(self) -> "list[type[Retargeter]]":
+        """Return retargeter classes (subclasses of :class:`faceretarget.Retargeter`).
+
+        Each class has a unique ``name``; names and aliases must not clash with any
+        other plugin's.
+        """
+
+    @hookspec
+    def faceretarget_readers(self) -> "list[Reader]":
+        """Return :class:`Reader` records for the file formats this plugin reads."""
+
+    @hookspec
+    def faceretarget_writers(self) -> "list[Writer]":
+        """Return :class:`Writer` records for the file formats this plugin writes."""
+
+    @hookspec
+    def faceretarget_metrics(self) -> "list[Metric]":
+        """Return :class:`Metric` records for the evaluation harness."""
+
+
+HOOK_NAMES = tuple(n for n in vars(FaceRetargetSpec) if n.startswith("faceretarget_"))

@@ -1,0 +1,275 @@
+"""The Retargeter contract, in the style of scikit-learn estimators.
+
+- ``__init__`` takes keyword-only parameters and stores them unchanged as attributes
+  of the same name (no validation, no work); :meth:`get_params` reads them back
+  from the signature.
+- ``fit(source, target)`` validates, precomputes and returns ``self``; everything it
+  learns is stored in attributes ending in ``_``.
+- ``retarget(source)`` returns an :class:`~faceretarget.model.Animation` and never
+  mutates its inputs.
+- Optional protocols, declared in :attr:`Retargeter.capabilities`: ``stream(frames)``
+  (online, frame by frame) and ``edit(animation, ...)`` (spacetime editing).
+
+A subclass implements ``_fit`` and ``_retarget``; the base class does the checks.
+"""
+from __future__ import annotations
+
+import copy
+import inspect
+import time
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Iterable, Iterator
+
+import numpy as np
+
+from .errors import CapabilityError, InputError, NotFittedError, PluginOutputError
+from .model import Animation, Source, TargetRig
+
+__all__ = ["Capabilities", "Retargeter", "clone", "SOURCE_KINDS", "RIG_PARTS"]
+
+#: Kinds of performance a retargeter can consume.
+SOURCE_KINDS = ("markers", "mesh", "weights")
+#: Rig parts (see :attr:`TargetRig.PARTS`) and source extras a retargeter can need.
+RIG_PARTS = ("blendshapes", "layers", "landmarks", "feature_lines", "examples")
+SOURCE_EXTRAS = ("source_landmarks", "source_examples", "source_feature_lines", "actor_layers", "source_rig")
+
+
+@dataclass(frozen=True)
+class Capabilities:
+    """What a retargeter consumes, needs and offers.
+
+    sources : source kinds accepted (any of ``SOURCE_KINDS``)
+    needs : rig parts the target must have (``RIG_PARTS``) and source extras
+        (``SOURCE_EXTRAS``); a tuple of alternatives ``("a", "b")`` inside means "a or b"
+    outputs : "weights" (blendshape-based result) or "vertices"
+    stream : offers ``stream(frames)``
+    edit : offers ``edit(animation, ...)``
+    same_topology : needs source and target meshes of one topology
+    """
+
+    sources: tuple[str, ...] = ("markers",)
+    needs: tuple = ()
+    outputs: str = "vertices"
+    stream: bool = False
+    edit: bool = False
+    same_topology: bool = False
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "sources": list(self.sources),
+            "needs": [list(n) if isinstance(n, tuple) else n for n in self.needs],
+            "outputs": self.outputs,
+            "stream": self.stream,
+            "edit": self.edit,
+            "same_topology": self.same_topology,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "Capabilities":
+        return cls(
+            sources=tuple(data.get("sources", ("markers",))),
+            needs=tuple(tuple(n) if isinstance(n, list) else n for n in data.get("needs", ())),
+            outputs=data.get("outputs", "vertices"),
+            stream=bool(data.get("stream", False)),
+            edit=bool(data.get("edit", False)),
+            same_topology=bool(data.get("same_topology", False)),
+        )
+
+
+def _has(source: Source, target: TargetRig, need: str) -> bool:
+    if need in RIG_PARTS:
+        return target.has(need)
+    if need == "source_landmarks":
+        return source.kind == "markers" or source.landmarks is not None
+    if need == "source_examples":
+        return source.examples is not None
+    if need == "source_feature_lines":
+        return bool(source.feature_lines)
+    if need == "actor_layers":
+        return source.actor_layers is not None
+    if need == "source_rig":
+        return source.rig is not None
+    return False
+
+
+_NEED_TEXT = {
+    "blendshapes": "a TargetRig with blendshapes",
+    "layers": "a TargetRig with layered poses (TargetRig.layers)",
+    "landmarks": "a TargetRig with landmarks",
+    "feature_lines": "a TargetRig with feature lines",
+    "examples": "a TargetRig with example poses",
+    "source_landmarks": "a Source with landmarks (mesh sequence) or markers",
+    "source_examples": "a Source with example poses",
+    "source_feature_lines": "a Source with feature lines",
+    "actor_layers": "a Source with actor layers (Source.actor_layers)",
+    "source_rig": "a Source with its own blendshape rig",
+}
+
+
+class Retargeter:
+    """Base class of every retargeter, built-in or third-party.
+
+    Subclasses set :attr:`name` and :attr:`capabilities`, write an ``__init__`` with
+    keyword-only parameters stored as-is, and implement ``_fit`` and ``_retarget``.
+    """
+
+    name: ClassVar[str] = ""
+    capabilities: ClassVar[Capabilities] = Capabilities()
+    #: One-line description shown by ``faceretarget list`` (registry.toml wins for built-ins).
+    summary: ClassVar[str] = ""
+    #: Parameter meanings shown by ``faceretarget info``: name -> text.
+    parameter_docs: ClassVar[dict[str, str]] = {}
+
+    # -- parameters ------------------------------------------------------------------
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        init = cls.__init__
+        if init is object.__init__:
+            return []
+        sig = inspect.signature(init)
+        names = []
+        for p in sig.parameters.values():
+            if p.name == "self" or p.kind in (p.VAR_KEYWORD, p.VAR_POSITIONAL):
+                continue
+            names.append(p.name)
+        return sorted(names)
+
+    @classmethod
+    def default_params(cls) -> dict[str, Any]:
+        sig = inspect.signature(cls.__init__)
+        return {n: sig.parameters[n].default for n in cls._param_names()}
+
+    def get_params(self) -> dict[str, Any]:
+        """The constructor parameters and their current values."""
+        return {n: getattr(self, n) for n in self._param_names()}
+
+    def set_params(self, **params) -> "Retargeter":
+        """Set constructor parameters; unknown names raise. Returns self."""
+        valid = set(self._param_names())
+        for k, v in params.items():
+            if k not in valid:
+                from .errors import UnknownNameError
+
+                raise UnknownNameError(
+                    f"{type(self).__name__} has no parameter {k!r}; valid parameters: {', '.join(sorted(valid)) or '(none)'}"
+                )
+            setattr(self, k, v)
+        return self
+
+    def __repr__(self) -> str:
+        defaults = self.default_params()
+        changed = {k: v for k, v in self.get_params().items() if not _same(v, defaults.get(k))}
+        args = ", ".join(f"{k}={v!r}" for k, v in changed.items())
+        return f"{type(self).__name__}({args})"
+
+    # -- capability checks -----------------------------------------------------------
+    @classmethod
+    def why_not(cls, source: Source, target: TargetRig | None) -> str | None:
+        """None if this retargeter applies to (source, target), else the reason."""
+        caps = cls.capabilities
+        if source.kind not in caps.sources:
+            return f"{cls.name or cls.__name__} takes {' or '.join(caps.sources)} sources; this source is {source.kind}"
+        if target is None:
+            return None
+        missing = []
+        for need in caps.needs:
+            options = need if isinstance(need, tuple) else (need,)
+            if not any(_has(source, target, n) for n in options):
+                missing.append(" or ".join(_NEED_TEXT.get(n, n) for n in options))
+        if missing:
+            return f"{cls.name or cls.__name__} needs {'; '.join(missing)}; this one lacks it"
+        return None
+
+    def _check_applicable(self, source: Source, target: TargetRig) -> None:
+        if not isinstance(source, Source):
+            raise InputError(f"{self.name}.fit: source must be a faceretarget.Source, got {type(source).__name__}")
+        if not isinstance(target, TargetRig):
+            raise InputError(f"{self.name}.fit: target must be a faceretarget.TargetRig, got {type(target).__name__}")
+        reason = self.why_not(source, target)
+        if reason:
+            raise CapabilityError(reason)
+
+    def _check_fitted(self) -> None:
+        if not getattr(self, "fitted_", False):
+            raise NotFittedError(f"this {type(self).__name__} is not fitted yet; call fit(source, target) before retarget()")
+
+    # -- public protocol ---------------------------------------------------------------
+    def fit(self, source: Source, target: TargetRig) -> "Retargeter":
+        """Validate (source, target), precompute, and return self."""
+        self._check_applicable(source, target)
+        start = time.perf_counter()
+        self._fit(source, target)
+        self.target_ = target
+        self.fit_seconds_ = time.perf_counter() - start
+        self.fitted_ = True
+        return self
+
+    def retarget(self, source: Source) -> Animation:
+        """Retarget ``source`` onto the fitted target; returns an :class:`Animation`."""
+        self._check_fitted()
+        if not isinstance(source, Source):
+            raise InputError(f"{self.name}.retarget: expected a faceretarget.Source, got {type(source).__name__}")
+        reason = self.why_not(source, None)
+        if reason:
+            raise CapabilityError(reason)
+        start = time.perf_counter()
+        animation = self._retarget(source)
+        seconds = time.perf_counter() - start
+        return self._stamp(animation, seconds)
+
+    def stream(self, frames: Iterable) -> Iterator[np.ndarray]:
+        """Online retargeting, frame by frame (only where ``capabilities.stream``)."""
+        raise CapabilityError(f"{self.name or type(self).__name__} does not stream; use retarget() on the whole sequence")
+
+    def edit(self, animation: Animation, **constraints) -> Animation:
+        """Spacetime editing (only where ``capabilities.edit``)."""
+        raise CapabilityError(f"{self.name or type(self).__name__} does not support editing")
+
+    # -- for subclasses --------------------------------------------------------------
+    def _fit(self, source: Source, target: TargetRig) -> None:  # pragma: no cover - abstract
+        raise CapabilityError(f"{type(self).__name__} must implement _fit(source, target)")
+
+    def _retarget(self, source: Source) -> Animation:  # pragma: no cover - abstract
+        raise CapabilityError(f"{type(self).__name__} must implement _retarget(source)")
+
+    def _stamp(self, animation: Animation, seconds: float) -> Animation:
+        """Validate the output and fill its provenance."""
+        if not isinstance(animation, Animation):
+            raise PluginOutputError(f"{self.name}: _retarget returned {type(animation).__name__}, not an Animation")
+        from . import __version__
+
+        prov = animation.provenance
+        prov.setdefault("method", self.name)
+        prov.setdefault("version", __version__)
+        prov.setdefault("parameters", _jsonable(self.get_params()))
+        timings = prov.setdefault("timings", {})
+        timings.setdefault("fit_s", getattr(self, "fit_seconds_", None))
+        timings.setdefault("retarget_s", seconds)
+        prov.setdefault("diagnostics", {})
+        return animation
+
+
+def clone(retargeter: Retargeter) -> Retargeter:
+    """A new unfitted retargeter with the same parameters (deep-copied)."""
+    return type(retargeter)(**copy.deepcopy(retargeter.get_params()))
+
+
+def _same(a, b) -> bool:
+    try:
+        return bool(np.all(a == b)) if not isinstance(a, (dict, list)) else a == b
+    except Exception:
+        return a is b
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if value is None or isinstance(value, (str, int, float, bool)):
+        return value
+    return repr(value)

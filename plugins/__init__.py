@@ -1,0 +1,1 @@
+"""The built-in retargeters, one subpackage each, registered through entry points."""
