@@ -156,6 +156,10 @@ class Retargeter:
             setattr(self, k, v)
         return self
 
+    def clone(self) -> "Retargeter":
+        """A new unfitted retargeter with the same (deep-copied) parameters."""
+        return clone(self)
+
     def __repr__(self) -> str:
         defaults = self.default_params()
         changed = {k: v for k, v in self.get_params().items() if not _same(v, defaults.get(k))}

@@ -1,0 +1,247 @@
+"""The ``faceretarget`` command.
+
+    faceretarget list                       registered retargeters (and plugins that failed)
+    faceretarget info NAME                  parameters with defaults and meaning
+    faceretarget run NAME --source S --target T --out O [--set k=v ...]
+    faceretarget convert IN OUT             between file formats
+    faceretarget formats                    readers and writers
+    faceretarget compare / demo / batch     evaluation harness (see docs/evaluation.md)
+
+Errors are printed as one line on stderr with a non-zero exit status; ``--debug``
+shows the traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import sys
+import time
+from importlib import import_module
+
+from . import __version__
+from .errors import FaceRetargetError, InputError
+
+EXIT_ERROR = 2
+EXIT_INTERNAL = 3
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "handler", None):
+        parser.print_help()
+        return 0
+    try:
+        return int(args.handler(args) or 0)
+    except KeyboardInterrupt:
+        print("faceretarget: interrupted", file=sys.stderr)
+        return 130
+    except FaceRetargetError as exc:
+        if args.debug:
+            raise
+        print(f"faceretarget: error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_ERROR
+    except BrokenPipeError:
+        return 0
+    except Exception as exc:  # an unexpected failure: still one line unless --debug
+        if args.debug:
+            raise
+        print(
+            f"faceretarget: internal error: {type(exc).__name__}: {_one_line(exc)} (run with --debug for the traceback)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    return " ".join(text.split())
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="faceretarget", description="Facial animation retargeting.")
+    parser.add_argument("--version", action="version", version=f"faceretarget {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("list", help="list registered retargeters")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(handler=cmd_list)
+
+    p = sub.add_parser("info", help="describe one retargeter: paper, capabilities, parameters")
+    p.add_argument("name")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=cmd_info)
+
+    p = sub.add_parser("run", help="retarget a performance file onto a target rig file")
+    p.add_argument("name", help="retargeter name or alias (see `faceretarget list`)")
+    p.add_argument("--source", required=True, help="performance: markers (c3d/trc/csv), mesh sequence (folder/npz/pc2/mdd), weights csv, or a source bundle .npz")
+    p.add_argument("--target", required=True, help="target rig: glb/gltf with morph targets, folder of OBJs, rig or target bundle .npz")
+    p.add_argument("--landmarks", help="target landmark vertex ids (json/txt), when the target file has none")
+    p.add_argument("--out", required=True, help="output file (.glb, .npz, .pc2, .csv, or a folder for an OBJ sequence)")
+    p.add_argument("--set", dest="params", action="append", default=[], metavar="KEY=VALUE", help="retargeter parameter (repeatable)")
+    p.add_argument("--force", action="store_true", help="overwrite an existing output (never an input)")
+    p.set_defaults(handler=cmd_run)
+
+    p = sub.add_parser("formats", help="list file formats that can be read and written")
+    p.set_defaults(handler=cmd_formats)
+
+    p = sub.add_parser("demo", help="run every method on built-in cases and write a report (the main job)")
+    _attach(p, "faceretarget.evaluation.commands", "demo")
+    p = sub.add_parser("compare", help="compare retargeters on evaluation cases")
+    _attach(p, "faceretarget.evaluation.commands", "compare")
+    p = sub.add_parser("batch", help="run a manifest of (shot, character, method) jobs")
+    _attach(p, "faceretarget.evaluation.commands", "batch")
+    p = sub.add_parser("convert", help="convert between file formats")
+    _attach(p, "faceretarget.io.commands", "convert")
+    return parser
+
+
+def _attach(parser: argparse.ArgumentParser, module_name: str, command: str) -> None:
+    """Let ``module_name`` add its arguments and handle the sub-command."""
+    try:
+        module = import_module(module_name)
+        getattr(module, f"add_{command}_arguments")(parser)
+        run = getattr(module, f"run_{command}")
+    except (ImportError, AttributeError) as exc:
+        reason = f"{module_name} is not available ({exc})"
+
+        def run(args, _reason=reason):
+            raise FaceRetargetError(f"`faceretarget {command}` cannot run: {_reason}")
+
+        parser.add_argument("rest", nargs=argparse.REMAINDER)
+    parser.set_defaults(handler=run)
+
+
+# ---------------------------------------------------------------------------------------
+def cmd_list(args) -> int:
+    from .registry import registry
+
+    reg = registry()
+    rows = [entry.as_dict() for _, entry in sorted(reg.retargeters.items())]
+    failures = [{"plugin": f.name, "distribution": f.distribution, "version": f.version, "error": f.error} for f in reg.failures]
+    if args.json:
+        print(json.dumps({"retargeters": rows, "failed_plugins": failures}, indent=2))
+        return 0
+    if not rows:
+        print("no retargeters registered")
+    width = max([len(r["name"]) for r in rows] + [4])
+    print(f"{'NAME':<{width}}  {'SOURCES':<14} {'OUTPUT':<8} {'EDIT':<4} {'STREAM':<6} ORIGIN")
+    for r in rows:
+        caps = r["capabilities"]
+        print(
+            f"{r['name']:<{width}}  {','.join(caps['sources']):<14} {caps['outputs']:<8} "
+            f"{'yes' if caps['edit'] else '-':<4} {'yes' if caps['stream'] else '-':<6} "
+            f"{'built-in' if r['builtin'] else r['origin']}"
+        )
+        if r["summary"]:
+            print(f"{'':<{width}}  {r['summary']}")
+    if failures:
+        print("\nplugins that failed to load:")
+        for f in failures:
+            print(f"  {f['plugin']} ({f['distribution']} {f['version']}): {f['error']}")
+    return 0
+
+
+def cmd_info(args) -> int:
+    from .registry import registry
+
+    entry = registry().resolve(args.name)
+    defaults = entry.defaults
+    docs = dict(entry.cls.parameter_docs)
+    docs.update(entry.parameter_docs)
+    if args.json:
+        data = entry.as_dict()
+        data["parameters"] = {k: {"default": _jsonable(v), "doc": docs.get(k, "")} for k, v in defaults.items()}
+        print(json.dumps(data, indent=2))
+        return 0
+    caps = entry.capabilities
+    print(f"{entry.name}  ({'built-in' if entry.plugin.builtin else entry.plugin.origin})")
+    if entry.aliases:
+        print(f"aliases: {', '.join(entry.aliases)}")
+    if entry.paper:
+        print(f"paper:   {entry.paper}")
+    if entry.summary:
+        print(f"summary: {entry.summary}")
+    needs = ", ".join(" or ".join(n) if isinstance(n, tuple) else n for n in caps.needs) or "-"
+    print(f"sources: {', '.join(caps.sources)}    needs: {needs}    output: {caps.outputs}")
+    print(f"stream: {'yes' if caps.stream else 'no'}    edit: {'yes' if caps.edit else 'no'}")
+    print("parameters:")
+    if not defaults:
+        print("  (none)")
+    for k, v in defaults.items():
+        print(f"  {k} = {v!r}")
+        if docs.get(k):
+            print(f"      {docs[k]}")
+    return 0
+
+
+def cmd_formats(args) -> int:
+    from .registry import registry
+
+    reg = registry()
+    print("readers:")
+    for r, info in sorted(reg.readers, key=lambda x: x[0].name):
+        print(f"  {r.name:<14} {r.kind:<14} {' '.join(r.extensions):<20} {r.description}")
+    print("writers:")
+    for w, info in sorted(reg.writers, key=lambda x: x[0].name):
+        print(f"  {w.name:<14} {w.kind:<14} {' '.join(w.extensions):<20} {w.description}")
+    return 0
+
+
+def cmd_run(args) -> int:
+    from tqdm import tqdm
+
+    from . import get, io
+
+    params = parse_params(args.params)
+    retargeter = get(args.name, **params)
+    steps = tqdm(total=5, desc=f"{retargeter.name}", unit="step", disable=None, file=sys.stderr)
+    steps.set_postfix_str("reading source")
+    source = io.load_source(args.source)
+    steps.update()
+    steps.set_postfix_str("reading target")
+    target = io.load_target(args.target, landmarks=args.landmarks)
+    steps.update()
+    steps.set_postfix_str("fitting")
+    t0 = time.perf_counter()
+    retargeter.fit(source, target)
+    steps.update()
+    steps.set_postfix_str("retargeting")
+    animation = retargeter.retarget(source)
+    steps.update()
+    steps.set_postfix_str("writing")
+    io.save(animation, args.out, force=args.force, inputs=[args.source, args.target] + ([args.landmarks] if args.landmarks else []))
+    steps.update()
+    steps.close()
+    print(f"wrote {args.out}: {animation.n_frames} frames by {retargeter.name} in {time.perf_counter() - t0:.2f} s")
+    return 0
+
+
+def parse_params(pairs: list[str]) -> dict:
+    """``["alpha=0.1", "mode=range"]`` -> ``{"alpha": 0.1, "mode": "range"}`` (Python literals, else strings)."""
+    out = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise InputError(f"--set {pair!r}: expected KEY=VALUE, e.g. --set alpha=0.05")
+        key, value = pair.split("=", 1)
+        key = key.strip()
+        try:
+            out[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            lowered = value.strip().lower()
+            out[key] = {"true": True, "false": False, "none": None}.get(lowered, value)
+    return out
+
+
+def _jsonable(value):
+    try:
+        json.dumps(value)
+        return value
+    except TypeError:
+        return repr(value)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

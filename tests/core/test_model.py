@@ -1,0 +1,200 @@
+"""The data model validates its inputs, never mutates them, and accepts float32 / read-only arrays."""
+import numpy as np
+import pytest
+
+import faceretarget as fr
+from faceretarget import errors
+
+
+def quad():
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=np.float64)
+    t = np.array([[0, 1, 2], [0, 2, 3]])
+    return v, t
+
+
+def test_mesh_basics_and_cached_readonly_operators():
+    v, t = quad()
+    m = fr.Mesh(v, t)
+    assert m.n_vertices == 4 and m.n_triangles == 2
+    np.testing.assert_allclose(m.face_areas, [0.5, 0.5])
+    np.testing.assert_allclose(m.vertex_normals, np.tile([0, 0, 1.0], (4, 1)))
+    assert sorted(m.boundary_vertices.tolist()) == [0, 1, 2, 3]
+    assert len(m.edges) == 5
+    with pytest.raises(ValueError):
+        m.vertex_normals[0, 0] = 1.0  # cached operators are read-only
+    with pytest.raises(ValueError):
+        m.vertices[0, 0] = 1.0
+
+
+def test_mesh_does_not_touch_caller_arrays_and_accepts_float32_readonly():
+    v, t = quad()
+    v32 = v.astype(np.float32)
+    v32.flags.writeable = False
+    m = fr.Mesh(v32, t)
+    assert m.vertices.dtype == np.float64
+    v2 = v.copy()
+    fr.Mesh(v2, t)
+    assert v2.flags.writeable, "the caller's array must keep its flags"
+
+
+@pytest.mark.parametrize(
+    "vertices, triangles, error",
+    [
+        (np.zeros((4, 2)), [[0, 1, 2]], errors.ShapeError),
+        (np.full((4, 3), np.nan), [[0, 1, 2]], errors.NonFiniteError),
+        (np.eye(4, 3), [[0, 1, 4]], errors.IndexRangeError),
+        (np.eye(4, 3), [[0, -1, 2]], errors.IndexRangeError),
+        (np.eye(4, 3), [[0, 1, 1]], errors.DegenerateGeometryError),
+        (np.eye(4, 3), [[0, 1, 2], [2, 0, 1]], errors.DegenerateGeometryError),
+        (np.eye(4, 3), np.zeros((0, 3), int), errors.ShapeError),
+        (np.eye(4, 3), [[0.5, 1, 2]], errors.ShapeError),
+        (np.eye(2, 3), [[0, 1, 1]], errors.ShapeError),
+    ],
+)
+def test_mesh_rejects_bad_input_with_typed_errors(vertices, triangles, error):
+    with pytest.raises(error) as info:
+        fr.Mesh(vertices, triangles)
+    assert isinstance(info.value, errors.FaceRetargetError)
+    assert "Mesh" in str(info.value)
+
+
+def test_zero_area_triangles_found_and_rejected_on_request():
+    v = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]], dtype=float)
+    m = fr.Mesh(v, [[0, 1, 2], [0, 1, 3]])
+    assert m.degenerate_triangles().tolist() == [0]
+    with pytest.raises(errors.DegenerateGeometryError, match="zero-area"):
+        m.check_nondegenerate("coating")
+
+
+def test_marker_sequence_missing_samples_are_nan_and_partial_nan_rejected():
+    pos = np.random.default_rng(0).normal(size=(5, 4, 3))
+    pos[2, 1] = np.nan
+    seq = fr.MarkerSequence(pos, names=list("abcd"))
+    assert seq.missing.sum() == 1 and seq.missing[2, 1]
+    bad = pos.copy()
+    bad[3, 0, 0] = np.nan
+    with pytest.raises(errors.NonFiniteError, match="every coordinate"):
+        fr.MarkerSequence(bad)
+    inf = pos.copy()
+    inf[0, 0, 0] = np.inf
+    with pytest.raises(errors.NonFiniteError, match="inf"):
+        fr.MarkerSequence(inf)
+    first_missing = pos.copy()
+    first_missing[0, 0] = np.nan
+    with pytest.raises(errors.NonFiniteError, match="reference"):
+        fr.MarkerSequence(first_missing)
+    with pytest.raises(errors.InputError, match="duplicate"):
+        fr.MarkerSequence(pos, names=["a", "a", "b", "c"])
+    assert fr.MarkerSequence(pos[..., :2]).dim == 2
+
+
+def test_mesh_sequence_keeps_float32_and_checks_topology():
+    v, t = quad()
+    frames = np.repeat(v[None], 3, axis=0).astype(np.float32)
+    seq = fr.MeshSequence(frames, t, fps=24)
+    assert seq.vertices.dtype == np.float32 and seq.n_frames == 3
+    assert seq.frame(1).n_vertices == 4
+    with pytest.raises(errors.TopologyMismatchError):
+        fr.MeshSequence(frames, t, reference=np.zeros((5, 3)))
+    frames[1, 2, 0] = np.nan
+    with pytest.raises(errors.NonFiniteError, match="frame 1, vertex 2"):
+        fr.MeshSequence(frames, t)
+    with pytest.raises(errors.InputError, match="fps"):
+        fr.MeshSequence(np.repeat(v[None], 2, axis=0), t, fps=0)
+
+
+def test_blendshape_rig_evaluate_and_errors():
+    v, t = quad()
+    neutral = fr.Mesh(v, t)
+    deltas = np.zeros((2, 4, 3))
+    deltas[0, :, 2] = 1.0
+    deltas[1, 0, 0] = 2.0
+    rig = fr.BlendshapeRig(neutral, deltas, ["up", "stretch"])
+    out = rig.evaluate([[0.5, 1.0]])
+    np.testing.assert_allclose(out[0, :, 2], 0.5)
+    np.testing.assert_allclose(out[0, 0, 0], 2.0)
+    assert rig.index("up") == 0
+    with pytest.raises(errors.UnknownNameError, match="stretch"):
+        rig.index("nope")
+    with pytest.raises(errors.TopologyMismatchError):
+        fr.BlendshapeRig(neutral, np.zeros((2, 5, 3)), ["a", "b"])
+    with pytest.raises(errors.ShapeError):
+        fr.BlendshapeRig(neutral, deltas, ["a"])
+    with pytest.raises(errors.ShapeError):
+        rig.evaluate(np.zeros(3))
+
+
+def test_layered_rig_validation():
+    poses = {"emotion": np.zeros((3, 4, 3)), "speech": np.zeros((2, 4, 3))}
+    masks = np.array([[1, 1, 0, 0], [0, 0, 1, 1.0]])
+    rig = fr.LayeredRig(poses, masks)
+    assert rig.layer_names == ("emotion", "speech") and rig.n_regions == 2
+    with pytest.raises(errors.TopologyMismatchError):
+        fr.LayeredRig({"a": np.zeros((2, 4, 3)), "b": np.zeros((2, 5, 3))}, masks)
+    with pytest.raises(errors.InputError, match=">= 0"):
+        fr.LayeredRig(poses, -masks)
+    with pytest.raises(errors.ShapeError):
+        fr.LayeredRig(poses, np.ones((2, 3)))
+
+
+def test_landmarks_vertex_and_barycentric():
+    v, t = quad()
+    lm = fr.Landmarks([0, 2], names=["a", "b"])
+    np.testing.assert_allclose(lm.positions(v), v[[0, 2]])
+    bary = fr.Landmarks(triangle_ids=[0], barycentric=[[1 / 3, 1 / 3, 1 / 3]])
+    np.testing.assert_allclose(bary.positions(v, t)[0], v[[0, 1, 2]].mean(axis=0))
+    np.testing.assert_allclose(bary.positions(np.stack([v, v + 1]), t)[1, 0], v[[0, 1, 2]].mean(axis=0) + 1)
+    with pytest.raises(errors.IndexRangeError):
+        fr.Landmarks([0, 9]).validate_for(fr.Mesh(v, t))
+    with pytest.raises(errors.InputError):
+        fr.Landmarks([0], triangle_ids=[0], barycentric=[[1, 0, 0]])
+
+
+def test_source_and_target_validation():
+    v, t = quad()
+    neutral = fr.Mesh(v, t)
+    seq = fr.MeshSequence(np.repeat(v[None], 3, axis=0), t)
+    src = fr.Source(seq, landmarks=fr.Landmarks([0, 1, 2]))
+    assert src.kind == "mesh" and src.marker_positions().shape == (3, 3, 3)
+    with pytest.raises(errors.IndexRangeError):
+        fr.Source(seq, landmarks=fr.Landmarks([0, 7]))
+    with pytest.raises(errors.ShapeError):
+        fr.Source(seq, head_motion=np.tile(np.eye(4), (2, 1, 1)))
+    with pytest.raises(errors.InputError):
+        fr.Source(np.zeros((3, 4, 3)))
+    target = fr.TargetRig(neutral, landmarks=fr.Landmarks([0, 1, 2]), feature_lines={"mouth": [0, 1, 2]})
+    assert target.parts() == ("landmarks", "feature_lines")
+    other = fr.Mesh(np.vstack([v, [[2, 2, 0]]]), [[0, 1, 2], [2, 3, 4]])
+    rig = fr.BlendshapeRig(other, np.zeros((1, 5, 3)), ["a"])
+    with pytest.raises(errors.TopologyMismatchError):
+        fr.TargetRig(neutral, blendshapes=rig)
+    with pytest.raises(errors.IndexRangeError):
+        fr.TargetRig(neutral, feature_lines={"eye": [0, 8]})
+
+
+def test_animation_lazy_vertices_with_head_motion_and_provenance():
+    v, t = quad()
+    rig = fr.BlendshapeRig(fr.Mesh(v, t), np.ones((1, 4, 3)), ["lift"])
+    motion = np.tile(np.eye(4), (2, 1, 1))
+    motion[:, :3, 3] = [10.0, 0, 0]
+    anim = fr.Animation(weights=[[0.0], [1.0]], rig=rig, head_motion=motion, provenance={"method": "x"})
+    assert anim.is_blendshape_based and anim._vertices is None
+    np.testing.assert_allclose(anim.vertices[1], v + 1 + [10, 0, 0])
+    np.testing.assert_allclose(anim.local_vertices[1], v + 1)
+    assert anim.weight_names == ("lift",) and anim.provenance["method"] == "x"
+    with pytest.raises(errors.InputError):
+        fr.Animation(weights=[[1.0]])
+    with pytest.raises(errors.NonFiniteError):
+        fr.Animation(vertices=np.full((1, 4, 3), np.nan))
+    with pytest.raises(errors.ShapeError):
+        fr.Animation(weights=[[1.0, 2.0]], rig=rig)
+
+
+def test_inputs_never_mutated():
+    v, t = quad()
+    v_before, t_before = v.copy(), t.copy()
+    m = fr.Mesh(v, t)
+    _ = m.vertex_normals, m.adjacency, m.boundary_vertices
+    rig = fr.BlendshapeRig(m, np.ones((1, 4, 3)), ["a"])
+    rig.evaluate([1.0])
+    assert np.array_equal(v, v_before) and np.array_equal(t, t_before)
