@@ -175,14 +175,21 @@ def _rms(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _fingerprint(obj) -> str:
-    """Hash of every numpy array reachable from a model object (to detect mutation)."""
+    """Hash of every numpy array reachable from a model object (to detect mutation).
+
+    Cached derived operators (``functools.cached_property``) are skipped: they are
+    not inputs and may be filled in by use.
+    """
     h = hashlib.sha256()
-    seen = set()
+    seen: dict[int, object] = {}  # id -> object, kept alive so ids are not reused
 
     def visit(x):
+        if isinstance(x, (str, bytes, int, float, bool, type(None))):
+            h.update(repr(x).encode())
+            return
         if id(x) in seen:
             return
-        seen.add(id(x))
+        seen[id(x)] = x
         if isinstance(x, np.ndarray):
             h.update(str((x.shape, x.dtype)).encode())
             h.update(np.ascontiguousarray(x).tobytes())
@@ -193,12 +200,17 @@ def _fingerprint(obj) -> str:
         elif isinstance(x, (list, tuple)):
             for v in x:
                 visit(v)
-        elif hasattr(x, "__dict__") and type(x).__module__.startswith("faceretarget"):
-            visit({k: v for k, v in vars(x).items() if not k.startswith("_") or k == "_vertices"})
-        elif hasattr(x, "__slots__"):
-            for s in x.__slots__:
-                if s != "__dict__" and hasattr(x, s):
-                    visit(getattr(x, s))
+        elif type(x).__module__.startswith("faceretarget"):
+            cls = type(x)
+            fields = {}
+            for klass in cls.__mro__:
+                for slot in getattr(klass, "__slots__", ()):
+                    if slot != "__dict__" and hasattr(x, slot):
+                        fields[slot] = getattr(x, slot)
+            for k, v in getattr(x, "__dict__", {}).items():
+                if not k.startswith("_") and not isinstance(getattr(cls, k, None), functools.cached_property):
+                    fields[k] = v
+            visit(fields)
 
     visit(obj)
     return h.hexdigest()
@@ -447,6 +459,19 @@ def check_capabilities(r: Retargeter, case=None) -> None:
             assert str(exc), f"{_label(r)}: CapabilityError without a message"
             continue
         raise AssertionError(f"{_label(r)}: declares it needs {' or '.join(options)} but fit() worked without it")
+    declared = {n for need in caps.needs for n in (need if isinstance(need, tuple) else (need,))}
+    for part in TargetRig.PARTS:
+        if part in declared or not case.target.has(part):
+            continue
+        stripped = _target_without(case.target, (part,))
+        try:
+            _instance(r).fit(source, stripped).retarget(source)
+        except CapabilityError:
+            continue  # a conditional need, stated clearly
+        except Exception as exc:
+            raise AssertionError(
+                f"{_label(r)}: fails without the target's {part} ({type(exc).__name__}: {exc}) but does not declare it in capabilities.needs"
+            ) from exc
     if caps.outputs == "weights":
         anim = _instance(r).fit(source, case.target).retarget(source)
         assert anim.weights is not None, f"{_label(r)}: declares outputs='weights' but the Animation has no weights"
