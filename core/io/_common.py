@@ -1,0 +1,309 @@
+"""Helpers shared by the format modules: typed errors naming the file, the memory
+budget, safe text and npy/npz access (never pickle), JSON and natural sorting."""
+from __future__ import annotations
+
+import functools
+import math
+import re
+import warnings
+import zipfile
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .. import config
+from ..errors import FaceRetargetError, FileFormatError, InputError, ResourceLimitError
+from ._atomic import note_input
+
+__all__ = [
+    "bad",
+    "check_budget",
+    "guarded_reader",
+    "read_bytes",
+    "read_text",
+    "natural_key",
+    "fmt_float",
+    "read_npz",
+    "npy_header",
+    "load_npy",
+    "split_arrays",
+    "join_arrays",
+    "fps_from_times",
+]
+
+_SIZE_UNITS = ("B", "KiB", "MiB", "GiB", "TiB")
+
+#: text formats: how many bytes of memory reading one byte of text may cost (lines, floats)
+TEXT_MEMORY_FACTOR = 4
+
+
+def bad(path, what: str) -> FileFormatError:
+    """A :class:`FileFormatError` whose message starts with the file name."""
+    return FileFormatError(f"{path}: {what}")
+
+
+def human_size(n: float) -> str:
+    n = float(n)
+    for unit in _SIZE_UNITS:
+        if n < 1024 or unit == _SIZE_UNITS[-1]:
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"
+
+
+def check_budget(path, nbytes: float, what: str) -> None:
+    """Refuse (before allocating) when ``nbytes`` exceeds :func:`faceretarget.config.memory_budget`."""
+    budget = config.memory_budget()
+    if not math.isfinite(float(nbytes)) or nbytes > budget:
+        raise ResourceLimitError(
+            f"{path}: {what} would need {human_size(nbytes)}, more than the memory budget of {human_size(budget)}; "
+            f"if the file is genuine, raise {config.ENV_MEMORY_BUDGET} (e.g. {config.ENV_MEMORY_BUDGET}=32G)"
+        )
+
+
+def guarded_reader(fn: Callable) -> Callable:
+    """Wrap a ``read(path, **options)`` so every failure is a typed error naming the file.
+
+    The path is recorded as an input (writers will not replace it); a missing path is a
+    FileFormatError; faceretarget's own InputErrors (raised by the model constructors on
+    wrong counts or NaN) become FileFormatErrors prefixed by the file name; any other
+    exception from a parser or third-party library becomes a FileFormatError too.
+    """
+
+    @functools.wraps(fn)
+    def read(path, **options):
+        p = Path(path)
+        if not p.exists():
+            raise FileFormatError(f"{p}: no such file or folder")
+        note_input(p)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                with np.errstate(all="ignore"):
+                    return fn(p, **options)
+        except InputError as exc:
+            message = str(exc)
+            raise FileFormatError(message if message.startswith(str(p)) else f"{p}: {message}") from None
+        except FaceRetargetError:
+            raise
+        except MemoryError:
+            raise ResourceLimitError(f"{p}: ran out of memory while reading; the file is too large for this machine") from None
+        except RecursionError:
+            raise FileFormatError(f"{p}: nested too deeply to read") from None
+        except Exception as exc:  # parsers and third-party libraries raise anything on bad input
+            detail = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+            raise FileFormatError(
+                f"{p}: not a readable file of this format ({type(exc).__name__}{': ' + detail[:200] if detail else ''})"
+            ) from None
+
+    return read
+
+
+def read_bytes(path: Path, what: str = "reading the file") -> bytes:
+    """The whole file, after checking its size against the memory budget."""
+    size = path.stat().st_size
+    check_budget(path, size, what)
+    return path.read_bytes()
+
+
+def read_text(path: Path, *, allow_empty: bool = False) -> str:
+    """The file as text (UTF-8, BOM stripped, Latin-1 fallback); binary data is refused."""
+    size = path.stat().st_size
+    check_budget(path, size * TEXT_MEMORY_FACTOR, "parsing this text file")
+    data = path.read_bytes()
+    if not data.strip() and not allow_empty:
+        raise bad(path, "the file is empty")
+    if b"\x00" in data:
+        raise bad(path, "holds binary data (NUL bytes), not text")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
+_NAT = re.compile(r"(\d+)")
+
+
+def natural_key(text: str) -> tuple:
+    """Sort key putting ``frame2`` before ``frame10``."""
+    return tuple((0, int(t), t) if t.isdigit() else (1, 0, t.lower()) for t in _NAT.split(text) if t)
+
+
+def fmt_float(value: float) -> str:
+    """Shortest text that reads back as exactly the same float64."""
+    return repr(float(value))
+
+
+def parse_float(text: str, path, where: str) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise bad(path, f"{where}: expected a number, got {text[:40]!r}") from None
+    return value
+
+
+def parse_int(text: str, path, where: str, *, minimum: int | None = 0) -> int:
+    try:
+        value = int(text)
+    except (TypeError, ValueError):
+        raise bad(path, f"{where}: expected a whole number, got {text[:40]!r}") from None
+    if minimum is not None and value < minimum:
+        raise bad(path, f"{where}: expected a number >= {minimum}, got {value}")
+    return value
+
+
+# ---------------------------------------------------------------------------------------
+# npy / npz without pickle, sizes checked before loading
+# ---------------------------------------------------------------------------------------
+def npy_header(fh, path, name: str = "") -> tuple[tuple[int, ...], np.dtype, bool]:
+    """Read an ``.npy`` header from an open binary file: (shape, dtype, fortran_order)."""
+    where = f"array {name!r}" if name else "the npy header"
+    try:
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh, max_header_size=100000)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh, max_header_size=100000)
+        else:
+            raise bad(path, f"{where}: unsupported npy version {version}")
+    except FileFormatError:
+        raise
+    except Exception as exc:
+        raise bad(path, f"{where} is not a valid numpy array header ({exc})") from None
+    if dtype.hasobject:
+        raise bad(path, f"{where} holds Python objects; only plain numeric or text arrays are read (never pickle)")
+    if any(int(s) < 0 for s in shape):
+        raise bad(path, f"{where} declares a negative size {shape}")
+    return tuple(int(s) for s in shape), dtype, bool(fortran)
+
+
+def array_nbytes(shape: tuple[int, ...], dtype: np.dtype) -> int:
+    n = 1
+    for s in shape:
+        n *= int(s)
+    return n * max(int(dtype.itemsize), 1)
+
+
+def read_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` file, after checking the declared sizes against the budget.
+
+    Raises FileFormatError for anything that is not a zip of plain ``.npy`` members.
+    """
+    if path.stat().st_size == 0:
+        raise bad(path, "the file is empty")
+    try:
+        zf = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise bad(path, f"not an npz (zip) archive ({exc})") from None
+    with zf:
+        try:
+            infos = zf.infolist()
+        except Exception as exc:
+            raise bad(path, f"damaged zip directory ({exc})") from None
+        if not infos:
+            raise bad(path, "the npz archive holds no arrays")
+        headers = {}
+        total = 0
+        for info in infos:
+            if not info.filename.endswith(".npy"):
+                raise bad(path, f"member {info.filename!r} is not an .npy array")
+            key = info.filename[: -len(".npy")]
+            try:
+                with zf.open(info) as fh:
+                    shape, dtype, _ = npy_header(fh, path, key)
+            except FileFormatError:
+                raise
+            except Exception as exc:
+                raise bad(path, f"array {key!r} cannot be opened ({exc})") from None
+            nbytes = array_nbytes(shape, dtype)
+            if info.file_size < nbytes:
+                raise bad(path, f"array {key!r} declares {shape} {dtype} ({nbytes} bytes) but its member holds {info.file_size}")
+            headers[key] = (shape, dtype)
+            total += nbytes
+        check_budget(path, total, "the arrays of this npz")
+        out = {}
+        for key, (shape, dtype) in headers.items():
+            try:
+                with zf.open(key + ".npy") as fh:
+                    arr = np.lib.format.read_array(fh, allow_pickle=False)
+            except Exception as exc:
+                raise bad(path, f"array {key!r} is truncated or corrupt ({type(exc).__name__}: {exc})") from None
+            out[key] = arr
+    return out
+
+
+def load_npy(path: Path, *, mmap: bool = True) -> np.ndarray:
+    """An ``.npy`` array (memory-mapped when possible), size-checked, never unpickled."""
+    with open(path, "rb") as fh:
+        shape, dtype, _ = npy_header(fh, path)
+        offset = fh.tell()
+    nbytes = array_nbytes(shape, dtype)
+    check_budget(path, nbytes, f"an array of shape {shape}")
+    size = path.stat().st_size
+    if size < offset + nbytes:
+        raise bad(path, f"truncated: the header declares {shape} {dtype} ({nbytes} bytes) but only {size - offset} bytes follow")
+    if dtype.kind in "OV" or dtype.hasobject:
+        raise bad(path, "holds structured or object data; expected a plain numeric array")
+    if mmap and nbytes > 0:
+        return np.load(path, mmap_mode="r", allow_pickle=False)
+    return np.load(path, allow_pickle=False)
+
+
+# ---------------------------------------------------------------------------------------
+# JSON with arrays beside it, and timing
+# ---------------------------------------------------------------------------------------
+ARRAY_REF = "__ndarray__"
+
+
+def split_arrays(value: Any) -> tuple[Any, list[np.ndarray]]:
+    """JSON-ready copy of ``value`` with its numeric/text arrays replaced by
+    ``{"__ndarray__": i}`` references, and the list of those arrays (for files that store
+    arrays natively next to JSON metadata)."""
+    arrays: list[np.ndarray] = []
+
+    def strip(v):
+        if isinstance(v, np.ndarray):
+            if v.dtype.kind in "biufU":
+                arrays.append(v)
+                return {ARRAY_REF: len(arrays) - 1}
+            return strip(v.tolist())
+        if isinstance(v, dict):
+            return {str(k): strip(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [strip(x) for x in v]
+        if isinstance(v, np.generic):
+            return strip(v.item())
+        if isinstance(v, float):
+            return v if math.isfinite(v) else str(v)  # strict JSON has no NaN
+        if v is None or isinstance(v, (bool, int, str)):
+            return v
+        return str(v)
+
+    return strip(value), arrays
+
+
+def join_arrays(tree: Any, fetch: Callable[[int], np.ndarray]) -> Any:
+    """Inverse of :func:`split_arrays`: ``fetch(i)`` gives back array ``i``."""
+    if isinstance(tree, dict):
+        if set(tree) == {ARRAY_REF} and isinstance(tree[ARRAY_REF], int):
+            return fetch(tree[ARRAY_REF])
+        return {k: join_arrays(x, fetch) for k, x in tree.items()}
+    if isinstance(tree, list):
+        return [join_arrays(x, fetch) for x in tree]
+    return tree
+
+
+def fps_from_times(times: np.ndarray, default: float) -> float:
+    """Frames per second from uniformly spaced sample times (snapped to 1/1000 fps when close)."""
+    times = np.asarray(times, dtype=np.float64)
+    if times.size < 2:
+        return float(default)
+    span = float(times[-1] - times[0])
+    if not math.isfinite(span) or span <= 0:
+        return float(default)
+    fps = (times.size - 1) / span
+    snapped = round(fps, 3)
+    if snapped > 0 and abs(fps - snapped) <= 1e-6 * fps:
+        return snapped
+    return fps

@@ -1,0 +1,309 @@
+"""Motion-capture markers: C3D (through the ``c3d`` package), TRC and CSV.
+
+Missing samples become NaN (C3D: a negative residual; TRC/CSV: an empty cell or
+``nan``). The neutral reference is the first frame when it is complete; otherwise each
+missing marker takes its first observed position (a marker never observed is an error).
+
+CSV layout (read and written): one header row, optional ``frame`` and ``time`` columns,
+then ``NAME_x, NAME_y, NAME_z`` per marker (``_x``/``.x``/``:X``/`` X`` suffixes are all
+accepted; ``x, y`` only for 2D tracks). Text is written with shortest round-trip
+decimals, so CSV and TRC round trips are exact; C3D stores float32.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..model import MarkerSequence
+from ._atomic import atomic_file, write_bytes
+from ._common import bad, check_budget, fmt_float, fps_from_times, guarded_reader, parse_float, read_text
+
+__all__ = ["read_c3d", "read_trc", "read_marker_csv", "write_c3d", "write_trc", "write_marker_csv", "csv_rows", "is_marker_header", "META_COLUMNS"]
+
+_DEFAULT_FPS = 30.0
+_AXIS = re.compile(r"^(?P<name>.+?)(?:[_.:/\s-])(?P<axis>[xyzXYZ])$")
+#: non-data columns recognised (case-insensitively) in CSV headers
+META_COLUMNS = ("frame", "frame#", "time", "timestamp", "timecode", "blendshapecount")
+_MISSING = ("", "nan", "-nan", "na", "null")
+
+
+def _reference(path, positions: np.ndarray, names) -> np.ndarray:
+    """Frame 0, with each missing marker filled by its first observed sample."""
+    ref = np.array(positions[0])
+    missing = np.isnan(ref[:, 0])
+    if missing.any():
+        seen = ~np.isnan(positions[..., 0])
+        for n in np.flatnonzero(missing):
+            frames = np.flatnonzero(seen[:, n])
+            if frames.size == 0:
+                raise bad(path, f"marker {names[n]!r} is missing in every frame")
+            ref[n] = positions[frames[0], n]
+    return ref
+
+
+def _markers(path, positions: np.ndarray, names, fps: float, reference=None) -> MarkerSequence:
+    if positions.shape[0] == 0:
+        raise bad(path, "holds no frames")
+    if reference is None:
+        reference = _reference(path, positions, names)
+    return MarkerSequence(positions, names=names, fps=fps, reference=reference)
+
+
+def _cell(text: str, path, row: int, column: str) -> float:
+    t = text.strip()
+    if t.lower() in _MISSING:
+        return np.nan
+    value = parse_float(t, path, f"row {row}, column {column!r}")
+    if not np.isfinite(value):
+        raise bad(path, f"row {row}, column {column!r}: infinite value (write missing samples as empty cells)")
+    return value
+
+
+def csv_rows(path: Path) -> tuple[list[str], list[list[str]]]:
+    """Header and data rows of a CSV file (comma, semicolon or tab separated)."""
+    text = read_text(path)
+    sample = text[:4096]
+    delimiter = max(",;\t", key=sample.split("\n", 1)[0].count)
+    rows = [r for r in csv.reader(io.StringIO(text), delimiter=delimiter) if any(c.strip() for c in r)]
+    if not rows:
+        raise bad(path, "the file is empty")
+    header = [h.strip() for h in rows[0]]
+    if len(header) < 2 and len(rows) > 1:
+        raise bad(path, "expected a header row with several columns")
+    return header, rows[1:]
+
+
+def _marker_columns(header: list[str]) -> tuple[list[str], list[list[int]], list[int]] | None:
+    """Marker names, their column ids (x, y[, z]) and meta column ids; None if not a marker header."""
+    names: list[str] = []
+    columns: list[list[int]] = []
+    meta: list[int] = []
+    current = None
+    for i, col in enumerate(header):
+        if col.lower() in META_COLUMNS:
+            meta.append(i)
+            continue
+        m = _AXIS.match(col)
+        if not m:
+            return None
+        name, axis = m.group("name").strip(), "xyz".index(m.group("axis").lower())
+        if axis == 0:
+            names.append(name)
+            columns.append([i])
+            current = name
+        elif current == name and len(columns[-1]) == axis:
+            columns[-1].append(i)
+        else:
+            return None
+    if not names:
+        return None
+    dims = {len(c) for c in columns}
+    if len(dims) != 1 or dims.pop() not in (2, 3):
+        return None
+    return names, columns, meta
+
+
+def is_marker_header(header: list[str]) -> bool:
+    return _marker_columns(header) is not None
+
+
+def _time_column(header: list[str], rows: list[list[str]], path) -> np.ndarray | None:
+    for i, col in enumerate(header):
+        if col.lower() in ("time", "timestamp"):
+            try:
+                return np.array([float(r[i]) for r in rows])
+            except (ValueError, IndexError):
+                raise bad(path, f"column {col!r} must hold times in seconds") from None
+    return None
+
+
+@guarded_reader
+def read_marker_csv(path: Path, *, fps=None, reference=None, **options) -> MarkerSequence:
+    """Markers from a CSV with ``NAME_x, NAME_y, NAME_z`` columns (empty cell = missing)."""
+    header, rows = csv_rows(path)
+    found = _marker_columns(header)
+    if found is None:
+        raise bad(path, "the header is not a marker layout: expected NAME_x, NAME_y, NAME_z columns (plus optional frame, time)")
+    names, columns, _ = found
+    if not rows:
+        raise bad(path, "holds a header but no frames")
+    dim = len(columns[0])
+    check_budget(path, len(rows) * len(names) * dim * 8.0, f"{len(rows)} frames of {len(names)} markers")
+    positions = np.empty((len(rows), len(names), dim))
+    for r, row in enumerate(rows):
+        if len(row) != len(header):
+            raise bad(path, f"row {r + 2} has {len(row)} cells but the header has {len(header)}")
+        for n, cols in enumerate(columns):
+            positions[r, n] = [_cell(row[c], path, r + 2, header[c]) for c in cols]
+    if fps is None:
+        times = _time_column(header, rows, path)
+        fps = fps_from_times(times, _DEFAULT_FPS) if times is not None else _DEFAULT_FPS
+    return _markers(path, positions, names, fps, reference)
+
+
+def _check_names(names, what: str, forbidden: str) -> None:
+    for n in names:
+        if any(ch in n for ch in forbidden):
+            raise InputError(f"{what}: marker name {n!r} contains a character the format cannot store ({forbidden!r})")
+
+
+def write_marker_csv(markers: MarkerSequence, path, *, force: bool = False, inputs=(), **options) -> None:
+    """Write markers as CSV: ``frame, time, NAME_x, NAME_y[, NAME_z]`` (empty cell = missing)."""
+    if not isinstance(markers, MarkerSequence):
+        raise InputError(f"the marker CSV writer takes a MarkerSequence, got {type(markers).__name__}")
+    _check_names(markers.names, "marker CSV", "\n\r")
+    axes = "xyz"[: markers.dim]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["frame", "time"] + [f"{n}_{a}" for n in markers.names for a in axes])
+    pos = np.asarray(markers.positions)
+    for f in range(markers.n_frames):
+        cells = ["" if np.isnan(v) else fmt_float(v) for v in pos[f].ravel().tolist()]
+        w.writerow([str(f), fmt_float(f / markers.fps)] + cells)
+    write_bytes(path, buf.getvalue().encode("utf-8"), inputs=inputs, force=force)
+
+
+# ---------------------------------------------------------------------------------------
+# TRC (OpenSim / Motion Analysis, tab separated)
+# ---------------------------------------------------------------------------------------
+@guarded_reader
+def read_trc(path: Path, *, fps=None, reference=None, **options) -> MarkerSequence:
+    """Markers from a TRC file (``DataRate`` gives the fps; empty cells are missing samples)."""
+    lines = read_text(path).splitlines()
+    if not lines or not lines[0].startswith("PathFileType"):
+        raise bad(path, "missing the 'PathFileType' first line; not a TRC file")
+    if len(lines) < 5:
+        raise bad(path, "truncated: a TRC file needs 5 header lines")
+    keys = lines[1].split("\t")
+    values = lines[2].split("\t")
+    if len(keys) != len(values):
+        raise bad(path, "header lines 2 and 3 have different numbers of fields")
+    info = {k.strip(): v.strip() for k, v in zip(keys, values)}
+    for key in ("DataRate", "NumFrames", "NumMarkers"):
+        if key not in info:
+            raise bad(path, f"the header lacks {key}")
+    rate = parse_float(info["DataRate"], path, "DataRate")
+    try:
+        n_frames, n_markers = int(info["NumFrames"]), int(info["NumMarkers"])
+    except ValueError:
+        raise bad(path, "NumFrames and NumMarkers must be whole numbers") from None
+    if n_frames <= 0 or n_markers <= 0:
+        raise bad(path, f"declares {n_frames} frames and {n_markers} markers; both must be positive")
+    check_budget(path, n_frames * n_markers * 3 * 8.0, f"{n_frames} frames of {n_markers} markers")
+    names = [t.strip() for t in lines[3].split("\t")[2:] if t.strip()]
+    if len(names) != n_markers:
+        raise bad(path, f"NumMarkers is {n_markers} but the names line lists {len(names)} markers")
+    data = [ln for ln in lines[5:] if ln.strip()]
+    if len(data) != n_frames:
+        raise bad(path, f"NumFrames is {n_frames} but the file has {len(data)} data rows (truncated or wrong count)")
+    positions = np.full((n_frames, n_markers, 3), np.nan)
+    width = 2 + 3 * n_markers
+    for r, line in enumerate(data):
+        cells = line.split("\t")
+        if len(cells) > width and any(c.strip() for c in cells[width:]):
+            raise bad(path, f"data row {r + 1} has {len(cells)} fields; {width} expected")
+        vals = [_cell(c, path, r + 6, "marker data") for c in cells[2:width]]
+        positions[r] = np.asarray(vals + [np.nan] * (3 * n_markers - len(vals))).reshape(n_markers, 3)
+    return _markers(path, positions, names, fps if fps is not None else rate, reference)
+
+
+def write_trc(markers: MarkerSequence, path, *, force: bool = False, inputs=(), units: str = "mm", **options) -> None:
+    """Write 3D markers as a tab-separated TRC file (exact decimals; empty cell = missing)."""
+    if not isinstance(markers, MarkerSequence):
+        raise InputError(f"the TRC writer takes a MarkerSequence, got {type(markers).__name__}")
+    if markers.dim != 3:
+        raise InputError("TRC stores 3D markers; these are 2D tracks (write them as CSV)")
+    _check_names(markers.names, "TRC", "\t\n\r")
+    n_f, n_m, fps = markers.n_frames, markers.n_markers, fmt_float(markers.fps)
+    lines = [
+        f"PathFileType\t4\t(X/Y/Z)\t{Path(path).name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
+        f"{fps}\t{fps}\t{n_f}\t{n_m}\t{units}\t{fps}\t1\t{n_f}",
+        "Frame#\tTime\t" + "\t".join(f"{n}\t\t" for n in markers.names).rstrip("\t"),
+        "\t\t" + "\t".join(f"X{i}\tY{i}\tZ{i}" for i in range(1, n_m + 1)),
+        "",
+    ]
+    pos = np.asarray(markers.positions)
+    for f in range(n_f):
+        cells = ["" if np.isnan(v) else fmt_float(v) for v in pos[f].ravel().tolist()]
+        lines.append("\t".join([str(f + 1), fmt_float(f / markers.fps)] + cells))
+    write_bytes(path, ("\n".join(lines) + "\n").encode("utf-8"), inputs=inputs, force=force)
+
+
+# ---------------------------------------------------------------------------------------
+# C3D
+# ---------------------------------------------------------------------------------------
+@guarded_reader
+def read_c3d(path: Path, *, fps=None, reference=None, **options) -> MarkerSequence:
+    """Markers from a C3D file (``c3d`` package); a negative residual marks a missing sample."""
+    import c3d
+
+    size = path.stat().st_size
+    if size < 512:
+        raise bad(path, f"too short for a C3D file ({size} bytes; the header block alone is 512)")
+    with open(path, "rb") as fh:
+        reader = c3d.Reader(fh)
+        n_frames = int(reader.last_frame) - int(reader.first_frame) + 1
+        n_points = int(reader.point_used)
+        if n_frames <= 0 or n_points <= 0:
+            raise bad(path, f"declares {n_frames} frames and {n_points} markers; both must be positive")
+        check_budget(path, n_frames * n_points * 3 * 8.0, f"{n_frames} frames of {n_points} markers")
+        word = 4 if float(reader.point_scale) < 0 else 2
+        per_frame = (n_points * 4 + int(reader.analog_used) * int(reader.analog_per_frame)) * word
+        start = (int(reader.header.data_block) - 1) * 512
+        if start < 0 or size < start + n_frames * per_frame:
+            raise bad(path, f"truncated: {n_frames} frames of {n_points} markers need {start + n_frames * per_frame} bytes, the file has {size}")
+        labels = [str(lab).strip() for lab in list(reader.point_labels)[:n_points]]
+        if len(labels) != n_points or any(not lab for lab in labels):
+            labels = [lab or f"marker{i}" for i, lab in enumerate(labels)] + [f"marker{i}" for i in range(len(labels), n_points)]
+        positions = np.full((n_frames, n_points, 3), np.nan)
+        count = 0
+        for count, (_, points, _) in enumerate(reader.read_frames(copy=False), 1):
+            if count > n_frames:
+                raise bad(path, f"holds more frames than the {n_frames} it declares")
+            pts = np.asarray(points, dtype=np.float64)
+            if pts.shape[0] != n_points or pts.shape[1] < 4:
+                raise bad(path, f"frame {count} holds {pts.shape[0]} points; {n_points} declared")
+            ok = pts[:, 3] >= 0
+            positions[count - 1, ok] = pts[ok, :3]
+        if count != n_frames:
+            raise bad(path, f"truncated: declares {n_frames} frames but holds {count}")
+        rate = float(reader.point_rate)
+    if not np.all(np.isfinite(positions[~np.isnan(positions)])):
+        raise bad(path, "holds infinite coordinates")
+    return _markers(path, positions, labels, fps if fps is not None else rate, reference)
+
+
+def write_c3d(markers: MarkerSequence, path, *, force: bool = False, inputs=(), **options) -> None:
+    """Write 3D markers as C3D (float32 points; missing samples get residual -1)."""
+    import c3d
+
+    if not isinstance(markers, MarkerSequence):
+        raise InputError(f"the C3D writer takes a MarkerSequence, got {type(markers).__name__}")
+    if markers.dim != 3:
+        raise InputError("C3D stores 3D markers; these are 2D tracks (write them as CSV)")
+    for n in markers.names:
+        if not n.isascii() or not n.isprintable():
+            raise InputError(f"C3D labels are ASCII; marker name {n!r} cannot be stored")
+    writer = c3d.Writer(point_rate=float(markers.fps), point_scale=-1.0)
+    writer.set_point_labels(list(markers.names))
+    pos = np.asarray(markers.positions)
+    frames = []
+    for f in range(markers.n_frames):
+        pts = np.zeros((markers.n_markers, 5), dtype=np.float32)
+        missing = np.isnan(pos[f, :, 0])
+        pts[~missing, :3] = pos[f, ~missing]
+        pts[missing, 3] = -1.0
+        frames.append((pts, np.zeros((0, 0), dtype=np.float32)))
+    writer.add_frames(frames)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with atomic_file(path, inputs=inputs, force=force) as fh:
+            writer.write(fh)
