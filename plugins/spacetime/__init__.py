@@ -1,7 +1,15 @@
-"""Built-in retargeter plugin `spacetime` (being implemented)."""
+"""Built-in retargeter plugin ``spacetime``: Seol et al. 2012, Spacetime Expression Cloning for Blendshapes.
+
+Registers ``spacetime`` (movement matching with PCA prior and spacetime editing) and the
+paper's per-frame baselines ``spacetime_noconst``, ``spacetime_rangepf`` and
+``spacetime_priorpf``. Importing this package does not import numba: the kernels compile
+on first use.
+"""
 from faceretarget.hookspecs import hookimpl
 
 
 @hookimpl
 def faceretarget_retargeters():
-    return []
+    from .retargeter import RETARGETERS
+
+    return list(RETARGETERS)

@@ -1,0 +1,526 @@
+"""Spacetime expression cloning for blendshapes (Seol et al. 2012) and its per-frame baselines.
+
+``spacetime`` (mode ``"movement"``): the source's marker *velocities* are matched by the
+target's blendshape weights over the whole sequence, with boundary values at the first
+and last frames and at user-constrained frames, a PCA prior on the target's expression
+space, an optional Sobolev position term, and spacetime editing (:meth:`edit`).
+
+The per-frame baselines of the paper's comparisons (fig. 7, 9, 11) are the modes
+``"noconst"``, ``"rangepf"`` and ``"priorpf"``, also registered as ``spacetime_noconst``,
+``spacetime_rangepf`` and ``spacetime_priorpf`` (the same class with another default
+``mode``; ``spacetime_priorpf`` defaults to the paper's ``alpha = 0.5``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from collections.abc import Mapping
+from typing import ClassVar
+
+import numpy as np
+
+from faceretarget.errors import (
+    CapabilityError,
+    ConfigError,
+    IndexRangeError,
+    InputError,
+    NonFiniteError,
+    ShapeError,
+    TopologyMismatchError,
+)
+from faceretarget.model import Animation, Source, TargetRig
+from faceretarget.retargeter import Capabilities, Retargeter
+
+from . import calibration
+from .prior import fit_prior
+from .solver import System, energy_terms, solve_bounded, solve_movement, solve_per_frame
+
+MODES = ("movement", "noconst", "rangepf", "priorpf")
+BOUNDARIES = ("per_frame", "neutral", "none")
+KERNELS = ("linear", "multiquadric", "gaussian", "thin_plate")
+
+
+class SpacetimeRetargeter(Retargeter):
+    """Spacetime expression cloning for blendshapes (Seol et al. 2012).
+
+    Parameters
+    ----------
+    mode : "movement" | "noconst" | "rangepf" | "priorpf"
+        Movement matching (the method), or a per-frame baseline: unconstrained least
+        squares, bounded least squares in ``[lower, upper]``, least squares with the prior.
+    alpha : float >= 0
+        Prior weight (Eq. 4) in the paper's units: a face whose neutral markers have an RMS
+        radius of ``calibration.FACE_SIZE_REF`` = 60 (a human face in millimetres), captured at
+        ``calibration.FPS_REF`` = 30 frames per second. With ``scale_alpha`` the weight used is
+        ``alpha * (face size / 60)**2 * (30 / fps)**2`` in movement matching and
+        ``alpha * (face size / 60)**2`` in per-frame solves (boundary values, "Prior PF"), so one
+        value means the same balance in any length unit and frame rate. 0 disables the prior.
+    scale_alpha : bool
+        Rescale ``alpha`` with the face size (RMS radius of the source's neutral markers) and
+        the frame rate (the velocity term shrinks with the square of the frame rate).
+    beta : float >= 0
+        Sobolev position weight (sec. 7.1); 0 = pure movement matching.
+    marker_weights : None | (N,) | (F, N) | {marker name: weight}
+        Per-marker (or per-frame per-marker) weights of the Sobolev term; None = all 1, a
+        mapping gives 0 to unlisted markers.
+    prior_shapes : None | sequence of shape names or indices
+        Blendshapes whose PCA forms the prior (fig. 13). None: all of them, or none when
+        ``prior_animations`` is given.
+    prior_animations : None | (K, M) weights | (K, V, 3) target vertices
+        Target animation frames (local, no head motion) added to the prior's PCA samples.
+    prior_center : "neutral" | "mean"
+        Centre of the prior's PCA: the neutral (default; a face at rest has zero prior energy
+        even when shapes are linearly dependent at the markers) or the sample mean (Eq. 3 as
+        printed).
+    boundary : "per_frame" | "neutral" | "none" | (2, M) weights
+        Boundary values at the first and last frame: the per-frame solution there (with the
+        prior), neutral (zero weights, the paper's capture protocol), none (needs ``beta > 0``),
+        or given weights.
+    constraints : None | {frame: (M,) weights or {shape name: weight}}
+        User-constrained frames (extra boundary conditions, sec. 6).
+    remove_head_motion : bool
+        Estimate the rigid head motion by Procrustes (sec. 3.1), remove it before and re-apply
+        it to the target after. A ``Source.head_motion`` is always used when given.
+    head_motion_refinement : int >= 0
+        Gauss-Newton steps refining the estimated head motion jointly with a per-frame
+        blendshape fit (0 = the paper's Procrustes against the neutral only, which turns
+        part of e.g. a jaw opening into head rotation).
+    rbf_kernel : "linear" | "multiquadric" | "gaussian" | "thin_plate"
+        RBF kernel of scale-proportion matching (sec. 3.2; the paper's is ``"linear"``, r).
+    lower, upper : float
+        Weight range of "Range PF" and of the in-range diagnostic.
+    """
+
+    name: ClassVar[str] = "spacetime"
+    summary: ClassVar[str] = "match marker velocities with blendshape weights over the whole shot (Poisson in time) under a PCA prior; spacetime editing"
+    capabilities: ClassVar[Capabilities] = Capabilities(
+        sources=("markers", "mesh"),
+        needs=("blendshapes", "landmarks", "source_landmarks"),
+        outputs="weights",
+        stream=False,
+        edit=True,
+        same_topology=False,
+    )
+
+    def __init__(
+        self,
+        *,
+        mode="movement",
+        alpha=0.01,
+        scale_alpha=True,
+        beta=0.0,
+        marker_weights=None,
+        prior_shapes=None,
+        prior_animations=None,
+        prior_center="neutral",
+        boundary="per_frame",
+        constraints=None,
+        remove_head_motion=True,
+        head_motion_refinement=3,
+        rbf_kernel="linear",
+        lower=-0.5,
+        upper=1.5,
+    ):
+        self.mode = mode
+        self.alpha = alpha
+        self.scale_alpha = scale_alpha
+        self.beta = beta
+        self.marker_weights = marker_weights
+        self.prior_shapes = prior_shapes
+        self.prior_animations = prior_animations
+        self.prior_center = prior_center
+        self.boundary = boundary
+        self.constraints = constraints
+        self.remove_head_motion = remove_head_motion
+        self.head_motion_refinement = head_motion_refinement
+        self.rbf_kernel = rbf_kernel
+        self.lower = lower
+        self.upper = upper
+
+    # ------------------------------------------------------------------------------------
+    # fit
+    # ------------------------------------------------------------------------------------
+    def _fit(self, source: Source, target: TargetRig) -> None:
+        self._check_params()
+        rig = target.blendshapes
+        landmarks = target.landmarks
+        source_names = _marker_names(source)
+        pairs = calibration.pair_markers(source_names, landmarks.names)
+        source_neutral = np.asarray(source.marker_reference(), dtype=np.float64)
+        if source_neutral.ndim != 2 or source_neutral.shape[1] != 3:
+            raise ShapeError(f"spacetime: needs 3D markers (N, 3); this source's markers are {source_neutral.shape[1:]}")
+        source_neutral = source_neutral[pairs]
+        if not np.isfinite(source_neutral).all():
+            raise NonFiniteError("spacetime: the source's neutral markers contain NaN; give a complete reference pose")
+        tris = rig.neutral.triangles
+        target_neutral = landmarks.positions(rig.neutral.vertices, tris)
+        target_deltas = landmarks.positions(rig.deltas, tris)
+        calibration.check_spread(source_neutral, "source neutral markers")
+        calibration.check_spread(target_neutral, "target landmarks")
+        neutral, deltas, warp = calibration.warp_blendshapes(target_neutral, target_deltas, source_neutral, self.rbf_kernel)
+        n_markers, n_shapes = len(pairs), rig.n_shapes
+        basis = deltas.reshape(n_shapes, -1).T  # (3N, M), x-y-z interleaved per marker
+        samples = self._prior_samples(rig, landmarks, warp, neutral, basis)
+        marker_weights, frame_weights = self._marker_weights(n_markers, [source_names[i] for i in pairs])
+        self.landmark_names_ = tuple(landmarks.names)
+        self.n_markers_ = n_markers
+        self.source_neutral_ = source_neutral
+        self.basis_ = basis
+        self.prior_ = fit_prior(samples, basis, neutral.ravel(), self.prior_center)
+        self.face_size_ = calibration.face_size(source_neutral)
+        self.marker_weights_ = marker_weights
+        self.frame_weights_ = frame_weights
+        self.rig_ = rig
+        self.systems_ = {}
+        self.system_ = self._system(source.fps if self.mode == "movement" else None)
+        self.alpha_effective_ = self.system_.alpha
+
+    def _system(self, fps: float | None) -> System:
+        """The energy's matrices (cached): for movement matching of a performance at ``fps``,
+        or for per-frame solves (``fps=None``: no time axis, so no frame-rate rescaling)."""
+        if fps not in self.systems_:
+            alpha = float(self.alpha)
+            if self.scale_alpha:
+                alpha *= (self.face_size_ / calibration.FACE_SIZE_REF) ** 2
+                if fps is not None:
+                    alpha *= (calibration.FPS_REF / fps) ** 2
+            prior = self.prior_
+            self.systems_[fps] = System(self.basis_, alpha * prior.matrix, alpha * prior.vector, float(self.beta), self.marker_weights_, alpha=alpha)
+        return self.systems_[fps]
+
+    def _check_params(self) -> None:
+        if self.mode not in MODES:
+            raise ConfigError(f"spacetime: mode={self.mode!r} is not one of {', '.join(MODES)}")
+        for pname in ("alpha", "beta"):
+            value = getattr(self, pname)
+            if not isinstance(value, (int, float, np.floating, np.integer)) or not np.isfinite(value) or value < 0:
+                raise ConfigError(f"spacetime: {pname} must be a finite number >= 0, got {value!r}")
+        if not (np.isfinite(self.lower) and np.isfinite(self.upper) and self.lower < self.upper):
+            raise ConfigError(f"spacetime: need finite lower < upper, got lower={self.lower!r}, upper={self.upper!r}")
+        if self.rbf_kernel not in KERNELS:
+            raise ConfigError(f"spacetime: rbf_kernel={self.rbf_kernel!r} is not one of {', '.join(KERNELS)}")
+        if not isinstance(self.head_motion_refinement, (int, np.integer)) or self.head_motion_refinement < 0:
+            raise ConfigError(f"spacetime: head_motion_refinement must be an integer >= 0, got {self.head_motion_refinement!r}")
+        if isinstance(self.boundary, str):
+            if self.boundary not in BOUNDARIES:
+                raise ConfigError(f"spacetime: boundary={self.boundary!r} is not one of {', '.join(BOUNDARIES)} or a (2, M) array")
+            if self.boundary == "none" and self.mode == "movement" and self.beta == 0:
+                raise ConfigError(
+                    "spacetime: boundary='none' leaves movement matching without any position anchor; "
+                    "give beta > 0 (Sobolev term), or use boundary='per_frame' / 'neutral'"
+                )
+        if self.constraints is not None and not isinstance(self.constraints, Mapping):
+            raise ConfigError("spacetime: constraints must be a mapping {frame: weights}")
+
+    def _prior_samples(self, rig, landmarks, warp, neutral, basis) -> np.ndarray:
+        """(K, 3N) absolute (warped) marker positions of the prior's training faces."""
+        chosen = self.prior_shapes
+        if chosen is None:
+            chosen = [] if self.prior_animations is not None else range(rig.n_shapes)
+        index = [self._shape_index(rig, c) for c in chosen]
+        samples = [neutral.ravel()[None] + basis.T[index]]
+        if self.prior_animations is not None:
+            anim = np.asarray(self.prior_animations, dtype=np.float64)
+            if anim.ndim == 2 and anim.shape[1] == rig.n_shapes:
+                samples.append(neutral.ravel()[None] + anim @ basis.T)
+            elif anim.ndim == 3 and anim.shape[1:] == (rig.neutral.n_vertices, 3):
+                points = landmarks.positions(anim, rig.neutral.triangles)
+                samples.append(warp(points.reshape(-1, 3)).reshape(len(anim), -1))
+            else:
+                raise ShapeError(
+                    f"spacetime: prior_animations must be (K, {rig.n_shapes}) weights or (K, {rig.neutral.n_vertices}, 3) "
+                    f"target vertices, got {anim.shape}"
+                )
+            if not np.isfinite(anim).all():
+                raise NonFiniteError("spacetime: prior_animations contain NaN or infinity")
+        return np.concatenate(samples, axis=0)
+
+    @staticmethod
+    def _shape_index(rig, key) -> int:
+        if isinstance(key, (int, np.integer)):
+            if not -rig.n_shapes <= key < rig.n_shapes:
+                raise IndexRangeError(f"spacetime: prior shape index {key} out of range for {rig.n_shapes} shapes")
+            return int(key) % rig.n_shapes
+        return rig.index(str(key))
+
+    def _marker_weights(self, n_markers: int, names: list[str]):
+        """(N,) constant Sobolev weights, and (F, N) per-frame weights or None."""
+        mw = self.marker_weights
+        if mw is None:
+            return np.ones(n_markers), None
+        if isinstance(mw, Mapping):
+            unknown = [k for k in mw if k not in names]
+            if unknown:
+                raise TopologyMismatchError(f"spacetime: marker_weights name unknown markers: {', '.join(map(str, unknown[:8]))}")
+            out = np.array([float(mw.get(n, 0.0)) for n in names])
+            frame = None
+        else:
+            arr = np.asarray(mw, dtype=np.float64)
+            if arr.ndim == 1 and arr.shape[0] == n_markers:
+                out, frame = arr, None
+            elif arr.ndim == 2 and arr.shape[1] == n_markers:
+                out, frame = np.ones(n_markers), arr
+            else:
+                raise ShapeError(f"spacetime: marker_weights must be ({n_markers},) or (F, {n_markers}), got {arr.shape}")
+        check = out if frame is None else frame
+        if not np.isfinite(check).all() or (check < 0).any():
+            raise ConfigError("spacetime: marker_weights must be finite and >= 0")
+        return out, frame
+
+    # ------------------------------------------------------------------------------------
+    # retarget
+    # ------------------------------------------------------------------------------------
+    def _retarget(self, source: Source) -> Animation:
+        markers, reference = self._source_markers(source)
+        n_frames = markers.shape[0]
+        frame_weights = self.frame_weights_
+        if frame_weights is not None and frame_weights.shape[0] != n_frames:
+            raise ShapeError(f"spacetime: marker_weights has {frame_weights.shape[0]} frames but the source has {n_frames}")
+        known, known_weights = self._known_frames(n_frames)
+        if source.head_motion is not None:
+            motion, how = np.asarray(source.head_motion, dtype=np.float64), "given"
+        elif self.remove_head_motion:
+            motion, how = calibration.head_motion(reference, markers), "estimated"
+        else:
+            motion, how = None, "none"
+        system = self._system(source.fps if self.mode == "movement" else None)
+        if how == "estimated":
+            fitted = None
+            for _ in range(int(self.head_motion_refinement)):
+                motion, fitted = calibration.refine_head_motion(reference, markers, motion, fitted, self.basis_, system.ridge)
+        deltas = calibration.to_local(motion, markers) - reference
+        weights = self._solve(system, deltas, known, known_weights)
+        terms = energy_terms(system, deltas, weights)
+        inside = (weights >= self.lower) & (weights <= self.upper)
+        diagnostics = {
+            "velocity_error": float(terms["velocity"].sum()),
+            "position_error": float(terms["position"].sum()),
+            "fraction_in_range": float(inside.mean()),
+            "alpha_effective": system.alpha,
+            "prior_decay_frames": system.decay_frames(),
+            "face_size": self.face_size_,
+            "head_motion": how,
+            "solver": "per_frame" if self.mode != "movement" else (
+                "structured" if not np.isnan(deltas).any() and frame_weights is None else "block_tridiagonal"
+            ),
+        }
+        extras = {}
+        if self.mode == "movement":
+            extras["spacetime"] = {
+                "deltas": deltas,
+                "known_frames": np.flatnonzero(known),
+                "fingerprint": self._fingerprint(),
+            }
+        return Animation(
+            weights=weights,
+            rig=self.rig_,
+            head_motion=motion,
+            fps=source.fps,
+            provenance={"diagnostics": diagnostics},
+            extras=extras,
+        )
+
+    def _source_markers(self, source: Source):
+        """(F, N, 3) markers and (N, 3) neutral in the order of the target's landmarks."""
+        positions = np.asarray(source.marker_positions(), dtype=np.float64)
+        reference = np.asarray(source.marker_reference(), dtype=np.float64)
+        if positions.ndim != 3 or positions.shape[2] != 3:
+            raise ShapeError(f"spacetime: needs 3D markers (F, N, 3), got {positions.shape}")
+        pairs = calibration.pair_markers(_marker_names(source), self.landmark_names_)
+        return positions[:, pairs], reference[pairs]
+
+    def _constraint_weights(self, value) -> np.ndarray:
+        rig = self.rig_
+        if isinstance(value, Mapping):
+            out = np.zeros(rig.n_shapes)
+            for k, v in value.items():
+                out[rig.index(str(k))] = float(v)
+        else:
+            out = np.asarray(value, dtype=np.float64)
+            if out.shape != (rig.n_shapes,):
+                raise ShapeError(f"spacetime: constraint weights must be ({rig.n_shapes},), got {out.shape}")
+        if not np.isfinite(out).all():
+            raise NonFiniteError("spacetime: constraint weights contain NaN or infinity")
+        return out
+
+    def _known_frames(self, n_frames: int):
+        """Boundary and user-constrained frames: (F,) bool and (F, M) weights (NaN = to fill)."""
+        m = self.rig_.n_shapes
+        known = np.zeros(n_frames, dtype=bool)
+        values = np.full((n_frames, m), np.nan)
+        if self.mode == "movement":
+            ends = [0, n_frames - 1]
+            if isinstance(self.boundary, str):
+                if self.boundary != "none":
+                    known[ends] = True
+                    if self.boundary == "neutral":
+                        values[ends] = 0.0
+            else:
+                given = np.asarray(self.boundary, dtype=np.float64)
+                if given.shape != (2, m) or not np.isfinite(given).all():
+                    raise ShapeError(f"spacetime: boundary weights must be a finite (2, {m}) array [first, last], got {given.shape}")
+                known[ends] = True
+                values[0], values[-1] = given[0], given[1]
+        for frame, value in (self.constraints or {}).items():
+            f = _frame_index(frame, n_frames)
+            known[f] = True
+            values[f] = self._constraint_weights(value)
+        return known, values
+
+    def _solve(self, system: System, deltas: np.ndarray, known: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """Weights (F, M) for local marker deltas (F, N, 3); fills per-frame boundary values."""
+        if self.mode == "movement":
+            values = values.copy()
+            todo = known & np.isnan(values[:, 0])
+            if todo.any():
+                values[todo] = solve_per_frame(self._system(None), deltas[todo], use_prior=True)
+            return solve_movement(system, deltas, known, values, self.frame_weights_)
+        if self.mode == "rangepf":
+            weights = solve_bounded(system, deltas, self.lower, self.upper)
+        else:
+            weights = solve_per_frame(system, deltas, use_prior=self.mode == "priorpf")
+        weights[known] = values[known]
+        return weights
+
+    def _fingerprint(self) -> list[float]:
+        """Numbers identifying the fitted calibration (kept in the Animation; survive saving)."""
+        b = self.basis_
+        return [float(b.shape[0]), float(b.shape[1]), float(b.sum()), float(np.abs(b).sum()), float(self.alpha), float(self.scale_alpha), float(self.beta)]
+
+    # ------------------------------------------------------------------------------------
+    # spacetime editing (sec. 6)
+    # ------------------------------------------------------------------------------------
+    def edit(self, animation: Animation, *, frame=None, weights=None, window=None) -> Animation:
+        """Spacetime edit: new weights at ``frame`` become a boundary condition (sec. 6).
+
+        Parameters
+        ----------
+        animation : Animation
+            A result of this (fitted) retargeter's :meth:`retarget` or :meth:`edit`.
+        frame : int or sequence of int
+            Edited frame(s) (negative counts from the end).
+        weights : (M,) or (K, M) array, or {shape name: weight}
+            New weights; a mapping changes only the named shapes of the current weights.
+        window : (a, b), optional
+            Range of propagation (inclusive). The current weights at ``a`` and ``b`` stay fixed
+            and only frames strictly inside are re-solved; frames outside are untouched.
+            Default: the whole sequence, with all earlier boundary and edited frames fixed.
+
+        Returns a new Animation (the input is not modified); its edited frames are kept as
+        constraints by later edits.
+        """
+        self._check_fitted()
+        if self.mode != "movement":
+            raise CapabilityError(f"spacetime: edit needs mode='movement' (this retargeter uses mode={self.mode!r})")
+        if frame is None or weights is None:
+            raise InputError("spacetime.edit: give frame= (the edited frame) and weights= (its new weights)")
+        state = animation.extras.get("spacetime") if isinstance(animation, Animation) else None
+        if state is None or animation.weights is None:
+            raise InputError("spacetime.edit: the animation must come from spacetime's retarget() or edit()")
+        mine = np.asarray(self._fingerprint())
+        theirs = np.asarray(state.get("fingerprint", ()), dtype=np.float64).ravel()
+        if theirs.shape != mine.shape or not np.allclose(theirs, mine, rtol=1e-12, atol=0.0):
+            raise InputError("spacetime.edit: this animation was produced by a spacetime retargeter fitted to another rig or calibration")
+        current = np.array(animation.weights, dtype=np.float64)
+        n_frames, m = current.shape
+        frames = [_frame_index(f, n_frames) for f in np.atleast_1d(np.asarray(frame, dtype=object))]
+        new_values = self._edit_values(weights, current, frames)
+        if window is None:
+            start, stop = 0, n_frames - 1
+        else:
+            if len(window) != 2:
+                raise ShapeError(f"spacetime.edit: window must be (first, last) frames, got {window!r}")
+            start, stop = (_frame_index(w, n_frames) for w in window)
+            if start > stop:
+                raise InputError(f"spacetime.edit: window start {start} is after its end {stop}")
+            outside = [f for f in frames if not start <= f <= stop]
+            if outside:
+                raise IndexRangeError(f"spacetime.edit: edited frame(s) {outside} lie outside the window [{start}, {stop}]")
+        known = np.zeros(n_frames, dtype=bool)
+        known[state["known_frames"]] = True
+        if window is not None:
+            known[[start, stop]] = True
+        values = current.copy()
+        for f, v in zip(frames, new_values):
+            known[f] = True
+            values[f] = v
+        span = slice(start, stop + 1)
+        frame_weights = None if self.frame_weights_ is None else self.frame_weights_[span]
+        result = current.copy()
+        result[span] = solve_movement(self._system(animation.fps), state["deltas"][span], known[span], values[span], frame_weights)
+        new_state = dict(state, known_frames=np.union1d(state["known_frames"], frames))
+        provenance = dict(animation.provenance)
+        provenance["edits"] = list(provenance.get("edits", [])) + [{"frames": frames, "window": [start, stop]}]
+        return animation.replace(weights=result, extras=dict(animation.extras, spacetime=new_state), provenance=provenance)
+
+    def _edit_values(self, weights, current: np.ndarray, frames: list[int]) -> np.ndarray:
+        m = current.shape[1]
+        if isinstance(weights, Mapping):
+            out = current[frames].copy()
+            for k, v in weights.items():
+                out[:, self.rig_.index(str(k))] = float(v)
+        else:
+            out = np.asarray(weights, dtype=np.float64)
+            if out.shape == (m,):
+                out = np.broadcast_to(out, (len(frames), m)).copy()
+            if out.shape != (len(frames), m):
+                raise ShapeError(f"spacetime.edit: weights must be ({m},) or ({len(frames)}, {m}), got {out.shape}")
+        if not np.isfinite(out).all():
+            raise NonFiniteError("spacetime.edit: weights contain NaN or infinity")
+        return out
+
+
+def _marker_names(source: Source) -> tuple[str, ...]:
+    """Names of the source's markers (or of its landmarks, for a mesh sequence)."""
+    if source.kind == "markers":
+        return tuple(source.performance.names)
+    if source.landmarks is None:
+        raise CapabilityError("spacetime needs a mesh-sequence source with landmarks (Source(..., landmarks=...)) to sample markers")
+    return tuple(source.landmarks.names)
+
+
+def _frame_index(frame, n_frames: int) -> int:
+    try:
+        f = int(frame)
+    except (TypeError, ValueError):
+        raise IndexRangeError(f"spacetime: frame {frame!r} is not an integer") from None
+    if f != frame or not -n_frames <= f < n_frames:
+        raise IndexRangeError(f"spacetime: frame {frame!r} out of range for {n_frames} frames")
+    return f % n_frames
+
+
+def _with_defaults(base: type, name: str, summary: str, capabilities: Capabilities, **defaults) -> type:
+    """A registered variant of ``base`` whose constructor differs only in some defaults."""
+    signature = inspect.signature(base.__init__)
+    params = [p.replace(default=defaults[p.name]) if p.name in defaults else p for p in signature.parameters.values()]
+
+    def __init__(self, **params_):
+        bound = __init__.__signature__.bind(self, **params_)
+        bound.apply_defaults()
+        base.__init__(self, **{k: v for k, v in bound.arguments.items() if k != "self"})
+
+    __init__.__signature__ = signature.replace(parameters=params)
+    doc = f"{summary}\n\nSame parameters as :class:`{base.__name__}`; defaults changed: " + ", ".join(f"{k}={v!r}" for k, v in defaults.items())
+    cls_name = "".join(part.capitalize() for part in name.split("_"))
+    return type(cls_name, (base,), {"__init__": __init__, "__doc__": doc, "__module__": __name__, "name": name, "summary": summary, "capabilities": capabilities})
+
+
+_PER_FRAME_CAPABILITIES = dataclasses.replace(SpacetimeRetargeter.capabilities, edit=False)
+
+SpacetimeNoconst = _with_defaults(
+    SpacetimeRetargeter, "spacetime_noconst",
+    "Seol et al. 2012 baseline 'No Const': per-frame unconstrained least-squares blendshape weights",
+    _PER_FRAME_CAPABILITIES, mode="noconst",
+)
+SpacetimeRangepf = _with_defaults(
+    SpacetimeRetargeter, "spacetime_rangepf",
+    "Seol et al. 2012 baseline 'Range PF': per-frame bounded least squares (weights in [lower, upper], own active-set solver)",
+    _PER_FRAME_CAPABILITIES, mode="rangepf",
+)
+SpacetimePriorpf = _with_defaults(
+    SpacetimeRetargeter, "spacetime_priorpf",
+    "Seol et al. 2012 baseline 'Prior PF': per-frame least squares with the PCA prior",
+    _PER_FRAME_CAPABILITIES, mode="priorpf", alpha=0.5,
+)
+
+RETARGETERS = [SpacetimeRetargeter, SpacetimeNoconst, SpacetimeRangepf, SpacetimePriorpf]

@@ -1,0 +1,334 @@
+"""Movement matching (Seol et al. 2012, sec. 4-5, Eq. 2, 4, 5 and appendix) and per-frame solves.
+
+Energy, for weights ``w_t`` (M,) at frames t = 0..F-1 and source marker deltas ``s_t`` (3N,)::
+
+    E = sum_t ||B (w_t - w_{t-1}) - (s_t - s_{t-1})||^2          movement matching (Eq. 2)
+      + alpha * sum_t ||A w_t + a||^2                            PCA prior (Eq. 4)
+      + beta  * sum_t ||P^{1/2} (B w_t - s_t)||^2                Sobolev term (sec. 7.1)
+      + eps   * sum_t ||P_0 w_t||^2                              ridge (rank-deficient rigs)
+
+with the weights of boundary / user-constrained frames fixed (Dirichlet conditions). Rows
+of missing marker samples are dropped: a velocity row needs the marker at both frames.
+
+Regularization: ``P_0`` projects onto the numerical null space of ``G = B^T B`` (eigenvalues
+below ``config.RANK_RTOL`` times the largest): duplicate shapes then share their weight
+equally and shapes that move no marker get zero weight, while well-determined directions
+are not biased at all (a ridge on every direction would be amplified by the time Laplacian,
+about F^2 times, in weakly determined directions). A frame whose block is still singular
+(markers missing so that some shape is unseen, and no prior) gets ``eps I`` on that block only.
+
+Normal equations, when every frame has every marker: ``(L kron G + I kron K) vec(W) = r``
+with the path-graph Laplacian ``L = D^T D`` in time, ``G = B^T B`` and
+``K = alpha Q + beta B^T P B + eps I``. The generalized eigendecomposition
+``K phi = lam (G + K) phi`` (``Phi^T (G+K) Phi = I``) diagonalizes both m x m matrices, so
+``w_t = Phi y_t`` splits the system into m independent tridiagonal systems
+``((1 - lam_j) L + lam_j I) y_j = Phi^T r_j`` solved in one O(F m) sweep (numba).
+
+When frames differ (missing markers or per-frame Sobolev weights) the Kronecker structure
+is lost; the same normal equations are then solved exactly as a block-tridiagonal system
+(block Thomas, O(F m^3) time, F m^2 memory) over the frames concerned.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from faceretarget import config
+from faceretarget.errors import DegenerateGeometryError, NumericalError
+
+#: Iteration cap of the per-frame active-set solver, per frame: ACTIVE_SET_ITER_PER_SHAPE * M + 50.
+ACTIVE_SET_ITER_PER_SHAPE = 10
+#: A Cholesky pivot below PIVOT_RTOL times the largest diagonal entry counts as singular
+#: (the block then gets the fallback ridge ``eps I``); also used by the kernels in ``_kernels``.
+PIVOT_RTOL = 1e-13
+
+
+@dataclass
+class System:
+    """Precomputed matrices of the energy for one calibration.
+
+    basis : (3N, M) float64       B (scale-matched blendshape deltas at the markers)
+    prior_matrix, prior_vector    alpha Q (M, M) and alpha q (M,), alpha already applied
+    beta : float                  Sobolev weight
+    marker_weights : (N,) float   per-marker Sobolev weights p_i (default all 1)
+    alpha : float                 the prior weight included in prior_matrix (diagnostics only)
+    """
+
+    basis: np.ndarray
+    prior_matrix: np.ndarray
+    prior_vector: np.ndarray
+    beta: float
+    marker_weights: np.ndarray | None = None
+    alpha: float = 0.0  # the prior weight already applied (for diagnostics)
+    gram: np.ndarray = field(init=False)
+    ridge: float = field(init=False)  # eps
+    ridge_matrix: np.ndarray = field(init=False)  # eps P_0 (null space of the Gram)
+    position_matrix: np.ndarray = field(init=False)  # alpha Q + eps P_0 (common to all frames)
+    _modal: tuple | None = field(default=None, init=False, repr=False)
+    _marker_grams: np.ndarray | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self):
+        b = np.ascontiguousarray(self.basis, dtype=np.float64)
+        self.basis = b
+        if self.marker_weights is None:
+            self.marker_weights = np.ones(b.shape[0] // 3)
+        self.gram = b.T @ b
+        m = b.shape[1]
+        trace = float(np.trace(self.gram))
+        if not trace > 0.0:
+            raise DegenerateGeometryError(
+                "spacetime: no blendshape moves any landmark (all blendshape deltas are zero at the "
+                "landmarks); check the landmarks and the blendshape deltas"
+            )
+        self.ridge = config.RIDGE_EPS * trace / m
+        evals, evecs = np.linalg.eigh(self.gram)
+        null = evecs[:, evals <= config.RANK_RTOL * evals[-1]]
+        self.ridge_matrix = self.ridge * (null @ null.T)
+        self.position_matrix = self.prior_matrix + self.ridge_matrix
+
+    @property
+    def n_shapes(self) -> int:
+        return int(self.basis.shape[1])
+
+    @property
+    def n_markers(self) -> int:
+        return int(self.basis.shape[0] // 3)
+
+    @property
+    def sobolev_matrix(self) -> np.ndarray:
+        """beta B^T P B for the constant per-marker weights (M, M)."""
+        if self.beta == 0.0:
+            return np.zeros_like(self.gram)
+        p = np.repeat(self.marker_weights, 3)
+        return self.beta * (self.basis.T * p) @ self.basis
+
+    def decay_frames(self) -> dict[str, float]:
+        """Decay lengths (frames) of the screened Poisson modes, ``sqrt((1 - lam) / lam)``.
+
+        In mode j the prior pulls the solution toward it over about this many frames: motion
+        slower than that is attenuated (a high-pass), so the shortest lengths say how much of a
+        long, slow expression the prior flattens. Modes without prior (lam = 0) are infinite.
+        """
+        lam = self.modal[1]
+        with np.errstate(divide="ignore"):
+            length = np.sqrt(np.where(lam > 0, (1.0 - lam) / lam, np.inf))
+        return {"min": float(length.min()), "median": float(np.median(length))}
+
+    @property
+    def marker_grams(self) -> np.ndarray:
+        """(N, M, M) per-marker Grams B_i^T B_i (for frames with missing markers)."""
+        if self._marker_grams is None:
+            blocks = self.basis.reshape(self.n_markers, 3, self.n_shapes)
+            self._marker_grams = np.ascontiguousarray(np.einsum("nki,nkj->nij", blocks, blocks))
+        return self._marker_grams
+
+    @property
+    def modal(self):
+        """(Phi^T, lam, B Phi, (P B) Phi, Phi^T alpha q, (G + K) Phi), computed once."""
+        if self._modal is None:
+            k = self.position_matrix + self.sobolev_matrix
+            mass = self.gram + k
+            try:
+                lam, phi = scipy.linalg.eigh(k, mass)
+            except (np.linalg.LinAlgError, scipy.linalg.LinAlgError) as exc:
+                raise NumericalError(f"spacetime: generalized eigendecomposition failed ({exc})") from None
+            lam = np.clip(lam, 0.0, 1.0)
+            p = np.repeat(self.marker_weights, 3)
+            bphi = self.basis @ phi
+            self._modal = (
+                np.ascontiguousarray(phi.T),
+                lam,
+                np.ascontiguousarray(bphi),
+                np.ascontiguousarray(p[:, None] * bphi),
+                phi.T @ self.prior_vector,
+                mass @ phi,
+            )
+        return self._modal
+
+
+def flatten_deltas(deltas: np.ndarray) -> np.ndarray:
+    """(F, N, 3) marker deltas -> (F, 3N) float64 C-contiguous (NaN kept)."""
+    d = np.asarray(deltas, dtype=np.float64)
+    return np.ascontiguousarray(d.reshape(d.shape[0], -1))
+
+
+def solve_movement(system: System, deltas: np.ndarray, known: np.ndarray, known_weights: np.ndarray, frame_weights: np.ndarray | None = None) -> np.ndarray:
+    """Movement matching with the prior and Sobolev terms (Eq. 4 + sec. 7.1).
+
+    Parameters
+    ----------
+    system : System
+    deltas : (F, N, 3) float
+        Source marker deltas from the neutral, head motion removed; NaN = missing sample.
+    known : (F,) bool
+        Frames with fixed weights (boundary conditions and user constraints).
+    known_weights : (F, M) float
+        Their weights (other rows ignored).
+    frame_weights : (F, N) float, optional
+        Per-frame, per-marker Sobolev weights (replace ``system.marker_weights``).
+
+    Returns
+    -------
+    (F, M) float64 weights; known frames hold exactly ``known_weights``.
+    """
+    s = flatten_deltas(deltas)
+    known = np.ascontiguousarray(known, dtype=np.bool_)
+    wk = np.ascontiguousarray(known_weights, dtype=np.float64)
+    missing = np.isnan(s[:, 0::3])
+    if not missing.any() and frame_weights is None:
+        w = _solve_structured(system, s, known, wk)
+    else:
+        w = _solve_general(system, s, missing, known, wk, frame_weights)
+    w[known] = wk[known]
+    return w
+
+
+def _solve_structured(system: System, s: np.ndarray, known: np.ndarray, wk: np.ndarray) -> np.ndarray:
+    from ._kernels import modal_sweep
+
+    phi_t, lam, bphi, pbphi, c0, mass_phi = system.modal
+    n_frames, m = s.shape[0], system.n_shapes
+    yk = np.zeros((n_frames, m))
+    if known.any():
+        yk[known] = wk[known] @ mass_phi
+    out = np.empty((n_frames, m))
+    work = np.empty((4, n_frames, m))
+    modal_sweep(s, bphi, pbphi, float(system.beta), c0, lam, known, yk, phi_t, out, work[0], work[1], work[2], work[3])
+    return out
+
+
+def _solve_general(system, s, missing, known, wk, frame_weights) -> np.ndarray:
+    from ._kernels import block_thomas
+
+    n_frames, m = s.shape[0], system.n_shapes
+    valid = ~missing
+    s0 = np.where(np.repeat(valid, 3, axis=1), s, 0.0)
+    b = system.basis
+    rhs = np.zeros((n_frames, m))
+    rhs += system.prior_vector
+    if n_frames > 1:
+        edge_valid = valid[1:] & valid[:-1]
+        ds = (s0[1:] - s0[:-1]) * np.repeat(edge_valid, 3, axis=1)
+        v = ds @ b
+        rhs[1:] += v
+        rhs[:-1] -= v
+    weights = system.marker_weights[None, :] if frame_weights is None else frame_weights
+    pos = system.beta * np.broadcast_to(weights, missing.shape) * valid
+    use_pos = bool(system.beta != 0.0 and np.any(pos != 0.0))
+    if use_pos:
+        rhs += (s0 * np.repeat(pos, 3, axis=1)) @ b
+    out = np.empty((n_frames, m))
+    coupling = np.empty((n_frames, m, m))
+    ok = block_thomas(
+        system.gram,
+        system.marker_grams,
+        system.position_matrix,
+        np.ascontiguousarray(missing),
+        np.ascontiguousarray(pos, dtype=np.float64),
+        use_pos,
+        rhs,
+        known,
+        wk,
+        system.ridge,
+        out,
+        coupling,
+    )
+    if not ok or not np.isfinite(out).all():
+        raise NumericalError("spacetime: the block-tridiagonal solve met a singular frame block (no markers and no prior?)")
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# Per-frame solves ("No Const", "Prior PF", boundary values, "Range PF")
+# ---------------------------------------------------------------------------------------
+def _masked_rhs(system: System, s: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """B^T s_t with missing rows dropped: (F, M)."""
+    return np.where(np.repeat(valid, 3, axis=1), s, 0.0) @ system.basis
+
+
+def solve_per_frame(system: System, deltas: np.ndarray, *, use_prior: bool) -> np.ndarray:
+    """Independent per-frame least squares ``min ||B w - s_t||^2 (+ alpha prior) + eps ||P_0 w||^2``.
+
+    deltas : (F, N, 3) with NaN for missing samples (their rows are dropped; frames are
+    grouped by missing pattern and each group is solved with one factorization).
+    Returns (F, M).
+    """
+    s = flatten_deltas(deltas)
+    missing = np.isnan(s[:, 0::3])
+    valid = ~missing
+    m = system.n_shapes
+    reg = system.position_matrix if use_prior else system.ridge_matrix
+    rhs = _masked_rhs(system, s, valid)
+    if use_prior:
+        rhs += system.prior_vector
+    out = np.empty((s.shape[0], m))
+    patterns, inverse = np.unique(missing, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    for p, pattern in enumerate(patterns):
+        frames = np.flatnonzero(inverse == p)
+        mat = system.gram + reg
+        if pattern.any():
+            mat = mat - system.marker_grams[pattern].sum(axis=0)
+        out[frames] = scipy.linalg.cho_solve(_factor(mat, system.ridge), rhs[frames].T).T
+    return out
+
+
+def _factor(mat: np.ndarray, ridge: float):
+    """Cholesky factor of SPD ``mat``; if it is (numerically) singular, of ``mat + ridge I``."""
+    for shift in (0.0, ridge):
+        try:
+            factor = scipy.linalg.cho_factor(mat + shift * np.eye(len(mat)))
+        except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+            continue
+        pivots = np.diag(factor[0]) ** 2
+        if pivots.min() > PIVOT_RTOL * np.diag(mat).max():
+            return factor
+    raise NumericalError("spacetime: a per-frame system is singular even after regularization")
+
+
+def solve_bounded(system: System, deltas: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Per-frame bounded least squares "Range PF": ``min ||B w - s_t||^2, lower <= w <= upper``.
+
+    A primal active-set method (numba), warm-started from the previous frame, on the
+    normal equations (with the null-space ridge so duplicate shapes stay well posed).
+    Returns (F, M).
+    """
+    from ._kernels import box_qp_frames
+
+    s = flatten_deltas(deltas)
+    missing = np.ascontiguousarray(np.isnan(s[:, 0::3]))
+    m = system.n_shapes
+    rhs = np.ascontiguousarray(_masked_rhs(system, s, ~missing))
+    lo = np.ascontiguousarray(np.broadcast_to(np.asarray(lower, dtype=np.float64), (m,)))
+    hi = np.ascontiguousarray(np.broadcast_to(np.asarray(upper, dtype=np.float64), (m,)))
+    gram = system.gram + system.ridge_matrix
+    out = np.empty((s.shape[0], m))
+    x0 = np.clip(np.zeros(m), lo, hi)
+    max_iter = ACTIVE_SET_ITER_PER_SHAPE * m + 50
+    bad = box_qp_frames(gram, system.marker_grams, missing, rhs, lo, hi, x0, system.ridge, out, max_iter)
+    if bad >= 0:
+        raise NumericalError(
+            f"spacetime: the bounded per-frame solve did not converge at frame {bad} within {max_iter} "
+            "active-set iterations; check for (near-)duplicate blendshapes"
+        )
+    return out
+
+
+def energy_terms(system: System, deltas: np.ndarray, weights: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-frame error terms of a solution, missing rows dropped.
+
+    Returns ``velocity`` (F,) with ``velocity[t] = ||B(w_t - w_{t-1}) - (s_t - s_{t-1})||^2``
+    (0 at t = 0; the paper's fig. 11 measure) and ``position`` (F,) ``||B w_t - s_t||^2``.
+    """
+    s = flatten_deltas(deltas)
+    valid = ~np.isnan(s)
+    resid = np.asarray(weights, dtype=np.float64) @ system.basis.T - np.where(valid, s, 0.0)
+    resid[~valid] = 0.0
+    position = np.einsum("fk,fk->f", resid, resid)
+    velocity = np.zeros(s.shape[0])
+    if s.shape[0] > 1:
+        dv = (resid[1:] - resid[:-1]) * (valid[1:] & valid[:-1])
+        velocity[1:] = np.einsum("fk,fk->f", dv, dv)
+    return {"velocity": velocity, "position": position}
