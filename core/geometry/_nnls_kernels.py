@@ -1,0 +1,271 @@
+"""numba kernels for small dense quadratic programs (compiled lazily, cached).
+
+One primal active-set method (Lawson & Hanson 1974, ch. 23, generalised to two-sided
+bounds and to "sum to s" groups) serves :mod:`faceretarget.geometry.nnls` (NNLS and
+bounded least squares on the Gram matrix) and :mod:`faceretarget.geometry.simplex`
+(quadratic programs over products of probability simplices)::
+
+    minimise 1/2 x^T G x - c^T x
+    subject to lo <= x <= hi,  sum_{i in group g} x_i = s_g  (groups optional)
+
+Groups are only used with ``lo = 0, hi = inf`` (simplices), so every group keeps at
+least one free variable and its multiplier is defined by the free ones.
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+FREE, LOWER, UPPER = 0, 1, 2
+#: Reassociation lets LLVM vectorise the dot products; NaN/inf semantics are kept (the
+#: bounds use +-inf), so results stay deterministic and exact up to rounding.
+FASTMATH = {"reassoc", "nsz", "arcp", "contract"}
+_RIDGE_START = 1e-13  # relative ridge tried first when a free block is singular
+
+
+@nb.njit(cache=True, fastmath=FASTMATH)
+def _cholesky(a, n, ridge, out):
+    """Lower Cholesky factor of ``a[:n, :n] + ridge * I`` into ``out``; False if not PD."""
+    for j in range(n):
+        rj = out[j]
+        s = a[j, j] + ridge
+        for k in range(j):
+            s -= rj[k] * rj[k]
+        if s <= 0.0:
+            return False
+        d = np.sqrt(s)
+        out[j, j] = d
+        for i in range(j + 1, n):
+            ri = out[i]
+            t = a[i, j]
+            for k in range(j):
+                t -= ri[k] * rj[k]
+            out[i, j] = t / d
+    return True
+
+
+@nb.njit(cache=True, fastmath=FASTMATH)
+def _forward(fac, n, rhs):
+    """``rhs <- L^-1 rhs`` for the lower factor ``L = fac[:n, :n]`` (in place)."""
+    for i in range(n):
+        fi = fac[i]
+        s = rhs[i]
+        for k in range(i):
+            s -= fi[k] * rhs[k]
+        rhs[i] = s / fi[i]
+
+
+@nb.njit(cache=True, fastmath=FASTMATH)
+def _backward(fac, n, rhs):
+    """``rhs <- L^-T rhs`` (in place), reading L by rows."""
+    for i in range(n - 1, -1, -1):
+        fi = fac[i]
+        x = rhs[i] / fi[i]
+        rhs[i] = x
+        for k in range(i):
+            rhs[k] -= fi[k] * x
+
+
+@nb.njit(cache=True, fastmath=FASTMATH)
+def _chol_solve(fac, n, rhs):
+    """Solve ``fac fac^T y = rhs`` in place (first ``n`` entries)."""
+    _forward(fac, n, rhs)
+    _backward(fac, n, rhs)
+
+
+@nb.njit(cache=True, fastmath=FASTMATH)
+def _factor(a, n, scale, out):
+    """Cholesky with an escalating ridge (relative to ``scale``) for singular blocks."""
+    ridge = 0.0
+    for _ in range(40):
+        if _cholesky(a, n, ridge, out):
+            return
+        ridge = _RIDGE_START * scale if ridge == 0.0 else ridge * 10.0
+
+
+@nb.njit(cache=True, fastmath=FASTMATH)
+def active_set_qp(G, c, lo, hi, group, sums, x, max_iter, tol):
+    """Solve the QP above in place, starting from the feasible ``x : (n,)``.
+
+    ``group[i]`` is the group of variable i (-1: none); ``sums[g]`` its total. Returns
+    the number of iterations, negated when ``max_iter`` was reached first.
+    """
+    n = x.shape[0]
+    n_groups = sums.shape[0]
+    status = np.zeros(n, np.int64)
+    scale = 0.0
+    for i in range(n):
+        scale = max(scale, abs(G[i, i]), abs(c[i]))
+    if scale == 0.0:
+        scale = 1.0
+    for i in range(n):
+        if x[i] <= lo[i]:
+            x[i] = lo[i]
+            status[i] = LOWER
+        elif x[i] >= hi[i]:
+            x[i] = hi[i]
+            status[i] = UPPER
+    free = np.empty(n, np.int64)
+    gf = np.empty((n, n))
+    fac = np.empty((n, n))
+    z = np.empty(n)
+    y = np.empty((n_groups, n))
+    mu = np.zeros(n_groups)
+    schur = np.empty((n_groups, n_groups))
+    sfac = np.empty((n_groups, n_groups))
+    target = np.empty(n_groups)
+    has_free = np.zeros(n_groups, np.bool_)
+    grad = np.empty(n)
+    tol_abs = tol * scale
+    entered = -1
+    for it in range(max_iter):
+        nf = 0
+        for i in range(n):
+            if status[i] == FREE:
+                free[nf] = i
+                nf += 1
+        if nf > 0:
+            # equality-constrained subproblem on the free set (bounded variables fixed)
+            for a in range(nf):
+                ia = free[a]
+                s = c[ia]
+                for j in range(n):
+                    if status[j] != FREE:
+                        s -= G[ia, j] * x[j]
+                z[a] = s
+                for b in range(nf):
+                    gf[a, b] = G[ia, free[b]]
+            _factor(gf, nf, scale, fac)
+            _forward(fac, nf, z)  # z = L^-1 r
+            if n_groups > 0:
+                # Schur complement on the group sums with V = L^-1 E (G = L L^T):
+                # S = V^T V, S mu = V^T z - target, then z <- L^-T (z - V mu)
+                for g in range(n_groups):
+                    has_free[g] = False
+                    target[g] = sums[g]
+                for j in range(n):
+                    if group[j] >= 0:
+                        if status[j] == FREE:
+                            has_free[group[j]] = True
+                        else:
+                            target[group[j]] -= x[j]
+                for g in range(n_groups):
+                    yg = y[g]
+                    for a in range(nf):
+                        yg[a] = 1.0 if group[free[a]] == g else 0.0
+                    if has_free[g]:
+                        _forward(fac, nf, yg)
+                for g in range(n_groups):
+                    yg = y[g]
+                    for h in range(n_groups):
+                        s = 0.0
+                        if has_free[g] and has_free[h]:
+                            yh = y[h]
+                            for a in range(nf):
+                                s += yg[a] * yh[a]
+                        schur[g, h] = s if (g != h or has_free[g]) else 1.0
+                    s = 0.0
+                    if has_free[g]:
+                        for a in range(nf):
+                            s += yg[a] * z[a]
+                        mu[g] = s - target[g]
+                    else:
+                        mu[g] = 0.0
+                sscale = 0.0
+                for g in range(n_groups):
+                    sscale = max(sscale, abs(schur[g, g]))
+                _factor(schur, n_groups, sscale if sscale > 0.0 else 1.0, sfac)
+                _chol_solve(sfac, n_groups, mu)
+                for g in range(n_groups):
+                    if has_free[g]:
+                        yg = y[g]
+                        for a in range(nf):
+                            z[a] -= yg[a] * mu[g]
+            _backward(fac, nf, z)
+            # feasibility of the subproblem's solution
+            step = 1.0
+            blocking = -1
+            for a in range(nf):
+                i = free[a]
+                if z[a] < lo[i]:
+                    t = (x[i] - lo[i]) / (x[i] - z[a])
+                    if t < step:
+                        step, blocking = t, a
+                elif z[a] > hi[i]:
+                    t = (hi[i] - x[i]) / (z[a] - x[i])
+                    if t < step:
+                        step, blocking = t, a
+            if blocking >= 0:
+                if step <= 0.0:
+                    step = 0.0
+                    if free[blocking] == entered:
+                        # the variable just released cannot move: optimal to working precision
+                        _finish(x, lo, hi, group, sums)
+                        return it + 1
+                for a in range(nf):
+                    i = free[a]
+                    x[i] += step * (z[a] - x[i])
+                for a in range(nf):
+                    i = free[a]
+                    if z[a] < lo[i] and (a == blocking or x[i] <= lo[i] + tol * (1.0 + abs(lo[i]))):
+                        x[i] = lo[i]
+                        status[i] = LOWER
+                    elif z[a] > hi[i] and (a == blocking or x[i] >= hi[i] - tol * (1.0 + abs(hi[i]))):
+                        x[i] = hi[i]
+                        status[i] = UPPER
+                continue
+            for a in range(nf):
+                x[free[a]] = z[a]
+        # optimality: multipliers of the bounds, nu_i = grad_i + mu_g(i)
+        for i in range(n):
+            s = -c[i]
+            for j in range(n):
+                s += G[i, j] * x[j]
+            grad[i] = s
+        best = tol_abs
+        enter = -1
+        for i in range(n):
+            if status[i] == FREE:
+                continue
+            nu = grad[i]
+            if group[i] >= 0:
+                nu += mu[group[i]]
+            if status[i] == LOWER and -nu > best and lo[i] < hi[i]:
+                best, enter = -nu, i
+            elif status[i] == UPPER and nu > best and lo[i] < hi[i]:
+                best, enter = nu, i
+        if enter < 0:
+            _finish(x, lo, hi, group, sums)
+            return it + 1
+        status[enter] = FREE
+        entered = enter
+    _finish(x, lo, hi, group, sums)
+    return -max_iter
+
+
+@nb.njit(cache=True)
+def _finish(x, lo, hi, group, sums):
+    """Clip to the bounds and rescale each (non-negative) group to its exact total."""
+    n = x.shape[0]
+    for i in range(n):
+        if x[i] < lo[i]:
+            x[i] = lo[i]
+        elif x[i] > hi[i]:
+            x[i] = hi[i]
+    for g in range(sums.shape[0]):
+        total = 0.0
+        for i in range(n):
+            if group[i] == g:
+                total += x[i]
+        if total > 0.0:
+            f = sums[g] / total
+            for i in range(n):
+                if group[i] == g:
+                    x[i] *= f
+
+
+@nb.njit(cache=True)
+def active_set_qp_many(G, C, lo, hi, group, sums, X, max_iter, tol, iterations):
+    """:func:`active_set_qp` for each row of ``C : (k, n)`` (one shared ``G``), in place on ``X``."""
+    for r in range(C.shape[0]):
+        iterations[r] = active_set_qp(G, C[r], lo, hi, group, sums, X[r], max_iter, tol)

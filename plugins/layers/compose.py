@@ -1,0 +1,88 @@
+"""Retargeting (Kholgade et al. 2011, sec. 5): the character side of Eq. 5.
+
+``x_C(t) = R(t) (x_muC + sum_l M_Cl sum_j w_jl(t) B_Cj alpha_j(t)) + t(t)`` with the
+actor's 3D head motion. Per region l the inner sum is one matrix product
+``beta_l(t) @ block_l`` where ``beta_l[a] = w_{j(a) l} alpha_a`` and ``block_l`` holds
+``M_Cl B_C`` on the vertices the mask touches, so a batch of frames is m BLAS calls
+(cost ~ K x the touched coordinates a frame), done in chunks of frames to bound memory.
+
+Optional projection onto the character's blendshapes (the paper renders in Maya "by
+projecting [the mesh] onto a set of blendshapes created by the artist"): non-negative
+(or the rig's bounds) least squares, ``argmin_w |D w - (x_local - neutral)|``, solved
+on the Gram matrix; the right-hand side is ``sum_l beta_l @ (block_l D_l^T)`` so the
+dense vertices never need forming.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .model import CharacterModel
+
+#: Frames per chunk: few BLAS calls, and a scratch of CHUNK x 3V floats (15 MB at 10K vertices).
+CHUNK = 64
+
+__all__ = ["CHUNK", "region_coefficients", "world_vertices", "ProjectionModel", "build_projection", "project"]
+
+def region_coefficients(weights: np.ndarray, coefficients: np.ndarray, layer_of: np.ndarray) -> np.ndarray:
+    """``beta (F, m, K)``: ``beta[t, l, a] = w[t, l, layer_of[a]] * alpha[t, a]``."""
+    return weights[:, :, layer_of] * coefficients[:, None, :]
+
+
+def world_vertices(character: CharacterModel, beta: np.ndarray, head_motion: np.ndarray | None = None) -> np.ndarray:
+    """Eq. 5: ``(F, V, 3)`` character vertices for ``beta (F, m, K)`` and head motion ``(F, 4, 4)``.
+
+    Without ``head_motion`` the local (neutral-frame) vertices. Frames go in chunks: one
+    BLAS product per region into a scratch buffer, then one numba pass
+    (``_kernels.assemble``) that adds each vertex's region products to the neutral and
+    applies the rigid motion, writing the output once.
+    """
+    from ._kernels import assemble
+
+    n_frames = beta.shape[0]
+    out = np.empty((n_frames, character.n_vertices, 3))
+    motion = np.tile(np.eye(4), (n_frames, 1, 1)) if head_motion is None else np.ascontiguousarray(head_motion, dtype=np.float64)
+    offsets = character.offsets
+    scratch = np.empty(min(CHUNK, n_frames) * int(offsets[-1]))
+    for start in range(0, n_frames, CHUNK):
+        stop = min(start + CHUNK, n_frames)
+        n = stop - start
+        for l, (ids, block) in enumerate(character.regions):
+            if ids.size:
+                dest = scratch[n * offsets[l]: n * offsets[l + 1]].reshape(n, block.shape[1])
+                np.matmul(np.ascontiguousarray(beta[start:stop, l, :]), block, out=dest)
+        assemble(scratch, offsets, n, character.neutral, character.vertex_ptr, character.entry_region, character.entry_col,
+                 motion[start:stop], out[start:stop])
+    return out
+
+
+class ProjectionModel:
+    """Precomputed pieces of the blendshape projection: Gram, per-region maps, bounds."""
+
+    def __init__(self, gram, maps, offset, lower, upper):
+        self.gram = gram  # (M, M)
+        self.maps = maps  # per region (K, M): block_l @ D_l^T
+        self.offset = offset  # (M,): D (neutral_C - rig neutral)
+        self.lower = lower
+        self.upper = upper
+
+
+def build_projection(character: CharacterModel, rig) -> ProjectionModel:
+    """Set up the projection onto ``rig`` (a BlendshapeRig over the character's vertices)."""
+    deltas = np.asarray(rig.deltas, dtype=np.float64)  # (M, V, 3)
+    flat = deltas.reshape(deltas.shape[0], -1)
+    gram = flat @ flat.T
+    maps = [block @ deltas[:, ids, :].reshape(deltas.shape[0], -1).T for ids, block in character.regions]
+    offset = flat @ (character.neutral - np.asarray(rig.neutral.vertices, dtype=np.float64)).ravel()
+    if rig.bounds is None:
+        lower, upper = np.zeros(rig.n_shapes), np.full(rig.n_shapes, np.inf)
+    else:
+        lower, upper = np.asarray(rig.bounds[:, 0], float), np.asarray(rig.bounds[:, 1], float)
+    return ProjectionModel(gram, maps, offset, lower, upper)
+
+
+def project(model: ProjectionModel, beta: np.ndarray, x0=None) -> np.ndarray:
+    """Blendshape weights ``(F, M)`` closest to the layered output for ``beta (F, m, K)``."""
+    from faceretarget.geometry.nnls import bounded_lsq_gram
+
+    rhs = model.offset + sum(beta[:, l, :] @ mp for l, mp in enumerate(model.maps))
+    return bounded_lsq_gram(model.gram, rhs, model.lower, model.upper, x0=x0)

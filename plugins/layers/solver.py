@@ -1,0 +1,363 @@
+"""Parameter extraction (Kholgade et al. 2011, sec. 4): head motion, then W(t), alpha(t).
+
+Head motion (sec. 4, first paragraph). The 3D markers and the 2D tracks are each
+aligned to their neutral by Procrustes (3D rigid; 2D similarity, since image tracks
+also change scale as the head moves in depth), then, Eq. 6::
+
+    x_hat(t) = R(t)^-1 (x_A(t) - t(t)) - x_muA
+
+The 3D fit is weighted towards points the actor's layers barely move (weight
+``1 / (1 + (d_p / median d)^2)`` with ``d_p`` the largest displacement of point p over
+all basis poses), which reduces the bias the paper names as a limitation ("excessive
+non-rigid motion can dominate the alignment"); ``rigid_points="all"`` gives the plain
+unweighted fit. A known ``Source.head_motion`` replaces the 3D estimate.
+
+Per-frame problem (Eq. 7, reconstructed). With ``gamma = exp(-d^2 / (2 sigma^2))``::
+
+    min_{W, alpha}  |x_hat - sum_j sum_l w_jl M_Al B_Aj alpha_j|^2
+                    + gamma / (1 - gamma) * (|W[mouth, :] - e_speech|^2 + |alpha_speech - alpha_mm|^2)
+                    + lambda / (1 - gamma) * (|W - W(t-1)|_F^2 + |alpha - alpha(t-1)|^2)
+    s.t. sum_j w_jl = 1, w_jl >= 0 (every region l);  sum_k alpha_jk = 1, alpha_jk >= 0 (every layer j)
+
+The bias vector ``(w21, w22, w23) = (0, 1, 0)`` in the paper is the mouth region's
+row of W (emotion 0, speech 1, blink 0; the prose indexes w by region first there),
+and ``alpha_mm`` the one-hot closed-lips viseme. We minimise the equivalent
+``(1 - gamma) * data + gamma * bias + lambda * smooth`` with ``gamma`` capped at
+``gamma_max`` < 1 so the data never vanish. The data term is normalised (see
+``model.py``): a mean over observed points in units of the RMS basis displacement.
+
+Lip distance ``d``: the distance between the two lip points (3D markers or 2D tracks,
+after alignment) *minus their distance in the closed-lips viseme pose*, clipped at 0,
+so markers that sit on the lips' outer edges (never touching) still measure closure;
+``sigma`` is ``lip_sigma`` times the widest lip opening among the speech poses.
+A frame missing either lip point gets ``gamma = 0``.
+
+Missing markers (NaN) drop their coordinates from that frame's data term (the Gram
+tensor is downdated); the frame keeps its parameters from the rest of the face and the
+smoothing term. Frames whose 3D markers are too few for the rigid fit (< 3) raise
+:class:`~faceretarget.errors.DegenerateGeometryError` when head motion must be
+estimated; 2D tracks with < 2 points in a frame are ignored for that frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from faceretarget.errors import (
+    ConfigError,
+    DegenerateGeometryError,
+    IndexRangeError,
+    NonFiniteError,
+    ShapeError,
+    UnknownNameError,
+)
+from faceretarget.geometry.procrustes import fit_rigid, to_matrix
+
+from .model import ActorModel
+
+__all__ = ["LipBias", "Observations", "Extraction", "resolve_lip_bias", "observe", "extract", "uniform_state"]
+
+#: Lip pairs are found by name when names hold "lip" and one of these.
+_UPPER_WORDS = ("upper", "top", "sup")
+_LOWER_WORDS = ("lower", "bottom", "bot", "inf")
+#: Relative floor of the closed distance in the lip-pair score (fraction of the widest opening).
+_GAP_FLOOR = 0.05
+
+
+@dataclass
+class LipBias:
+    """Where the lip-closure bias looks and what it pulls towards (-1 = bias off)."""
+
+    part: int  # 3: the pair is among the 3D markers, 2: among the 2D tracks
+    upper: int
+    lower: int
+    closed_gap: float
+    sigma: float
+    mouth: int
+    speech: int
+    closed: int
+    names: tuple = ()
+    note: str = ""
+
+    @property
+    def enabled(self) -> bool:
+        return self.mouth >= 0 and self.speech >= 0 and self.closed >= 0 and self.sigma > 0
+
+
+def _disabled(note: str) -> LipBias:
+    return LipBias(3, -1, -1, 0.0, 0.0, -1, -1, -1, (), note)
+
+
+def _gaps(points: np.ndarray, upper: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    """Distances between paired points: ``points (S, P, D)`` -> ``(S, n_pairs)``."""
+    return np.linalg.norm(points[:, upper] - points[:, lower], axis=-1)
+
+
+def _pick_pair(names, speech_poses: np.ndarray, closed: int, lip_markers):
+    """(upper, lower, score) of the lip pair in one point set, or None."""
+    n = speech_poses.shape[1]
+    if lip_markers is not None:
+        ids = []
+        for item in lip_markers:
+            if isinstance(item, str):
+                if item not in names:
+                    return None
+                ids.append(names.index(item))
+            else:
+                ids.append(int(item))
+        if any(i < 0 or i >= n for i in ids):
+            raise IndexRangeError(f"lip_markers: indices {ids} out of range for {n} points")
+        return ids[0], ids[1], np.inf
+    low = [s.lower() for s in names]
+    ups = [i for i, s in enumerate(low) if "lip" in s and any(w in s for w in _UPPER_WORDS)]
+    los = [i for i, s in enumerate(low) if "lip" in s and any(w in s for w in _LOWER_WORDS)]
+    if ups and los:
+        upper, lower = np.repeat(ups, len(los)), np.tile(los, len(ups))
+        bonus = np.inf  # named pairs win over the geometric guess
+    else:
+        upper, lower = np.triu_indices(n, 1)
+        bonus = 0.0
+    gaps = _gaps(speech_poses, upper, lower)
+    opening = gaps.max(axis=0) - gaps[closed]
+    floor = _GAP_FLOOR * max(float(opening.max()), 1e-300)
+    score = opening / (gaps[closed] + floor)
+    best = int(np.argmax(score))
+    if opening[best] <= 0:
+        return None
+    return int(upper[best]), int(lower[best]), float(score[best]) + bonus
+
+
+def resolve_lip_bias(actor: ActorModel, speech_poses3d, speech_poses2d, *, lip_markers, speech_layer, closed_viseme,
+                     mouth_region, lip_sigma, masks3d, masks2d) -> LipBias:
+    """Choose the lip pair, closed viseme and mouth region of the bias (see module doc).
+
+    ``speech_poses3d (K_s, N3, 3)`` / ``speech_poses2d (K_s, N2, 2)``: absolute speech poses.
+    """
+    if not (np.isfinite(lip_sigma) and lip_sigma >= 0):
+        raise ConfigError(f"lip_sigma must be >= 0 (0 turns the lip-closure bias off), got {lip_sigma!r}")
+    if lip_markers is not None and (isinstance(lip_markers, str) or len(lip_markers) != 2):
+        raise ConfigError(f"lip_markers must be a pair (upper, lower) of names or indices, got {lip_markers!r}")
+    if speech_layer not in actor.layer_names:
+        if closed_viseme is not None or lip_markers is not None:
+            raise UnknownNameError(
+                f"speech_layer {speech_layer!r} is not a layer of the actor ({', '.join(actor.layer_names)}); "
+                "name the layer that holds the visemes"
+            )
+        return _disabled(f"no {speech_layer!r} layer: lip-closure bias off")
+    if lip_sigma == 0:
+        return _disabled("lip_sigma = 0: lip-closure bias off")
+    speech = actor.layer_names.index(speech_layer)
+    names = actor.pose_names[speech_layer]
+    if closed_viseme is None:
+        k_closed = 0
+    elif isinstance(closed_viseme, str):
+        if closed_viseme not in names:
+            raise UnknownNameError(f"closed_viseme {closed_viseme!r} is not a pose of layer {speech_layer!r}: {', '.join(names)}")
+        k_closed = names.index(closed_viseme)
+    else:
+        k_closed = int(closed_viseme)
+        if not 0 <= k_closed < len(names):
+            raise IndexRangeError(f"closed_viseme {closed_viseme} out of range for {len(names)} poses of {speech_layer!r}")
+    choices = []
+    by_index = lip_markers is not None and not all(isinstance(v, str) for v in lip_markers)
+    for part, poses, pnames, masks in ((3, speech_poses3d, actor.names3d, masks3d), (2, speech_poses2d, actor.names2d, masks2d)):
+        if poses is None or (by_index and part == 2):  # indices refer to the 3D markers
+            continue
+        found = _pick_pair(list(pnames), poses, k_closed, lip_markers)
+        if found is not None:
+            choices.append((found[2], part, found[0], found[1], poses, pnames, masks))
+    if not choices:
+        if lip_markers is not None:
+            raise UnknownNameError(f"lip_markers {lip_markers!r}: no such markers or tracks")
+        return _disabled("no lip pair opens across the speech poses: lip-closure bias off")
+    _, part, up, lo, poses, pnames, masks = max(choices, key=lambda c: c[0])
+    gaps = _gaps(poses, np.array([up]), np.array([lo]))[:, 0]
+    closed_gap = float(gaps[k_closed])
+    sigma = float(lip_sigma) * float(gaps.max() - closed_gap)
+    if mouth_region is None:
+        mouth = int(np.argmax(masks[:, up] + masks[:, lo]))
+    elif isinstance(mouth_region, str):
+        if mouth_region not in actor.region_names:
+            raise UnknownNameError(f"mouth_region {mouth_region!r} is not a region: {', '.join(actor.region_names)}")
+        mouth = actor.region_names.index(mouth_region)
+    else:
+        mouth = int(mouth_region)
+        if not 0 <= mouth < actor.n_regions:
+            raise IndexRangeError(f"mouth_region {mouth_region} out of range for {actor.n_regions} regions")
+    label = (pnames[up], pnames[lo]) if len(pnames) > max(up, lo) else (str(up), str(lo))
+    return LipBias(part, up, lo, closed_gap, sigma, mouth, speech, actor.pose_index(speech_layer, k_closed), label, "")
+
+
+@dataclass
+class Observations:
+    """One block of frames reduced to what the solver needs.
+
+    g : (F, m, K), xx : (F,)  data projections and squared norms (normalised units)
+    missing : (F, C) bool, any_missing : (F,) bool, n_valid : (F,) observed points
+    gap : (F,) lip distance (NaN when a lip point is missing or the bias is off)
+    head_motion : (F, 4, 4) 3D head motion (neutral -> world)
+    xhat : (F, C) aligned, normalised data (Eq. 6; zero where missing), when asked for
+    """
+
+    g: np.ndarray
+    xx: np.ndarray
+    missing: np.ndarray
+    any_missing: np.ndarray
+    n_valid: np.ndarray
+    gap: np.ndarray
+    head_motion: np.ndarray
+    xhat: np.ndarray | None = None
+
+
+def _check_points(arr, n: int, dim: int, what: str) -> np.ndarray:
+    a = np.asarray(arr, dtype=np.float64)
+    if a.ndim != 3 or a.shape[1:] != (n, dim):
+        raise ShapeError(f"{what}: expected (F, {n}, {dim}) points, got {tuple(a.shape)}")
+    if np.isinf(a).any():
+        raise NonFiniteError(f"{what}: infinite coordinates; mark missing samples with NaN")
+    partial = np.isnan(a).any(axis=-1) & ~np.isnan(a).all(axis=-1)
+    if partial.any():
+        f, p = (int(i) for i in np.argwhere(partial)[0])
+        raise NonFiniteError(f"{what}: point {p} at frame {f} has some coordinates NaN; a missing sample is NaN in all")
+    return a
+
+
+def observe(actor: ActorModel, lip: LipBias, markers, tracks=None, head_motion=None, *, rigid_points: str = "stable",
+            frame_offset: int = 0, keep_xhat: bool = False) -> Observations:
+    """Align one block of frames and project it on the actor's bases.
+
+    markers : (F, N3, 3) float, NaN = missing; tracks : (F, N2, 2) or None
+    head_motion : (F, 4, 4) known 3D head motion, or None to estimate it
+    """
+    from ._kernels import project
+
+    x3 = _check_points(markers, actor.n3, 3, "markers")
+    n_frames = x3.shape[0]
+    valid3 = ~np.isnan(x3[..., 0])
+    if rigid_points not in ("stable", "all"):
+        raise ConfigError(f"rigid_points must be 'stable' or 'all', got {rigid_points!r}")
+    if head_motion is None:
+        counts = valid3.sum(axis=1)
+        if np.any(counts < 3):
+            f = int(np.flatnonzero(counts < 3)[0])
+            raise DegenerateGeometryError(
+                f"frame {f + frame_offset} has only {int(counts[f])} of {actor.n3} markers; the rigid head fit needs "
+                "at least 3: fill the gap (interpolate) or drop the frame"
+            )
+        weights = actor.rigid_weights3d if rigid_points == "stable" else None
+        rot, trans, _ = fit_rigid(actor.reference3d, x3, weights)
+        motion = to_matrix(rot, trans)
+    else:
+        motion = np.asarray(head_motion, dtype=np.float64)
+        if motion.shape != (n_frames, 4, 4):
+            raise ShapeError(f"head_motion: expected ({n_frames}, 4, 4), got {motion.shape}")
+        rot, trans = motion[:, :3, :3], motion[:, :3, 3]
+    local3 = np.matmul(x3 - trans[:, None, :], rot)  # rows: (x - t)^T R = (R^T (x - t))^T, Eq. 6
+    blocks = [((local3 - actor.reference3d) / actor.scale3d).reshape(n_frames, -1)]
+    missing = [np.repeat(~valid3, 3, axis=1)]
+    n_valid = valid3.sum(axis=1)
+    local2 = None
+    if actor.n2:
+        if tracks is None:
+            raise ShapeError(f"the fitted model uses {actor.n2} 2D tracks; this input has none (pass tracks2d)")
+        x2 = _check_points(tracks, actor.n2, 2, "tracks2d")
+        if x2.shape[0] != n_frames:
+            raise ShapeError(f"tracks2d: {x2.shape[0]} frames but the markers have {n_frames}")
+        valid2 = ~np.isnan(x2[..., 0])
+        usable = valid2.sum(axis=1) >= 2
+        valid2 &= usable[:, None]
+        local2 = np.full_like(x2, np.nan)
+        if usable.any():
+            r2, t2, s2 = fit_rigid(actor.reference2d, x2[usable], actor.rigid_weights2d if rigid_points == "stable" else None, scale=True)
+            local2[usable] = np.matmul(x2[usable] - t2[:, None, :], r2) / s2[:, None, None]
+        blocks.append(((local2 - actor.reference2d) / actor.scale2d).reshape(n_frames, -1))
+        missing.append(np.repeat(~valid2, 2, axis=1))
+        n_valid = n_valid + valid2.sum(axis=1)
+    xhat = np.concatenate(blocks, axis=1)
+    miss = np.concatenate(missing, axis=1)
+    xhat[miss] = 0.0
+    g = np.empty((n_frames, actor.n_regions * actor.n_poses))
+    xx = np.empty(n_frames)
+    project(np.ascontiguousarray(xhat), actor.projector_t, g, xx)
+    g = g.reshape(n_frames, actor.n_regions, actor.n_poses)
+    if lip.enabled:
+        pts = local3 if lip.part == 3 else local2
+        gap = np.linalg.norm(pts[:, lip.upper] - pts[:, lip.lower], axis=-1)
+    else:
+        gap = np.full(n_frames, np.nan)
+    return Observations(
+        g=np.ascontiguousarray(g),
+        xx=xx,
+        missing=np.ascontiguousarray(miss),
+        any_missing=miss.any(axis=1),
+        n_valid=n_valid.astype(np.float64),
+        gap=gap,
+        head_motion=motion,
+        xhat=xhat if keep_xhat else None,
+    )
+
+
+@dataclass
+class Extraction:
+    """Per-frame layered parameters.
+
+    weights : (F, m, J) mask weights ``w_jl`` (row l sums to 1 over layers j)
+    coefficients : (F, K) stacked simplex coefficients (each layer's block sums to 1)
+    gamma : (F,) lip-closure bias factor used; objective : (F,); iterations : (F,)
+    """
+
+    weights: np.ndarray
+    coefficients: np.ndarray
+    gamma: np.ndarray
+    objective: np.ndarray
+    iterations: np.ndarray
+
+
+def uniform_state(actor: ActorModel) -> tuple[np.ndarray, np.ndarray]:
+    """The deterministic start of a sequence: every layer 1/J in each region, uniform alphas."""
+    w = np.full((actor.n_regions, actor.n_layers), 1.0 / actor.n_layers)
+    sizes = np.bincount(actor.layer_of, minlength=actor.n_layers)
+    return w, 1.0 / sizes[actor.layer_of].astype(np.float64)
+
+
+def bias_factor(lip: LipBias, gap: np.ndarray, gamma_max: float) -> np.ndarray:
+    """``gamma(t) = exp(-d^2 / (2 sigma^2))`` with ``d = max(0, gap - closed gap)``, capped."""
+    if not lip.enabled:
+        return np.zeros_like(gap)
+    d = np.maximum(gap - lip.closed_gap, 0.0)
+    gamma = np.exp(-(d * d) / (2.0 * lip.sigma**2))
+    return np.minimum(np.where(np.isnan(gap), 0.0, gamma), gamma_max)
+
+
+def extract(actor: ActorModel, lip: LipBias, obs: Observations, *, smoothing: float, gamma_max: float,
+            max_iter: int, tol: float, state=None) -> tuple[Extraction, tuple[np.ndarray, np.ndarray]]:
+    """Solve Eq. 7 frame after frame; ``state`` = (W, alpha) of the frame before, if any.
+
+    Returns the extraction and the state after the last frame (for streaming).
+    """
+    from ._kernels import solve_frames
+
+    if not (np.isfinite(smoothing) and smoothing >= 0):
+        raise ConfigError(f"smoothing must be >= 0, got {smoothing!r}")
+    if not (0.0 <= gamma_max < 1.0):
+        raise ConfigError(f"gamma_max must be in [0, 1), got {gamma_max!r}")
+    if int(max_iter) < 1 or not (tol >= 0):
+        raise ConfigError(f"max_iter must be >= 1 and tol >= 0, got {max_iter!r}, {tol!r}")
+    n_frames = obs.g.shape[0]
+    gamma = bias_factor(lip, obs.gap, gamma_max)
+    c_d = (1.0 - gamma) / np.maximum(obs.n_valid, 1.0)
+    c_s = np.full(n_frames, float(smoothing))
+    has_prev = state is not None
+    w0, a0 = state if has_prev else uniform_state(actor)
+    m, J, K = actor.n_regions, actor.n_layers, actor.n_poses
+    out_w = np.empty((n_frames, m, J))
+    out_a = np.empty((n_frames, K))
+    out_obj = np.empty(n_frames)
+    out_it = np.empty(n_frames, dtype=np.int64)
+    solve_frames(actor.gram, actor.pair_used, actor.basis_t, actor.coord_masks, obs.g, obs.xx, obs.missing, obs.any_missing,
+                 c_d, gamma, c_s, actor.layer_of, J, lip.mouth, lip.speech, lip.closed,
+                 np.ascontiguousarray(w0, dtype=np.float64), np.ascontiguousarray(a0, dtype=np.float64), has_prev,
+                 int(max_iter), float(tol), out_w, out_a, out_obj, out_it)
+    result = Extraction(out_w, out_a, gamma, out_obj, out_it)
+    return result, (out_w[-1].copy(), out_a[-1].copy())
