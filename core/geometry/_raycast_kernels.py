@@ -356,7 +356,9 @@ def closest_points(node_lo, node_hi, left, right, start, count, order, vertices,
 @nb.njit(cache=True, nogil=True)
 def walk_one(vertices, triangles, neighbors, o0, o1, o2, d0, d1, d2, tri, max_dist, max_steps):
     """One line's walk (see :func:`walk_lines`): (triangle, t, u, v); triangle -2 when the walk
-    left the mesh across a boundary edge, -1 when it failed otherwise."""
+    left the mesh across a boundary edge, -3 when the crossing it reached is farther than
+    ``max_dist``, -4 when it would step back (the line grazes a crease between two triangles
+    without crossing either), -1 when it failed otherwise (step limit, parallel line)."""
     prev = -1
     if tri < 0:
         return -1, np.nan, 0.0, 0.0
@@ -368,7 +370,7 @@ def walk_one(vertices, triangles, neighbors, o0, o1, o2, d0, d1, d2, tri, max_di
         if _inside(u, v):
             if abs(t) <= max_dist:
                 return tri, t, u, v
-            break
+            return -3, np.nan, 0.0, 0.0
         k = 0
         lowest = w
         if u < lowest:
@@ -379,7 +381,7 @@ def walk_one(vertices, triangles, neighbors, o0, o1, o2, d0, d1, d2, tri, max_di
         if nxt < 0:
             return -2, np.nan, 0.0, 0.0
         if nxt == prev:
-            break
+            return -4, np.nan, 0.0, 0.0
         prev = tri
         tri = nxt
     return -1, np.nan, 0.0, 0.0
@@ -392,8 +394,8 @@ def walk_lines(vertices, triangles, neighbors, origins, directions, start, max_d
     From each start triangle the line is intersected with the triangle's plane; while the
     barycentric coordinates are not all >= 0 the walk crosses the edge opposite the most
     negative one (``neighbors (T, 3)``: triangle across the edge opposite corner k, -1 on a
-    boundary). Fails (triangle -1) at a boundary, a line parallel to a triangle, a walk back,
-    ``max_steps`` or a hit farther than ``max_dist``. Cost O(steps) per line instead of a tree
+    boundary). Fails (triangle -1) at a boundary, a line parallel to a triangle, a walk back
+    (a line grazing a crease), ``max_steps`` or a hit farther than ``max_dist``. Cost O(steps) per line instead of a tree
     descent: for animation frames of a fixed topology, started from the previous hits.
     """
     for r in range(origins.shape[0]):

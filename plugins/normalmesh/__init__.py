@@ -1,7 +1,10 @@
-"""Built-in retargeter plugin `normalmesh` (being implemented)."""
+"""Built-in retargeter plugin ``normalmesh``: Na & Jung 2004, Hierarchical Retargetting of Fine
+Facial Motions (normal meshes of Guskov et al. 2000). See ``docs/methods/normalmesh.md``."""
 from faceretarget.hookspecs import hookimpl
 
 
 @hookimpl
 def faceretarget_retargeters():
-    return []
+    from .retargeter import NormalMeshRetargeter  # numba kernels stay out of import time
+
+    return [NormalMeshRetargeter]
