@@ -198,3 +198,12 @@ def test_wheel_ships_registry_toml_and_reads_it_from_there(tmp_path):
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path)
     assert run.returncode == 0, run.stderr
     assert str(tmp_path / "unpacked") in run.stdout
+
+
+def test_readme_method_sections_match_registry_toml():
+    out = subprocess.run([sys.executable, str(ROOT / "docs" / "readme_methods.py"), "--check"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    readme = (ROOT / "README.md").read_text()
+    for name in read_catalogue():
+        if not name.startswith("spacetime_"):
+            assert f"### `{name}`" in readme, f"README.md has no section for {name}"
