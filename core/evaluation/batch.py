@@ -1,0 +1,426 @@
+"""Batch runs: many (shot, character, method) jobs from a TOML manifest, locally or on Dask.
+
+Manifest (``faceretarget batch shots.toml``)::
+
+    [defaults]                       # optional; every job inherits these keys
+    method = "spacetime"
+    params = { alpha = 0.02 }
+    character = "characters/hero.glb"
+
+    [[job]]
+    shot = "shots/sh010.c3d"         # performance file, or "case:NAME?k=v" (its source)
+    character = "characters/hero.glb"  # target rig file, or "case:NAME?k=v" (its target)
+    landmarks = "characters/hero_landmarks.json"   # optional, passed to io.load_target
+    method = "spacetime"             # registered name or alias
+    params = { alpha = 0.05 }        # merged over the defaults' params
+    out = "out/sh010_hero.glb"       # extension picks the registered writer
+    name = "sh010-hero"              # optional id (default: out)
+
+Every path is relative to the manifest's folder and is refused (:class:`ConfigError`)
+if it resolves (symlinks followed) outside that folder. The whole manifest is checked
+before anything runs: unknown keys, methods, parameters, duplicate outputs, outputs
+without a registered writer.
+
+Execution: a local process pool by default (``workers`` processes, spawn start method);
+``executor="dask"`` runs the same jobs on ``dask.distributed`` (a scheduler at
+``scheduler`` such as ``tcp://10.0.0.5:8786``, or a local cluster on 127.0.0.1). Workers
+must see the same file system. Each job writes its output atomically (a temporary file
+in the output folder, then ``os.replace``), so an output that exists is complete: a rerun
+skips it (``redo=True`` runs everything again). A failing job is reported with its error
+and does not stop the others. Progress is shown with tqdm on stderr.
+"""
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import sys
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from ..errors import ConfigError, OutputError, UnknownNameError
+
+__all__ = ["Job", "JobResult", "BatchSummary", "load_manifest", "run_batch", "run_job", "CASE_PREFIX"]
+
+#: Prefix of a shot / character given as a built-in case (``case:synthetic-human?n_frames=40``).
+CASE_PREFIX = "case:"
+_JOB_KEYS = {"shot", "character", "landmarks", "method", "params", "out", "name"}
+_TMP_MARK = ".frbatch-"
+
+
+@dataclass
+class Job:
+    """One job, with paths resolved and the retargeter class and writer looked up."""
+
+    name: str
+    shot: str
+    character: str
+    method: str
+    params: dict
+    out: str
+    landmarks: str | None = None
+    cls: Any = None
+    writer: Callable | None = None
+    writer_name: str = ""
+
+
+@dataclass
+class JobResult:
+    name: str
+    status: str  # "done" | "skipped" | "failed"
+    out: str
+    seconds: float = 0.0
+    error: str = ""
+    method: str = ""
+
+
+@dataclass
+class BatchSummary:
+    results: list[JobResult] = field(default_factory=list)
+
+    def count(self, status: str) -> int:
+        return sum(r.status == status for r in self.results)
+
+    @property
+    def failed(self) -> list[JobResult]:
+        return [r for r in self.results if r.status == "failed"]
+
+    def as_dict(self) -> dict:
+        return {
+            "done": self.count("done"),
+            "skipped": self.count("skipped"),
+            "failed": self.count("failed"),
+            "jobs": [asdict(r) for r in self.results],
+        }
+
+
+# ---------------------------------------------------------------------------------------
+# Manifest
+# ---------------------------------------------------------------------------------------
+def _inside(root: Path, value: str, what: str, where: str) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise ConfigError(f"{where}: {what} must be a non-empty path string, got {value!r}")
+    if value.startswith(CASE_PREFIX):
+        return value
+    path = (root / value).resolve()
+    if not path.is_relative_to(root):
+        raise ConfigError(f"{where}: {what} {value!r} resolves to {path}, outside the manifest's folder {root}; paths must stay inside it")
+    return str(path)
+
+
+def writer_for(out: Path, registry, where: str):
+    """The registered animation :class:`~faceretarget.Writer` for ``out``'s extension."""
+    suffix = out.suffix.lower()
+    candidates = [w for w, _ in registry.writers if suffix and suffix in w.extensions and w.kind == "animation"]
+    if not candidates:
+        valid = sorted({e for w, _ in registry.writers if w.kind == "animation" for e in w.extensions if e != "/"})
+        raise ConfigError(
+            f"{where}: no registered writer for animations with extension {suffix or '(none)'!r} "
+            f"(out = {out.name}); available: {', '.join(valid) or 'none registered'}"
+        )
+    return candidates[0]
+
+
+def load_manifest(path, *, registry=None) -> list[Job]:
+    """Parse and check a manifest; returns its jobs (nothing runs).
+
+    Raises :class:`ConfigError` (malformed, unsafe paths, duplicate outputs, no writer)
+    or :class:`UnknownNameError` (method or parameter) naming the job.
+    """
+    from ..registry import registry as _registry
+    from .harness import parse_case_spec
+
+    registry = registry or _registry()
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeError) as exc:
+        raise ConfigError(f"cannot read manifest {path}: {exc}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"manifest {path}: not valid TOML ({exc})") from None
+    root = path.parent.resolve()
+    unknown_top = set(data) - {"defaults", "job", "jobs"}
+    if unknown_top:
+        raise ConfigError(f"manifest {path}: unknown table(s) {sorted(unknown_top)}; use [defaults] and [[job]]")
+    defaults = data.get("defaults", {})
+    entries = data.get("job", []) + data.get("jobs", [])
+    if not isinstance(defaults, dict) or not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise ConfigError(f"manifest {path}: [defaults] must be a table and [[job]] an array of tables")
+    if not entries:
+        raise ConfigError(f"manifest {path}: no [[job]] entries")
+    jobs, outs = [], {}
+    for i, entry in enumerate(entries):
+        where = f"manifest {path.name}, job #{i + 1}"
+        merged = {**defaults, **entry, "params": {**defaults.get("params", {}), **entry.get("params", {})}}
+        unknown = set(merged) - _JOB_KEYS
+        if unknown:
+            raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; valid keys: {sorted(_JOB_KEYS)}")
+        missing = [k for k in ("shot", "method", "out") if k not in merged]
+        if "character" not in merged and not str(merged.get("shot", "")).startswith(CASE_PREFIX):
+            missing.append("character")
+        if missing:
+            raise ConfigError(f"{where}: missing {', '.join(missing)}")
+        merged.setdefault("character", merged["shot"])
+        for key in ("shot", "character"):
+            if str(merged[key]).startswith(CASE_PREFIX):
+                parse_case_spec(merged[key][len(CASE_PREFIX):])
+        if not isinstance(merged["params"], dict):
+            raise ConfigError(f"{where}: params must be a table, e.g. params = {{ alpha = 0.05 }}")
+        info = registry.resolve(str(merged["method"]))
+        defaults_of = info.cls.default_params()
+        bad = sorted(set(merged["params"]) - set(defaults_of))
+        if bad:
+            raise UnknownNameError(f"{where}: {info.name} has no parameter(s) {', '.join(bad)}; valid: {', '.join(sorted(defaults_of)) or '(none)'}")
+        out = _inside(root, merged["out"], "out", where)
+        if str(merged["out"]).startswith(CASE_PREFIX):
+            raise ConfigError(f"{where}: out must be a file path")
+        shot = _inside(root, merged["shot"], "shot", where)
+        character = _inside(root, merged["character"], "character", where)
+        landmarks = _inside(root, merged["landmarks"], "landmarks", where) if "landmarks" in merged else None
+        if out in (shot, character, landmarks):
+            raise ConfigError(f"{where}: out {merged['out']!r} is also an input; choose another output path")
+        name = str(merged.get("name") or merged["out"])
+        if out in outs:
+            raise ConfigError(f"{where}: out {merged['out']!r} is already written by {outs[out]!r}; every job needs its own output")
+        outs[out] = name
+        writer = writer_for(Path(out), registry, where)
+        jobs.append(
+            Job(name, shot, character, info.name, dict(merged["params"]), out, landmarks, cls=info.cls, writer=writer.write, writer_name=writer.name)
+        )
+    names = [j.name for j in jobs]
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise ConfigError(f"manifest {path}: job names must be unique; repeated: {dup}")
+    return jobs
+
+
+# ---------------------------------------------------------------------------------------
+# One job (runs in a worker process or thread)
+# ---------------------------------------------------------------------------------------
+def _load_source(spec: str):
+    from .harness import cached_case
+
+    if spec.startswith(CASE_PREFIX):
+        return cached_case(spec[len(CASE_PREFIX):]).source
+    from .. import io
+
+    if not hasattr(io, "load_source"):
+        raise ConfigError(f"reading {spec} needs faceretarget.io.load_source, which this installation does not provide")
+    return io.load_source(spec)
+
+
+def _load_target(spec: str, landmarks: str | None):
+    from .harness import cached_case
+
+    if spec.startswith(CASE_PREFIX):
+        return cached_case(spec[len(CASE_PREFIX):]).target
+    from .. import io
+
+    if not hasattr(io, "load_target"):
+        raise ConfigError(f"reading {spec} needs faceretarget.io.load_target, which this installation does not provide")
+    return io.load_target(spec, landmarks=landmarks)
+
+
+def _remove_stale_temporaries(out: Path) -> None:
+    for leftover in out.parent.glob(f".{out.name}{_TMP_MARK}*"):
+        try:
+            leftover.unlink()
+        except OSError:
+            pass
+
+
+def write_animation(animation, out: Path, writer: Callable) -> Path:
+    """Write through ``writer`` into a temporary file beside ``out``, then ``os.replace``."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temporaries(out)
+    tmp = out.with_name(f".{out.name}{_TMP_MARK}{os.getpid()}-{secrets.token_hex(4)}{out.suffix}")
+    try:
+        writer(animation, tmp)
+        if not tmp.exists():
+            raise OutputError(f"the writer for {out.suffix} did not create {tmp.name}")
+        os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return out
+
+
+def _registered_writer(name: str) -> Callable:
+    from ..registry import registry
+
+    for writer, _ in registry().writers:
+        if writer.name == name:
+            return writer.write
+    raise ConfigError(f"no writer named {name!r} is registered in this worker; install the plugin that provides it on every worker")
+
+
+def _portable(jobs: list[Job]) -> list[Job]:
+    """Jobs for other processes: a writer callable that does not pickle is looked up by name there."""
+    import pickle
+    from dataclasses import replace
+
+    out = []
+    for job in jobs:
+        try:
+            pickle.dumps(job.writer)
+            out.append(job)
+        except Exception:
+            out.append(replace(job, writer=None))
+    return out
+
+
+def run_job(job: Job) -> JobResult:
+    """Run one job and write its output atomically; never raises (errors are returned)."""
+    from .harness import validate_output
+
+    start = time.perf_counter()
+    out = Path(job.out)
+    try:
+        source = _load_source(job.shot)
+        target = _load_target(job.character, job.landmarks)
+        retargeter = job.cls(**job.params)
+        animation = retargeter.fit(source, target).retarget(source)
+        truth_less = type("_Case", (), {"source": source, "target": target, "truth": None})()
+        validate_output(animation, truth_less, job.method)
+        write_animation(animation, out, job.writer or _registered_writer(job.writer_name))
+        return JobResult(job.name, "done", job.out, time.perf_counter() - start, method=job.method)
+    except Exception as exc:  # reported per job; the batch goes on
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        return JobResult(job.name, "failed", job.out, time.perf_counter() - start, f"{type(exc).__name__}: {message}", job.method)
+
+
+# ---------------------------------------------------------------------------------------
+# Executors
+# ---------------------------------------------------------------------------------------
+def _run_local(jobs: list[Job], workers: int, bar) -> list[JobResult]:
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    from .harness import single_threaded_children
+
+    results = []
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+    try:
+        with single_threaded_children():
+            futures = {pool.submit(run_job, job): job for job in jobs}
+        for future in as_completed(futures):
+            job = futures[future]
+            try:
+                result = future.result()
+            except Exception as exc:  # the worker process died (e.g. killed, out of memory)
+                result = JobResult(job.name, "failed", job.out, 0.0, f"worker failed: {type(exc).__name__}: {exc}", job.method)
+            results.append(result)
+            bar.update()
+            bar.set_postfix_str(f"{result.name}: {result.status}")
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
+    return results
+
+
+def _run_dask(jobs: list[Job], workers: int, scheduler: str | None, processes: bool, bar) -> list[JobResult]:
+    from .harness import single_threaded_children
+
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError as exc:
+        raise ConfigError(f"--dask / --scheduler need dask.distributed: pip install 'dask[distributed]' ({exc})") from None
+    cluster = None
+    try:
+        if scheduler:
+            try:
+                client = Client(scheduler, timeout="20s")
+            except (OSError, TimeoutError) as exc:
+                raise ConfigError(f"cannot reach the Dask scheduler at {scheduler!r}: {exc}") from None
+        else:
+            with single_threaded_children():
+                cluster = LocalCluster(
+                    n_workers=workers, threads_per_worker=1, processes=processes, host="127.0.0.1", protocol="tcp://",
+                    dashboard_address=None, silence_logs=40,
+                )
+            client = Client(cluster)
+        results = []
+        token = secrets.token_hex(4)
+        futures = {client.submit(run_job, job, key=f"faceretarget-job-{i}-{token}", pure=False): job for i, job in enumerate(jobs)}
+        for future in as_completed(list(futures)):
+            job = futures[future]
+            try:
+                result = future.result()
+            except Exception as exc:  # e.g. KilledWorker
+                result = JobResult(job.name, "failed", job.out, 0.0, f"dask worker failed: {type(exc).__name__}: {exc}", job.method)
+            results.append(result)
+            bar.update()
+            bar.set_postfix_str(f"{result.name}: {result.status}")
+        client.close()
+        return results
+    finally:
+        if cluster is not None:
+            cluster.close()
+
+
+def run_batch(
+    manifest,
+    *,
+    executor: str = "local",
+    scheduler: str | None = None,
+    workers: int | None = None,
+    redo: bool = False,
+    dask_processes: bool = True,
+    registry=None,
+    progress: bool = True,
+) -> BatchSummary:
+    """Run the jobs of ``manifest`` (a path, or a list of :class:`Job` from :func:`load_manifest`).
+
+    executor : "local" (process pool) or "dask" (``scheduler`` address, or a local cluster
+        of ``workers`` workers on 127.0.0.1; ``dask_processes=False`` uses threads)
+    workers : parallel jobs (default: the CPU count)
+    redo : run jobs whose output already exists (default: skip them)
+    """
+    from tqdm import tqdm
+
+    if executor not in ("local", "dask"):
+        raise ConfigError(f"executor must be 'local' or 'dask', got {executor!r}")
+    jobs = manifest if isinstance(manifest, list) else load_manifest(manifest, registry=registry)
+    workers = int(workers or os.cpu_count() or 1)
+    if workers < 1:
+        raise ConfigError(f"workers must be >= 1, got {workers}")
+    summary = BatchSummary()
+    pending = []
+    for job in jobs:
+        if not redo and Path(job.out).exists():
+            summary.results.append(JobResult(job.name, "skipped", job.out, method=job.method))
+        else:
+            pending.append(job)
+    bar = tqdm(total=len(pending), desc="batch", unit="job", disable=not progress, file=sys.stderr)
+    try:
+        if pending:
+            if executor == "dask":
+                summary.results.extend(_run_dask(pending if not dask_processes else _portable(pending), workers, scheduler, dask_processes, bar))
+            else:
+                summary.results.extend(_run_local(_portable(pending), workers, bar))
+    finally:
+        bar.close()
+    order = {j.name: i for i, j in enumerate(jobs)}
+    summary.results.sort(key=lambda r: order.get(r.name, 0))
+    return summary
+
+
+def write_summary(summary: BatchSummary, path) -> Path:
+    """The summary as JSON (atomically)."""
+    from .harness import atomic_write_text
+
+    return atomic_write_text(path, json.dumps(summary.as_dict(), indent=1) + "\n")
+
+
+def format_summary(summary: BatchSummary) -> str:
+    lines = [f"batch: {summary.count('done')} done, {summary.count('skipped')} skipped (output exists), {summary.count('failed')} failed"]
+    for r in summary.failed:
+        lines.append(f"  FAILED {r.name} ({r.method}): {r.error}")
+    return "\n".join(lines)
+

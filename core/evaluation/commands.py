@@ -1,0 +1,232 @@
+"""The ``faceretarget compare``, ``demo`` and ``batch`` sub-commands.
+
+``core/cli.py`` attaches them: ``add_<name>_arguments(parser)`` fills the sub-parser and
+``run_<name>(args) -> int`` runs it. Errors are raised as
+:class:`~faceretarget.errors.FaceRetargetError` subclasses; the CLI prints them as one line.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import sys
+import time
+from pathlib import Path
+
+from ..errors import ConfigError, OutputError
+
+__all__ = [
+    "add_compare_arguments",
+    "run_compare",
+    "add_demo_arguments",
+    "run_demo",
+    "add_batch_arguments",
+    "run_batch",
+    "DEMO_CASES",
+]
+
+#: Cases of ``faceretarget demo`` (name -> case spec): modest sizes so the demo takes about
+#: a minute on 2 cores (more on the very first run, while numba compiles the plugins' kernels).
+DEMO_CASES = {
+    "synthetic-human": "synthetic-human?resolution=1500&n_frames=60",
+    "synthetic-stylized": "synthetic-stylized?resolution=1500&n_frames=60",
+    "ict": "ict?n_frames=60",
+}
+
+
+def _parse_sets(pairs: list[str]) -> dict[str, dict]:
+    """``["spacetime.alpha=0.1"]`` -> ``{"spacetime": {"alpha": 0.1}}`` (values: Python literals, else strings)."""
+    from .harness import literal
+
+    out: dict[str, dict] = {}
+    for pair in pairs or []:
+        key, sep, value = pair.partition("=")
+        method, dot, param = key.strip().rpartition(".")
+        if not sep or not dot or not method or not param:
+            raise ConfigError(f"--set {pair!r}: expected METHOD.PARAM=VALUE, e.g. --set spacetime.alpha=0.05")
+        out.setdefault(method, {})[param] = literal(value)
+    return out
+
+
+def _print_ranking(result, stream=None) -> None:
+    from .report import _fmt
+
+    stream = stream or sys.stdout
+    rows = result.ranking()
+    print(f"{'rank':>4}  {'method':<24} {'mean rank':>9} {'ok':>3} {'n/a':>3} {'fail':>4} {'vertex RMS %H':>13} {'time s':>8}", file=stream)
+    for r in rows:
+        print(
+            f"{r['rank'] if r['rank'] is not None else '-':>4}  {r['method']:<24} {_fmt(r['mean_rank']) or '-':>9} {r['ranked_cases']:>3} "
+            f"{r['not_applicable']:>3} {r['failed']:>4} {_fmt(r['vertex_error_rms']) or '-':>13} {_fmt(r['time_total']) or '-':>8}",
+            file=stream,
+        )
+    for run in result.runs:
+        if run.status != "ok":
+            print(f"  {run.case} / {run.method}: {run.status}: {run.reason}", file=stream)
+
+
+def _new_folder(path: Path | None, prefix: str) -> Path:
+    if path is not None:
+        if path.exists() and (not path.is_dir() or any(path.iterdir())):
+            raise OutputError(f"{path} already exists and is not an empty folder; the demo never overwrites, choose a new --out")
+        path.mkdir(parents=False, exist_ok=True)
+        return path
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    base = Path.cwd() / f"{prefix}-{stamp}"
+    candidate, k = base, 2
+    while True:
+        try:
+            candidate.mkdir()
+            return candidate
+        except FileExistsError:
+            candidate, k = Path(f"{base}-{k}"), k + 1
+
+
+# ---------------------------------------------------------------------------------------
+# compare
+# ---------------------------------------------------------------------------------------
+def add_compare_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("cases", nargs="*", help="case names (synthetic, synthetic-human, synthetic-stylized, ict; keywords as NAME?k=v&k=v); default: synthetic-human synthetic-stylized ict")
+    parser.add_argument("--methods", nargs="+", metavar="NAME", help="retargeters to compare (default: every registered one)")
+    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="METHOD.PARAM=VALUE", help="a constructor parameter, e.g. spacetime.alpha=0.05 (repeatable)")
+    parser.add_argument("--metrics", nargs="+", metavar="NAME", help="metrics to compute (default: every registered one)")
+    parser.add_argument("--presets", nargs="*", metavar="NAME", help="also run paper reproductions (all when no name is given): seol_fig11 kholgade_fig8 najung_table1 xu_fig4")
+    parser.add_argument("--out", type=Path, metavar="FOLDER", help="write report.html, results.csv and results.json into FOLDER")
+    parser.add_argument("--csv", type=Path, metavar="FILE", help="write the tidy table as CSV")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="write the tidy table, ranking and runs as JSON")
+    parser.add_argument("--jobs", type=int, default=1, metavar="N", help="run the methods in N worker processes (default 1)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run_compare(args) -> int:
+    from .harness import compare
+    from .presets import run_presets
+    from .report import write_report
+
+    result = compare(
+        args.cases or None,
+        methods=args.methods,
+        params=_parse_sets(args.sets) or None,
+        metrics=args.metrics,
+        progress=not args.quiet,
+        n_jobs=_jobs(args.jobs, 1),
+    )
+    if args.presets is not None:
+        run_presets(result, names=args.presets or None)
+    _print_ranking(result)
+    if args.csv:
+        print(f"wrote {result.to_csv(args.csv)}")
+    if args.json:
+        print(f"wrote {result.to_json(args.json)}")
+    if args.out:
+        paths = write_report(result, args.out)
+        print(f"report: {paths['html']}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------
+# demo
+# ---------------------------------------------------------------------------------------
+def add_demo_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, metavar="FOLDER", help="new folder for the results (default: ./faceretarget-demo-YYYYmmdd-HHMMSS)")
+    parser.add_argument("--methods", nargs="+", metavar="NAME", help="retargeters (default: every registered one)")
+    parser.add_argument("--frames", type=int, default=None, metavar="N", help="frames per case (default 60)")
+    parser.add_argument("--no-presets", action="store_true", help="skip the paper reproductions")
+    parser.add_argument("--no-glb", action="store_true", help="do not write a GLB per method")
+    parser.add_argument("--jobs", type=int, metavar="N", help="methods run in parallel worker processes (default: 2, at most the CPU count)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def demo_cases(frames: int | None = None) -> dict[str, str]:
+    """The demo's ``{name: case spec}``, with ``frames`` frames per case if given."""
+    if frames is None:
+        return dict(DEMO_CASES)
+    if frames < 3:
+        raise ConfigError(f"--frames must be at least 3, got {frames}")
+    return {name: spec.replace("n_frames=60", f"n_frames={frames}") for name, spec in DEMO_CASES.items()}
+
+
+def _jobs(value: int | None, default: int) -> int:
+    import os
+
+    jobs = default if value is None else value
+    if jobs < 1:
+        raise ConfigError(f"--jobs must be at least 1, got {jobs}")
+    return min(jobs, os.cpu_count() or 1) if value is None else jobs
+
+
+def run_demo(args) -> int:
+    from ..registry import registry
+    from .batch import write_animation, writer_for
+    from .harness import compare
+    from .presets import run_presets
+    from .report import write_report
+
+    start = time.perf_counter()
+    folder = _new_folder(args.out, "faceretarget-demo")
+    print(f"faceretarget demo: writing into {folder}", file=sys.stderr)
+    result = compare(demo_cases(args.frames), methods=args.methods, progress=not args.quiet, n_jobs=_jobs(args.jobs, 2))
+    if not args.no_presets:
+        run_presets(result)
+    paths = write_report(result, folder, title="faceretarget demo")
+    glb_note = ""
+    if not args.no_glb:
+        glb_note = _write_glbs(result, folder / "glb", registry(), write_animation, writer_for)
+    _print_ranking(result)
+    print(f"report:  {paths['html']}")
+    print(f"table:   {paths['csv']}")
+    print(f"json:    {paths['json']}")
+    if glb_note:
+        print(glb_note)
+    print(f"done in {time.perf_counter() - start:.1f} s")
+    return 0
+
+
+def _write_glbs(result, folder: Path, reg, write_animation, writer_for) -> str:
+    try:
+        writer = writer_for(Path("x.glb"), reg, "demo")
+    except ConfigError as exc:
+        return f"glb:     not written: {exc}"
+    folder.mkdir(exist_ok=True)
+    written, failed = 0, []
+    for run in result.runs:
+        if run.status != "ok" or run.animation is None:
+            continue
+        try:
+            write_animation(run.animation, folder / f"{run.case}-{run.method}.glb", writer.write)
+            written += 1
+        except Exception as exc:  # one bad export must not lose the report
+            failed.append(f"{run.case}/{run.method}: {type(exc).__name__}: {exc}")
+    note = f"glb:     {written} file(s) in {folder}"
+    return note + ("".join(f"\n  not written: {f}" for f in failed) if failed else "")
+
+
+# ---------------------------------------------------------------------------------------
+# batch
+# ---------------------------------------------------------------------------------------
+def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("manifest", type=Path, help="TOML manifest of [[job]] entries (shot, character, method, params, out); see docs/evaluation.md")
+    parser.add_argument("--dask", action="store_true", help="run on dask.distributed (a local cluster on 127.0.0.1 unless --scheduler is given)")
+    parser.add_argument("--scheduler", metavar="ADDRESS", help="address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --dask)")
+    parser.add_argument("--workers", type=int, metavar="N", help="parallel jobs / local Dask workers (default: CPU count)")
+    parser.add_argument("--redo", action="store_true", help="run jobs whose output already exists (default: skip them)")
+    parser.add_argument("--summary", type=Path, metavar="FILE", help="write the per-job results as JSON")
+    parser.add_argument("--check", action="store_true", help="only check the manifest and list the jobs")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run_batch(args) -> int:
+    from . import batch
+
+    jobs = batch.load_manifest(args.manifest)
+    if args.check:
+        for job in jobs:
+            state = "exists" if Path(job.out).exists() else "to do"
+            print(f"{job.name}: {job.method} {job.shot} -> {job.out} ({state})")
+        print(f"{len(jobs)} job(s); manifest OK")
+        return 0
+    executor = "dask" if (args.dask or args.scheduler) else "local"
+    summary = batch.run_batch(jobs, executor=executor, scheduler=args.scheduler, workers=args.workers, redo=args.redo, progress=not args.quiet)
+    print(batch.format_summary(summary))
+    if args.summary:
+        print(f"wrote {batch.write_summary(summary, args.summary)}")
+    return 1 if summary.failed else 0

@@ -1,0 +1,696 @@
+"""The comparison harness: every applicable retargeter on every case, measured.
+
+    from faceretarget.evaluation import compare, write_report
+    result = compare(["synthetic", "ict"])           # every registered retargeter
+    result.to_csv("results.csv"); print(result.ranking())
+    write_report(result, "report/")
+
+For each (case, method) the harness
+
+1. asks ``cls.why_not(source, target)``; a method that does not apply is listed as
+   ``not applicable`` with that reason (a :class:`~faceretarget.errors.CapabilityError`
+   raised by ``fit`` counts the same way);
+2. fits and retargets under ``tracemalloc`` and a wall clock; any other exception is
+   recorded as ``error`` (type, message, plugin name and distribution) and the run goes on;
+3. validates the output (an :class:`~faceretarget.Animation`, the ground truth's shape,
+   finite values) before any metric sees it;
+4. computes every registered metric (``faceretarget_metrics`` hook), each value a row
+   of the tidy table ``(case, method, metric, value, unit, status, reason)``.
+"""
+from __future__ import annotations
+
+import ast
+import csv
+import io
+import json
+import math
+import os
+import tempfile
+import time
+import tracemalloc
+import traceback
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ..errors import (
+    CapabilityError,
+    ConfigError,
+    FaceRetargetError,
+    OutputError,
+    PluginOutputError,
+    UnknownNameError,
+)
+from ..hookspecs import Metric
+from ..model import Animation
+from ..retargeter import Retargeter
+
+__all__ = [
+    "ComparisonResult",
+    "Run",
+    "compare",
+    "resolve_case",
+    "cached_case",
+    "CASE_NAMES",
+    "OK",
+    "NOT_APPLICABLE",
+    "ERROR",
+    "COLUMNS",
+]
+
+OK = "ok"
+NOT_APPLICABLE = "not applicable"
+ERROR = "error"
+
+#: Columns of the tidy table, in order.
+COLUMNS = ("case", "method", "metric", "value", "unit", "status", "reason")
+
+#: Case names understood by :func:`resolve_case` -> (factory in faceretarget.cases, fixed keywords).
+CASE_NAMES = {
+    "synthetic": ("synthetic", {}),
+    "synthetic-human": ("synthetic", {"target": "human"}),
+    "synthetic-stylized": ("synthetic", {"target": "stylized"}),
+    "ict": ("ict", {}),
+}
+DEFAULT_CASES = ("synthetic-human", "synthetic-stylized", "ict")
+
+
+def _current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _current_umask()
+
+
+# ---------------------------------------------------------------------------------------
+# Cases
+# ---------------------------------------------------------------------------------------
+def resolve_case(spec):
+    """A case object from a name such as ``"synthetic-stylized"`` or ``"ict?n_frames=40"``.
+
+    The part after ``?`` gives keyword arguments (``k=v`` joined by ``&``; values are
+    Python literals, else strings) for the factory in :mod:`faceretarget.cases`. A case
+    object (anything with ``.source`` and ``.target``) is returned unchanged.
+    """
+    if not isinstance(spec, str):
+        if hasattr(spec, "source") and hasattr(spec, "target"):
+            return spec
+        raise UnknownNameError(f"a case is a name ({', '.join(CASE_NAMES)}) or a case object with .source and .target; got {spec!r}")
+    name, kwargs = parse_case_spec(spec)
+    factory_name, fixed = CASE_NAMES[name]
+    from .. import cases
+
+    factory = getattr(cases, factory_name)
+    return factory(**{**fixed, **kwargs})
+
+
+def parse_case_spec(spec: str) -> tuple[str, dict[str, Any]]:
+    """``"ict?n_frames=40&seed=2"`` -> ``("ict", {"n_frames": 40, "seed": 2})``; checks the name."""
+    name, _, query = spec.partition("?")
+    name = name.strip()
+    if name not in CASE_NAMES:
+        raise UnknownNameError(f"no case named {name!r}; valid cases: {', '.join(CASE_NAMES)} (optionally with ?key=value&...)")
+    kwargs: dict[str, Any] = {}
+    for pair in filter(None, query.split("&")):
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip().isidentifier():
+            raise ConfigError(f"case {spec!r}: {pair!r} is not key=value (e.g. ict?n_frames=40)")
+        kwargs[key.strip()] = literal(value)
+    return name, kwargs
+
+
+def literal(text: str):
+    """A Python literal (number, bool, None, string, tuple ...) from ``text``, else the text itself."""
+    try:
+        return ast.literal_eval(text.strip())
+    except (ValueError, SyntaxError):
+        return {"true": True, "false": False, "none": None}.get(text.strip().lower(), text.strip())
+
+
+def case_name(case, index: int) -> str:
+    for value in (getattr(case, "name", None), (getattr(case, "meta", None) or {}).get("name")):
+        if isinstance(value, str) and value:
+            return value
+    return f"case{index}"
+
+
+# ---------------------------------------------------------------------------------------
+# Methods
+# ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Method:
+    name: str
+    cls: type
+    plugin: str
+    distribution: str
+    version: str
+
+
+def _methods(methods, registry) -> list[_Method]:
+    if methods is None:
+        return [_from_info(info) for _, info in sorted(registry.retargeters.items())]
+    out = []
+    for item in methods:
+        if isinstance(item, str):
+            out.append(_from_info(registry.resolve(item)))
+        elif isinstance(item, type) and issubclass(item, Retargeter):
+            out.append(_Method(item.name or item.__name__, item, item.__module__, "local", "-"))
+        else:
+            raise UnknownNameError(f"methods are retargeter names or Retargeter subclasses; got {item!r}")
+    names = [m.name for m in out]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"methods: each retargeter once please; got {names}")
+    return out
+
+
+def _from_info(info) -> _Method:
+    return _Method(info.name, info.cls, info.plugin.name, info.plugin.distribution, info.plugin.version)
+
+
+def _params_for(method: _Method, params: Mapping | None) -> dict:
+    given = dict((params or {}).get(method.name, {}))
+    defaults = method.cls.default_params()
+    unknown = sorted(set(given) - set(defaults))
+    if unknown:
+        raise UnknownNameError(
+            f"params for {method.name}: no parameter(s) {', '.join(unknown)}; valid: {', '.join(sorted(defaults)) or '(none)'}"
+        )
+    return given
+
+
+# ---------------------------------------------------------------------------------------
+# Results
+# ---------------------------------------------------------------------------------------
+@dataclass
+class Run:
+    """One (case, method) run: status, timings, the result (kept in memory) and any error."""
+
+    case: str
+    method: str
+    status: str
+    reason: str = ""
+    plugin: str = ""
+    distribution: str = ""
+    version: str = ""
+    parameters: dict = field(default_factory=dict)
+    fit_s: float | None = None
+    retarget_s: float | None = None
+    peak_memory_mib: float | None = None
+    error: dict | None = None
+    animation: Animation | None = None
+
+    def as_dict(self) -> dict:
+        return {
+            "case": self.case,
+            "method": self.method,
+            "status": self.status,
+            "reason": self.reason,
+            "plugin": self.plugin,
+            "distribution": self.distribution,
+            "version": self.version,
+            "parameters": _jsonable(self.parameters),
+            "fit_s": self.fit_s,
+            "retarget_s": self.retarget_s,
+            "peak_memory_mib": self.peak_memory_mib,
+            "error": self.error,
+        }
+
+
+class ComparisonResult:
+    """The outcome of :func:`compare`.
+
+    rows : the tidy table, a list of dicts with keys :data:`COLUMNS`
+    runs : one :class:`Run` per (case, method), with the animations
+    cases : case name -> case object (in order)
+    metrics : metric name -> :class:`~faceretarget.Metric` used
+    presets : paper reproductions attached by :func:`faceretarget.evaluation.presets.run_presets`
+    """
+
+    def __init__(self, rows, runs, cases, metrics, presets=None):
+        self.rows: list[dict] = rows
+        self.runs: list[Run] = runs
+        self.cases: dict[str, Any] = cases
+        self.metrics: dict[str, Metric] = metrics
+        self.presets: list = list(presets or [])
+
+    # -- access ------------------------------------------------------------------------
+    def run(self, case: str, method: str) -> Run:
+        for r in self.runs:
+            if r.case == case and r.method == method:
+                return r
+        raise UnknownNameError(f"no run of {method!r} on case {case!r}; runs: {sorted({(r.case, r.method) for r in self.runs})}")
+
+    def value(self, case: str, method: str, metric: str) -> float | None:
+        """The value of ``metric`` for (case, method), None when not computed."""
+        for row in self.rows:
+            if row["case"] == case and row["method"] == method and row["metric"] == metric:
+                return row["value"]
+        raise UnknownNameError(f"no row for ({case!r}, {method!r}, {metric!r})")
+
+    @property
+    def methods(self) -> list[str]:
+        return list(dict.fromkeys(r.method for r in self.runs))
+
+    def better(self, metric: str) -> str:
+        base = metric.split("[", 1)[0]
+        m = self.metrics.get(base)
+        return m.better if m is not None else "none"
+
+    # -- ranking -----------------------------------------------------------------------
+    def ranking(self, metrics: Sequence[str] | None = None) -> list[dict]:
+        """Methods ordered by their mean rank over cases and metrics.
+
+        For each case and each metric (default :data:`~faceretarget.evaluation.metrics.RANKED_METRICS`
+        that are registered) with a value for at least two methods, methods get ranks
+        1..n (ties share the mean rank; "higher is better" metrics are ranked
+        descending). A method's score is the mean of its ranks; methods with no rank
+        (not applicable or failed everywhere) come last. Each row: ``rank, method,
+        mean_rank, ranked_cases, not_applicable, failed`` and the mean over cases of
+        ``vertex_error_rms`` and ``time_total``.
+        """
+        from .metrics import RANKED_METRICS
+
+        chosen = [m for m in (metrics or RANKED_METRICS) if m in self.metrics]
+        table: dict[tuple[str, str], dict[str, float]] = {}
+        for row in self.rows:
+            if row["status"] == OK and row["value"] is not None:
+                table.setdefault((row["case"], row["metric"]), {})[row["method"]] = row["value"]
+        ranks: dict[str, list[float]] = {m: [] for m in self.methods}
+        for (case, metric), values in table.items():
+            if metric not in chosen or len(values) < 2 or self.better(metric) not in ("lower", "higher"):
+                continue
+            names = list(values)
+            arr = np.array([values[n] for n in names], dtype=float)
+            if self.better(metric) == "higher":
+                arr = -arr
+            for name, rank in zip(names, _mean_ranks(arr)):
+                ranks[name].append(rank)
+        out = []
+        for method in self.methods:
+            runs = [r for r in self.runs if r.method == method]
+            out.append(
+                {
+                    "method": method,
+                    "mean_rank": float(np.mean(ranks[method])) if ranks[method] else None,
+                    "ranked_cases": sum(r.status == OK for r in runs),
+                    "not_applicable": sum(r.status == NOT_APPLICABLE for r in runs),
+                    "failed": sum(r.status == ERROR for r in runs),
+                    "vertex_error_rms": self._mean_value(method, "vertex_error_rms"),
+                    "time_total": self._mean_value(method, "time_total"),
+                }
+            )
+        out.sort(key=lambda r: (r["mean_rank"] is None, r["mean_rank"] if r["mean_rank"] is not None else 0.0, r["method"]))
+        for i, row in enumerate(out, 1):
+            row["rank"] = i if row["mean_rank"] is not None else None
+        return [{"rank": r.pop("rank"), **r} for r in out]
+
+    def _mean_value(self, method: str, metric: str) -> float | None:
+        vals = [r["value"] for r in self.rows if r["method"] == method and r["metric"] == metric and r["value"] is not None]
+        return float(np.mean(vals)) if vals else None
+
+    # -- export ------------------------------------------------------------------------
+    def to_csv(self, path) -> Path:
+        """Write the tidy table as CSV (atomically); returns the path."""
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        for row in self.rows:
+            writer.writerow({k: ("" if row[k] is None else _fmt_csv(row[k])) for k in COLUMNS})
+        return atomic_write_text(path, buf.getvalue())
+
+    def as_dict(self) -> dict:
+        return {
+            "columns": list(COLUMNS),
+            "rows": [{k: _json_number(row[k]) for k in COLUMNS} for row in self.rows],
+            "ranking": self.ranking(),
+            "runs": [r.as_dict() for r in self.runs],
+            "metrics": {
+                name: {"description": m.description, "unit": m.unit, "better": m.better} for name, m in self.metrics.items()
+            },
+            "presets": [p.as_dict() for p in self.presets],
+        }
+
+    def to_json(self, path) -> Path:
+        """Write rows, ranking, runs (with errors), metric definitions and presets as JSON."""
+        return atomic_write_text(path, json.dumps(_jsonable(self.as_dict()), indent=1, allow_nan=False) + "\n")
+
+    def __repr__(self) -> str:
+        counts = {s: sum(r.status == s for r in self.runs) for s in (OK, NOT_APPLICABLE, ERROR)}
+        return f"ComparisonResult({len(self.cases)} cases, {len(self.methods)} methods, {counts}, {len(self.rows)} rows)"
+
+
+def _mean_ranks(values: np.ndarray) -> np.ndarray:
+    order = np.argsort(values, kind="stable")
+    ranks = np.empty(len(values))
+    ranks[order] = np.arange(1, len(values) + 1)
+    for v in np.unique(values):
+        tie = values == v
+        ranks[tie] = ranks[tie].mean()
+    return ranks
+
+
+def _fmt_csv(value):
+    if isinstance(value, float):
+        return repr(value)
+    return value
+
+
+def _json_number(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return _jsonable(value.item())
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if value is None or isinstance(value, (str, int, bool)):
+        return value
+    return repr(value)
+
+
+def atomic_write_bytes(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise OutputError(f"cannot write {path}: folder {path.parent} does not exist; create it first")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        os.chmod(tmp, 0o666 & ~_UMASK)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def atomic_write_text(path, text: str) -> Path:
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+# ---------------------------------------------------------------------------------------
+# Running
+# ---------------------------------------------------------------------------------------
+def _error_record(exc: BaseException, method: _Method, stage: str) -> dict:
+    return {
+        "type": type(exc).__name__,
+        "message": " ".join(str(exc).split()) or type(exc).__name__,
+        "stage": stage,
+        "plugin": method.plugin,
+        "distribution": method.distribution,
+        "version": method.version,
+        "traceback": "".join(traceback.format_exception(exc)[-6:]),
+    }
+
+
+def _failed(run: Run, exc: BaseException, method: _Method, stage: str) -> Run:
+    run.status = ERROR
+    run.error = _error_record(exc, method, stage)
+    run.reason = (
+        f"{run.error['type']} in {stage}: {run.error['message']} "
+        f"(plugin {method.plugin!r}, distribution {method.distribution} {method.version})"
+    )
+    return run
+
+
+def validate_output(animation, case, method_name: str) -> None:
+    """Raise :class:`PluginOutputError` unless ``animation`` is usable for the metrics."""
+    if not isinstance(animation, Animation):
+        raise PluginOutputError(f"{method_name} returned {type(animation).__name__}, not a faceretarget.Animation")
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):  # reported below as non-finite output
+            vertices = animation.vertices
+    except FaceRetargetError as exc:
+        raise PluginOutputError(f"{method_name}: its result has no vertices ({exc})") from None
+    shape = tuple(np.shape(vertices))
+    truth = getattr(case, "truth", None)
+    expected = tuple(np.shape(truth.vertices)) if truth is not None else (case.source.n_frames, case.target.neutral.n_vertices, 3)
+    if shape != expected:
+        what = "ground truth" if truth is not None else "source frames x target vertices"
+        raise PluginOutputError(f"{method_name} returned vertices of shape {shape}; the {what} is {expected}")
+    if not np.isfinite(vertices).all():
+        raise PluginOutputError(f"{method_name} returned NaN or infinite vertex coordinates")
+    if animation.weights is not None and not np.isfinite(animation.weights).all():
+        raise PluginOutputError(f"{method_name} returned NaN or infinite weights")
+
+
+def _run_one(case, cname: str, method: _Method, params: dict) -> Run:
+    run = Run(cname, method.name, OK, plugin=method.plugin, distribution=method.distribution, version=method.version)
+    try:
+        reason = method.cls.why_not(case.source, case.target)
+    except Exception as exc:  # a plugin's own applicability check may be broken too
+        return _failed(run, exc, method, "why_not")
+    if reason:
+        run.status, run.reason = NOT_APPLICABLE, reason
+        return run
+    stage = "construct"
+    started_tracing = not tracemalloc.is_tracing()
+    if started_tracing:
+        tracemalloc.start()
+    tracemalloc.reset_peak()
+    base = tracemalloc.get_traced_memory()[0]
+    try:
+        retargeter = method.cls(**params)
+        run.parameters = retargeter.get_params()
+        stage = "fit"
+        t0 = time.perf_counter()
+        retargeter.fit(case.source, case.target)
+        t1 = time.perf_counter()
+        stage = "retarget"
+        animation = retargeter.retarget(case.source)
+        t2 = time.perf_counter()
+        run.fit_s, run.retarget_s = t1 - t0, t2 - t1
+        run.peak_memory_mib = max(0, tracemalloc.get_traced_memory()[1] - base) / 2**20
+        stage = "validate"
+        validate_output(animation, case, method.name)
+        run.animation = animation
+    except CapabilityError as exc:
+        run.status, run.reason = NOT_APPLICABLE, " ".join(str(exc).split())
+    except Exception as exc:  # a failing plugin must not stop the others
+        _failed(run, exc, method, stage)
+    finally:
+        if started_tracing:
+            tracemalloc.stop()
+    return run
+
+
+def _metric_rows(run: Run, case, metrics: Mapping[str, Metric]) -> list[dict]:
+    rows = []
+
+    def add(name, value, metric, status, reason=""):
+        rows.append(
+            {"case": run.case, "method": run.method, "metric": name, "value": value, "unit": metric.unit, "status": status, "reason": reason}
+        )
+
+    if run.status != OK:
+        for name, metric in metrics.items():
+            add(name, None, metric, run.status, run.reason)
+        return rows
+    context = {
+        "fit_s": run.fit_s,
+        "retarget_s": run.retarget_s,
+        "total_s": (run.fit_s or 0.0) + (run.retarget_s or 0.0),
+        "peak_memory_mib": run.peak_memory_mib,
+        "method": run.method,
+        "cache": {},
+        "reasons": {},
+    }
+    for name, metric in metrics.items():
+        try:
+            value = metric.compute(run.animation, case, context)
+            if value is None:
+                reason = context["reasons"].get(name) or (metric.why_not(run.animation, case) if metric.why_not else None)
+                add(name, None, metric, NOT_APPLICABLE, reason or "the metric gave no value for this run")
+            elif isinstance(value, Mapping):
+                for label, v in value.items():
+                    ok = v is not None and math.isfinite(float(v))
+                    add(f"{name}[{label}]", float(v) if ok else None, metric, OK if ok else NOT_APPLICABLE, "" if ok else "no value for this region")
+            else:
+                value = float(value)
+                if math.isfinite(value):
+                    add(name, value, metric, OK)
+                else:
+                    add(name, None, metric, ERROR, f"the metric returned {value}")
+        except Exception as exc:  # a failing metric plugin is reported, not fatal
+            add(name, None, metric, ERROR, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
+    return rows
+
+
+_CASE_CACHE: dict[str, Any] = {}
+
+
+def cached_case(spec: str):
+    """:func:`resolve_case` with a small per-process cache (workers reuse built cases)."""
+    if spec not in _CASE_CACHE:
+        if len(_CASE_CACHE) >= 4:
+            _CASE_CACHE.clear()
+        _CASE_CACHE[spec] = resolve_case(spec)
+    return _CASE_CACHE[spec]
+
+
+def _run_task(methods: list[tuple[_Method, dict]], items: list) -> list[Run]:
+    """Worker side of a parallel compare: some methods on every case (extras are dropped)."""
+    runs = []
+    for method, params in methods:
+        for cname, ref in items:
+            case = cached_case(ref) if isinstance(ref, str) else ref
+            run = _run_one(case, cname, method, params)
+            if run.animation is not None and run.animation.extras:
+                run.animation = run.animation.replace(extras={})
+            runs.append(run)
+    return runs
+
+
+#: Thread counts pinned to 1 in worker processes, so n processes do not each start
+#: a thread per core (BLAS and numba threads that spin on 2 cores waste most of the CPU).
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+@contextmanager
+def single_threaded_children():
+    """Within this block, spawned child processes use one BLAS / OpenMP / numba thread
+    each (variables the user set are kept)."""
+    saved = {k: os.environ.get(k) for k in _THREAD_VARIABLES}
+    for k in _THREAD_VARIABLES:
+        os.environ.setdefault(k, "1")
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _parallel(refs: dict, chosen: list[_Method], per_method: dict, n_jobs: int, on_run) -> None:
+    """Methods from one module (sharing numba kernels) form one task, so each compiles once."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    items = list(refs.items())
+    groups: dict[str, list[_Method]] = {}
+    for m in chosen:
+        groups.setdefault(m.cls.__module__, []).append(m)
+    with single_threaded_children(), ProcessPoolExecutor(max_workers=n_jobs, mp_context=mp.get_context("spawn")) as pool:
+        futures = {pool.submit(_run_task, [(m, per_method[m.name]) for m in group], items): group for group in groups.values()}
+        for future in as_completed(futures):
+            try:
+                task_runs = future.result()
+            except Exception as exc:  # the worker died, or a class or result did not pickle
+                task_runs = [
+                    _failed(Run(cname, m.name, ERROR, plugin=m.plugin, distribution=m.distribution, version=m.version), exc, m, "worker")
+                    for m in futures[future]
+                    for cname, _ in items
+                ]
+            for run in task_runs:
+                on_run(run)
+
+
+def compare(
+    cases=None,
+    methods=None,
+    params: Mapping[str, Mapping[str, Any]] | None = None,
+    *,
+    metrics: Sequence[str] | None = None,
+    registry=None,
+    keep_animations: bool = True,
+    progress: bool = False,
+    n_jobs: int = 1,
+) -> ComparisonResult:
+    """Run retargeters on cases and measure them.
+
+    Parameters
+    ----------
+    cases : list of case objects or names (see :data:`CASE_NAMES`; ``"ict?n_frames=40"``
+        passes keywords), or a mapping ``{display name: case or name}``; default the
+        synthetic human and stylized cases and the ICT case.
+    methods : list of retargeter names (aliases work) or :class:`~faceretarget.Retargeter`
+        subclasses; default every registered retargeter.
+    params : ``{method name: {parameter: value}}`` for the constructors.
+    metrics : metric names to compute (default every registered metric).
+    registry : a :class:`~faceretarget.registry.Registry` (default the process-wide one).
+    keep_animations : keep each result in ``Run.animation`` (the report needs them).
+    progress : show a tqdm progress bar on stderr.
+    n_jobs : worker processes; > 1 runs the methods in parallel (the methods of one
+        module form one task, so their numba kernels compile once), metrics are computed
+        here as results arrive; the animations come back without ``extras``. Classes must
+        be importable by the workers, and (as with any ``multiprocessing`` code) a script
+        must call this under ``if __name__ == "__main__":``.
+
+    Returns
+    -------
+    ComparisonResult
+    """
+    if registry is None:
+        from ..registry import registry as _registry
+
+        registry = _registry()
+    chosen = _methods(methods, registry)
+    if params:
+        unknown = sorted(set(params) - {m.name for m in chosen})
+        if unknown:
+            raise UnknownNameError(f"params given for {', '.join(unknown)}, which is not among the compared methods {[m.name for m in chosen]}")
+    all_metrics = {name: m for name, (m, _) in registry.metrics.items()}
+    if metrics is not None:
+        missing = [m for m in metrics if m not in all_metrics]
+        if missing:
+            raise UnknownNameError(f"no metric(s) {', '.join(missing)}; valid: {', '.join(all_metrics)}")
+        all_metrics = {m: all_metrics[m] for m in metrics}
+    if n_jobs < 1:
+        raise ConfigError(f"n_jobs must be >= 1, got {n_jobs}")
+    named = list(cases.items()) if isinstance(cases, Mapping) else [(None, c) for c in (DEFAULT_CASES if cases is None else cases)]
+    if not named:
+        raise ConfigError("compare: no cases given")
+    resolved: dict[str, Any] = {}
+    refs: dict[str, Any] = {}
+    for i, (given, spec) in enumerate(named):
+        case = resolve_case(spec)
+        name = given or (spec if isinstance(spec, str) else case_name(case, i))
+        base, k = name, 2
+        while name in resolved:
+            name, k = f"{base}#{k}", k + 1
+        resolved[name], refs[name] = case, spec
+    per_method = {m.name: _params_for(m, params) for m in chosen}
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(resolved) * len(chosen), desc="compare", unit="run", disable=not progress, leave=False)
+    done: dict[tuple[str, str], tuple[Run, list[dict]]] = {}
+
+    def on_run(run: Run) -> None:
+        rows = _metric_rows(run, resolved[run.case], all_metrics)
+        if not keep_animations:
+            run.animation = None
+        done[(run.case, run.method)] = (run, rows)
+        bar.set_postfix_str(f"{run.case}: {run.method}")
+        bar.update()
+
+    if n_jobs > 1 and len(chosen) > 1:
+        _parallel(refs, chosen, per_method, n_jobs, on_run)
+    else:
+        for cname, case in resolved.items():
+            for method in chosen:
+                on_run(_run_one(case, cname, method, per_method[method.name]))
+    bar.close()
+    order = [(c, m.name) for c in resolved for m in chosen]
+    runs = [done[key][0] for key in order]
+    rows = [row for key in order for row in done[key][1]]
+    return ComparisonResult(rows, runs, resolved, all_metrics)

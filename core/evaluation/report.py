@@ -1,0 +1,541 @@
+"""The report of a comparison: one self-contained HTML file, plus CSV and JSON tables.
+
+``write_report(result, folder)`` writes
+
+- ``report.html``: opens offline (every script, style and figure is inline; no network):
+  the ranking, per case a metric table, an interactive viewer that scrubs through the
+  frames of the source, the ground truth and every method side by side (canvas 2D
+  renderer in ``assets/report.js``, shaded or coloured by per-vertex error), key frames
+  side by side, per-vertex error heat maps on the target mesh, the velocity error over
+  time, weight curves, the paper reproductions (presets) and the metric definitions;
+- ``results.csv``: the tidy table ``case, method, metric, value, unit, status, reason``;
+- ``results.json``: the rows, the ranking, every run (parameters, timings, errors), the
+  metric definitions and the presets.
+
+To keep the HTML a few MB, at most ``max_frames`` frames are embedded per case, meshes
+are decimated (graph-Voronoi clustering: seed vertices on a grid, every vertex joins the
+seed nearest along mesh edges, triangles whose corners fall in three clusters remain)
+to fit ``max_bytes``, and coordinates are quantized to 16 bits.
+"""
+from __future__ import annotations
+
+import base64
+import datetime as _dt
+import html
+import json
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..errors import OutputError
+from .harness import ERROR, NOT_APPLICABLE, OK, ComparisonResult, atomic_write_text
+from .metrics import RANKED_METRICS, landmark_velocity_curve, per_vertex_error, to_head_frame
+
+__all__ = ["write_report", "Plot", "Series", "svg_plot", "decimate", "render_html"]
+
+#: Raw bytes of embedded geometry per report (before base64), frames per case, vertices per mesh.
+MAX_BYTES = 4_000_000
+MAX_FRAMES = 24
+MAX_VERTICES = 2500
+MIN_VERTICES = 300
+#: Weight curves drawn per case (the shapes with the largest variance in the ground truth).
+MAX_WEIGHT_PANELS = 6
+#: Columns of the per-case summary table.
+SUMMARY_METRICS = ("vertex_error_rms", "vertex_error_max", "marker_error_mean", "velocity_error", "lip_closure_error", "eyelid_closure_error", "lve", "fdd_abs", "detail_correlation", "weight_outside_share", "time_total", "peak_memory")
+
+_PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
+
+
+# ---------------------------------------------------------------------------------------
+# Plots (inline SVG)
+# ---------------------------------------------------------------------------------------
+@dataclass
+class Series:
+    name: str
+    x: Sequence[float]
+    y: Sequence[float]
+    dashed: bool = False
+    color: str | None = None
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "x": [float(v) for v in self.x], "y": [_finite(v) for v in self.y], "dashed": self.dashed}
+
+
+@dataclass
+class Plot:
+    """A line plot (``kind="line"``) or a bar chart (``kind="bar"``: one bar per series, ``y[0]``)."""
+
+    title: str
+    series: list[Series] = field(default_factory=list)
+    xlabel: str = ""
+    ylabel: str = ""
+    kind: str = "line"
+    log_y: bool = False
+
+    def as_dict(self) -> dict:
+        return {"title": self.title, "kind": self.kind, "xlabel": self.xlabel, "ylabel": self.ylabel, "series": [s.as_dict() for s in self.series]}
+
+
+def _finite(v) -> float | None:
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def _ticks(lo: float, hi: float, n: int = 5) -> list[float]:
+    if hi <= lo:
+        hi = lo + 1.0
+    raw = (hi - lo) / max(n, 1)
+    mag = 10 ** np.floor(np.log10(raw))
+    step = min((m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw), default=raw)
+    start = np.ceil(lo / step) * step
+    return [float(t) for t in np.arange(start, hi + 0.5 * step, step)][: n * 3]
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return ""
+    v = float(v)
+    if v == 0:
+        return "0"
+    if abs(v) >= 1e4 or abs(v) < 1e-3:
+        return f"{v:.3g}"
+    return f"{v:.4g}"
+
+
+def svg_plot(plot: Plot, width: int = 640, height: int = 300) -> str:
+    """An inline ``<svg>`` of ``plot`` (axes, ticks, legend)."""
+    left, right, top, bottom = 64, 150, 28, 42
+    w, h = width - left - right, height - top - bottom
+    esc = html.escape
+    parts = [f'<svg class="plot" xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {width} {height}" width="{width}" height="{height}" role="img">']
+    parts.append(f'<text x="{left}" y="16" class="ptitle">{esc(plot.title)}</text>')
+    colors = [s.color or _PALETTE[i % len(_PALETTE)] for i, s in enumerate(plot.series)]
+    if plot.kind == "bar":
+        values = [(_finite(s.y[0]) if len(s.y) else None) for s in plot.series]
+        finite = [v for v in values if v is not None]
+        if not finite:
+            parts.append(f'<text x="{left + 10}" y="{top + 30}">no values</text></svg>')
+            return "".join(parts)
+        lo, hi = min(0.0, min(finite)), max(0.0, max(finite))
+        if hi == lo:
+            hi = lo + 1.0
+        ys = lambda v: top + h - (v - lo) / (hi - lo) * h  # noqa: E731
+        bw = w / max(len(values), 1)
+        for t in _ticks(lo, hi):
+            parts.append(f'<line x1="{left}" x2="{left + w}" y1="{ys(t):.1f}" y2="{ys(t):.1f}" class="grid"/><text x="{left - 6}" y="{ys(t) + 4:.1f}" class="tick" text-anchor="end">{_fmt(t)}</text>')
+        for i, (s, v) in enumerate(zip(plot.series, values)):
+            x0 = left + i * bw + 0.15 * bw
+            if v is not None:
+                y0, y1 = sorted((ys(0.0), ys(v)))
+                parts.append(f'<rect x="{x0:.1f}" y="{y0:.1f}" width="{0.7 * bw:.1f}" height="{max(y1 - y0, 0.5):.1f}" fill="{colors[i]}"><title>{esc(s.name)}: {_fmt(v)}</title></rect>')
+                parts.append(f'<text x="{x0 + 0.35 * bw:.1f}" y="{min(y0, y1) - 3:.1f}" class="tick" text-anchor="middle">{_fmt(v)}</text>')
+            parts.append(f'<text x="{x0 + 0.35 * bw:.1f}" y="{top + h + 14}" class="tick" text-anchor="middle">{esc(s.name[:18])}</text>')
+        parts.append(f'<text x="14" y="{top + h / 2:.0f}" class="axis" transform="rotate(-90 14 {top + h / 2:.0f})" text-anchor="middle">{esc(plot.ylabel)}</text>')
+        parts.append("</svg>")
+        return "".join(parts)
+    xs_all = np.concatenate([np.asarray(s.x, float) for s in plot.series]) if plot.series else np.zeros(0)
+    ys_all = np.concatenate([np.asarray(s.y, float) for s in plot.series]) if plot.series else np.zeros(0)
+    ok = np.isfinite(ys_all) & np.isfinite(xs_all)
+    if plot.log_y:
+        ok &= ys_all > 0
+    if not ok.any():
+        parts.append(f'<text x="{left + 10}" y="{top + 30}">no values</text></svg>')
+        return "".join(parts)
+    tf = (lambda a: np.log10(np.maximum(a, 1e-300))) if plot.log_y else (lambda a: np.asarray(a, float))  # noqa: E731
+    x0, x1 = float(xs_all[ok].min()), float(xs_all[ok].max())
+    y0, y1 = float(tf(ys_all[ok]).min()), float(tf(ys_all[ok]).max())
+    if x1 == x0:
+        x1 = x0 + 1.0
+    if y1 == y0:
+        y0, y1 = y0 - 0.5, y1 + 0.5
+    pad = 0.05 * (y1 - y0)
+    y0, y1 = y0 - pad, y1 + pad
+    sx = lambda v: left + (v - x0) / (x1 - x0) * w  # noqa: E731
+    sy = lambda v: top + h - (v - y0) / (y1 - y0) * h  # noqa: E731
+    parts.append(f'<rect x="{left}" y="{top}" width="{w}" height="{h}" class="frame"/>')
+    for t in _ticks(y0, y1):
+        label = _fmt(10**t) if plot.log_y else _fmt(t)
+        parts.append(f'<line x1="{left}" x2="{left + w}" y1="{sy(t):.1f}" y2="{sy(t):.1f}" class="grid"/><text x="{left - 6}" y="{sy(t) + 4:.1f}" class="tick" text-anchor="end">{label}</text>')
+    for t in _ticks(x0, x1):
+        parts.append(f'<text x="{sx(t):.1f}" y="{top + h + 14}" class="tick" text-anchor="middle">{_fmt(t)}</text>')
+    for i, s in enumerate(plot.series):
+        x, y = np.asarray(s.x, float), tf(np.asarray(s.y, float))
+        good = np.isfinite(x) & np.isfinite(y) & ((np.asarray(s.y, float) > 0) if plot.log_y else True)
+        if not good.any():
+            continue
+        pts = " ".join(f"{sx(a):.1f},{sy(b):.1f}" for a, b in zip(x[good], y[good]))
+        dash = ' stroke-dasharray="5,4"' if s.dashed else ""
+        parts.append(f'<polyline points="{pts}" fill="none" stroke="{colors[i]}" stroke-width="1.6"{dash}><title>{esc(s.name)}</title></polyline>')
+        ly = top + 12 + 16 * i
+        parts.append(f'<line x1="{left + w + 10}" x2="{left + w + 30}" y1="{ly - 4}" y2="{ly - 4}" stroke="{colors[i]}" stroke-width="2"{dash}/><text x="{left + w + 34}" y="{ly}" class="legend">{esc(s.name[:20])}</text>')
+    parts.append(f'<text x="{left + w / 2:.0f}" y="{height - 6}" class="axis" text-anchor="middle">{esc(plot.xlabel)}</text>')
+    parts.append(f'<text x="14" y="{top + h / 2:.0f}" class="axis" transform="rotate(-90 14 {top + h / 2:.0f})" text-anchor="middle">{esc(plot.ylabel)}</text>')
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+# ---------------------------------------------------------------------------------------
+# Geometry for the viewer
+# ---------------------------------------------------------------------------------------
+def decimate(vertices: np.ndarray, triangles: np.ndarray, max_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Coarsen a mesh to at most about ``max_vertices`` vertices for display.
+
+    Returns ``(keep (K,) vertex ids, triangles (T', 3) in 0..K-1, labels (V,) cluster of
+    each vertex or -1)``. Seeds: per cell of a grid over the surface, the vertex nearest
+    the cell's mean; every vertex joins the seed nearest along mesh edges (so clusters
+    never bridge holes such as the mouth); a triangle whose corners lie in three
+    different clusters becomes a triangle of the seeds (orientation kept).
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    n = len(vertices)
+    if n <= max_vertices:
+        return np.arange(n), triangles, np.arange(n)
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+
+    from ..geometry.mesh_ops import face_areas, unique_edges
+
+    lo = vertices.min(axis=0)
+    cell = np.sqrt(face_areas(vertices, triangles).sum() / max_vertices)
+    while True:
+        keys = np.floor((vertices - lo) / cell).astype(np.int64)
+        _, cluster = np.unique(keys, axis=0, return_inverse=True)
+        cluster = cluster.ravel()
+        if cluster.max() + 1 <= max_vertices:
+            break
+        cell *= 1.15
+    k = cluster.max() + 1
+    means = np.zeros((k, 3))
+    np.add.at(means, cluster, vertices)
+    means /= np.bincount(cluster, minlength=k)[:, None]
+    dist = np.linalg.norm(vertices - means[cluster], axis=1)
+    order = np.lexsort((dist, cluster))
+    first = np.ones(n, dtype=bool)
+    first[1:] = cluster[order][1:] != cluster[order][:-1]
+    seeds = order[first]
+    edges = unique_edges(triangles)
+    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1) + 1e-12
+    graph = sp.coo_matrix((length, (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
+    _, _, sources = dijkstra(graph, directed=False, indices=seeds, min_only=True, return_predecessors=True)
+    seed_index = np.full(n, -1)
+    seed_index[seeds] = np.arange(len(seeds))
+    labels = np.where(sources >= 0, seed_index[np.maximum(sources, 0)], -1)
+    tl = labels[triangles]
+    good = (tl >= 0).all(axis=1) & (tl[:, 0] != tl[:, 1]) & (tl[:, 1] != tl[:, 2]) & (tl[:, 0] != tl[:, 2])
+    tl = tl[good]
+    _, unique_rows = np.unique(np.sort(tl, axis=1), axis=0, return_index=True)
+    return seeds, tl[np.sort(unique_rows)], labels
+
+
+def _cluster_mean(values: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
+    ok = labels >= 0
+    sums = np.bincount(labels[ok], weights=values[ok], minlength=k)
+    counts = np.bincount(labels[ok], minlength=k)
+    return sums / np.maximum(counts, 1)
+
+
+def _b64(array: np.ndarray) -> str:
+    return base64.b64encode(np.ascontiguousarray(array).tobytes()).decode("ascii")
+
+
+def _quantize(points: np.ndarray) -> dict:
+    """``points : (F, N, 3)`` (NaN allowed) -> int16 base64 with per-axis offset and step."""
+    finite = np.isfinite(points).all(axis=-1)
+    if finite.any():
+        lo = np.nanmin(points[finite], axis=0)
+        hi = np.nanmax(points[finite], axis=0)
+    else:
+        lo, hi = np.zeros(3), np.ones(3)
+    step = np.maximum(hi - lo, 1e-12) / 65534.0
+    q = np.round((np.nan_to_num(points, nan=0.0) - lo) / step) - 32767
+    q = np.clip(q, -32767, 32767).astype("<i2")
+    q[~finite] = -32768
+    return {"q": _b64(q), "lo": lo.tolist(), "step": step.tolist()}
+
+
+def _mesh_block(vertices: np.ndarray, triangles: np.ndarray, max_vertices: int):
+    keep, tris, labels = decimate(vertices, triangles, max_vertices)
+    return keep, labels, {"nv": int(len(keep)), "tri": _b64(tris.astype("<u4")), "nt": int(len(tris))}
+
+
+def _key_frames(truth_local: np.ndarray, neutral: np.ndarray, frames: np.ndarray, count: int = 3) -> list[int]:
+    """Indices into ``frames`` of up to ``count`` expressive, well separated frames."""
+    amount = np.linalg.norm(truth_local[frames] - neutral, axis=-1).mean(axis=1)
+    chosen: list[int] = []
+    gap = max(1, len(frames) // (2 * count))
+    for i in np.argsort(-amount):
+        if all(abs(int(i) - j) >= gap for j in chosen):
+            chosen.append(int(i))
+        if len(chosen) == count:
+            break
+    return sorted(chosen)
+
+
+def _case_view(result: ComparisonResult, cname: str, case, max_vertices: int, max_frames: int) -> dict:
+    runs = [r for r in result.runs if r.case == cname and r.status == OK and r.animation is not None]
+    target = case.target
+    neutral = np.asarray(target.neutral.vertices, dtype=np.float64)
+    height = float(target.neutral.height) or 1.0
+    truth = getattr(case, "truth", None)
+    n_frames = case.source.n_frames
+    frames = np.unique(np.linspace(0, n_frames - 1, min(n_frames, max_frames)).round().astype(int))
+    keep, labels, mesh = _mesh_block(neutral, np.asarray(target.neutral.triangles), max_vertices)
+    seqs = []
+    reference = None
+    if truth is not None:
+        truth_v = np.asarray(truth.vertices, dtype=np.float64)
+        seqs.append({"label": "ground truth", "mesh": "target", "kind": "truth", **_quantize(truth_v[frames][:, keep])})
+        reference = truth_v
+    heat = []
+    for run in runs:
+        verts = np.asarray(run.animation.vertices, dtype=np.float64)
+        seqs.append({"label": run.method, "mesh": "target", "kind": "method", **_quantize(verts[frames][:, keep])})
+        if reference is not None:
+            err = per_vertex_error(verts, reference, height)
+            heat.append({"label": run.method, "values": _cluster_mean(err, labels, len(keep)).tolist()})
+    source = {"kind": case.source.kind}
+    perf = case.source.performance
+    if case.source.kind == "mesh":
+        s_keep, _, s_mesh = _mesh_block(np.asarray(perf.reference.vertices), np.asarray(perf.triangles), max_vertices)
+        source.update(mesh=s_mesh, **_quantize(np.asarray(perf.vertices, dtype=np.float64)[frames][:, s_keep]))
+    elif case.source.kind == "markers" and perf.dim == 3:
+        source.update(**_quantize(np.asarray(perf.positions, dtype=np.float64)[frames]))
+    heat_max = max([max(h["values"]) for h in heat if h["values"]] + [1e-9])
+    for h in heat:
+        h["q"] = _b64(np.round(np.asarray(h["values"]) / heat_max * 255).astype(np.uint8))
+        del h["values"]
+    keys = []
+    if truth is not None:
+        keys = _key_frames(to_head_frame(reference, truth.head_motion), neutral, frames)
+    return {
+        "name": cname,
+        "frames": frames.tolist(),
+        "fps": float(case.source.fps),
+        "height": height,
+        "mesh": mesh,
+        "neutral": _quantize(neutral[keep][None]),
+        "seqs": seqs,
+        "source": source,
+        "heat": heat,
+        "heatMax": heat_max,
+        "keyFrames": keys,
+    }
+
+
+# ---------------------------------------------------------------------------------------
+# Figures per case
+# ---------------------------------------------------------------------------------------
+def _velocity_plot(result: ComparisonResult, cname: str, case) -> Plot | None:
+    truth = getattr(case, "truth", None)
+    if truth is None or case.target.landmarks is None or case.source.n_frames < 2:
+        return None
+    plot = Plot(f"{cname}: velocity error over time (Seol 2012 fig. 11)", xlabel="frame", ylabel="||DP - DQ||^2 / H^2")
+    for run in result.runs:
+        if run.case == cname and run.status == OK and run.animation is not None:
+            curve = landmark_velocity_curve(run.animation.vertices, truth, case.target)
+            plot.series.append(Series(run.method, np.arange(1, len(curve) + 1), curve))
+    return plot if plot.series else None
+
+
+def _weight_plots(result: ComparisonResult, cname: str, case) -> list[Plot]:
+    runs = [r for r in result.runs if r.case == cname and r.status == OK and r.animation is not None and r.animation.weights is not None]
+    truth = getattr(case, "truth", None)
+    has_truth = truth is not None and truth.weights is not None
+    if not runs and not has_truth:
+        return []
+    if has_truth:
+        names, w = list(truth.weight_names), np.asarray(truth.weights)
+    else:
+        names, w = list(runs[0].animation.weight_names), np.asarray(runs[0].animation.weights)
+    chosen = [names[i] for i in np.argsort(-w.var(axis=0))[:MAX_WEIGHT_PANELS]]
+    plots = []
+    frames = np.arange(case.source.n_frames)
+    for shape in chosen:
+        plot = Plot(f"{cname}: {shape}", xlabel="frame", ylabel="weight")
+        if has_truth:
+            plot.series.append(Series("ground truth", frames, np.asarray(truth.weights)[:, truth.weight_names.index(shape)], dashed=True, color="#444"))
+        for i, run in enumerate(runs):
+            if shape in run.animation.weight_names:
+                col = run.animation.weight_names.index(shape)
+                plot.series.append(Series(run.method, frames, np.asarray(run.animation.weights)[:, col], color=_PALETTE[i % len(_PALETTE)]))
+        if len(plot.series) > int(has_truth) or (has_truth and not runs):
+            plots.append(plot)
+    return plots
+
+
+# ---------------------------------------------------------------------------------------
+# HTML
+# ---------------------------------------------------------------------------------------
+def _asset(name: str) -> str:
+    return resources.files("faceretarget.evaluation").joinpath("assets", name).read_text(encoding="utf-8")
+
+
+def _cell(row: dict | None, best: bool = False) -> str:
+    if row is None:
+        return '<td class="na">-</td>'
+    if row["status"] == OK and row["value"] is not None:
+        return f'<td class="num{" best" if best else ""}">{_fmt(row["value"])}</td>'
+    cls = "err" if row["status"] == ERROR else "na"
+    label = "error" if row["status"] == ERROR else "n/a"
+    return f'<td class="{cls}" title="{html.escape(row["reason"] or "")}">{label}</td>'
+
+
+def _best(values: dict[str, float], better: str) -> set[str]:
+    if len(values) < 2 or better not in ("lower", "higher"):
+        return set()
+    target = min(values.values()) if better == "lower" else max(values.values())
+    return {k for k, v in values.items() if v == target}
+
+
+def _metric_table(result: ComparisonResult, cname: str, metrics: Sequence[str]) -> str:
+    esc = html.escape
+    index = {(r["method"], r["metric"]): r for r in result.rows if r["case"] == cname}
+    head = "".join(
+        f'<th title="{esc(result.metrics[m.split("[")[0]].description if m.split("[")[0] in result.metrics else "")}">{esc(m)}<br><small>{esc(index.get((result.methods[0], m), {}).get("unit", "") if result.methods else "")}</small></th>'
+        for m in metrics
+    )
+    out = [f'<div class="scroll"><table class="metrics"><thead><tr><th>method</th><th>status</th>{head}</tr></thead><tbody>']
+    best = {}
+    for m in metrics:
+        vals = {meth: index[(meth, m)]["value"] for meth in result.methods if (meth, m) in index and index[(meth, m)]["status"] == OK and index[(meth, m)]["value"] is not None}
+        best[m] = _best(vals, result.better(m))
+    for run in (r for r in result.runs if r.case == cname):
+        status = f'<td class="{ {OK: "ok", NOT_APPLICABLE: "na", ERROR: "err"}[run.status]}" title="{esc(run.reason)}">{esc(run.status)}</td>'
+        cells = "".join(_cell(index.get((run.method, m)), run.method in best[m]) for m in metrics)
+        out.append(f"<tr><th>{esc(run.method)}</th>{status}{cells}</tr>")
+        if run.status != OK:
+            out.append(f'<tr class="reason"><td></td><td colspan="{len(metrics) + 1}">{esc(run.reason)}</td></tr>')
+    out.append("</tbody></table></div>")
+    return "".join(out)
+
+
+def _ranking_table(result: ComparisonResult) -> str:
+    esc = html.escape
+    rows = result.ranking()
+    out = ['<table class="metrics ranking"><thead><tr><th>rank</th><th>method</th><th>mean rank</th><th>cases ranked</th><th>not applicable</th><th>failed</th><th>vertex error RMS<br><small>% face height, mean over cases</small></th><th>time<br><small>s, mean</small></th></tr></thead><tbody>']
+    for r in rows:
+        out.append(
+            f'<tr><td class="num">{r["rank"] if r["rank"] is not None else "-"}</td><th>{esc(r["method"])}</th><td class="num">{_fmt(r["mean_rank"]) or "-"}</td>'
+            f'<td class="num">{r["ranked_cases"]}</td><td class="num">{r["not_applicable"]}</td><td class="num">{r["failed"]}</td>'
+            f'<td class="num">{_fmt(r["vertex_error_rms"]) or "-"}</td><td class="num">{_fmt(r["time_total"]) or "-"}</td></tr>'
+        )
+    out.append("</tbody></table>")
+    return "".join(out)
+
+
+def _table_cell(value) -> str:
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+        return f'<td class="num">{_fmt(value)}</td>'
+    return f"<td>{html.escape('' if value is None else str(value))}</td>"
+
+
+def _preset_html(preset) -> str:
+    esc = html.escape
+    out = [f'<section class="preset" id="preset-{esc(preset.name)}"><h3>{esc(preset.title)}</h3><p class="paper">{esc(preset.paper)}</p><p>{esc(preset.description)}</p>']
+    if preset.status != OK:
+        out.append(f'<p class="{"err" if preset.status == ERROR else "na"} note">{esc(preset.status)}: {esc(preset.reason)}</p>')
+    for plot in preset.plots:
+        out.append(svg_plot(plot))
+    if preset.table:
+        cols = list(dict.fromkeys(k for row in preset.table for k in row))
+        out.append('<table class="metrics"><thead><tr>' + "".join(f"<th>{esc(c)}</th>" for c in cols) + "</tr></thead><tbody>")
+        for row in preset.table:
+            out.append("<tr>" + "".join(_table_cell(row.get(c)) for c in cols) + "</tr>")
+        out.append("</tbody></table>")
+    out.append("</section>")
+    return "".join(out)
+
+
+def _budget(result: ComparisonResult, max_bytes: int, max_frames: int, max_vertices: int) -> int:
+    n_cases = max(len(result.cases), 1)
+    per_case = max_bytes / n_cases
+    n_seqs = max(len(result.methods) + 2, 2)
+    return int(np.clip(per_case / (n_seqs * max_frames * 6), MIN_VERTICES, max_vertices))
+
+
+def render_html(result: ComparisonResult, *, title: str = "faceretarget comparison", max_bytes: int = MAX_BYTES, max_frames: int = MAX_FRAMES, max_vertices: int = MAX_VERTICES) -> str:
+    """The self-contained report page as a string."""
+    from .. import __version__
+
+    esc = html.escape
+    vertex_budget = _budget(result, max_bytes, max_frames, max_vertices)
+    views, sections = [], []
+    for ci, (cname, case) in enumerate(result.cases.items()):
+        present = {r["metric"] for r in result.rows if r["case"] == cname}
+        cols = [m for m in SUMMARY_METRICS if m in present]
+        regions = sorted(m for m in present if m.startswith("vertex_error_region["))
+        others = [m for m in dict.fromkeys(r["metric"] for r in result.rows if r["case"] == cname) if m not in cols]
+        source = case.source
+        sec = [
+            f'<section class="case" id="case-{ci}"><h2>Case: {esc(cname)}</h2>',
+            f'<p class="meta">source: {esc(source.kind)}, {source.n_frames} frames at {source.fps:g} fps; target: {case.target.neutral.n_vertices} vertices, parts: {esc(", ".join(case.target.parts()) or "none")}; ground truth: {"yes" if getattr(case, "truth", None) is not None else "no"}</p>',
+            "<h3>Metrics</h3>",
+            _metric_table(result, cname, cols),
+            f'<details><summary>all metrics ({len(others)} more, incl. {len(regions)} regions)</summary>{_metric_table(result, cname, others)}</details>',
+            f'<h3>Viewer</h3><div class="viewer" data-case="{ci}"></div>',
+            f'<h3>Key frames side by side</h3><div class="keyframes scroll" data-case="{ci}"></div>',
+            f'<h3>Per-vertex error on the target mesh</h3><p class="note">mean over frames of ||result - truth||, % of face height; shared colour scale per case.</p><div class="heat" data-case="{ci}"></div>',
+        ]
+        vplot = _velocity_plot(result, cname, case)
+        if vplot is not None:
+            sec.append("<h3>Velocity error over time</h3>" + svg_plot(vplot, width=760))
+        wplots = _weight_plots(result, cname, case)
+        if wplots:
+            sec.append('<h3>Weight curves</h3><div class="plots">' + "".join(svg_plot(p, width=460, height=220) for p in wplots) + "</div>")
+        sec.append("</section>")
+        sections.append("".join(sec))
+        views.append(_case_view(result, cname, case, vertex_budget, max_frames))
+    presets = "".join(_preset_html(p) for p in result.presets) or '<p class="note">No paper reproductions in this run.</p>'
+    definitions = "".join(
+        f"<tr><th>{esc(name)}</th><td>{esc(m.unit)}</td><td>{esc(m.better)}</td><td>{esc(m.description)}</td></tr>" for name, m in result.metrics.items()
+    )
+    runs = "".join(
+        f'<tr><th>{esc(r.case)}</th><td>{esc(r.method)}</td><td class="{ {OK: "ok", NOT_APPLICABLE: "na", ERROR: "err"}[r.status]}">{esc(r.status)}</td>'
+        f'<td>{esc(r.plugin)} ({esc(r.distribution)} {esc(r.version)})</td><td class="num">{_fmt(r.fit_s)}</td><td class="num">{_fmt(r.retarget_s)}</td>'
+        f'<td class="num">{_fmt(r.peak_memory_mib)}</td><td><details><summary>{len(r.parameters)} parameters</summary><code>{esc(json.dumps(r.as_dict()["parameters"]))}</code></details></td><td>{esc(r.reason)}</td></tr>'
+        for r in result.runs
+    )
+    nav = "".join(f'<a href="#case-{i}">{esc(n)}</a>' for i, n in enumerate(result.cases))
+    data = json.dumps({"cases": views}, separators=(",", ":")).replace("</", "<\\/")
+    stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><meta name="viewport" content="width=device-width, initial-scale=1">
+<title>{esc(title)}</title><style>{_asset("report.css")}</style></head>
+<body data-js-errors="0" data-faces-rendered="0">
+<header><h1>{esc(title)}</h1><p class="meta">faceretarget {esc(__version__)}, {stamp}; {len(result.cases)} case(s), {len(result.methods)} method(s). Opens offline; every figure is inline.</p>
+<nav><a href="#ranking">ranking</a>{nav}<a href="#presets">paper reproductions</a><a href="#definitions">metric definitions</a><a href="#runs">runs</a></nav></header>
+<main>
+<section id="ranking"><h2>Ranking</h2><p class="note">Mean rank over cases and the metrics {esc(", ".join(m for m in RANKED_METRICS if m in result.metrics))} (1 = best; ties share ranks). Methods that did not apply or failed are listed with counts.</p>{_ranking_table(result)}</section>
+{"".join(sections)}
+<section id="presets"><h2>Paper reproductions</h2>{presets}</section>
+<section id="definitions"><h2>Metric definitions</h2><table class="metrics defs"><thead><tr><th>metric</th><th>unit</th><th>better</th><th>definition</th></tr></thead><tbody>{definitions}</tbody></table></section>
+<section id="runs"><h2>Runs</h2><div class="scroll"><table class="metrics"><thead><tr><th>case</th><th>method</th><th>status</th><th>plugin</th><th>fit s</th><th>retarget s</th><th>peak MiB</th><th>parameters</th><th>reason / error</th></tr></thead><tbody>{runs}</tbody></table></div></section>
+</main>
+<script type="application/json" id="report-data">{data}</script>
+<script>{_asset("report.js")}</script>
+</body></html>
+"""
+
+
+def write_report(result: ComparisonResult, folder, *, title: str = "faceretarget comparison", max_bytes: int = MAX_BYTES, max_frames: int = MAX_FRAMES, max_vertices: int = MAX_VERTICES) -> dict[str, Path]:
+    """Write ``report.html``, ``results.csv`` and ``results.json`` into ``folder``.
+
+    The folder is created if missing (its parent must exist); each file is written
+    atomically. Returns ``{"html": path, "csv": path, "json": path}``.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"report folder {folder} exists and is not a folder; choose another path")
+    if not folder.parent.is_dir():
+        raise OutputError(f"cannot create report folder {folder}: {folder.parent} does not exist")
+    folder.mkdir(exist_ok=True)
+    page = render_html(result, title=title, max_bytes=max_bytes, max_frames=max_frames, max_vertices=max_vertices)
+    return {
+        "html": atomic_write_text(folder / "report.html", page),
+        "csv": result.to_csv(folder / "results.csv"),
+        "json": result.to_json(folder / "results.json"),
+    }
