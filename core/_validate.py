@@ -20,6 +20,17 @@ def readonly(array: np.ndarray) -> np.ndarray:
     return view
 
 
+def as_array(value, name: str) -> np.ndarray:
+    """``np.asarray(value)``, with a :class:`ShapeError` for input numpy cannot turn into an
+    array (ragged nested lists, objects whose ``__array__`` fails)."""
+    if isinstance(value, np.ndarray):
+        return value
+    try:
+        return np.asarray(value)
+    except Exception as exc:
+        raise ShapeError(f"{name}: could not read as an array ({exc}); pass a rectangular numpy array") from None
+
+
 def as_float_array(
     value,
     name: str,
@@ -35,10 +46,7 @@ def as_float_array(
     not copied, so long sequences stay on disk. ``allow_nan`` permits NaN (missing
     samples) but never infinity.
     """
-    try:
-        arr = np.asarray(value)
-    except Exception as exc:  # ragged lists and other non-array input
-        raise ShapeError(f"{name}: could not read as an array ({exc}); pass a numpy array of shape {_fmt(shape)}") from None
+    arr = as_array(value, name)
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
         raise ShapeError(f"{name}: expected numbers, got dtype {arr.dtype}; pass a float array of shape {_fmt(shape)}")
     if np.iscomplexobj(arr):
@@ -54,10 +62,7 @@ def as_float_array(
 
 def as_index_array(value, name: str, shape: Sequence[int | None], upper: int | None = None) -> np.ndarray:
     """Validate an integer index array with every entry in ``[0, upper)``."""
-    try:
-        arr = np.asarray(value)
-    except Exception as exc:
-        raise ShapeError(f"{name}: could not read as an array ({exc})") from None
+    arr = as_array(value, name)
     if arr.size == 0 and arr.dtype.kind not in "iu":
         arr = arr.astype(np.int64)
     if arr.dtype.kind == "f":
@@ -107,7 +112,17 @@ def as_names(value, name: str, count: int | None = None, *, default_prefix: str 
         return tuple(f"{default_prefix}{i}" for i in range(count))
     if isinstance(value, str):
         raise InputError(f"{name}: expected a sequence of names, got a single string {value!r}")
-    names = tuple(str(v) for v in np.asarray(value, dtype=object).ravel().tolist())
+    if isinstance(value, np.ndarray):
+        items = value.ravel().tolist()
+    else:
+        try:
+            items = list(value)
+        except Exception:
+            raise InputError(f"{name}: expected a sequence of names, got {type(value).__name__}") from None
+    for v in items:
+        if not isinstance(v, str):
+            raise InputError(f"{name}: names must be strings, got {v!r} ({type(v).__name__})")
+    names = tuple(items)
     if count is not None and len(names) != count:
         raise ShapeError(f"{name}: expected {count} names, got {len(names)}")
     for n in names:
@@ -124,12 +139,50 @@ def as_names(value, name: str, count: int | None = None, *, default_prefix: str 
 def as_fps(value, name: str = "fps") -> float:
     try:
         fps = float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{name}: expected a positive number of frames per second, got {value!r}") from None
     if not np.isfinite(fps) or fps <= 0:
         raise InputError(f"{name}: expected a positive number of frames per second, got {value!r}")
     return fps
 
 
+def _short(value, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _fmt(shape: Sequence[int | None]) -> str:
     return "(" + ", ".join("*" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+def check_number(value, name: str, *, integer: bool = False, low: float | None = None, high: float | None = None,
+                 open_low: bool = False, allow_none: bool = False):
+    """A numeric parameter (of a retargeter, reader...) checked for type, finiteness and range.
+
+    Returns the value as ``int`` or ``float`` (None passes when ``allow_none``); raises
+    :class:`InputError` naming ``name``, the valid range and the value given.
+    """
+    if value is None and allow_none:
+        return None
+    want = "a whole number" if integer else "a finite number"
+    limits = ([f"{'>' if open_low else '>='} {low}"] if low is not None else []) + ([f"<= {high}"] if high is not None else [])
+    message = f"{name}: expected {want}{' ' + ' and '.join(limits) if limits else ''}, got {_short(value)}"
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InputError(message)
+    try:
+        as_float = float(value)
+    except OverflowError:
+        raise InputError(message) from None
+    if not np.isfinite(as_float) or (integer and not as_float.is_integer()):
+        raise InputError(message)
+    number = int(value) if integer else as_float
+    if (low is not None and (number < low or (open_low and number == low))) or (high is not None and number > high):
+        raise InputError(message)
+    return number
+
+
+def check_choice(value, name: str, choices: Sequence[str]) -> str:
+    """A string parameter that must be one of ``choices`` (InputError listing them otherwise)."""
+    if not isinstance(value, str) or value not in choices:
+        raise InputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {_short(value)}")
+    return value

@@ -20,7 +20,7 @@ import time
 from importlib import import_module
 
 from . import __version__
-from .errors import FaceRetargetError, InputError
+from .errors import FaceRetargetError, InputError, PluginError
 
 EXIT_ERROR = 2
 EXIT_INTERNAL = 3
@@ -44,6 +44,11 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_ERROR
     except BrokenPipeError:
         return 0
+    except OSError as exc:  # the file system said no (disk full, permissions): not our bug
+        if args.debug:
+            raise
+        print(f"faceretarget: error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_ERROR
     except Exception as exc:  # an unexpected failure: still one line unless --debug
         if args.debug:
             raise
@@ -194,9 +199,13 @@ def cmd_run(args) -> int:
     from tqdm import tqdm
 
     from . import get, io
+    from .registry import registry
 
     params = parse_params(args.params)
     retargeter = get(args.name, **params)
+    inputs = [args.source, args.target] + ([args.landmarks] if args.landmarks else [])
+    _check_output_path(args.out, inputs, args.force)  # before any slow work
+    plugin = registry().resolve(args.name).plugin
     steps = tqdm(total=5, desc=f"{retargeter.name}", unit="step", disable=None, file=sys.stderr)
     steps.set_postfix_str("reading source")
     source = io.load_source(args.source)
@@ -206,17 +215,57 @@ def cmd_run(args) -> int:
     steps.update()
     steps.set_postfix_str("fitting")
     t0 = time.perf_counter()
-    retargeter.fit(source, target)
+    who = (retargeter.name, plugin)
+    _plugin_call(who, "fit", retargeter.fit, source, target)
     steps.update()
     steps.set_postfix_str("retargeting")
-    animation = retargeter.retarget(source)
+    animation = _plugin_call(who, "retarget", retargeter.retarget, source)
+    _plugin_call(who, "output", _validate_output, animation, source, target)
     steps.update()
     steps.set_postfix_str("writing")
-    io.save(animation, args.out, force=args.force, inputs=[args.source, args.target] + ([args.landmarks] if args.landmarks else []))
+    io.save(animation, args.out, force=args.force, inputs=inputs)
     steps.update()
     steps.close()
     print(f"wrote {args.out}: {animation.n_frames} frames by {retargeter.name} in {time.perf_counter() - t0:.2f} s")
     return 0
+
+
+def _check_output_path(out: str, inputs: list[str], force: bool) -> None:
+    """Refuse an output that is one of the inputs (any spelling or link), or exists without
+    --force, before any slow work (``faceretarget.io`` checks again when writing)."""
+    from pathlib import Path
+
+    from .io._atomic import check_destination
+
+    check_destination(out, inputs=inputs, force=force, folder=not Path(out).suffix or out.endswith(("/", "\\")))
+
+
+def _validate_output(animation, source, target) -> None:
+    """Shape and finiteness of a retargeter's result, checked before anything is written."""
+    from types import SimpleNamespace
+
+    from .evaluation.harness import validate_output
+
+    validate_output(animation, SimpleNamespace(source=source, target=target, truth=None), "the retargeter")
+
+
+def _plugin_call(who, stage: str, call, *args):
+    """``call(*args)`` for ``who = (retargeter name, PluginInfo)``: a failure of a third-party
+    plugin (or an invalid output of any) is reported with the plugin's name and distribution."""
+    name, plugin = who
+    where = f"{name} (plugin {plugin.name!r}, distribution {plugin.origin})"
+    if plugin.builtin and stage != "output":
+        return call(*args)
+    try:
+        return call(*args)
+    except FaceRetargetError as exc:
+        try:
+            renamed = type(exc)(f"{where}, {stage}: {exc}")
+        except Exception:  # an exception class with another signature: keep it as it is
+            raise exc from None
+        raise renamed from exc
+    except Exception as exc:
+        raise PluginError(f"{where} failed in {stage}: {type(exc).__name__}: {_one_line(exc)}") from exc
 
 
 def parse_params(pairs: list[str]) -> dict:

@@ -19,7 +19,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from . import config
-from ._validate import as_float_array, as_fps, as_index_array, as_names, check_finite, readonly
+from ._validate import as_array, as_float_array, as_fps, as_index_array, as_names, check_finite, readonly
 from .errors import (
     DegenerateGeometryError,
     InputError,
@@ -156,9 +156,14 @@ class Mesh:
         return vertex_adjacency(self.triangles, self.n_vertices)
 
     def degenerate_triangles(self, ratio: float = config.DEGENERATE_AREA_RATIO) -> np.ndarray:
-        """Ids of triangles whose area is below ``ratio`` times the mean area."""
+        """Ids of triangles whose area is below ``ratio`` times the mean area, or below ``ratio``
+        times the square of their own longest edge (collinear corners, even when every
+        triangle of the mesh is degenerate and the mean area is no yardstick)."""
         areas = self.face_areas
-        return np.flatnonzero(areas <= ratio * max(float(areas.mean()), np.finfo(float).tiny))
+        corners = self.vertices[self.triangles]  # (T, 3, 3)
+        longest = (np.diff(corners, axis=1, append=corners[:, :1]) ** 2).sum(axis=2).max(axis=1)
+        small = areas <= ratio * max(float(areas.mean()), np.finfo(float).tiny)
+        return np.flatnonzero(small | (areas <= ratio * longest))
 
     def check_nondegenerate(self, what: str = "this method") -> None:
         """Raise :class:`DegenerateGeometryError` if any triangle has (near) zero area."""
@@ -283,7 +288,7 @@ class MarkerSequence:
     kind = "markers"
 
     def __init__(self, positions, *, names=None, fps: float = 30.0, reference=None):
-        arr = np.asarray(positions) if not isinstance(positions, np.ndarray) else positions
+        arr = as_array(positions, "MarkerSequence.positions")
         if getattr(arr, "ndim", 0) != 3 or arr.shape[-1] not in (2, 3):
             raise ShapeError(
                 f"MarkerSequence.positions: expected shape (F, N, 3) or (F, N, 2), got {tuple(np.shape(arr))}"
@@ -341,8 +346,8 @@ class MeshSequence:
     Parameters
     ----------
     vertices : (F, V, 3) float
-        Per-frame vertex positions. float32 and float64 are kept as given (a memory-mapped
-        point cache is not loaded into memory).
+        Per-frame vertex positions. float32 and float64 (either byte order) are kept as
+        given, so a memory-mapped point cache is not loaded into memory.
     triangles : (T, 3) int
     fps : float
     reference : Mesh or (V, 3) float, optional
@@ -352,8 +357,11 @@ class MeshSequence:
     kind = "mesh"
 
     def __init__(self, vertices, triangles, *, fps: float = 30.0, reference=None, name: str | None = None):
-        arr = vertices if isinstance(vertices, np.ndarray) else np.asarray(vertices)
-        dtype = arr.dtype if arr.dtype in (np.float32, np.float64) else np.float64
+        arr = as_array(vertices, "MeshSequence.vertices")
+        # 4- and 8-byte floats of either byte order are kept as given, so a memory-mapped
+        # point cache (PC2 little-endian, MDD big-endian) stays on disk.
+        keep = arr.dtype.kind == "f" and arr.dtype.itemsize in (4, 8)
+        dtype = arr.dtype if keep else np.float64
         if arr.ndim != 3 or arr.shape[-1] != 3:
             raise ShapeError(f"MeshSequence.vertices: expected shape (F, V, 3), got {tuple(arr.shape)}")
         if arr.shape[0] == 0:
@@ -466,7 +474,7 @@ class BlendshapeRig:
         if not isinstance(neutral, Mesh):
             raise InputError(f"BlendshapeRig.neutral: expected a Mesh, got {type(neutral).__name__}")
         self.neutral = neutral
-        arr = np.asarray(deltas)
+        arr = as_array(deltas, "BlendshapeRig.deltas")
         if arr.ndim == 3 and arr.shape[1] != neutral.n_vertices:
             raise TopologyMismatchError(
                 f"BlendshapeRig.deltas: shapes have {arr.shape[1]} vertices but the neutral has {neutral.n_vertices}"
@@ -492,9 +500,10 @@ class BlendshapeRig:
 
     def evaluate(self, weights) -> np.ndarray:
         """Vertices for ``weights : (M,) or (F, M)`` -> ``(V, 3)`` or ``(F, V, 3)``."""
-        w = np.asarray(weights, dtype=np.float64)
-        if w.shape[-1] != self.n_shapes or w.ndim not in (1, 2):
+        w = as_array(weights, "BlendshapeRig.evaluate: weights")
+        if w.ndim not in (1, 2) or w.shape[-1] != self.n_shapes:
             raise ShapeError(f"BlendshapeRig.evaluate: weights must be (M,) or (F, M) with M={self.n_shapes}, got {w.shape}")
+        w = as_float_array(w, "BlendshapeRig.evaluate: weights", w.shape)
         flat = w.reshape(-1, self.n_shapes) @ self.deltas.reshape(self.n_shapes, -1)
         out = flat.reshape(w.shape[:-1] + (self.neutral.n_vertices, 3)) + self.neutral.vertices
         return out
@@ -535,7 +544,7 @@ class LayeredRig:
         items = {}
         shape = None
         for lname, poses in layers.items():
-            arr = np.asarray(poses)
+            arr = as_array(poses, f"LayeredRig.layers[{lname!r}]")
             if arr.ndim != 3 or arr.shape[-1] not in (2, 3):
                 raise ShapeError(f"LayeredRig.layers[{lname!r}]: expected (K, P, 3) or (K, P, 2), got {tuple(arr.shape)}")
             if shape is None:
@@ -556,6 +565,8 @@ class LayeredRig:
         if np.any(self.masks < 0):
             raise InputError("LayeredRig.masks: mask values must be >= 0")
         self.region_names = as_names(region_names, "LayeredRig.region_names", self.masks.shape[0], default_prefix="region")
+        if pose_names is not None and not isinstance(pose_names, Mapping):
+            raise InputError("LayeredRig.pose_names: expected a mapping of layer name -> pose names")
         self.pose_names = {
             lname: as_names((pose_names or {}).get(lname), f"LayeredRig.pose_names[{lname!r}]", poses.shape[0], default_prefix=f"{lname}")
             for lname, poses in items.items()
@@ -650,6 +661,8 @@ class Source:
         n_frames = performance.n_frames
         self.head_motion = _as_head_motion(head_motion, n_frames, "Source.head_motion")
         n_points = None
+        if landmarks is not None and not isinstance(landmarks, Landmarks):
+            raise InputError(f"Source.landmarks: expected a faceretarget.Landmarks, got {type(landmarks).__name__}")
         if isinstance(performance, MeshSequence):
             n_points = performance.n_vertices
             if landmarks is not None:
@@ -866,14 +879,26 @@ class Animation:
     ):
         if vertices is None and (weights is None or rig is None):
             raise InputError("Animation: give vertices, or weights together with the rig that turns them into vertices")
+        if rig is not None and not isinstance(rig, BlendshapeRig):
+            raise InputError(f"Animation.rig: expected a BlendshapeRig, got {type(rig).__name__}")
+        for label, value in (("provenance", provenance), ("extras", extras)):
+            if value is not None and not isinstance(value, Mapping):
+                raise InputError(f"Animation.{label}: expected a dict, got {type(value).__name__}")
         self._vertices = None
         if vertices is not None:
-            arr = np.asarray(vertices)
-            dtype = arr.dtype if arr.dtype in (np.float32, np.float64) else np.float64
+            arr = as_array(vertices, "Animation.vertices")
             if arr.ndim != 3 or arr.shape[-1] != 3:
                 raise ShapeError(f"Animation.vertices: expected (F, V, 3), got {tuple(arr.shape)}")
-            arr = arr.astype(dtype, copy=False)
-            check_finite(arr, "Animation.vertices")
+            if arr.shape[1] == 0:
+                raise ShapeError("Animation.vertices: no vertices, shape (F, 0, 3)")
+            if arr.dtype in (np.float32, np.float64):
+                check_finite(arr, "Animation.vertices")
+            else:
+                arr = as_float_array(arr, "Animation.vertices", (None, None, 3))
+            if rig is not None and arr.shape[1] != rig.neutral.n_vertices:
+                raise TopologyMismatchError(
+                    f"Animation: vertices have {arr.shape[1]} vertices but the rig's neutral has {rig.neutral.n_vertices}"
+                )
             self._vertices = readonly(arr)
         self.rig = rig
         self.weights = None

@@ -30,7 +30,7 @@ import pluggy
 from . import config
 from .errors import ConfigError, DuplicatePluginError, PluginError, PluginLoadError, UnknownNameError
 from .hookspecs import PROJECT, FaceRetargetSpec, Metric, Reader, Writer
-from .retargeter import Capabilities, Retargeter
+from .retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS, Capabilities, Retargeter
 
 __all__ = ["Registry", "PluginInfo", "RetargeterInfo", "registry", "reload", "read_catalogue"]
 
@@ -96,6 +96,8 @@ def read_catalogue(text: str | None = None, origin: str = "registry.toml") -> di
             text = resources.files("faceretarget").joinpath("registry.toml").read_text(encoding="utf-8")
         except (FileNotFoundError, OSError) as exc:
             raise ConfigError(f"{origin}: not found inside the installed package ({exc}); reinstall faceretarget") from None
+    if not isinstance(text, str):
+        raise ConfigError(f"{origin}: expected TOML text, got {type(text).__name__}")
     try:
         data = tomllib.loads(text)
     except (tomllib.TOMLDecodeError, UnicodeError, TypeError) as exc:
@@ -114,13 +116,36 @@ def read_catalogue(text: str | None = None, origin: str = "registry.toml") -> di
         if not isinstance(aliases, list) or not all(isinstance(a, str) for a in aliases):
             raise ConfigError(f"{origin}: [retargeters.{name}].aliases must be a list of strings")
         params = entry.get("parameters", {})
-        if not isinstance(params, dict) or not all(isinstance(v, dict) and "doc" in v for v in params.values()):
-            raise ConfigError(f"{origin}: [retargeters.{name}.parameters] entries must be tables with a 'doc' (and 'default')")
+        if not isinstance(params, dict) or not all(isinstance(v, dict) and isinstance(v.get("doc"), str) for v in params.values()):
+            raise ConfigError(f"{origin}: [retargeters.{name}.parameters] entries must be tables with a 'doc' string (and 'default')")
         caps = entry.get("capabilities", {})
         if not isinstance(caps, dict):
             raise ConfigError(f"{origin}: [retargeters.{name}.capabilities] must be a table")
+        _check_capabilities(caps, f"{origin}: [retargeters.{name}.capabilities]")
         out[name] = {**entry, "aliases": aliases, "parameters": params, "capabilities": caps}
     return out
+
+
+def _check_capabilities(caps: dict, where: str) -> None:
+    """Raise ConfigError unless ``caps`` is a valid ``Capabilities.as_dict()`` table."""
+    unknown = sorted(set(caps) - {"sources", "needs", "outputs", "stream", "edit", "same_topology"})
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))}")
+    sources = caps.get("sources", ["markers"])
+    if not isinstance(sources, list) or not all(isinstance(s, str) and s in SOURCE_KINDS for s in sources):
+        raise ConfigError(f"{where}: sources must be a list of {', '.join(SOURCE_KINDS)}")
+    needs = caps.get("needs", [])
+    valid = RIG_PARTS + SOURCE_EXTRAS
+    if not isinstance(needs, list) or not all(
+        (isinstance(n, str) and n in valid) or (isinstance(n, list) and n and all(isinstance(o, str) and o in valid for o in n))
+        for n in needs
+    ):
+        raise ConfigError(f"{where}: needs must be a list of {', '.join(valid)} (or lists of alternatives)")
+    if caps.get("outputs", "vertices") not in ("weights", "vertices"):
+        raise ConfigError(f"{where}: outputs must be \"weights\" or \"vertices\"")
+    for key in ("stream", "edit", "same_topology"):
+        if not isinstance(caps.get(key, False), bool):
+            raise ConfigError(f"{where}: {key} must be true or false")
 
 
 class Registry:
@@ -231,7 +256,8 @@ class Registry:
             raise PluginLoadError(f"{where}: {cls.__name__} has no valid `name` class attribute")
         if not isinstance(cls.capabilities, Capabilities):
             raise PluginLoadError(f"{where}: {cls.__name__}.capabilities must be a faceretarget.Capabilities")
-        sig = inspect.signature(cls.__init__)
+        init = cls.__init__
+        sig = inspect.signature(init) if init is not object.__init__ else inspect.Signature()
         for p in sig.parameters.values():
             if p.name == "self" or p.kind == p.VAR_KEYWORD:
                 continue

@@ -34,6 +34,7 @@ The module is also a pytest plugin (entry point ``pytest11``) giving the fixture
 """
 from __future__ import annotations
 
+import copy
 import functools
 import hashlib
 import pickle
@@ -62,11 +63,19 @@ FLOAT32_TOLERANCE = 1e-3
 
 
 @functools.lru_cache(maxsize=4)
-def tiny_case(seed: int = 0):
-    """A small synthetic parallel-rig case carrying every rig part (cached per seed)."""
+def _build_tiny_case(seed: int):
     from . import cases
 
     return cases.synthetic(seed=seed, resolution=600, n_frames=16)
+
+
+def tiny_case(seed: int = 0):
+    """A small synthetic parallel-rig case carrying every rig part.
+
+    Built once per seed; each call returns a deep copy, so a retargeter that mutates
+    its inputs cannot spoil the case for the checks that follow.
+    """
+    return copy.deepcopy(_build_tiny_case(seed))
 
 
 # ------------------------------------------------------------------------------------

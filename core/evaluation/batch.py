@@ -65,6 +65,7 @@ class Job:
     cls: Any = None
     writer: Callable | None = None
     writer_name: str = ""
+    origin: str = ""  # "plugin <entry point> (<distribution> <version>)", for error messages
 
 
 @dataclass
@@ -148,9 +149,15 @@ def load_manifest(path, *, registry=None) -> list[Job]:
     if unknown_top:
         raise ConfigError(f"manifest {path}: unknown table(s) {sorted(unknown_top)}; use [defaults] and [[job]]")
     defaults = data.get("defaults", {})
-    entries = data.get("job", []) + data.get("jobs", [])
-    if not isinstance(defaults, dict) or not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+    job, jobs_ = data.get("job", []), data.get("jobs", [])
+    if not isinstance(job, list) or not isinstance(jobs_, list):
+        raise ConfigError(f"manifest {path}: [[job]] must be an array of tables (one [[job]] header per job)")
+    entries = job + jobs_
+    if not isinstance(defaults, dict) or not all(isinstance(e, dict) for e in entries):
         raise ConfigError(f"manifest {path}: [defaults] must be a table and [[job]] an array of tables")
+    for where, table in (("[defaults]", defaults), *((f"job #{i + 1}", e) for i, e in enumerate(entries))):
+        if not isinstance(table.get("params", {}), dict):
+            raise ConfigError(f"manifest {path}, {where}: params must be a table, e.g. params = {{ alpha = 0.05 }}")
     if not entries:
         raise ConfigError(f"manifest {path}: no [[job]] entries")
     jobs, outs = [], {}
@@ -190,8 +197,18 @@ def load_manifest(path, *, registry=None) -> list[Job]:
         outs[out] = name
         writer = writer_for(Path(out), registry, where)
         jobs.append(
-            Job(name, shot, character, info.name, dict(merged["params"]), out, landmarks, cls=info.cls, writer=writer.write, writer_name=writer.name)
+            Job(
+                name, shot, character, info.name, dict(merged["params"]), out, landmarks, cls=info.cls,
+                writer=writer.write, writer_name=writer.name, origin=f"plugin {info.plugin.name} ({info.plugin.origin})",
+            )
         )
+    inputs = {str(Path(v).resolve()): j.name for j in jobs for v in (j.shot, j.character, j.landmarks) if v and not str(v).startswith(CASE_PREFIX)}
+    for j in jobs:
+        if str(Path(j.out).resolve()) in inputs:
+            raise ConfigError(
+                f"manifest {path.name}: job {j.name!r} would write {j.out!r}, an input of job {inputs[str(Path(j.out).resolve())]!r}; "
+                "outputs must never overwrite inputs"
+            )
     names = [j.name for j in jobs]
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
@@ -291,7 +308,8 @@ def run_job(job: Job) -> JobResult:
         return JobResult(job.name, "done", job.out, time.perf_counter() - start, method=job.method)
     except Exception as exc:  # reported per job; the batch goes on
         message = " ".join(str(exc).split()) or type(exc).__name__
-        return JobResult(job.name, "failed", job.out, time.perf_counter() - start, f"{type(exc).__name__}: {message}", job.method)
+        where = f"{job.method} [{job.origin}]: " if job.origin else ""
+        return JobResult(job.name, "failed", job.out, time.perf_counter() - start, f"{where}{type(exc).__name__}: {message}", job.method)
 
 
 # ---------------------------------------------------------------------------------------

@@ -90,6 +90,8 @@ def fit_rbf(centers: np.ndarray, values: np.ndarray, *, kernel: str = "linear", 
             c = float(np.mean(d.min(axis=1)))
         else:
             c = 1.0
+    if not (np.isfinite(c) and c > 0 and np.isfinite(1.0 / c)):
+        raise DegenerateGeometryError(f"fit_rbf: the kernel width c={c!r} must be a positive, normal number")
     phi = kernel_values(_distances(x, x), kernel, c)
     use_linear = polynomial and n > dim and np.linalg.matrix_rank(x - x.mean(axis=0)) == dim
     poly = np.hstack([x, np.ones((n, 1))]) if use_linear else np.ones((n, 1))
@@ -104,7 +106,7 @@ def fit_rbf(centers: np.ndarray, values: np.ndarray, *, kernel: str = "linear", 
     system[:n, :n] += config.RIDGE_EPS * scale * np.eye(n)
     try:
         sol = scipy.linalg.solve(system, rhs, assume_a="sym")
-    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError) as exc:
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError, ValueError) as exc:
         raise DegenerateGeometryError(f"fit_rbf: the RBF system is singular ({exc}); check for coincident or collinear centres") from None
     affine = np.zeros((dim + 1, y.shape[1]))
     if use_linear:
@@ -115,10 +117,14 @@ def fit_rbf(centers: np.ndarray, values: np.ndarray, *, kernel: str = "linear", 
 
 
 def _merge_duplicates(x: np.ndarray, y: np.ndarray):
-    uniq, inverse, counts = np.unique(x, axis=0, return_inverse=True, return_counts=True)
-    if len(uniq) == len(x):
+    """Merge centres closer than 1e-12 of the cloud's extent (their values averaged)."""
+    extent = float(np.max(np.ptp(x, axis=0))) if len(x) > 1 else 0.0
+    tol = extent * 1e-12 if extent > 0 and np.isfinite(extent) else 1.0
+    keys = np.round((x - x.min(axis=0)) / tol)
+    _, first, inverse, counts = np.unique(keys, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    if len(first) == len(x):
         return x, y
     inverse = inverse.ravel()
-    merged = np.zeros((len(uniq), y.shape[1]))
+    merged = np.zeros((len(first), y.shape[1]))
     np.add.at(merged, inverse, y)
-    return uniq, merged / counts[:, None]
+    return x[first], merged / counts[:, None]

@@ -198,3 +198,13 @@ def test_inputs_never_mutated():
     rig = fr.BlendshapeRig(m, np.ones((1, 4, 3)), ["a"])
     rig.evaluate([1.0])
     assert np.array_equal(v, v_before) and np.array_equal(t, t_before)
+
+
+def test_mesh_sequence_keeps_big_endian_memory_maps_on_disk(tmp_path):
+    v, t = quad()
+    path = tmp_path / "frames.bin"
+    np.repeat(v[None], 4, axis=0).astype(">f4").tofile(path)
+    mapped = np.memmap(path, dtype=">f4", mode="r", shape=(4, 4, 3))
+    seq = fr.MeshSequence(mapped, t)
+    assert seq.vertices.dtype == np.dtype(">f4")
+    assert np.shares_memory(seq.vertices, mapped), "a memory-mapped cache must not be copied into memory"
