@@ -107,7 +107,7 @@ def test_local_pool_reports_failures_and_skips_finished(tmp_path, fake_registry)
     assert status == {"out/ok1.fnpz": "done", "out/broken.fnpz": "failed", "out/wrong.fnpz": "failed", "out/ok2.fnpz": "done"}
     errors = {r.name: r.error for r in summary.failed}
     assert errors["out/broken.fnpz"] == "fake_broken [plugin fakes (local -)]: RuntimeError: boom in fit"
-    assert errors["out/wrong.fnpz"].startswith("PluginOutputError: fake_wrongshape returned vertices of shape (4,")
+    assert errors["out/wrong.fnpz"].startswith("fake_wrongshape [plugin fakes (local -)]: PluginOutputError: fake_wrongshape returned vertices of shape (4,")
     saved = np.load(tmp_path / "out/ok1.fnpz")
     assert saved["vertices"].shape[0] == 4 and str(saved["method"]) == "fake_transfer"
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["ok1.fnpz", "ok2.fnpz"]  # no partial files
