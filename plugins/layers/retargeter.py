@@ -13,7 +13,8 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from faceretarget.errors import CapabilityError, ShapeError, TopologyMismatchError
+from faceretarget._validate import check_choice, check_number
+from faceretarget.errors import CapabilityError, ConfigError, InputError, ShapeError, TopologyMismatchError
 from faceretarget.model import Animation, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
 
@@ -22,6 +23,74 @@ from .model import build_actor, build_character
 from .solver import extract, observe, resolve_lip_bias
 
 __all__ = ["LayersRetargeter"]
+
+#: Upper bounds of the numeric parameters (far beyond any useful value; they keep the
+#: solver's arithmetic finite and its run time bounded).
+MAX_SMOOTHING = 1e6
+MAX_LIP_SIGMA = 1e6
+MAX_ITER = 10_000
+
+
+def _number(value, name: str, **limits):
+    """``check_number`` with the plugin's error type (ConfigError, message naming ``name``)."""
+    try:
+        return check_number(value, name, **limits)
+    except InputError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _choice(value, name: str, choices) -> str:
+    try:
+        return check_choice(value, name, choices)
+    except InputError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _name_or_index(value, name: str, what: str):
+    """None, a name (str) or a whole-number index (range checked later, against the model)."""
+    if value is None or isinstance(value, str):
+        return value
+    message = f"{name}: expected None, the name of a {what} or its 0-based index (a whole number), got {_short(value)}"
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ConfigError(message)
+    try:
+        return check_number(value, name, integer=True)
+    except InputError:
+        raise ConfigError(message) from None
+
+
+def _lip_markers(value):
+    if value is None:
+        return None
+    message = ("lip_markers: expected None or a pair (upper, lower) of marker/track names or 3D marker indices, "
+               f"got {_short(value)}")
+    if not isinstance(value, (list, tuple, np.ndarray)) or (isinstance(value, np.ndarray) and value.ndim != 1):
+        raise ConfigError(message)
+    items = list(value)
+    if len(items) != 2:
+        raise ConfigError(message)
+    out = []
+    for item in items:
+        if isinstance(item, str):
+            out.append(str(item))
+        elif isinstance(item, (bool, np.bool_)) or not isinstance(item, (int, float, np.integer, np.floating)):
+            raise ConfigError(message)
+        else:
+            out.append(_number(item, "lip_markers", integer=True))
+    return tuple(out)
+
+
+def _flag(value, name: str) -> bool:
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)) and value in (0, 1):
+        return bool(value)
+    raise ConfigError(f"{name}: expected True or False, got {_short(value)}")
+
+
+def _short(value, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 class LayersRetargeter(Retargeter):
@@ -81,13 +150,41 @@ class LayersRetargeter(Retargeter):
         self.max_iter = max_iter
         self.tol = tol
 
+    # -- parameters ------------------------------------------------------------------
+    def _params(self) -> dict:
+        """Every constructor parameter, checked (ConfigError naming it and the valid values)."""
+        speech = self.speech_layer
+        if not isinstance(speech, str):
+            raise ConfigError(f"speech_layer: expected the name (str) of the layer holding the visemes, got {_short(speech)}")
+        return dict(
+            smoothing=_number(self.smoothing, "smoothing", low=0, high=MAX_SMOOTHING),
+            lip_sigma=_number(self.lip_sigma, "lip_sigma", low=0, high=MAX_LIP_SIGMA),
+            gamma_max=self._gamma_max(),
+            lip_markers=_lip_markers(self.lip_markers),
+            speech_layer=speech,
+            closed_viseme=_name_or_index(self.closed_viseme, "closed_viseme", "pose of the speech layer"),
+            mouth_region=_name_or_index(self.mouth_region, "mouth_region", "region"),
+            head_motion=_choice(self.head_motion, "head_motion", ("auto", "procrustes")),
+            rigid_points=_choice(self.rigid_points, "rigid_points", ("stable", "all")),
+            project_blendshapes=_flag(self.project_blendshapes, "project_blendshapes"),
+            max_iter=_number(self.max_iter, "max_iter", integer=True, low=1, high=MAX_ITER),
+            tol=_number(self.tol, "tol", low=0),
+        )
+
+    def _gamma_max(self) -> float:
+        message = f"gamma_max: expected a finite number >= 0 and < 1, got {_short(self.gamma_max)}"
+        try:
+            value = check_number(self.gamma_max, "gamma_max", low=0, high=1)
+        except InputError:
+            raise ConfigError(message) from None
+        if value >= 1.0:
+            raise ConfigError(message)
+        return value
+
     # -- fit -------------------------------------------------------------------------
     def _fit(self, source: Source, target: TargetRig) -> None:
-        from faceretarget.errors import ConfigError
-
-        if self.head_motion not in ("auto", "procrustes"):
-            raise ConfigError(f"head_motion must be 'auto' or 'procrustes', got {self.head_motion!r}")
-        if self.project_blendshapes and target.blendshapes is None:
+        params = self._params()
+        if params["project_blendshapes"] and target.blendshapes is None:
             raise CapabilityError("project_blendshapes=True needs a TargetRig with blendshapes; this one has none")
         layers3d = source.actor_layers
         ref3d = np.asarray(source.marker_reference(), dtype=np.float64)
@@ -99,20 +196,20 @@ class LayersRetargeter(Retargeter):
             names2d = source.tracks2d.names
         actor = build_actor(layers3d, ref3d, layers2d, ref2d, names3d, names2d or ())
         character = build_character(target.layers, target.neutral.vertices, layers3d)
-        speech = self.speech_layer
+        speech = params["speech_layer"]
         poses3 = np.asarray(layers3d.layers[speech], float) if speech in layers3d.layers else None
         poses2 = np.asarray(layers2d.layers[speech], float) if (layers2d is not None and speech in layers2d.layers) else None
         lip = resolve_lip_bias(
             actor, poses3, poses2,
-            lip_markers=self.lip_markers, speech_layer=speech, closed_viseme=self.closed_viseme,
-            mouth_region=self.mouth_region, lip_sigma=float(self.lip_sigma),
+            lip_markers=params["lip_markers"], speech_layer=speech, closed_viseme=params["closed_viseme"],
+            mouth_region=params["mouth_region"], lip_sigma=params["lip_sigma"],
             masks3d=np.asarray(layers3d.masks), masks2d=None if layers2d is None else np.asarray(layers2d.masks),
         )
         self.actor_ = actor
         self.character_ = character
         self.lip_ = lip
-        self.projection_ = compose.build_projection(character, target.blendshapes) if self.project_blendshapes else None
-        self.rig_ = target.blendshapes if self.project_blendshapes else None
+        self.projection_ = compose.build_projection(character, target.blendshapes) if params["project_blendshapes"] else None
+        self.rig_ = target.blendshapes if params["project_blendshapes"] else None
         self.triangles_ = np.asarray(target.neutral.triangles)
         # a mesh source can be streamed as raw vertices: keep how to sample its markers
         self.source_landmarks_ = source.landmarks if source.kind == "mesh" else None
@@ -121,12 +218,17 @@ class LayersRetargeter(Retargeter):
 
     # -- retarget --------------------------------------------------------------------
     def _observe(self, markers, tracks, head_motion, frame_offset=0):
-        return observe(self.actor_, self.lip_, markers, tracks, head_motion, rigid_points=self.rigid_points,
+        rigid_points = _choice(self.rigid_points, "rigid_points", ("stable", "all"))
+        return observe(self.actor_, self.lip_, markers, tracks, head_motion, rigid_points=rigid_points,
                        frame_offset=frame_offset)
 
     def _extract(self, obs, state=None):
-        return extract(self.actor_, self.lip_, obs, smoothing=float(self.smoothing), gamma_max=float(self.gamma_max),
-                       max_iter=int(self.max_iter), tol=float(self.tol), state=state)
+        # read at retarget time (as before), checked again in case set_params changed them after fit
+        return extract(self.actor_, self.lip_, obs,
+                       smoothing=_number(self.smoothing, "smoothing", low=0, high=MAX_SMOOTHING),
+                       gamma_max=self._gamma_max(),
+                       max_iter=_number(self.max_iter, "max_iter", integer=True, low=1, high=MAX_ITER),
+                       tol=_number(self.tol, "tol", low=0), state=state)
 
     def _inputs(self, source: Source):
         """(markers, tracks, known head motion) of a source, checked against the fitted model."""
@@ -142,7 +244,8 @@ class LayersRetargeter(Retargeter):
             if source.tracks2d is None:
                 raise CapabilityError(f"layers: the model was fitted with {self.actor_.n2} 2D tracks; this source has no tracks2d")
             tracks = source.tracks2d.positions
-        known = source.head_motion if self.head_motion == "auto" else None
+        head_motion = _choice(self.head_motion, "head_motion", ("auto", "procrustes"))
+        known = source.head_motion if head_motion == "auto" else None
         return markers, tracks, known
 
     def _retarget(self, source: Source) -> Animation:

@@ -44,8 +44,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from faceretarget._validate import check_number
 from faceretarget.errors import (
     ConfigError,
+    InputError,
     DegenerateGeometryError,
     IndexRangeError,
     NonFiniteError,
@@ -85,6 +87,21 @@ class LipBias:
         return self.mouth >= 0 and self.speech >= 0 and self.closed >= 0 and self.sigma > 0
 
 
+def _config_number(value, name: str, **limits):
+    """``check_number`` raising :class:`ConfigError` (a bad parameter, named in the message)."""
+    try:
+        return check_number(value, name, **limits)
+    except InputError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _index(value, name: str) -> int:
+    """A whole-number index parameter (its range is checked by the caller)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ConfigError(f"{name}: expected a name or a 0-based index, got {value!r}"[:200])
+    return _config_number(value, name, integer=True)
+
+
 def _disabled(note: str) -> LipBias:
     return LipBias(3, -1, -1, 0.0, 0.0, -1, -1, -1, (), note)
 
@@ -105,9 +122,9 @@ def _pick_pair(names, speech_poses: np.ndarray, closed: int, lip_markers):
                     return None
                 ids.append(names.index(item))
             else:
-                ids.append(int(item))
+                ids.append(_index(item, "lip_markers"))
         if any(i < 0 or i >= n for i in ids):
-            raise IndexRangeError(f"lip_markers: indices {ids} out of range for {n} points")
+            raise IndexRangeError(f"lip_markers: indices {ids} out of range for {n} points (valid: 0..{n - 1})")
         return ids[0], ids[1], np.inf
     low = [s.lower() for s in names]
     ups = [i for i, s in enumerate(low) if "lip" in s and any(w in s for w in _UPPER_WORDS)]
@@ -134,10 +151,9 @@ def resolve_lip_bias(actor: ActorModel, speech_poses3d, speech_poses2d, *, lip_m
 
     ``speech_poses3d (K_s, N3, 3)`` / ``speech_poses2d (K_s, N2, 2)``: absolute speech poses.
     """
-    if not (np.isfinite(lip_sigma) and lip_sigma >= 0):
-        raise ConfigError(f"lip_sigma must be >= 0 (0 turns the lip-closure bias off), got {lip_sigma!r}")
-    if lip_markers is not None and (isinstance(lip_markers, str) or len(lip_markers) != 2):
-        raise ConfigError(f"lip_markers must be a pair (upper, lower) of names or indices, got {lip_markers!r}")
+    lip_sigma = _config_number(lip_sigma, "lip_sigma", low=0)
+    if lip_markers is not None and (not isinstance(lip_markers, (list, tuple, np.ndarray)) or len(lip_markers) != 2):
+        raise ConfigError(f"lip_markers must be a pair (upper, lower) of names or indices, got {lip_markers!r}"[:200])
     if speech_layer not in actor.layer_names:
         if closed_viseme is not None or lip_markers is not None:
             raise UnknownNameError(
@@ -156,9 +172,10 @@ def resolve_lip_bias(actor: ActorModel, speech_poses3d, speech_poses2d, *, lip_m
             raise UnknownNameError(f"closed_viseme {closed_viseme!r} is not a pose of layer {speech_layer!r}: {', '.join(names)}")
         k_closed = names.index(closed_viseme)
     else:
-        k_closed = int(closed_viseme)
+        k_closed = _index(closed_viseme, "closed_viseme")
         if not 0 <= k_closed < len(names):
-            raise IndexRangeError(f"closed_viseme {closed_viseme} out of range for {len(names)} poses of {speech_layer!r}")
+            raise IndexRangeError(f"closed_viseme {closed_viseme} out of range for {len(names)} poses of {speech_layer!r} "
+                                  f"(valid: 0..{len(names) - 1} or a pose name: {', '.join(names)})")
     choices = []
     by_index = lip_markers is not None and not all(isinstance(v, str) for v in lip_markers)
     for part, poses, pnames, masks in ((3, speech_poses3d, actor.names3d, masks3d), (2, speech_poses2d, actor.names2d, masks2d)):
@@ -175,6 +192,9 @@ def resolve_lip_bias(actor: ActorModel, speech_poses3d, speech_poses2d, *, lip_m
     gaps = _gaps(poses, np.array([up]), np.array([lo]))[:, 0]
     closed_gap = float(gaps[k_closed])
     sigma = float(lip_sigma) * float(gaps.max() - closed_gap)
+    if not (np.isfinite(sigma) and np.isfinite(sigma * sigma)):
+        raise ConfigError(f"lip_sigma: {lip_sigma!r} is too large (sigma = lip_sigma * widest lip opening overflows); "
+                          "pass a fraction of the opening, e.g. 0.1")
     if mouth_region is None:
         mouth = int(np.argmax(masks[:, up] + masks[:, lo]))
     elif isinstance(mouth_region, str):
@@ -182,9 +202,10 @@ def resolve_lip_bias(actor: ActorModel, speech_poses3d, speech_poses2d, *, lip_m
             raise UnknownNameError(f"mouth_region {mouth_region!r} is not a region: {', '.join(actor.region_names)}")
         mouth = actor.region_names.index(mouth_region)
     else:
-        mouth = int(mouth_region)
+        mouth = _index(mouth_region, "mouth_region")
         if not 0 <= mouth < actor.n_regions:
-            raise IndexRangeError(f"mouth_region {mouth_region} out of range for {actor.n_regions} regions")
+            raise IndexRangeError(f"mouth_region {mouth_region} out of range for {actor.n_regions} regions "
+                                  f"(valid: 0..{actor.n_regions - 1} or a region name: {', '.join(actor.region_names)})")
     label = (pnames[up], pnames[lo]) if len(pnames) > max(up, lo) else (str(up), str(lo))
     return LipBias(part, up, lo, closed_gap, sigma, mouth, speech, actor.pose_index(speech_layer, k_closed), label, "")
 
@@ -326,7 +347,11 @@ def bias_factor(lip: LipBias, gap: np.ndarray, gamma_max: float) -> np.ndarray:
     if not lip.enabled:
         return np.zeros_like(gap)
     d = np.maximum(gap - lip.closed_gap, 0.0)
-    gamma = np.exp(-(d * d) / (2.0 * lip.sigma**2))
+    two_s2 = 2.0 * lip.sigma**2
+    if two_s2 > 0.0:
+        gamma = np.exp(-(d * d) / two_s2)
+    else:  # sigma so small its square underflows: the limit (1 on closed lips, 0 otherwise)
+        gamma = np.where(d > 0.0, 0.0, 1.0)
     return np.minimum(np.where(np.isnan(gap), 0.0, gamma), gamma_max)
 
 
@@ -338,12 +363,12 @@ def extract(actor: ActorModel, lip: LipBias, obs: Observations, *, smoothing: fl
     """
     from ._kernels import solve_frames
 
-    if not (np.isfinite(smoothing) and smoothing >= 0):
-        raise ConfigError(f"smoothing must be >= 0, got {smoothing!r}")
-    if not (0.0 <= gamma_max < 1.0):
-        raise ConfigError(f"gamma_max must be in [0, 1), got {gamma_max!r}")
-    if int(max_iter) < 1 or not (tol >= 0):
-        raise ConfigError(f"max_iter must be >= 1 and tol >= 0, got {max_iter!r}, {tol!r}")
+    smoothing = _config_number(smoothing, "smoothing", low=0)
+    gamma_max = _config_number(gamma_max, "gamma_max", low=0, high=1)
+    if gamma_max >= 1.0:
+        raise ConfigError(f"gamma_max: expected a finite number >= 0 and < 1, got {gamma_max!r}")
+    max_iter = _config_number(max_iter, "max_iter", integer=True, low=1, high=np.iinfo(np.int64).max)
+    tol = _config_number(tol, "tol", low=0)
     n_frames = obs.g.shape[0]
     gamma = bias_factor(lip, obs.gap, gamma_max)
     c_d = (1.0 - gamma) / np.maximum(obs.n_valid, 1.0)

@@ -19,9 +19,6 @@ from reliability.fuzzkit import failed, fuzz, junk, typed
 AREA = "method parameters"
 #: methods whose parameter checks still let untyped errors through (owners: plugins/<name>)
 KNOWN = {
-    "layers": "plugins/layers: closed_viseme/mouth_region=nan|inf|list (solver.py:159,185 int()), gamma_max/smoothing/"
-              "lip_sigma/max_iter=None|'x'|list (retargeter.py:108,128,129 float()/int()), lip_markers=number (solver.py:139 len()), "
-              "lip_sigma=1e300 (solver.py:329 OverflowError), max_iter=1e300|10**20 (solver.py:358); smoothing=1e300 does not return",
     "spacetime": "plugins/spacetime/retargeter.py: lower/upper=None|'x'|list|10**20 (line 198 np.isfinite), alpha/beta=10**20 "
                  "(line 196), boundary=dict (359), marker_weights='x' (258), prior_animations='x'|dict (223), prior_shapes=number "
                  "(220), scale_alpha=None|'x'|list (388); head_motion_refinement=10**20 loops for ever",
