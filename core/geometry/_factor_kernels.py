@@ -8,6 +8,7 @@ split, so results do not depend on the number of threads.
 from __future__ import annotations
 
 import numba as nb
+import numpy as np
 
 
 @nb.njit(parallel=True, cache=True)
@@ -37,31 +38,42 @@ def lu_solve(l_ptr, l_ind, l_val, u_ptr, u_ind, u_val, u_diag, x, n_blocks):
 
 
 @nb.njit(parallel=True, cache=True)
-def lu_solve_ordered(order, l_ptr, l_ind, l_val, u_ptr, u_ind, u_val, u_diag, x, n_blocks):
-    """As :func:`lu_solve` for a symmetric permutation, in the original row order.
-
-    ``order[i]`` is the original index of pivot ``i``; the factors' row indices are already
-    original indices, so ``x : (n, k)`` is solved in place without permuted copies.
-    """
-    n, k = x.shape
+def lu_solve_frames(order, l_ptr, l_ind, l_val, u_ptr, u_ind, u_val, u_diag, rhs, add, out, n_blocks):
+    """Solve ``A x = rhs`` for per-frame right-hand sides ``rhs : (C, n, 3)`` and write
+    ``out = add + x`` (``(C, n, 3)``) for a symmetric pivoting (``order[i]``: the original
+    index of pivot ``i``). Each thread gathers its block of the ``3C`` columns into a
+    contiguous array in pivot order (so the factors are walked with good locality),
+    solves and scatters back to the original order."""
+    n_frames, n = rhs.shape[0], rhs.shape[1]
+    k = 3 * n_frames
     step = (k + n_blocks - 1) // n_blocks
     for b in nb.prange(n_blocks):
         c0 = b * step
         c1 = min(k, c0 + step)
+        if c1 <= c0:
+            continue
+        w = c1 - c0
+        x = np.empty((n, w))
+        for i in range(n):
+            o = order[i]
+            for c in range(c0, c1):
+                x[i, c - c0] = rhs[c // 3, o, c % 3]
         for j in range(n):
-            oj = order[j]
             for p in range(l_ptr[j], l_ptr[j + 1]):
                 i = l_ind[p]
-                w = l_val[p]
-                for c in range(c0, c1):
-                    x[i, c] -= w * x[oj, c]
+                v = l_val[p]
+                for c in range(w):
+                    x[i, c] -= v * x[j, c]
         for j in range(n - 1, -1, -1):
-            oj = order[j]
             d = u_diag[j]
-            for c in range(c0, c1):
-                x[oj, c] /= d
+            for c in range(w):
+                x[j, c] /= d
             for p in range(u_ptr[j], u_ptr[j + 1]):
                 i = u_ind[p]
-                w = u_val[p]
-                for c in range(c0, c1):
-                    x[i, c] -= w * x[oj, c]
+                v = u_val[p]
+                for c in range(w):
+                    x[i, c] -= v * x[j, c]
+        for i in range(n):
+            o = order[i]
+            for c in range(c0, c1):
+                out[c // 3, o, c % 3] = add[c // 3, o, c % 3] + x[i, c - c0]

@@ -348,8 +348,10 @@ class DeformationTransfer:
     def line_targets(self, source_reference: np.ndarray, source_deformed: np.ndarray, source_chains=None) -> np.ndarray | None:
         """(F, S, 3, 3) source feature-line deformations paired with the target's segments.
 
-        Lines are paired by name and segments by arc length, so source and target chains
-        may have different lengths.
+        Lines are paired by name. Source and target share the topology, so each target
+        segment takes the source segment of the same line whose midpoint, placed on the
+        target reference by vertex id, is nearest: chains may start anywhere, run either
+        way and have different lengths.
         """
         if self.line_operator is None:
             return None
@@ -364,13 +366,13 @@ class DeformationTransfer:
         src_seg = feature_line_gradients(source_reference, dfm, self.triangles, [src_chains[k] for k in names])
         pick = []
         offset = 0
+        ref = self.reference
         for k in names:
             s_chain, t_chain = np.asarray(src_chains[k]), self.chains[k]
-            s_par = _arc_param(np.asarray(source_reference, dtype=np.float64), s_chain)
-            t_par = _arc_param(self.reference, t_chain)
-            t_mid = 0.5 * (t_par[:-1] + t_par[1:])
-            idx = np.clip(np.searchsorted(s_par, t_mid, side="right") - 1, 0, len(s_chain) - 2)
-            pick.append(offset + idx)
+            s_mid = 0.5 * (ref[s_chain[:-1]] + ref[s_chain[1:]])
+            t_mid = 0.5 * (ref[t_chain[:-1]] + ref[t_chain[1:]])
+            nearest = np.argmin(np.linalg.norm(t_mid[:, None, :] - s_mid[None, :, :], axis=-1), axis=1)
+            pick.append(offset + nearest)
             offset += len(s_chain) - 1
         return src_seg[..., np.concatenate(pick), :, :]
 
@@ -410,12 +412,6 @@ def _as_chains(feature_lines) -> dict[str, np.ndarray]:
     if isinstance(feature_lines, Mapping):
         return {str(k): np.asarray(v, dtype=np.int64) for k, v in feature_lines.items()}
     return {f"line{i}": np.asarray(v, dtype=np.int64) for i, v in enumerate(feature_lines)}
-
-
-def _arc_param(points: np.ndarray, chain: np.ndarray) -> np.ndarray:
-    seg = np.linalg.norm(np.diff(points[chain], axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    return s / max(s[-1], np.finfo(float).tiny)
 
 
 def _block_diag3(blocks: np.ndarray) -> sp.csr_matrix:

@@ -71,11 +71,8 @@ class SPDFactor:
         self._u_diag = diag.astype(np.float64)
         self._perm_r = lu.perm_r.astype(np.int64)
         self._perm_c = lu.perm_c.astype(np.int64)
-        self._order = None
-        if np.array_equal(self._perm_r, self._perm_c):  # symmetric pivoting: solve in original order
-            self._order = np.argsort(self._perm_r).astype(np.int64)
-            self._l = (self._l[0], self._order[self._l[1]], self._l[2])
-            self._u = (self._u[0], self._order[self._u[1]], self._u[2])
+        # symmetric pivoting (the normal case here): pivot i is original index order[i]
+        self._order = np.argsort(self._perm_r).astype(np.int64) if np.array_equal(self._perm_r, self._perm_c) else None
         self._lu = lu
         probe = np.cos(np.arange(self.n, dtype=np.float64))
         res = m @ self.solve(probe) - probe
@@ -94,18 +91,36 @@ class SPDFactor:
             return lu.solve(np.ascontiguousarray(b))
         from numba import get_num_threads
 
-        from ._factor_kernels import lu_solve, lu_solve_ordered
+        from ._factor_kernels import lu_solve
 
         blocks = max(1, min(get_num_threads(), b.shape[1] // 4))
         l, u = self._l, self._u
-        if self._order is not None:
-            x = np.array(b, dtype=np.float64, order="C", copy=True)
-            lu_solve_ordered(self._order, l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, x, blocks)
-            return x
         y = np.empty((self.n, b.shape[1]), dtype=np.float64)
         y[self._perm_r] = b
         lu_solve(l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, y, blocks)
         return y[self._perm_c]
+
+    def solve_frames(self, rhs: np.ndarray, add: np.ndarray | None = None) -> np.ndarray:
+        """Solve for per-frame right-hand sides ``rhs : (C, n, 3)``; returns ``add + x``
+        (``(C, n, 3)``, ``add`` default zero) without transposed copies."""
+        r = np.ascontiguousarray(rhs, dtype=np.float64)
+        if r.ndim != 3 or r.shape[1] != self.n:
+            raise ShapeError(f"{self.what}: right-hand sides must be (C, {self.n}, 3), got {r.shape}")
+        a = np.zeros_like(r) if add is None else np.ascontiguousarray(add, dtype=np.float64)
+        self._factor()
+        if self._order is None:
+            cols = np.ascontiguousarray(r.transpose(1, 0, 2).reshape(self.n, -1))
+            x = self.solve(cols).reshape(self.n, r.shape[0], r.shape[2]).transpose(1, 0, 2)
+            return a + x
+        from numba import get_num_threads
+
+        from ._factor_kernels import lu_solve_frames
+
+        out = np.empty_like(r)
+        blocks = max(1, min(get_num_threads(), r.shape[0] * r.shape[2]))
+        l, u = self._l, self._u
+        lu_solve_frames(self._order, l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, r, a, out, blocks)
+        return out
 
     def __getstate__(self):
         return {"matrix": self.matrix, "what": self.what}
@@ -119,4 +134,5 @@ def _strict(m: sp.csc_matrix, keep: np.ndarray):
     cols = np.repeat(np.arange(m.shape[1]), np.diff(m.indptr))
     counts = np.bincount(cols[keep], minlength=m.shape[1])
     ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    return ptr, m.indices[keep].astype(np.int64), m.data[keep].astype(np.float64)
+    index = np.int32 if m.shape[0] < 2**31 else np.int64  # half the index traffic of the solves
+    return ptr, m.indices[keep].astype(index), m.data[keep].astype(np.float64)

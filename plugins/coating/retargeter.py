@@ -1,0 +1,439 @@
+"""The ``coating`` retargeter (Xu et al. 2014) and the ``deformation_transfer`` baseline.
+
+Both take a dense mesh performance, remove its rigid head motion (the known
+``Source.head_motion`` or a Procrustes estimate on stable vertices), transfer the local
+deformation onto the target in the source's topology (the target is resampled first if
+its topology differs) and re-apply the head motion. Frames are processed in chunks of
+``chunk_frames``; :meth:`CoatingRetargeter.iter_retarget` and
+:meth:`CoatingRetargeter.retarget_to` stream sequences too long for memory.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import ClassVar, Iterator
+
+import numpy as np
+
+from faceretarget.errors import ConfigError, InputError, OutputError, ShapeError, TopologyMismatchError
+from faceretarget.geometry.deformation_gradients import DeformationTransfer, check_triangles, gradient_columns, reference_inverse
+from faceretarget.model import Animation, MeshSequence, Source, TargetRig
+from faceretarget.retargeter import Capabilities, Retargeter
+
+from .alignment import RigidFit, frame_chunks, stable_vertices, to_local, to_world
+from .topology import common_topology, describe, same_topology
+
+__all__ = ["CoatingRetargeter", "DeformationTransferRetargeter"]
+
+
+class _MeshTransfer(Retargeter):
+    """Shared plumbing: parameter checks, topology, head motion, chunked output."""
+
+    def _check_positive(self, **values) -> None:
+        for k, v in values.items():
+            if not (isinstance(v, (int, float, np.integer, np.floating)) and np.isfinite(v) and v > 0):
+                raise ConfigError(f"{self.name}: parameter {k} must be a positive number, got {v!r}")
+
+    def _prepare(self, source: Source, target: TargetRig):
+        """Common topology and the stable vertices of the fit source (one pass over its frames)."""
+        self._check_positive(chunk_frames=self.chunk_frames, stable_fraction=self.stable_fraction)
+        if self.stable_fraction > 1:
+            raise ConfigError(f"{self.name}: stable_fraction must be in (0, 1], got {self.stable_fraction!r}")
+        perf = source.performance
+        check_triangles(perf.reference.vertices, perf.triangles, f"{self.name} (source reference)")
+        check_triangles(target.neutral.vertices, target.neutral.triangles, f"{self.name} (target neutral)")
+        topo = common_topology(source, target, what=self.name)
+        ref = np.asarray(perf.reference.vertices, dtype=np.float64)
+        stable = stable_vertices(ref, perf.vertices, stable_fraction=self.stable_fraction, chunk=int(self.chunk_frames), motion=source.head_motion)
+        self.topology_ = topo
+        self.source_triangles_ = np.asarray(perf.triangles)
+        self.source_reference_ = ref
+        self.stable_ = stable
+        return topo, stable
+
+    def _check_source(self, source: Source) -> None:
+        perf = source.performance
+        if not isinstance(perf, MeshSequence):
+            raise InputError(f"{self.name}: expected a mesh-sequence source, got {source.kind}")
+        if perf.n_vertices != self.source_reference_.shape[0] or not np.array_equal(perf.triangles, self.source_triangles_):
+            raise TopologyMismatchError(
+                f"{self.name}: this source has {perf.n_vertices} vertices / {perf.triangles.shape[0]} triangles but the retargeter "
+                f"was fitted on {self.source_reference_.shape[0]} / {self.source_triangles_.shape[0]}; fit on a source of this topology"
+            )
+
+    def _motion_of(self, source: Source):
+        """``motion_of(frame_ids, frames) -> (n, 4, 4)``: the known head motion, or a Procrustes
+        fit on the stable vertices."""
+        if source.head_motion is not None:
+            known = np.asarray(source.head_motion, dtype=np.float64)
+            return lambda ids, frames: known[ids]
+        fit = RigidFit(self.source_reference_, self.stable_)
+        return lambda ids, frames: fit(frames)
+
+    def _local_chunks(self, source: Source):
+        """One pass over the source: ``(slice, head motion (n, 4, 4), local frames (n, V, 3))``."""
+        perf = source.performance
+        motion_of = self._motion_of(source)
+        for sl in frame_chunks(perf.n_frames, int(self.chunk_frames)):
+            frames = np.asarray(perf.vertices[sl])
+            motion = motion_of(np.arange(sl.start, sl.stop), frames)
+            yield sl, motion, to_local(motion, frames)
+
+    def iter_retarget(self, source: Source) -> Iterator[tuple[slice, np.ndarray]]:
+        """Retarget chunk by chunk: yields ``(frames slice, target vertices (n, V_t, 3))``.
+
+        Memory stays bounded by ``chunk_frames`` whatever the sequence length (the
+        source may be memory-mapped); nothing is kept between chunks.
+        """
+        self._check_fitted()
+        self._check_source(source)
+        return ((item[0], item[2]) for item in self._chunks(source))
+
+    def _animation(self, vertices, source: Source, motion: np.ndarray, diagnostics: dict, extras: dict | None = None) -> Animation:
+        return Animation(
+            vertices=vertices,
+            head_motion=motion,
+            triangles=self.target_.neutral.triangles,
+            fps=source.fps,
+            provenance={"diagnostics": diagnostics},
+            extras=extras,
+        )
+
+
+class CoatingRetargeter(_MeshTransfer):
+    """Controllable high-fidelity facial performance transfer (Xu et al. 2014)."""
+
+    name: ClassVar[str] = "coating"
+    capabilities: ClassVar[Capabilities] = Capabilities(
+        sources=("mesh",), needs=("feature_lines", "source_feature_lines"), outputs="vertices", edit=True
+    )
+    summary: ClassVar[str] = (
+        "Multi-scale transfer of dense performances: smooth blendshape bases by feature-preserving deformation "
+        "transfer + Laplacian-coating details; spacetime edits of bases, weights and wrinkles"
+    )
+    parameter_docs: ClassVar[dict[str, str]] = {
+        "iterations": "Taubin lambda|mu smoothing iterations giving the smooth mesh (paper: about 40)",
+        "epsilon": "basis selection stops when the RMS reconstruction error of the smooth frames is below epsilon x face height (eq. 7)",
+        "max_bases": "upper bound on the number of blendshape bases selected from the source frames",
+        "max_selection_frames": "basis candidates are at most this many evenly spaced source frames (all frames of shorter sequences)",
+        "sigma": "weight of the feature-line term in the basis deformation transfer (eq. 9; paper: 100)",
+        "laplacian": "'uniform' or 'cotangent' Laplacian of the coating's Poisson system",
+        "screening": "Poisson screening a / mean(diag L) making L + a I invertible and detail reconstruction local",
+        "detail_scale": "factor on the transferred fine-scale motion: 1 keeps the source's coating magnitude (paper); 'auto' scales by the target/source size ratio",
+        "stable_fraction": "fraction of least-moving vertices used to estimate head motion and fix the translation gauge",
+        "chunk_frames": "frames processed together (memory is bounded by the chunk, not the sequence)",
+        "cache_details": "keep the source's fine-scale motion (float32, F x V x 3) with an in-memory result so detail edits need no recomputation",
+        "lambda_b": "edit: weight of the basis deformation-transfer term E_b (eq. 12)",
+        "lambda_w": "edit: weight of the weight-velocity term E_w (eq. 13)",
+        "lambda_c": "edit: weight of the user constraints E_c, per squared mean edge length (eq. 14-15)",
+        "detail_threshold": "detail edit: active frames are those whose region coating magnitude exceeds this fraction of the key frame's (paper: 0.23)",
+        "lambda_key": "detail edit: weight of the key-frame term E_c (eq. 19; paper: 1)",
+        "lambda_gradient": "detail edit: weight of the temporal + spatial gradient term E_t (eq. 20; paper: 0.1)",
+        "lambda_boundary": "detail edit: weight of the fixed boundary-frame term E_s (eq. 21; paper: 1)",
+    }
+
+    def __init__(
+        self,
+        *,
+        iterations: int = 40,
+        epsilon: float = 0.001,
+        max_bases: int = 60,
+        max_selection_frames: int = 250,
+        sigma: float = 100.0,
+        laplacian: str = "uniform",
+        screening: float = 0.1,
+        detail_scale: float | str = 1.0,
+        stable_fraction: float = 0.5,
+        chunk_frames: int = 32,
+        cache_details: bool = True,
+        lambda_b: float = 1.0,
+        lambda_w: float = 1.0,
+        lambda_c: float = 1000.0,
+        detail_threshold: float = 0.23,
+        lambda_key: float = 1.0,
+        lambda_gradient: float = 0.1,
+        lambda_boundary: float = 1.0,
+    ):
+        self.iterations = iterations
+        self.epsilon = epsilon
+        self.max_bases = max_bases
+        self.max_selection_frames = max_selection_frames
+        self.sigma = sigma
+        self.laplacian = laplacian
+        self.screening = screening
+        self.detail_scale = detail_scale
+        self.stable_fraction = stable_fraction
+        self.chunk_frames = chunk_frames
+        self.cache_details = cache_details
+        self.lambda_b = lambda_b
+        self.lambda_w = lambda_w
+        self.lambda_c = lambda_c
+        self.detail_threshold = detail_threshold
+        self.lambda_key = lambda_key
+        self.lambda_gradient = lambda_gradient
+        self.lambda_boundary = lambda_boundary
+
+    # -- fit -------------------------------------------------------------------------------
+    def _fit(self, source: Source, target: TargetRig) -> None:
+        from .model import CoatingModel
+
+        if not (isinstance(self.iterations, (int, np.integer)) and self.iterations >= 0):
+            raise ConfigError(f"coating: iterations must be a non-negative integer, got {self.iterations!r}")
+        for key in ("max_bases", "max_selection_frames"):
+            value = getattr(self, key)
+            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 1):
+                raise ConfigError(f"coating: {key} must be a positive integer, got {value!r}")
+        self._check_positive(epsilon=self.epsilon, sigma=self.sigma, screening=self.screening)
+        if self.detail_scale != "auto":
+            self._check_positive(detail_scale=self.detail_scale)
+        missing = sorted(set(target.feature_lines) - set(source.feature_lines))
+        if missing:
+            raise TopologyMismatchError(
+                f"coating: target feature line(s) {missing} have no source line of the same name (source has {sorted(source.feature_lines)}); "
+                "name the lines alike on both sides (e.g. eye_L, eye_R, mouth_inner)"
+            )
+        start = time.perf_counter()
+        topo, stable = self._prepare(source, target)
+        prepare = time.perf_counter() - start
+        start = time.perf_counter()
+        model = CoatingModel(
+            self.source_reference_,
+            topo.target_reference,
+            self.source_triangles_,
+            source_lines=dict(source.feature_lines),
+            target_lines=topo.target_lines,
+            stable=stable,
+            iterations=int(self.iterations),
+            laplacian=self.laplacian,
+            screening=float(self.screening),
+            sigma=float(self.sigma),
+            detail_scale=self.detail_scale,
+        )
+        setup = time.perf_counter() - start
+        start = time.perf_counter()
+        perf = source.performance
+        model.fit_bases(
+            perf.vertices,
+            self._motion_of(source),
+            epsilon=float(self.epsilon),
+            max_bases=int(self.max_bases),
+            height=max(perf.reference.height, perf.reference.scale * 1e-3),
+            chunk=int(self.chunk_frames),
+            max_frames=int(self.max_selection_frames),
+        )
+        self.model_ = model
+        self.n_bases_ = len(model.source_bases)
+        self.basis_frames_ = list(model.basis_frames)
+        self.timings_ = {"stable_pass_s": prepare, "setup_s": setup, "bases_s": time.perf_counter() - start}
+
+    # -- retarget --------------------------------------------------------------------------
+    def _diagnostics(self) -> dict:
+        return {
+            "n_bases": self.n_bases_,
+            "basis_frames": self.basis_frames_,
+            "selection_rms": list(self.model_.selection_rms),
+            "same_topology": self.topology_.same,
+            "correspondence": describe(self.topology_.report),
+            "fit_timings_s": dict(self.timings_),
+        }
+
+    def _chunks(self, source: Source):
+        self._check_fitted()
+        self._check_source(source)
+        model = self.model_
+        for sl, motion, local in self._local_chunks(source):
+            weights, details = model.decompose(local)
+            out = to_world(motion, self.topology_.back(model.synthesize(weights, details)))
+            yield sl, motion, out, weights, details
+
+    def _track(self, source, motion, weights, details):
+        from .track import CoatingTrack
+
+        return CoatingTrack(
+            model=self.model_,
+            performance=source.performance,
+            motion=motion,
+            source_weights=weights,
+            weights=weights.copy(),
+            bases=self.model_.target_bases,
+            details=details,
+            back=self.topology_.back,
+            target_vertex=self.topology_.target_vertex,
+            chunk=int(self.chunk_frames),
+        )
+
+    def _retarget(self, source: Source) -> Animation:
+        n_frames = source.n_frames
+        n_target = self.target_.neutral.n_vertices
+        out = np.empty((n_frames, n_target, 3))
+        motion = np.empty((n_frames, 4, 4))
+        weights = np.empty((n_frames, self.n_bases_))
+        details = np.empty((n_frames, self.model_.n_vertices, 3), dtype=np.float32) if self.cache_details else None
+        for sl, m, frames, w, d in self._chunks(source):
+            out[sl] = frames
+            motion[sl] = m
+            weights[sl] = w
+            if details is not None:
+                details[sl] = d
+        track = self._track(source, motion, weights, details)
+        return self._animation(out, source, motion, self._diagnostics(), {"coating": track, "weights": weights})
+
+    def retarget_to(self, source: Source, path) -> Animation:
+        """Retarget into a ``.npy`` file written chunk by chunk (float32, ``(F, V_t, 3)``).
+
+        For sequences too long for memory: the source may be memory-mapped and only one
+        chunk of frames is in memory at a time. Returns an :class:`Animation` whose
+        vertices are the memory-mapped file (opened read-only).
+        """
+        self._check_fitted()
+        path = Path(path)
+        if path.suffix != ".npy":
+            raise OutputError(f"coating.retarget_to: the output must be a .npy file, got {path}")
+        if not path.parent.is_dir():
+            raise OutputError(f"coating.retarget_to: folder {path.parent} does not exist; create it first")
+        perf = source.performance
+        source_file = getattr(getattr(perf.vertices, "base", None), "filename", None) or getattr(perf.vertices, "filename", None)
+        if source_file is not None and Path(source_file).resolve() == path.resolve():
+            raise OutputError(f"coating.retarget_to: {path} is the source's own file; write elsewhere")
+        self._check_source(source)
+        start = time.perf_counter()
+        tmp = path.with_name(path.name + ".part")
+        out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=(source.n_frames, self.target_.neutral.n_vertices, 3))
+        motion = np.empty((source.n_frames, 4, 4))
+        weights = np.empty((source.n_frames, self.n_bases_))
+        for sl, m, frames, w, _d in self._chunks(source):
+            out[sl] = frames
+            motion[sl] = m
+            weights[sl] = w
+        out.flush()
+        del out
+        tmp.replace(path)
+        seconds = time.perf_counter() - start
+        vertices = np.load(path, mmap_mode="r")
+        track = self._track(source, motion, weights, None)
+        diagnostics = self._diagnostics()
+        diagnostics["written_to"] = str(path)
+        return self._stamp(self._animation(vertices, source, motion, diagnostics, {"coating": track, "weights": weights}), seconds)
+
+    # -- editing ---------------------------------------------------------------------------
+    def edit(
+        self,
+        animation: Animation,
+        *,
+        points=None,
+        distances=None,
+        fixed=None,
+        window=None,
+        mode: str = "both",
+        detail=None,
+        lambda_b: float | None = None,
+        lambda_w: float | None = None,
+        lambda_c: float | None = None,
+    ) -> Animation:
+        """Spacetime editing of a coating result; returns a new :class:`Animation`.
+
+        Large-scale editing (sec. 4.3), constraints on the output vertices (world
+        coordinates, target vertex ids):
+
+        points : iterable of ``(frame, vertex, (x, y, z))``
+            Move ``vertex`` to the position at ``frame`` (eq. 14).
+        distances : iterable of ``(frame, vertex_a, vertex_b, distance)``
+            Set the distance between two vertices, along their current direction (eq. 15).
+        fixed : iterable of ``(frame, vertex_ids)``
+            Keep these vertices where they are at ``frame`` (use with the others for local
+            control).
+        window : ``(first, last)`` frames, optional
+            Temporal window in which weights may change (default: the whole sequence).
+        mode : "both" | "bases" | "weights"
+            Update the blendshape bases (the edit reaches every similar expression in the
+            sequence, fig. 4b), the weights (only frames in the window change, fig. 4d),
+            or alternate both (fig. 4c).
+        lambda_b, lambda_w, lambda_c : float, optional
+            Override the retargeter's term weights for this edit.
+
+        Fine-scale editing (sec. 5.2): ``detail=`` a :class:`~faceretarget.plugins.coating.details.DetailEdit`
+        (or a dict of its fields): select wrinkles by vertex set or by distance to a
+        curve at a key frame, scale / remove / copy-paste them or deform them to a drawn
+        curve, and propagate the change through the detail's active frame range.
+        """
+        from .editing import apply_large_scale
+        from .details import DetailEdit, apply_detail_edit
+
+        self._check_fitted()
+        track = animation.extras.get("coating") if isinstance(animation, Animation) else None
+        if track is None or getattr(track, "model", None) is not self.model_:
+            raise InputError("coating.edit: the animation was not produced by this fitted coating retargeter (its extras['coating'] is missing or from another fit); retarget first")
+        large = any(x is not None for x in (points, distances, fixed))
+        if detail is not None and large:
+            raise InputError("coating.edit: give either large-scale constraints (points / distances / fixed) or detail=, not both in one call")
+        if detail is None and not large:
+            raise InputError("coating.edit: nothing to edit; give points=, distances=, fixed= or detail=")
+        if detail is not None:
+            spec = detail if isinstance(detail, DetailEdit) else DetailEdit(**dict(detail))
+            new_track, changed, diagnostics = apply_detail_edit(self, track, animation, spec)
+        else:
+            lambdas = (
+                self.lambda_b if lambda_b is None else lambda_b,
+                self.lambda_w if lambda_w is None else lambda_w,
+                self.lambda_c if lambda_c is None else lambda_c,
+            )
+            new_track, changed, diagnostics = apply_large_scale(self, track, animation, points=points, distances=distances, fixed=fixed, window=window, mode=mode, lambdas=lambdas)
+        start = time.perf_counter()
+        vertices = np.array(animation.vertices, dtype=np.float64)
+        if changed.size:
+            new_track.world_frames(changed, out=vertices)
+        diagnostics["synthesis_s"] = time.perf_counter() - start
+        diagnostics["changed_frames"] = int(changed.size)
+        prov = dict(animation.provenance)
+        prov["diagnostics"] = dict(prov.get("diagnostics", {}), last_edit=diagnostics)
+        prov.setdefault("edits", [])
+        prov["edits"] = list(prov["edits"]) + [diagnostics.get("kind", "edit")]
+        extras = dict(animation.extras)
+        extras["coating"] = new_track
+        extras["weights"] = new_track.weights
+        return animation.replace(vertices=vertices, provenance=prov, extras=extras)
+
+
+class DeformationTransferRetargeter(_MeshTransfer):
+    """Plain per-frame deformation transfer (Sumner & Popovic 2004), the baseline of Xu et al."""
+
+    name: ClassVar[str] = "deformation_transfer"
+    capabilities: ClassVar[Capabilities] = Capabilities(sources=("mesh",), outputs="vertices")
+    summary: ClassVar[str] = "Per-frame deformation transfer (Sumner & Popovic 2004): triangle deformation gradients solved on the target"
+    parameter_docs: ClassVar[dict[str, str]] = {
+        "stable_fraction": "fraction of least-moving vertices used to estimate head motion and fix the translation gauge",
+        "chunk_frames": "frames transferred together (one factorization, multi-column solves)",
+    }
+
+    def __init__(self, *, stable_fraction: float = 0.5, chunk_frames: int = 32):
+        self.stable_fraction = stable_fraction
+        self.chunk_frames = chunk_frames
+
+    def _fit(self, source: Source, target: TargetRig) -> None:
+        from .model import size_ratio
+
+        topo, stable = self._prepare(source, target)
+        start = time.perf_counter()
+        self.transfer_ = DeformationTransfer(topo.target_reference, self.source_triangles_, gauge_weights=stable)
+        self.transfer_.factor.solve(np.zeros(self.transfer_.free.size))  # factorize now (one-time setup)
+        self.inverse_ = reference_inverse(self.source_reference_, self.source_triangles_)
+        self.ratio_ = size_ratio(self.source_reference_, topo.target_reference, self.source_triangles_)
+        self.timings_ = {"setup_s": time.perf_counter() - start}
+
+    def _chunks(self, source: Source):
+        self._check_fitted()
+        self._check_source(source)
+        ref = self.source_reference_
+        for sl, motion, local in self._local_chunks(source):
+            means = self.transfer_.component_means(local - ref) * self.ratio_
+            columns = gradient_columns(self.inverse_, local, self.source_triangles_)
+            out = self.transfer_.solve_rhs(self.transfer_.rhs_columns(columns), means)
+            yield sl, motion, to_world(motion, self.topology_.back(out))
+
+    def _retarget(self, source: Source) -> Animation:
+        out = np.empty((source.n_frames, self.target_.neutral.n_vertices, 3))
+        motion = np.empty((source.n_frames, 4, 4))
+        for sl, m, frames in self._chunks(source):
+            out[sl] = frames
+            motion[sl] = m
+        return self._animation(out, source, motion, {"same_topology": self.topology_.same, "fit_timings_s": dict(self.timings_)})

@@ -1,0 +1,59 @@
+"""Greedy basis selection and non-negative weights (eq. 6-8)."""
+import numpy as np
+
+from faceretarget.plugins.coating.bases import BasisSpace, blend, select_bases
+
+
+def _frames(seed=0):
+    rng = np.random.default_rng(seed)
+    neutral = rng.normal(size=60)
+    keys = neutral + 0.5 * rng.normal(size=(3, 60))
+    mix = rng.dirichlet(np.ones(4), size=50)  # convex mixes of neutral + 3 key shapes
+    frames = mix @ np.vstack([neutral, keys])
+    frames[[7, 19, 33]] = keys  # the key shapes appear as frames
+    return neutral, keys, frames
+
+
+def test_selects_the_generating_frames_and_stops():
+    neutral, keys, frames = _frames()
+    chosen, history = select_bases(frames, neutral, epsilon=1e-6, max_bases=10, height=1.0)
+    assert sorted(chosen) == [7, 19, 33]
+    assert history[-1] <= 1e-6 and len(history) == 4
+    assert all(a >= b for a, b in zip(history, history[1:]))
+
+
+def test_respects_max_bases_and_epsilon():
+    neutral, keys, frames = _frames(1)
+    chosen, history = select_bases(frames, neutral, epsilon=1e-12, max_bases=2, height=1.0)
+    assert len(chosen) == 1
+    loose, hist = select_bases(frames, neutral, epsilon=10.0, max_bases=10, height=1.0)
+    assert loose == [] and hist[0] <= 10.0
+
+
+def test_weights_non_negative_and_blend_reconstructs():
+    rng = np.random.default_rng(2)
+    bases = rng.normal(size=(4, 30, 3))
+    center = bases[0].mean(axis=0)
+    w_true = rng.uniform(0.0, 1.0, size=(6, 4))
+    w_true[0, 2] = 0.0
+    frames = blend(bases, center, w_true)
+    space = BasisSpace(bases, center)
+    w = space.weights(frames)
+    assert (w >= 0).all()
+    np.testing.assert_allclose(w, w_true, atol=1e-8)
+    np.testing.assert_allclose(blend(bases, center, w), frames, atol=1e-8)
+
+
+def test_weights_of_raw_frames_through_the_adjoint_filter():
+    from naive.coating import grid_mesh
+
+    from faceretarget.geometry.smoothing import TaubinSmoother
+
+    v, t = grid_mesh(8, seed=3)
+    rng = np.random.default_rng(4)
+    smooth = TaubinSmoother(t, len(v), iterations=10)
+    adjoint = TaubinSmoother(t, len(v), iterations=10, adjoint=True)
+    raw = v + 0.05 * rng.normal(size=(5,) + v.shape)
+    bases = smooth(raw[:3])
+    space = BasisSpace(bases, bases[0].mean(axis=0), adjoint=adjoint)
+    np.testing.assert_allclose(space.weights_of_raw(raw), space.weights(smooth(raw)), atol=1e-9)
