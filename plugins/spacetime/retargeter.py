@@ -27,7 +27,9 @@ from faceretarget.errors import (
     NonFiniteError,
     ShapeError,
     TopologyMismatchError,
+    UnknownNameError,
 )
+from faceretarget._validate import as_array, check_choice, check_number
 from faceretarget.model import Animation, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
 
@@ -38,6 +40,10 @@ from .solver import System, energy_terms, solve_bounded, solve_movement, solve_p
 MODES = ("movement", "noconst", "rangepf", "priorpf")
 BOUNDARIES = ("per_frame", "neutral", "none")
 KERNELS = ("linear", "multiquadric", "gaussian", "thin_plate")
+CENTERS = ("neutral", "mean")
+#: Upper limit of ``head_motion_refinement`` (each step is a full per-frame Gauss-Newton pass;
+#: a few steps converge, see the parameter's documentation).
+MAX_HEAD_MOTION_REFINEMENT = 100
 
 
 class SpacetimeRetargeter(Retargeter):
@@ -81,7 +87,7 @@ class SpacetimeRetargeter(Retargeter):
     remove_head_motion : bool
         Estimate the rigid head motion by Procrustes (sec. 3.1), remove it before and re-apply
         it to the target after. A ``Source.head_motion`` is always used when given.
-    head_motion_refinement : int >= 0
+    head_motion_refinement : int, 0 <= n <= 100
         Gauss-Newton steps refining the estimated head motion jointly with a per-frame
         blendshape fit (0 = the paper's Procrustes against the neutral only, which turns
         part of e.g. a jaw opening into head rotation).
@@ -179,48 +185,85 @@ class SpacetimeRetargeter(Retargeter):
         """The energy's matrices (cached): for movement matching of a performance at ``fps``,
         or for per-frame solves (``fps=None``: no time axis, so no frame-rate rescaling)."""
         if fps not in self.systems_:
-            alpha = float(self.alpha)
-            if self.scale_alpha:
+            params = self.params_
+            alpha = params["alpha"]
+            if params["scale_alpha"]:
                 alpha *= (self.face_size_ / calibration.FACE_SIZE_REF) ** 2
                 if fps is not None:
                     alpha *= (calibration.FPS_REF / fps) ** 2
             prior = self.prior_
-            self.systems_[fps] = System(self.basis_, alpha * prior.matrix, alpha * prior.vector, float(self.beta), self.marker_weights_, alpha=alpha)
+            self.systems_[fps] = System(self.basis_, alpha * prior.matrix, alpha * prior.vector, params["beta"], self.marker_weights_, alpha=alpha)
         return self.systems_[fps]
 
     def _check_params(self) -> None:
-        if self.mode not in MODES:
-            raise ConfigError(f"spacetime: mode={self.mode!r} is not one of {', '.join(MODES)}")
-        for pname in ("alpha", "beta"):
-            value = getattr(self, pname)
-            if not isinstance(value, (int, float, np.floating, np.integer)) or not np.isfinite(value) or value < 0:
-                raise ConfigError(f"spacetime: {pname} must be a finite number >= 0, got {value!r}")
-        if not (np.isfinite(self.lower) and np.isfinite(self.upper) and self.lower < self.upper):
-            raise ConfigError(f"spacetime: need finite lower < upper, got lower={self.lower!r}, upper={self.upper!r}")
-        if self.rbf_kernel not in KERNELS:
-            raise ConfigError(f"spacetime: rbf_kernel={self.rbf_kernel!r} is not one of {', '.join(KERNELS)}")
-        if not isinstance(self.head_motion_refinement, (int, np.integer)) or self.head_motion_refinement < 0:
-            raise ConfigError(f"spacetime: head_motion_refinement must be an integer >= 0, got {self.head_motion_refinement!r}")
+        """Check every constructor parameter that does not need the data (raised from ``fit``).
+
+        The checked values (plain ``float``/``int``/``bool``/``str``) are kept in ``params_``
+        and used by ``fit``/``retarget``/``edit``; array-valued parameters are checked where
+        their shapes are known.
+        """
+        mode = _config(check_choice, self.mode, "mode", MODES)
+        alpha = _config(check_number, self.alpha, "alpha", low=0)
+        beta = _config(check_number, self.beta, "beta", low=0)
+        lower = _config(check_number, self.lower, "lower")
+        upper = _config(check_number, self.upper, "upper")
+        if not lower < upper:
+            raise ConfigError(
+                f"spacetime: lower/upper: need lower < upper (the weight range of 'rangepf'), got lower={lower!r}, upper={upper!r}"
+            )
+        _config(check_choice, self.rbf_kernel, "rbf_kernel", KERNELS)
+        _config(check_choice, self.prior_center, "prior_center", CENTERS)
+        refinement = _config(
+            check_number, self.head_motion_refinement, "head_motion_refinement", integer=True, low=0, high=MAX_HEAD_MOTION_REFINEMENT
+        )
+        scale_alpha = _flag(self.scale_alpha, "scale_alpha")
+        remove_head_motion = _flag(self.remove_head_motion, "remove_head_motion")
         if isinstance(self.boundary, str):
             if self.boundary not in BOUNDARIES:
-                raise ConfigError(f"spacetime: boundary={self.boundary!r} is not one of {', '.join(BOUNDARIES)} or a (2, M) array")
-            if self.boundary == "none" and self.mode == "movement" and self.beta == 0:
+                raise ConfigError(
+                    f"spacetime: boundary: expected one of {', '.join(map(repr, BOUNDARIES))} or a (2, M) array of weights "
+                    f"[first, last], got {_short(self.boundary)}"
+                )
+            if self.boundary == "none" and mode == "movement" and beta == 0:
                 raise ConfigError(
                     "spacetime: boundary='none' leaves movement matching without any position anchor; "
                     "give beta > 0 (Sobolev term), or use boundary='per_frame' / 'neutral'"
                 )
+        else:
+            _float_array(self.boundary, "boundary", "one of 'per_frame', 'neutral', 'none' or a (2, M) array of weights")
         if self.constraints is not None and not isinstance(self.constraints, Mapping):
-            raise ConfigError("spacetime: constraints must be a mapping {frame: weights}")
+            raise ConfigError(
+                f"spacetime: constraints must be None or a mapping {{frame: weights}}, got {type(self.constraints).__name__}"
+            )
+        self.params_ = {
+            "mode": mode,
+            "alpha": alpha,
+            "beta": beta,
+            "scale_alpha": scale_alpha,
+            "lower": lower,
+            "upper": upper,
+            "remove_head_motion": remove_head_motion,
+            "head_motion_refinement": refinement,
+        }
 
     def _prior_samples(self, rig, landmarks, warp, neutral, basis) -> np.ndarray:
         """(K, 3N) absolute (warped) marker positions of the prior's training faces."""
         chosen = self.prior_shapes
         if chosen is None:
             chosen = [] if self.prior_animations is not None else range(rig.n_shapes)
-        index = [self._shape_index(rig, c) for c in chosen]
+        elif isinstance(chosen, (str, bytes, Mapping)) or not _iterable(chosen):
+            raise ConfigError(
+                f"spacetime: prior_shapes: expected None or a sequence of blendshape names or indices, got {_short(chosen)}"
+            )
+        index = np.array([self._shape_index(rig, c) for c in chosen], dtype=np.intp)
         samples = [neutral.ravel()[None] + basis.T[index]]
         if self.prior_animations is not None:
-            anim = np.asarray(self.prior_animations, dtype=np.float64)
+            anim = _float_array(
+                self.prior_animations, "prior_animations",
+                f"None, (K, {rig.n_shapes}) weights or (K, {rig.neutral.n_vertices}, 3) target vertices",
+            )
+            if anim.ndim in (2, 3) and not np.isfinite(anim).all():
+                raise NonFiniteError("spacetime: prior_animations contain NaN or infinity; give finite weights or vertices")
             if anim.ndim == 2 and anim.shape[1] == rig.n_shapes:
                 samples.append(neutral.ravel()[None] + anim @ basis.T)
             elif anim.ndim == 3 and anim.shape[1:] == (rig.neutral.n_vertices, 3):
@@ -231,17 +274,25 @@ class SpacetimeRetargeter(Retargeter):
                     f"spacetime: prior_animations must be (K, {rig.n_shapes}) weights or (K, {rig.neutral.n_vertices}, 3) "
                     f"target vertices, got {anim.shape}"
                 )
-            if not np.isfinite(anim).all():
-                raise NonFiniteError("spacetime: prior_animations contain NaN or infinity")
         return np.concatenate(samples, axis=0)
 
     @staticmethod
     def _shape_index(rig, key) -> int:
-        if isinstance(key, (int, np.integer)):
+        if isinstance(key, (int, np.integer)) and not isinstance(key, (bool, np.bool_)):
             if not -rig.n_shapes <= key < rig.n_shapes:
-                raise IndexRangeError(f"spacetime: prior shape index {key} out of range for {rig.n_shapes} shapes")
+                raise IndexRangeError(
+                    f"spacetime: prior_shapes: shape index {key} out of range for {rig.n_shapes} shapes "
+                    f"(valid {-rig.n_shapes}..{rig.n_shapes - 1})"
+                )
             return int(key) % rig.n_shapes
-        return rig.index(str(key))
+        if not isinstance(key, str):
+            raise ConfigError(
+                f"spacetime: prior_shapes: entries must be blendshape names (str) or indices (int), got {_short(key)}"
+            )
+        try:
+            return rig.index(key)
+        except UnknownNameError as exc:
+            raise UnknownNameError(f"spacetime: prior_shapes: {exc}") from None
 
     def _marker_weights(self, n_markers: int, names: list[str]):
         """(N,) constant Sobolev weights, and (F, N) per-frame weights or None."""
@@ -252,10 +303,10 @@ class SpacetimeRetargeter(Retargeter):
             unknown = [k for k in mw if k not in names]
             if unknown:
                 raise TopologyMismatchError(f"spacetime: marker_weights name unknown markers: {', '.join(map(str, unknown[:8]))}")
-            out = np.array([float(mw.get(n, 0.0)) for n in names])
+            out = np.array([_config(check_number, mw.get(n, 0.0), f"marker_weights[{n!r}]", low=0) for n in names], dtype=np.float64)
             frame = None
         else:
-            arr = np.asarray(mw, dtype=np.float64)
+            arr = _float_array(mw, "marker_weights", f"None, ({n_markers},) or (F, {n_markers}) weights, or {{marker name: weight}}")
             if arr.ndim == 1 and arr.shape[0] == n_markers:
                 out, frame = arr, None
             elif arr.ndim == 2 and arr.shape[1] == n_markers:
@@ -264,7 +315,7 @@ class SpacetimeRetargeter(Retargeter):
                 raise ShapeError(f"spacetime: marker_weights must be ({n_markers},) or (F, {n_markers}), got {arr.shape}")
         check = out if frame is None else frame
         if not np.isfinite(check).all() or (check < 0).any():
-            raise ConfigError("spacetime: marker_weights must be finite and >= 0")
+            raise ConfigError("spacetime: marker_weights must be finite and >= 0 (0 = marker ignored by the Sobolev term)")
         return out, frame
 
     # ------------------------------------------------------------------------------------
@@ -277,21 +328,22 @@ class SpacetimeRetargeter(Retargeter):
         if frame_weights is not None and frame_weights.shape[0] != n_frames:
             raise ShapeError(f"spacetime: marker_weights has {frame_weights.shape[0]} frames but the source has {n_frames}")
         known, known_weights = self._known_frames(n_frames)
+        params = self.params_
         if source.head_motion is not None:
             motion, how = np.asarray(source.head_motion, dtype=np.float64), "given"
-        elif self.remove_head_motion:
+        elif params["remove_head_motion"]:
             motion, how = calibration.head_motion(reference, markers), "estimated"
         else:
             motion, how = None, "none"
         system = self._system(source.fps if self.mode == "movement" else None)
         if how == "estimated":
             fitted = None
-            for _ in range(int(self.head_motion_refinement)):
+            for _ in range(params["head_motion_refinement"]):
                 motion, fitted = calibration.refine_head_motion(reference, markers, motion, fitted, self.basis_, system.ridge)
         deltas = calibration.to_local(motion, markers) - reference
         weights = self._solve(system, deltas, known, known_weights)
         terms = energy_terms(system, deltas, weights)
-        inside = (weights >= self.lower) & (weights <= self.upper)
+        inside = (weights >= params["lower"]) & (weights <= params["upper"])
         diagnostics = {
             "velocity_error": float(terms["velocity"].sum()),
             "position_error": float(terms["position"].sum()),
@@ -329,18 +381,23 @@ class SpacetimeRetargeter(Retargeter):
         pairs = calibration.pair_markers(_marker_names(source), self.landmark_names_)
         return positions[:, pairs], reference[pairs]
 
-    def _constraint_weights(self, value) -> np.ndarray:
+    def _constraint_weights(self, value, frame) -> np.ndarray:
         rig = self.rig_
+        name = f"constraints[{frame!r}]"
         if isinstance(value, Mapping):
             out = np.zeros(rig.n_shapes)
             for k, v in value.items():
-                out[rig.index(str(k))] = float(v)
+                try:
+                    index = rig.index(str(k))
+                except UnknownNameError as exc:
+                    raise UnknownNameError(f"spacetime: {name}: {exc}") from None
+                out[index] = _config(check_number, v, f"{name}[{k!r}]")
         else:
-            out = np.asarray(value, dtype=np.float64)
+            out = _float_array(value, name, f"({rig.n_shapes},) weights or {{shape name: weight}}")
             if out.shape != (rig.n_shapes,):
-                raise ShapeError(f"spacetime: constraint weights must be ({rig.n_shapes},), got {out.shape}")
+                raise ShapeError(f"spacetime: {name}: constraint weights must be ({rig.n_shapes},) or {{shape name: weight}}, got {out.shape}")
         if not np.isfinite(out).all():
-            raise NonFiniteError("spacetime: constraint weights contain NaN or infinity")
+            raise NonFiniteError(f"spacetime: {name}: constraint weights contain NaN or infinity")
         return out
 
     def _known_frames(self, n_frames: int):
@@ -356,15 +413,15 @@ class SpacetimeRetargeter(Retargeter):
                     if self.boundary == "neutral":
                         values[ends] = 0.0
             else:
-                given = np.asarray(self.boundary, dtype=np.float64)
+                given = _float_array(self.boundary, "boundary", f"one of 'per_frame', 'neutral', 'none' or a (2, {m}) array of weights")
                 if given.shape != (2, m) or not np.isfinite(given).all():
                     raise ShapeError(f"spacetime: boundary weights must be a finite (2, {m}) array [first, last], got {given.shape}")
                 known[ends] = True
                 values[0], values[-1] = given[0], given[1]
         for frame, value in (self.constraints or {}).items():
-            f = _frame_index(frame, n_frames)
+            f = _frame_index(frame, n_frames, "constraints frame")
             known[f] = True
-            values[f] = self._constraint_weights(value)
+            values[f] = self._constraint_weights(value, frame)
         return known, values
 
     def _solve(self, system: System, deltas: np.ndarray, known: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -376,7 +433,7 @@ class SpacetimeRetargeter(Retargeter):
                 values[todo] = solve_per_frame(self._system(None), deltas[todo], use_prior=True)
             return solve_movement(system, deltas, known, values, self.frame_weights_)
         if self.mode == "rangepf":
-            weights = solve_bounded(system, deltas, self.lower, self.upper)
+            weights = solve_bounded(system, deltas, self.params_["lower"], self.params_["upper"])
         else:
             weights = solve_per_frame(system, deltas, use_prior=self.mode == "priorpf")
         weights[known] = values[known]
@@ -385,7 +442,8 @@ class SpacetimeRetargeter(Retargeter):
     def _fingerprint(self) -> list[float]:
         """Numbers identifying the fitted calibration (kept in the Animation; survive saving)."""
         b = self.basis_
-        return [float(b.shape[0]), float(b.shape[1]), float(b.sum()), float(np.abs(b).sum()), float(self.alpha), float(self.scale_alpha), float(self.beta)]
+        params = self.params_
+        return [float(b.shape[0]), float(b.shape[1]), float(b.sum()), float(np.abs(b).sum()), params["alpha"], float(params["scale_alpha"]), params["beta"]]
 
     # ------------------------------------------------------------------------------------
     # spacetime editing (sec. 6)
@@ -479,14 +537,65 @@ def _marker_names(source: Source) -> tuple[str, ...]:
     return tuple(source.landmarks.names)
 
 
-def _frame_index(frame, n_frames: int) -> int:
+def _frame_index(frame, n_frames: int, what: str = "frame") -> int:
     try:
         f = int(frame)
-    except (TypeError, ValueError):
-        raise IndexRangeError(f"spacetime: frame {frame!r} is not an integer") from None
-    if f != frame or not -n_frames <= f < n_frames:
-        raise IndexRangeError(f"spacetime: frame {frame!r} out of range for {n_frames} frames")
+        whole = bool(f == frame)
+    except (TypeError, ValueError, OverflowError):
+        raise IndexRangeError(f"spacetime: {what} {_short(frame)} is not an integer frame index") from None
+    if not whole or not -n_frames <= f < n_frames:
+        raise IndexRangeError(
+            f"spacetime: {what} {_short(frame)} out of range for {n_frames} frames (valid {-n_frames}..{n_frames - 1})"
+        )
     return f % n_frames
+
+
+def _short(value, limit: int = 60) -> str:
+    try:
+        text = repr(value)
+    except Exception:  # a repr that fails must not hide the real error
+        text = f"<{type(value).__name__}>"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _config(check, value, name: str, *args, **kwargs):
+    """``check_number`` / ``check_choice`` of a constructor parameter; a bad value is a
+    :class:`ConfigError` naming the parameter and the valid values."""
+    try:
+        return check(value, name, *args, **kwargs)
+    except InputError as exc:
+        raise ConfigError(f"spacetime: {exc}") from None
+
+
+def _flag(value, name: str) -> bool:
+    """A boolean parameter (True/False, or the integers 0/1)."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)) and value in (0, 1):
+        return bool(value)
+    raise ConfigError(f"spacetime: {name}: expected True or False, got {_short(value)}")
+
+
+def _iterable(value) -> bool:
+    try:
+        iter(value)
+    except TypeError:
+        return False
+    return True
+
+
+def _float_array(value, name: str, valid: str) -> np.ndarray:
+    """``value`` as a float64 array (any shape); a :class:`ShapeError` naming ``name`` and what is
+    valid for input that is not real numbers (text, complex, dates, ragged lists, mappings)."""
+    arr = as_array(value, f"spacetime: {name}")
+    if arr.dtype.kind in "biuf":
+        return np.asarray(arr, dtype=np.float64)
+    if arr.dtype.kind == "O":
+        try:
+            return arr.astype(np.float64)
+        except (TypeError, ValueError, OverflowError):
+            pass
+    raise ShapeError(f"spacetime: {name}: expected {valid}, got {_short(value)}")
 
 
 def _with_defaults(base: type, name: str, summary: str, capabilities: Capabilities, **defaults) -> type:

@@ -19,11 +19,7 @@ from reliability.fuzzkit import failed, fuzz, junk, typed
 AREA = "method parameters"
 #: methods whose parameter checks still let untyped errors through (owners: plugins/<name>)
 KNOWN = {
-    "spacetime": "plugins/spacetime/retargeter.py: lower/upper=None|'x'|list|10**20 (line 198 np.isfinite), alpha/beta=10**20 "
-                 "(line 196), boundary=dict (359), marker_weights='x' (258), prior_animations='x'|dict (223), prior_shapes=number "
-                 "(220), scale_alpha=None|'x'|list (388); head_motion_refinement=10**20 loops for ever",
 }
-KNOWN.update({f"spacetime_{m}": KNOWN["spacetime"] for m in ("noconst", "priorpf", "rangepf")})
 METHODS = [
     pytest.param(a["name"], marks=pytest.mark.xfail(strict=True, reason=KNOWN[a["name"]])) if a["name"] in KNOWN else a["name"]
     for a in fr.available()
