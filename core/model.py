@@ -892,7 +892,7 @@ class Animation:
             if arr.shape[1] == 0:
                 raise ShapeError("Animation.vertices: no vertices, shape (F, 0, 3)")
             if arr.dtype in (np.float32, np.float64):
-                check_finite(arr, "Animation.vertices")
+                _check_finite_chunked(arr, "Animation.vertices")  # no full-size temporary
             else:
                 arr = as_float_array(arr, "Animation.vertices", (None, None, 3))
             if rig is not None and arr.shape[1] != rig.neutral.n_vertices:
