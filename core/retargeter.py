@@ -266,14 +266,17 @@ def _same(a, b) -> bool:
 
 
 def _jsonable(value):
+    """``value`` as plain JSON data: numpy arrays and scalars unpacked, NaN/inf -> None, others repr'd."""
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_jsonable(v) for v in value]
     if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if value is None or isinstance(value, (str, int, float, bool)):
+        return _jsonable(value.tolist())
+    if isinstance(value, (np.floating, np.integer, np.bool_)):
+        return _jsonable(value.item())
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if value is None or isinstance(value, (str, int, bool)):
         return value
     return repr(value)

@@ -25,7 +25,6 @@ import io
 import json
 import math
 import os
-import tempfile
 import time
 import tracemalloc
 import traceback
@@ -46,7 +45,7 @@ from ..errors import (
 )
 from ..hookspecs import Metric
 from ..model import Animation
-from ..retargeter import Retargeter
+from ..retargeter import Retargeter, _jsonable
 
 __all__ = [
     "ComparisonResult",
@@ -76,15 +75,6 @@ CASE_NAMES = {
     "ict": ("ict", {}),
 }
 DEFAULT_CASES = ("synthetic-human", "synthetic-stylized", "ict")
-
-
-def _current_umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-_UMASK = _current_umask()
 
 
 # ---------------------------------------------------------------------------------------
@@ -366,40 +356,11 @@ def _json_number(value):
     return value
 
 
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, (np.floating, np.integer, np.bool_)):
-        return _jsonable(value.item())
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if value is None or isinstance(value, (str, int, bool)):
-        return value
-    return repr(value)
-
-
 def atomic_write_bytes(path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
-    path = Path(path)
-    if not path.parent.is_dir():
-        raise OutputError(f"cannot write {path}: folder {path.parent} does not exist; create it first")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        os.chmod(tmp, 0o666 & ~_UMASK)
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    """Write ``data`` to ``path`` atomically (``faceretarget.io``'s temp file + fsync + rename)."""
+    from ..io._atomic import write_bytes
+
+    return write_bytes(path, data, force=True)
 
 
 def atomic_write_text(path, text: str) -> Path:
