@@ -709,6 +709,29 @@ class Source:
             raise InputError("Source.actor_layers_2d: given without tracks2d")
         self.actor_layers_2d = actor_layers_2d
 
+    def replace(self, **changes) -> "Source":
+        """A new Source with some constructor arguments changed (validated again).
+
+        Dropping ``examples`` (``examples=None``) drops their names too.
+        """
+        args = dict(
+            performance=self.performance,
+            head_motion=self.head_motion,
+            landmarks=self.landmarks,
+            feature_lines=self.feature_lines,
+            examples=self.examples,
+            example_names=self.example_names or None,
+            rig=self.rig,
+            actor_layers=self.actor_layers,
+            tracks2d=self.tracks2d,
+            actor_layers_2d=self.actor_layers_2d,
+            name=self.name,
+        )
+        if changes.get("examples", 0) is None:
+            args["example_names"] = None
+        args.update(changes)
+        return Source(args.pop("performance"), **args)
+
     @property
     def kind(self) -> str:
         """'markers', 'mesh' or 'weights'."""
@@ -817,6 +840,26 @@ class TargetRig:
             self.example_names = as_names(example_names, "TargetRig.example_names", self.examples.shape[0], default_prefix="example")
         else:
             self.examples, self.example_names = None, ()
+
+    def replace(self, **changes) -> "TargetRig":
+        """A new TargetRig with some constructor arguments changed (validated again).
+
+        Dropping ``examples`` (``examples=None``) drops their names too.
+        """
+        args = dict(
+            neutral=self.neutral,
+            blendshapes=self.blendshapes,
+            layers=self.layers,
+            landmarks=self.landmarks,
+            feature_lines=self.feature_lines,
+            examples=self.examples,
+            example_names=self.example_names or None,
+            name=self.name,
+        )
+        if changes.get("examples", 0) is None:
+            args["example_names"] = None
+        args.update(changes)
+        return TargetRig(args.pop("neutral"), **args)
 
     def has(self, part: str) -> bool:
         """Whether the rig has ``part`` (one of :attr:`PARTS`)."""

@@ -96,17 +96,16 @@ def _label(r: Retargeter) -> str:
 def _replace_performance(source: Source, performance) -> Source:
     """``source`` with another performance, keeping every extra that still fits."""
     keep_landmarks = isinstance(performance, MeshSequence)
-    return Source(
-        performance,
+    same_frames = source.tracks2d is not None and source.tracks2d.n_frames == performance.n_frames
+    return source.replace(
+        performance=performance,
+        head_motion=None,
         landmarks=source.landmarks if keep_landmarks else None,
         feature_lines=source.feature_lines if keep_landmarks else None,
         examples=source.examples if (keep_landmarks or source.examples is None) else _examples_at_markers(source),
         example_names=source.example_names or None,
-        rig=source.rig,
-        actor_layers=source.actor_layers,
-        tracks2d=source.tracks2d if source.tracks2d is not None and source.tracks2d.n_frames == performance.n_frames else None,
-        actor_layers_2d=source.actor_layers_2d if source.tracks2d is not None and source.tracks2d.n_frames == performance.n_frames else None,
-        name=source.name,
+        tracks2d=source.tracks2d if same_frames else None,
+        actor_layers_2d=source.actor_layers_2d if same_frames else None,
     )
 
 
@@ -261,18 +260,13 @@ def _rig32(rig):
 
 def _source32(source: Source) -> Source:
     """The same source rebuilt from float32, read-only arrays."""
-    return Source(
-        _performance32(source.performance),
-        head_motion=source.head_motion,
-        landmarks=source.landmarks,
-        feature_lines=source.feature_lines,
+    return source.replace(
+        performance=_performance32(source.performance),
         examples=_f32(source.examples),
-        example_names=source.example_names or None,
         rig=_rig32(source.rig),
         actor_layers=_layers32(source.actor_layers),
         tracks2d=None if source.tracks2d is None else _performance32(source.tracks2d),
         actor_layers_2d=_layers32(source.actor_layers_2d),
-        name=source.name,
     )
 
 
@@ -282,16 +276,7 @@ def _target32(target: TargetRig) -> TargetRig:
     rig = None
     if target.blendshapes is not None:
         rig = BlendshapeRig(neutral, _f32(target.blendshapes.deltas), target.blendshapes.names, bounds=target.blendshapes.bounds)
-    return TargetRig(
-        neutral,
-        blendshapes=rig,
-        layers=_layers32(target.layers),
-        landmarks=target.landmarks,
-        feature_lines=target.feature_lines,
-        examples=_f32(target.examples),
-        example_names=target.example_names or None,
-        name=target.name,
-    )
+    return target.replace(neutral=neutral, blendshapes=rig, layers=_layers32(target.layers), examples=_f32(target.examples))
 
 
 # ------------------------------------------------------------------------------------
@@ -495,20 +480,7 @@ def check_capabilities(r: Retargeter, case=None) -> None:
 
 
 def _target_without(target: TargetRig, parts: Iterable[str]) -> TargetRig:
-    kwargs = dict(
-        blendshapes=target.blendshapes,
-        layers=target.layers,
-        landmarks=target.landmarks,
-        feature_lines=target.feature_lines,
-        examples=target.examples,
-        example_names=target.example_names or None,
-        name=target.name,
-    )
-    for p in parts:
-        kwargs[p] = None
-        if p == "examples":
-            kwargs["example_names"] = None
-    return TargetRig(target.neutral, **kwargs)
+    return target.replace(**{p: None for p in parts})
 
 
 def _equal(a, b) -> bool:

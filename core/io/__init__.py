@@ -547,12 +547,12 @@ def load_target(path, landmarks=None, *, feature_lines=None, examples=None, kind
     if isinstance(obj, TargetRig):
         if lm is None and lines is None and ex is None:
             return obj
-        return TargetRig(
-            obj.neutral, blendshapes=obj.blendshapes, layers=obj.layers, landmarks=lm or obj.landmarks,
-            feature_lines=lines if lines is not None else obj.feature_lines,
-            examples=ex if ex is not None else obj.examples, example_names=ex_names if ex is not None else obj.example_names or None,
-            name=obj.name,
-        )
+        changes = {"landmarks": lm or obj.landmarks}
+        if lines is not None:
+            changes["feature_lines"] = lines
+        if ex is not None:
+            changes.update(examples=ex, example_names=ex_names)
+        return obj.replace(**changes)
     if isinstance(obj, BlendshapeRig):
         return TargetRig(obj.neutral, blendshapes=obj, landmarks=lm, feature_lines=lines, examples=ex, example_names=ex_names, name=Path(path).stem)
     if isinstance(obj, Mesh):

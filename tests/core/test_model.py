@@ -208,3 +208,20 @@ def test_mesh_sequence_keeps_big_endian_memory_maps_on_disk(tmp_path):
     seq = fr.MeshSequence(mapped, t)
     assert seq.vertices.dtype == np.dtype(">f4")
     assert np.shares_memory(seq.vertices, mapped), "a memory-mapped cache must not be copied into memory"
+
+
+def test_source_and_target_replace_revalidate_and_drop_example_names():
+    v, t = quad()
+    neutral = fr.Mesh(v, t)
+    target = fr.TargetRig(neutral, landmarks=fr.Landmarks([0, 1, 2]), examples=np.zeros((1, 4, 3)), example_names=["rest"])
+    bare = target.replace(examples=None, landmarks=None)
+    assert bare.parts() == () and bare.example_names == ()
+    assert target.parts() == ("landmarks", "examples"), "replace must not change the original"
+    with pytest.raises(errors.IndexRangeError):
+        target.replace(feature_lines={"eye": [0, 9]})
+    seq = fr.MeshSequence(np.repeat(v[None], 3, axis=0), t)
+    src = fr.Source(seq, landmarks=fr.Landmarks([0, 1, 2]), name="shot")
+    moved = src.replace(head_motion=np.tile(np.eye(4), (3, 1, 1)))
+    assert moved.head_motion.shape == (3, 4, 4) and moved.name == "shot" and src.head_motion is None
+    with pytest.raises(errors.ShapeError):
+        src.replace(head_motion=np.tile(np.eye(4), (2, 1, 1)))
