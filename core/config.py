@@ -31,6 +31,24 @@ ENV_TRACE = "FACERETARGET_TRACE"
 #: Environment variable: memory budget for readers, in bytes (suffixes K, M, G allowed).
 ENV_MEMORY_BUDGET = "FACERETARGET_MEMORY_BUDGET"
 
+#: Environment variable: time limit in seconds for one compare run or one batch job
+#: (fit + retarget), used by the command line when ``--timeout`` is not given; 0 = none.
+ENV_RUN_TIMEOUT = "FACERETARGET_TIMEOUT"
+
+#: Default time limit of one compare run or batch job on the command line: 1 hour.
+DEFAULT_RUN_TIMEOUT = 3600.0
+
+#: Environment variable: time limit in seconds for importing one third-party plugin
+#: (its entry point and its registration hooks); 0 = none.
+ENV_IMPORT_TIMEOUT = "FACERETARGET_IMPORT_TIMEOUT"
+
+#: Default time limit for importing one third-party plugin.
+DEFAULT_IMPORT_TIMEOUT = 60.0
+
+#: A worker process gets at least this long (seconds) to start and import a plugin's
+#: module before its first call's own time limit begins.
+WORKER_STARTUP_SECONDS = 60.0
+
 #: Default memory budget for a single file read: 8 GiB.
 DEFAULT_MEMORY_BUDGET = 8 * 1024**3
 
@@ -57,3 +75,29 @@ def memory_budget() -> int:
 def env_flag(name: str) -> bool:
     """True when environment variable ``name`` is set to 1/true/yes/on."""
     return os.environ.get(name, "").strip().lower() in {"1", "true", "yes", "on"}
+
+
+def seconds_setting(name: str, default: float) -> float | None:
+    """A time limit in seconds from environment variable ``name`` (default ``default``);
+    None when it is 0 (no limit)."""
+    from .errors import ConfigError
+
+    raw = os.environ.get(name, "").strip()
+    try:
+        value = float(raw) if raw else float(default)
+    except ValueError:
+        raise ConfigError(f"{name}={raw!r} is not a number of seconds; use e.g. {name}=600 (0 for no limit)") from None
+    if not value >= 0 or value == float("inf"):
+        raise ConfigError(f"{name}={raw!r}: a time limit is a finite number of seconds >= 0 (0 for no limit)")
+    return value or None
+
+
+def check_timeout(value, what: str = "timeout") -> float | None:
+    """``value`` as a time limit in seconds (None or 0 = no limit); ConfigError otherwise."""
+    from .errors import ConfigError
+
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0 or value == float("inf"):
+        raise ConfigError(f"{what} must be a finite number of seconds >= 0 (0 or None for no limit), got {value!r}")
+    return float(value) or None

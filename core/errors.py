@@ -25,7 +25,8 @@ working. Messages say what was wrong *and* how to fix it.
     └── PluginError                           a plugin failed to load or misbehaved
         ├── PluginLoadError
         ├── DuplicatePluginError
-        └── PluginOutputError
+        ├── PluginOutputError
+        └── PluginTimeoutError (TimeoutError)  a plugin overran its time limit
 """
 from __future__ import annotations
 
@@ -49,6 +50,7 @@ __all__ = [
     "PluginLoadError",
     "DuplicatePluginError",
     "PluginOutputError",
+    "PluginTimeoutError",
 ]
 
 
@@ -132,3 +134,8 @@ class DuplicatePluginError(PluginError):
 
 class PluginOutputError(PluginError):
     """A plugin returned something invalid (wrong shapes, NaN, wrong types)."""
+
+
+class PluginTimeoutError(PluginError, TimeoutError):
+    """A plugin did not finish importing or running within its time limit
+    (``FACERETARGET_TIMEOUT`` / ``--timeout`` per run, ``FACERETARGET_IMPORT_TIMEOUT`` per import)."""

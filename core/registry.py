@@ -7,7 +7,9 @@ Loading order (as in pluggy's own ``load_setuptools_entrypoints``, with error is
 2. Every other distribution's entry points (third-party): an import error or an
    invalid hook is *recorded* (``Registry.failures``) and shown by ``faceretarget
    list``; it never stops the others. ``FACERETARGET_DISABLE_PLUGINS=1`` skips them,
-   ``FACERETARGET_PLUGINS=name,dist`` allows only those.
+   ``FACERETARGET_PLUGINS=name,dist`` allows only those. A third-party plugin whose
+   import or registration hooks take longer than ``FACERETARGET_IMPORT_TIMEOUT``
+   seconds (default 60) is interrupted and recorded the same way.
 3. ``check_pending()`` after each plugin: a hook implementation whose name matches no
    hookspec is reported against the plugin that brought it.
 
@@ -28,7 +30,8 @@ from typing import Any
 import pluggy
 
 from . import config
-from .errors import ConfigError, DuplicatePluginError, PluginError, PluginLoadError, UnknownNameError
+from ._deadline import deadline
+from .errors import ConfigError, DuplicatePluginError, PluginError, PluginLoadError, PluginTimeoutError, UnknownNameError
 from .hookspecs import PROJECT, FaceRetargetSpec, Metric, Reader, Writer
 from .retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS, Capabilities, Retargeter
 
@@ -181,19 +184,29 @@ class Registry:
             self._register(module, info, fatal=True)
         if not config.env_flag(config.ENV_DISABLE_PLUGINS):
             allow = {a.strip() for a in _env(config.ENV_PLUGIN_ALLOWLIST).split(",") if a.strip()}
+            limit = config.seconds_setting(config.ENV_IMPORT_TIMEOUT, config.DEFAULT_IMPORT_TIMEOUT)
             for ep in external:
                 info = PluginInfo(ep.name, _dist_name(ep) or "unknown", _dist_version(ep), builtin=False)
                 if allow and ep.name not in allow and info.distribution not in allow:
                     continue
                 try:
-                    module = ep.load()
+                    with deadline(limit, lambda: _too_slow(info, limit, "importing")):
+                        module = ep.load()
                 except BaseException as exc:  # a plugin may even call sys.exit on import
                     if isinstance(exc, KeyboardInterrupt):
                         raise
                     info.error = f"failed to import {ep.value!r}: {type(exc).__name__}: {exc}"
                     self.failures.append(info)
                     continue
-                self._register(module, info, fatal=False)
+                try:
+                    with deadline(limit, lambda: _too_slow(info, limit, "calling its registration hooks")):
+                        self._register(module, info, fatal=False)
+                except PluginTimeoutError as exc:  # interrupted outside a hook call
+                    if self.pm.is_registered(module):
+                        self.pm.unregister(module)
+                    if info in self.plugins:
+                        self.plugins.remove(info)
+                    self._fail(info, str(exc), fatal=False)
         for name, module in extra or []:
             self._register(module, PluginInfo(name, "local", "-", builtin=False), fatal=False)
         self._check_catalogue()
@@ -342,6 +355,13 @@ def reload() -> Registry:
     global _REGISTRY
     _REGISTRY = None
     return registry()
+
+
+def _too_slow(info: PluginInfo, seconds: float, doing: str) -> PluginTimeoutError:
+    return PluginTimeoutError(
+        f"plugin {info.name!r} ({info.origin}) took longer than {seconds:g} s {doing}; "
+        f"it was skipped (raise {config.ENV_IMPORT_TIMEOUT} to allow more time)"
+    )
 
 
 def _dist_name(ep: md.EntryPoint) -> str | None:

@@ -219,7 +219,7 @@ class Retargeter:
         start = time.perf_counter()
         animation = self._retarget(source)
         seconds = time.perf_counter() - start
-        return self._stamp(animation, seconds)
+        return self._stamp(animation, seconds, source)
 
     def stream(self, frames: Iterable) -> Iterator[np.ndarray]:
         """Online retargeting, frame by frame (only where ``capabilities.stream``)."""
@@ -236,10 +236,20 @@ class Retargeter:
     def _retarget(self, source: Source) -> Animation:  # pragma: no cover - abstract
         raise CapabilityError(f"{type(self).__name__} must implement _retarget(source)")
 
-    def _stamp(self, animation: Animation, seconds: float) -> Animation:
-        """Validate the output and fill its provenance."""
+    def _stamp(self, animation: Animation, seconds: float, source: Source | None = None) -> Animation:
+        """Validate the output (type; one frame per source frame; the target's vertex
+        count) and fill its provenance."""
         if not isinstance(animation, Animation):
             raise PluginOutputError(f"{self.name}: _retarget returned {type(animation).__name__}, not an Animation")
+        if source is not None and animation.n_frames != source.n_frames:
+            raise PluginOutputError(f"{self.name}: returned {animation.n_frames} frames for a source of {source.n_frames}; expected one per source frame")
+        target = getattr(self, "target_", None)
+        n_vertices = animation._vertices.shape[1] if animation._vertices is not None else animation.rig.neutral.n_vertices
+        if isinstance(target, TargetRig) and n_vertices != target.neutral.n_vertices:
+            raise PluginOutputError(
+                f"{self.name}: returned {n_vertices} vertices per frame but the target has {target.neutral.n_vertices}; "
+                "results must be on the target's own vertices"
+            )
         from . import __version__
 
         prov = animation.provenance

@@ -15,19 +15,23 @@ Manifest (``faceretarget batch shots.toml``)::
     params = { alpha = 0.05 }        # merged over the defaults' params
     out = "out/sh010_hero.glb"       # extension picks the registered writer
     name = "sh010-hero"              # optional id (default: out)
+    timeout = 600                    # optional: seconds this job may run (0: no limit)
 
 Every path is relative to the manifest's folder and is refused (:class:`ConfigError`)
 if it resolves (symlinks followed) outside that folder. The whole manifest is checked
 before anything runs: unknown keys, methods, parameters, duplicate outputs, outputs
 without a registered writer.
 
-Execution: a local process pool by default (``workers`` processes, spawn start method);
+Execution: supervised local worker processes by default (``workers`` of them, spawn
+start method; :mod:`faceretarget.evaluation._workers`);
 ``executor="dask"`` runs the same jobs on ``dask.distributed`` (a scheduler at
 ``scheduler`` such as ``tcp://10.0.0.5:8786``, or a local cluster on 127.0.0.1). Workers
 must see the same file system. Each job writes its output atomically (a temporary file
 in the output folder, then ``os.replace``), so an output that exists is complete: a rerun
 skips it (``redo=True`` runs everything again). A failing job is reported with its error
-and does not stop the others. Progress is shown with tqdm on stderr.
+and does not stop the others. A job that overruns its time limit (``timeout`` in the
+manifest or the ``timeout`` argument, seconds) has its worker process killed and is
+reported as failed with its plugin and distribution; nothing is written for it. Progress is shown with tqdm on stderr.
 """
 from __future__ import annotations
 
@@ -47,7 +51,7 @@ __all__ = ["Job", "JobResult", "BatchSummary", "load_manifest", "run_batch", "ru
 
 #: Prefix of a shot / character given as a built-in case (``case:synthetic-human?n_frames=40``).
 CASE_PREFIX = "case:"
-_JOB_KEYS = {"shot", "character", "landmarks", "method", "params", "out", "name"}
+_JOB_KEYS = {"shot", "character", "landmarks", "method", "params", "out", "name", "timeout"}
 _TMP_MARK = ".frbatch-"
 
 
@@ -66,6 +70,7 @@ class Job:
     writer: Callable | None = None
     writer_name: str = ""
     origin: str = ""  # "plugin <entry point> (<distribution> <version>)", for error messages
+    timeout: float | None = None  # seconds; None: the run_batch default
 
 
 @dataclass
@@ -196,10 +201,16 @@ def load_manifest(path, *, registry=None) -> list[Job]:
             raise ConfigError(f"{where}: out {merged['out']!r} is already written by {outs[out]!r}; every job needs its own output")
         outs[out] = name
         writer = writer_for(Path(out), registry, where)
+        from .. import config
+
+        timeout = config.check_timeout(merged.get("timeout"), f"{where}: timeout") if "timeout" in merged else None
+        if merged.get("timeout") == 0:
+            timeout = 0.0  # explicitly no limit, even when run_batch has one
         jobs.append(
             Job(
                 name, shot, character, info.name, dict(merged["params"]), out, landmarks, cls=info.cls,
                 writer=writer.write, writer_name=writer.name, origin=f"plugin {info.plugin.name} ({info.plugin.origin})",
+                timeout=timeout,
             )
         )
     inputs = {str(Path(v).resolve()): j.name for j in jobs for v in (j.shot, j.character, j.landmarks) if v and not str(v).startswith(CASE_PREFIX)}
@@ -315,34 +326,57 @@ def run_job(job: Job) -> JobResult:
 # ---------------------------------------------------------------------------------------
 # Executors
 # ---------------------------------------------------------------------------------------
-def _run_local(jobs: list[Job], workers: int, bar) -> list[JobResult]:
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+def _job_timeout(job: Job, default: float | None) -> float | None:
+    return default if job.timeout is None else (job.timeout or None)
 
+
+def _failed_run(job: Job, outcome) -> JobResult:
+    """The result of a job whose worker was stopped (time limit) or died; no output is left."""
+    from ..errors import PluginError, PluginTimeoutError
+
+    _remove_stale_temporaries(Path(job.out))
+    error_type = PluginTimeoutError if outcome.status == "timeout" else PluginError
+    where = f"{job.method} [{job.origin}]: " if job.origin else f"{job.method}: "
+    return JobResult(job.name, "failed", job.out, outcome.seconds, f"{where}{error_type.__name__}: {outcome.message}; nothing was written", job.method)
+
+
+def _supervised(jobs: list[Job], workers: int, timeout: float | None, on_result: Callable[[JobResult], None]) -> None:
+    """Jobs in supervised worker processes, each killed when it overruns its time limit."""
+    from ._workers import DONE, Task, run_supervised
+
+    by_name = {job.name: job for job in jobs}
+
+    def on_outcome(outcome) -> None:
+        job = by_name[outcome.key]
+        on_result(outcome.value if outcome.status == DONE else _failed_run(job, outcome))
+
+    run_supervised(([Task(job.name, run_job, (job,), _job_timeout(job, timeout))] for job in jobs), workers=workers, on_outcome=on_outcome)
+
+
+def run_job_supervised(job: Job, timeout: float | None) -> JobResult:
+    """:func:`run_job` in a worker process of its own, stopped after ``timeout`` seconds
+    (how a Dask worker enforces a job's time limit)."""
+    results: list[JobResult] = []
+    _supervised([job], 1, timeout, results.append)
+    return results[0]
+
+
+def _run_local(jobs: list[Job], workers: int, timeout: float | None, bar) -> list[JobResult]:
     from .harness import single_threaded_children
 
     results = []
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
-    try:
-        with single_threaded_children():
-            futures = {pool.submit(run_job, job): job for job in jobs}
-        for future in as_completed(futures):
-            job = futures[future]
-            try:
-                result = future.result()
-            except Exception as exc:  # the worker process died (e.g. killed, out of memory)
-                result = JobResult(job.name, "failed", job.out, 0.0, f"worker failed: {type(exc).__name__}: {exc}", job.method)
-            results.append(result)
-            bar.update()
-            bar.set_postfix_str(f"{result.name}: {result.status}")
-    except BaseException:
-        pool.shutdown(wait=False, cancel_futures=True)
-        raise
-    pool.shutdown()
+
+    def on_result(result: JobResult) -> None:
+        results.append(result)
+        bar.update()
+        bar.set_postfix_str(f"{result.name}: {result.status}")
+
+    with single_threaded_children():
+        _supervised(jobs, workers, timeout, on_result)
     return results
 
 
-def _run_dask(jobs: list[Job], workers: int, scheduler: str | None, processes: bool, bar) -> list[JobResult]:
+def _run_dask(jobs: list[Job], workers: int, scheduler: str | None, processes: bool, timeout: float | None, bar) -> list[JobResult]:
     from .harness import single_threaded_children
 
     try:
@@ -365,7 +399,11 @@ def _run_dask(jobs: list[Job], workers: int, scheduler: str | None, processes: b
             client = Client(cluster)
         results = []
         token = secrets.token_hex(4)
-        futures = {client.submit(run_job, job, key=f"faceretarget-job-{i}-{token}", pure=False): job for i, job in enumerate(jobs)}
+        futures = {}
+        for i, job in enumerate(jobs):
+            limit = _job_timeout(job, timeout)
+            call = (run_job, job) if limit is None else (run_job_supervised, job, limit)
+            futures[client.submit(*call, key=f"faceretarget-job-{i}-{token}", pure=False)] = job
         for future in as_completed(list(futures)):
             job = futures[future]
             try:
@@ -392,6 +430,7 @@ def run_batch(
     dask_processes: bool = True,
     registry=None,
     progress: bool = True,
+    timeout: float | None = None,
 ) -> BatchSummary:
     """Run the jobs of ``manifest`` (a path, or a list of :class:`Job` from :func:`load_manifest`).
 
@@ -399,12 +438,19 @@ def run_batch(
         of ``workers`` workers on 127.0.0.1; ``dask_processes=False`` uses threads)
     workers : parallel jobs (default: the CPU count)
     redo : run jobs whose output already exists (default: skip them)
+    timeout : seconds a job may take unless its manifest entry sets ``timeout``; a job over
+        its limit has its worker process killed and is reported failed (None or 0: no limit).
+        Local jobs always run in supervised worker processes; on Dask, a job with a limit
+        runs in a child process of the Dask worker.
     """
     from tqdm import tqdm
 
     if executor not in ("local", "dask"):
         raise ConfigError(f"executor must be 'local' or 'dask', got {executor!r}")
     jobs = manifest if isinstance(manifest, list) else load_manifest(manifest, registry=registry)
+    from .. import config
+
+    timeout = config.check_timeout(timeout, "batch: timeout")
     workers = int(workers or os.cpu_count() or 1)
     if workers < 1:
         raise ConfigError(f"workers must be >= 1, got {workers}")
@@ -419,9 +465,9 @@ def run_batch(
     try:
         if pending:
             if executor == "dask":
-                summary.results.extend(_run_dask(pending if not dask_processes else _portable(pending), workers, scheduler, dask_processes, bar))
+                summary.results.extend(_run_dask(pending if not dask_processes else _portable(pending), workers, scheduler, dask_processes, timeout, bar))
             else:
-                summary.results.extend(_run_local(_portable(pending), workers, bar))
+                summary.results.extend(_run_local(_portable(pending), workers, timeout, bar))
     finally:
         bar.close()
     order = {j.name: i for i, j in enumerate(jobs)}

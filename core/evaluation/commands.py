@@ -47,6 +47,23 @@ def _parse_sets(pairs: list[str]) -> dict[str, dict]:
     return out
 
 
+def _add_timeout_argument(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument(
+        "--timeout", type=float, metavar="SECONDS",
+        help=f"time limit of {what}; one that overruns is stopped and reported with its plugin, the rest go on "
+        "(default: $FACERETARGET_TIMEOUT or 3600; 0: no limit)",
+    )
+
+
+def _timeout(value: float | None) -> float | None:
+    """``--timeout`` as given, else ``FACERETARGET_TIMEOUT``, else the default; None = no limit."""
+    from .. import config
+
+    if value is None:
+        return config.seconds_setting(config.ENV_RUN_TIMEOUT, config.DEFAULT_RUN_TIMEOUT)
+    return config.check_timeout(value, "--timeout")
+
+
 def _print_ranking(result, stream=None) -> None:
     from .report import _fmt
 
@@ -94,6 +111,7 @@ def add_compare_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--csv", type=Path, metavar="FILE", help="write the tidy table as CSV")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the tidy table, ranking and runs as JSON")
     parser.add_argument("--jobs", type=int, default=1, metavar="N", help="run the methods in N worker processes (default 1)")
+    _add_timeout_argument(parser, "one run (fit + retarget of one method on one case)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -109,6 +127,7 @@ def run_compare(args) -> int:
         metrics=args.metrics,
         progress=not args.quiet,
         n_jobs=_jobs(args.jobs, 1),
+        timeout=_timeout(args.timeout),
     )
     if args.presets is not None:
         run_presets(result, names=args.presets or None)
@@ -133,6 +152,7 @@ def add_demo_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-presets", action="store_true", help="skip the paper reproductions")
     parser.add_argument("--no-glb", action="store_true", help="do not write a GLB per method")
     parser.add_argument("--jobs", type=int, metavar="N", help="methods run in parallel worker processes (default: 2, at most the CPU count)")
+    _add_timeout_argument(parser, "one run (fit + retarget of one method on one case)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -164,7 +184,9 @@ def run_demo(args) -> int:
     start = time.perf_counter()
     folder = _new_folder(args.out, "faceretarget-demo")
     print(f"faceretarget demo: writing into {folder}", file=sys.stderr)
-    result = compare(demo_cases(args.frames), methods=args.methods, progress=not args.quiet, n_jobs=_jobs(args.jobs, 2))
+    result = compare(
+        demo_cases(args.frames), methods=args.methods, progress=not args.quiet, n_jobs=_jobs(args.jobs, 2), timeout=_timeout(args.timeout)
+    )
     if not args.no_presets:
         run_presets(result)
     paths = write_report(result, folder, title="faceretarget demo")
@@ -210,6 +232,7 @@ def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, metavar="N", help="parallel jobs / local Dask workers (default: CPU count)")
     parser.add_argument("--redo", action="store_true", help="run jobs whose output already exists (default: skip them)")
     parser.add_argument("--summary", type=Path, metavar="FILE", help="write the per-job results as JSON")
+    _add_timeout_argument(parser, "one job, unless its manifest entry sets timeout")
     parser.add_argument("--check", action="store_true", help="only check the manifest and list the jobs")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -225,7 +248,10 @@ def run_batch(args) -> int:
         print(f"{len(jobs)} job(s); manifest OK")
         return 0
     executor = "dask" if (args.dask or args.scheduler) else "local"
-    summary = batch.run_batch(jobs, executor=executor, scheduler=args.scheduler, workers=args.workers, redo=args.redo, progress=not args.quiet)
+    summary = batch.run_batch(
+        jobs, executor=executor, scheduler=args.scheduler, workers=args.workers, redo=args.redo, progress=not args.quiet,
+        timeout=_timeout(args.timeout),
+    )
     print(batch.format_summary(summary))
     if args.summary:
         print(f"wrote {batch.write_summary(summary, args.summary)}")

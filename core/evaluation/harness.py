@@ -10,8 +10,10 @@ For each (case, method) the harness
 1. asks ``cls.why_not(source, target)``; a method that does not apply is listed as
    ``not applicable`` with that reason (a :class:`~faceretarget.errors.CapabilityError`
    raised by ``fit`` counts the same way);
-2. fits and retargets under ``tracemalloc`` and a wall clock; any other exception is
-   recorded as ``error`` (type, message, plugin name and distribution) and the run goes on;
+2. fits and retargets under ``tracemalloc`` and a wall clock (with ``timeout``, in a
+   supervised worker process killed when it overruns); any other exception, an overrun
+   or a crashed worker is recorded as ``error`` (type, message, plugin name and
+   distribution) and the run goes on;
 3. validates the output (an :class:`~faceretarget.Animation`, the ground truth's shape,
    finite values) before any metric sees it;
 4. computes every registered metric (``faceretarget_metrics`` hook), each value a row
@@ -507,17 +509,35 @@ def cached_case(spec: str):
     return _CASE_CACHE[spec]
 
 
-def _run_task(methods: list[tuple[_Method, dict]], items: list) -> list[Run]:
-    """Worker side of a parallel compare: some methods on every case (extras are dropped)."""
-    runs = []
-    for method, params in methods:
-        for cname, ref in items:
-            case = cached_case(ref) if isinstance(ref, str) else ref
-            run = _run_one(case, cname, method, params)
-            if run.animation is not None and run.animation.extras:
-                run.animation = run.animation.replace(extras={})
-            runs.append(run)
-    return runs
+#: Extras (method-specific outputs) smaller than this come back from worker processes;
+#: bigger ones (e.g. a per-frame normal mesh) are dropped there.
+LIGHT_EXTRAS_BYTES = 4 * 2**20
+
+
+def _light_extras(extras: Mapping) -> dict:
+    """The extras worth sending back from a worker: numbers, strings and arrays (or lists
+    of numbers) up to :data:`LIGHT_EXTRAS_BYTES`."""
+    kept = {}
+    for key, value in extras.items():
+        if value is None or isinstance(value, (bool, int, float, str, np.generic)):
+            kept[key] = value
+            continue
+        try:
+            size = value.nbytes if isinstance(value, np.ndarray) else np.asarray(value, dtype=float).nbytes
+        except (TypeError, ValueError):
+            continue
+        if size <= LIGHT_EXTRAS_BYTES:
+            kept[key] = value
+    return kept
+
+
+def _run_item(method: _Method, params: dict, cname: str, ref) -> Run:
+    """Worker side of an isolated compare: one method on one case (heavy extras dropped)."""
+    case = cached_case(ref) if isinstance(ref, str) else ref
+    run = _run_one(case, cname, method, params)
+    if run.animation is not None and run.animation.extras:
+        run.animation = run.animation.replace(extras=_light_extras(run.animation.extras))
+    return run
 
 
 #: Thread counts pinned to 1 in worker processes, so n processes do not each start
@@ -542,28 +562,39 @@ def single_threaded_children():
                 os.environ[k] = v
 
 
-def _parallel(refs: dict, chosen: list[_Method], per_method: dict, n_jobs: int, on_run) -> None:
-    """Methods from one module (sharing numba kernels) form one task, so each compiles once."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+def _isolated(refs: dict, chosen: list[_Method], per_method: dict, n_jobs: int, timeout: float | None, on_run) -> None:
+    """Every run in a supervised worker process (killed after ``timeout`` seconds).
 
-    items = list(refs.items())
-    groups: dict[str, list[_Method]] = {}
+    The methods of one module (sharing numba kernels) form one group, so each worker
+    compiles them once; a run that overruns or kills its worker is recorded as an error
+    naming the plugin and its distribution, and the group goes on in a fresh worker.
+    """
+    from ..errors import PluginError, PluginTimeoutError
+    from ._workers import DONE, TIMEOUT, Task, run_supervised
+
+    by_name = {m.name: m for m in chosen}
+    groups: dict[str, list[Task]] = {}
     for m in chosen:
-        groups.setdefault(m.cls.__module__, []).append(m)
-    with single_threaded_children(), ProcessPoolExecutor(max_workers=n_jobs, mp_context=mp.get_context("spawn")) as pool:
-        futures = {pool.submit(_run_task, [(m, per_method[m.name]) for m in group], items): group for group in groups.values()}
-        for future in as_completed(futures):
-            try:
-                task_runs = future.result()
-            except Exception as exc:  # the worker died, or a class or result did not pickle
-                task_runs = [
-                    _failed(Run(cname, m.name, ERROR, plugin=m.plugin, distribution=m.distribution, version=m.version), exc, m, "worker")
-                    for m in futures[future]
-                    for cname, _ in items
-                ]
-            for run in task_runs:
-                on_run(run)
+        tasks = groups.setdefault(m.cls.__module__, [])
+        for cname, ref in refs.items():
+            tasks.append(Task((cname, m.name), _run_item, (m, per_method[m.name], cname, ref), timeout))
+
+    def on_outcome(outcome) -> None:
+        cname, name = outcome.key
+        if outcome.status == DONE:
+            on_run(outcome.value)
+            return
+        m = by_name[name]
+        run = Run(cname, name, ERROR, plugin=m.plugin, distribution=m.distribution, version=m.version)
+        error_type = PluginTimeoutError if outcome.status == TIMEOUT else PluginError
+        stage = "run" if outcome.started else "worker start-up"
+        _failed(run, error_type(outcome.message), m, stage)
+        if isinstance(outcome.value, str):
+            run.error["traceback"] = outcome.value
+        on_run(run)
+
+    with single_threaded_children():
+        run_supervised(groups.values(), workers=n_jobs, on_outcome=on_outcome)
 
 
 def compare(
@@ -576,6 +607,7 @@ def compare(
     keep_animations: bool = True,
     progress: bool = False,
     n_jobs: int = 1,
+    timeout: float | None = None,
 ) -> ComparisonResult:
     """Run retargeters on cases and measure them.
 
@@ -596,6 +628,10 @@ def compare(
         here as results arrive; the animations come back without ``extras``. Classes must
         be importable by the workers, and (as with any ``multiprocessing`` code) a script
         must call this under ``if __name__ == "__main__":``.
+    timeout : seconds one run (fit + retarget) may take; given, every run happens in a
+        worker process (``n_jobs`` of them) that is killed when it overruns, and the run is
+        recorded as an error naming the plugin (:class:`~faceretarget.errors.PluginTimeoutError`).
+        A worker that crashes is recorded the same way. None or 0: no limit.
 
     Returns
     -------
@@ -616,8 +652,11 @@ def compare(
         if missing:
             raise UnknownNameError(f"no metric(s) {', '.join(missing)}; valid: {', '.join(all_metrics)}")
         all_metrics = {m: all_metrics[m] for m in metrics}
-    if n_jobs < 1:
-        raise ConfigError(f"n_jobs must be >= 1, got {n_jobs}")
+    if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs < 1:
+        raise ConfigError(f"n_jobs must be an integer >= 1, got {n_jobs!r}")
+    from .. import config
+
+    timeout = config.check_timeout(timeout, "compare: timeout")
     named = list(cases.items()) if isinstance(cases, Mapping) else [(None, c) for c in (DEFAULT_CASES if cases is None else cases)]
     if not named:
         raise ConfigError("compare: no cases given")
@@ -644,8 +683,8 @@ def compare(
         bar.set_postfix_str(f"{run.case}: {run.method}")
         bar.update()
 
-    if n_jobs > 1 and len(chosen) > 1:
-        _parallel(refs, chosen, per_method, n_jobs, on_run)
+    if timeout is not None or (n_jobs > 1 and len(chosen) > 1):
+        _isolated(refs, chosen, per_method, min(n_jobs, len(chosen)), timeout, on_run)
     else:
         for cname, case in resolved.items():
             for method in chosen:

@@ -313,7 +313,7 @@ class CoatingRetargeter(_MeshTransfer):
         track = self._track(source, motion, weights, None)
         diagnostics = self._diagnostics()
         diagnostics["written_to"] = str(path)
-        return self._stamp(self._animation(vertices, source, motion, diagnostics, {"coating": track, "weights": weights}), seconds)
+        return self._stamp(self._animation(vertices, source, motion, diagnostics, {"coating": track, "weights": weights}), seconds, source)
 
     # -- editing ---------------------------------------------------------------------------
     def edit(

@@ -122,3 +122,40 @@ def test_parametrize_with_checks_ids():
 
 def test_fixture_from_pytest_plugin(faceretarget_case):
     assert faceretarget_case.target.has("blendshapes")
+
+
+class DropsFrame(Good):
+    name = "dropsframe"
+
+    def _retarget(self, source):
+        return fr.Animation(vertices=super()._retarget(source).vertices[1:])
+
+
+class DropsVertex(Good):
+    name = "dropsvertex"
+
+    def _retarget(self, source):
+        return fr.Animation(vertices=super()._retarget(source).vertices[:, :-1])
+
+
+class ReturnsArray(Good):
+    name = "returnsarray"
+
+    def _retarget(self, source):
+        return super()._retarget(source).vertices
+
+
+@pytest.mark.parametrize(
+    "cls, message",
+    [
+        (DropsFrame, r"dropsframe: returned \d+ frames for a source of \d+"),
+        (DropsVertex, r"dropsvertex: returned \d+ vertices per frame but the target has \d+"),
+        (ReturnsArray, r"returnsarray: _retarget returned ndarray, not an Animation"),
+    ],
+)
+def test_retarget_refuses_results_off_the_contract(cls, message):
+    """Library callers get the shape check too, not only compare/batch/run."""
+    case = testing.tiny_case()
+    retargeter = cls().fit(case.source, case.target)
+    with pytest.raises(fr.errors.PluginOutputError, match=message):
+        retargeter.retarget(case.source)

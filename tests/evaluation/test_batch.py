@@ -46,6 +46,9 @@ def many_jobs(folder: Path, count: int, delay: float) -> Path:
         (f'[[job]]\nshot = "case:nope"\nmethod = "fake_transfer"\nout = "o.fnpz"', UnknownNameError, "no case named"),
         ('[[job]\nshot = ', ConfigError, "not valid TOML"),
         ("[defaults]\nmethod = 'x'\n", ConfigError, "no \\[\\[job\\]\\] entries"),
+        (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\ntimeout = -5', ConfigError, "job #1: timeout must be a finite number of seconds"),
+        (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\ntimeout = "soon"', ConfigError, "timeout must be"),
+        (f'[defaults]\ntimeout = inf\n[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"', ConfigError, "timeout must be"),
     ],
 )
 def test_manifest_is_checked_before_running(tmp_path, fake_registry, body, error, match):
@@ -80,6 +83,10 @@ def test_manifest_resolves_paths_and_merges_defaults(tmp_path, fake_registry):
     a, b = load_manifest(path, registry=fake_registry)
     assert a.params == {"delay": 0.5} and a.character == SHOT and a.out == str(tmp_path.resolve() / "out/a.fnpz") and a.name == "out/a.fnpz"
     assert b.name == "second" and b.shot == str(tmp_path.resolve() / "shots/s.c3d") and b.cls is fakes.NeutralFake
+    assert a.timeout is None and b.timeout is None  # the run's default applies
+    path.write_text(path.read_text().replace('name = "second"', 'name = "second"\ntimeout = 0').replace("[defaults]", "[defaults]\ntimeout = 90"))
+    a, b = load_manifest(path, registry=fake_registry)
+    assert a.timeout == 90.0 and b.timeout == 0.0  # 0: explicitly no limit
 
 
 def test_local_pool_reports_failures_and_skips_finished(tmp_path, fake_registry):
@@ -107,7 +114,7 @@ def test_local_pool_reports_failures_and_skips_finished(tmp_path, fake_registry)
     assert status == {"out/ok1.fnpz": "done", "out/broken.fnpz": "failed", "out/wrong.fnpz": "failed", "out/ok2.fnpz": "done"}
     errors = {r.name: r.error for r in summary.failed}
     assert errors["out/broken.fnpz"] == "fake_broken [plugin fakes (local -)]: RuntimeError: boom in fit"
-    assert errors["out/wrong.fnpz"].startswith("fake_wrongshape [plugin fakes (local -)]: PluginOutputError: fake_wrongshape returned vertices of shape (4,")
+    assert errors["out/wrong.fnpz"].startswith("fake_wrongshape [plugin fakes (local -)]: PluginOutputError: fake_wrongshape: returned 95 vertices per frame but the target has 96")
     saved = np.load(tmp_path / "out/ok1.fnpz")
     assert saved["vertices"].shape[0] == 4 and str(saved["method"]) == "fake_transfer"
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["ok1.fnpz", "ok2.fnpz"]  # no partial files

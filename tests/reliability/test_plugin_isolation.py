@@ -2,8 +2,9 @@
 
 A fake installed distribution ``brokenplugins`` (a ``.dist-info`` folder on a temporary
 ``sys.path`` entry, as pip would leave it) brings plugins that raise on import, raise in
-``fit`` or ``retarget``, return the wrong number of vertices or frames, or NaN, and one
-that works. ``faceretarget list``, ``compare``, ``batch`` and ``run`` must go on with
+``fit`` or ``retarget``, return the wrong number of vertices or frames, or NaN, never
+finish (sleeping, or spinning in a loop), kill their own process, and one that works. A
+second distribution ``slowplugins`` takes a minute to import. ``faceretarget list``, ``compare``, ``batch`` and ``run`` must go on with
 the others, name the culprit and its distribution, and never write a wrong result.
 """
 import importlib
@@ -68,10 +69,16 @@ PLUGINS = {
     "bp_type": "class Typ(Base):\n    name = 'bp_type'\n    def _retarget(self, source):\n        return {'vertices': self.neutral_}\nCLS = Typ\n",
 }
 BAD = ["bp_fit", "bp_retarget", "bp_vertices", "bp_frames", "bp_nan", "bp_type"]
+#: Plugins that never return or take their process down (only run under a time limit).
+SLOW = {
+    "bp_sleep": "import time\nclass Sleep(Base):\n    name = 'bp_sleep'\n    def _retarget(self, source):\n        time.sleep(3600)\nCLS = Sleep\n",
+    "bp_spin": "class Spin(Base):\n    name = 'bp_spin'\n    def _fit(self, source, target):\n        while True:\n            pass\nCLS = Spin\n",
+    "bp_exit": "import os\nclass Exit(Base):\n    name = 'bp_exit'\n    def _retarget(self, source):\n        os._exit(9)\nCLS = Exit\n",
+}
 
 
 def plugin_module(name: str) -> str:
-    return COMMON + PLUGINS[name] + "\n@fr.hookimpl\ndef faceretarget_retargeters():\n    return [CLS]\n"
+    return COMMON + {**PLUGINS, **SLOW}[name] + "\n@fr.hookimpl\ndef faceretarget_retargeters():\n    return [CLS]\n"
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +88,7 @@ def site(tmp_path_factory):
     info = root / f"{DIST}-0.3.dist-info"
     info.mkdir()
     (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {DIST}\nVersion: 0.3\n")
-    modules = {name: plugin_module(name) for name in PLUGINS}
+    modules = {name: plugin_module(name) for name in [*PLUGINS, *SLOW]}
     modules["bp_import"] = "raise RuntimeError('import exploded')\n"
     for name, code in modules.items():
         (root / f"{name}.py").write_text(textwrap.dedent(code))
@@ -157,6 +164,18 @@ def bundles(case, tmp_path):
     return src, tgt
 
 
+def batch_manifest(folder, bundles, names, extra=None):
+    """``folder/shots.toml`` with one job per plugin in ``names`` (outputs under ``out/``)."""
+    src, tgt = bundles
+    jobs = [f'[[job]]\nshot = "{src.name}"\ncharacter = "{tgt.name}"\nmethod = "{n}"\nout = "out/{n}.npz"\n' for n in names]
+    for n, lines in (extra or {}).items():
+        jobs[names.index(n)] += lines
+    (folder / "out").mkdir()
+    manifest = folder / "shots.toml"
+    manifest.write_text("\n".join(jobs))
+    return manifest
+
+
 @pytest.mark.parametrize("name", BAD)
 def test_run_refuses_to_write_a_broken_result(name, reg, bundles, tmp_path, capsys):
     src, tgt = bundles
@@ -178,20 +197,104 @@ def test_run_good_plugin_writes(reg, bundles, tmp_path, capsys):
     assert np.asarray(fr.load(out, kind="animation").vertices).shape[0] == 4
 
 
-def test_batch_goes_on_and_names_each_failure(reg, bundles, tmp_path):
+def batch_with_failures(tmp_path, bundles, reg, bad, extra=None, **options):
+    """Run bp_good and the plugins ``bad`` as a batch: bp_good's job is done and is the only
+    output, every other job failed naming its plugin and distribution; returns the results."""
     from faceretarget.evaluation.batch import run_batch
 
-    src, tgt = bundles
-    jobs = [f'[[job]]\nshot = "{src.name}"\ncharacter = "{tgt.name}"\nmethod = "{n}"\nout = "out/{n}.npz"\n' for n in ["bp_good"] + BAD]
-    manifest = tmp_path / "shots.toml"
-    (tmp_path / "out").mkdir()
-    manifest.write_text("\n".join(jobs))
-    summary = run_batch(manifest, workers=1, registry=reg, progress=False)
+    summary = run_batch(batch_manifest(tmp_path, bundles, ["bp_good", *bad], extra), registry=reg, progress=False, **options)
     results = {r.name: r for r in summary.results}
     count(AREA, len(results))
-    assert results["out/bp_good.npz"].status == "done"
+    assert results.pop("out/bp_good.npz").status == "done"
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["bp_good.npz"], "failed jobs must write nothing"
-    for name in BAD:
-        r = results[f"out/{name}.npz"]
-        assert r.status == "failed"
-        assert named(r.error, name), f"batch must name the plugin and its distribution: {r.error}"
+    for name, r in results.items():
+        assert r.status == "failed" and named(r.error, r.method), f"batch must name the plugin and its distribution: {r.error}"
+    return results
+
+
+def test_batch_goes_on_and_names_each_failure(reg, bundles, tmp_path):
+    assert len(batch_with_failures(tmp_path, bundles, reg, BAD, workers=1)) == len(BAD)
+
+
+# ---------------------------------------------------------------------------------------
+# Very slow plugins: stopped at their time limit, reported, the rest goes on
+# ---------------------------------------------------------------------------------------
+LIMIT = 2.0
+
+
+def test_compare_stops_slow_and_crashing_plugins_and_goes_on(reg, case):
+    from faceretarget.evaluation import compare
+
+    result = compare([case], methods=["bp_good", *SLOW], registry=reg, metrics=["vertex_error_mean"], timeout=LIMIT, n_jobs=2)
+    runs = {r.method: r for r in result.runs}
+    count(AREA, len(runs))
+    assert runs["bp_good"].status == "ok" and result.value(runs["bp_good"].case, "bp_good", "vertex_error_mean") is not None
+    for name in SLOW:
+        run = runs[name]
+        assert run.status == "error" and named(run.reason, name), f"{name}: {run.status} {run.reason}"
+    for name in ("bp_sleep", "bp_spin"):
+        assert runs[name].error["type"] == "PluginTimeoutError"
+        assert f"did not finish within its time limit of {LIMIT:g} s" in runs[name].reason
+    assert "exited with code 9" in runs["bp_exit"].reason
+    rows = [row for row in result.rows if row["method"] in SLOW]
+    assert rows and all(row["status"] == "error" and row["value"] is None for row in rows)
+
+
+def test_compare_command_reports_a_slow_plugin(reg, capsys):
+    count(AREA)
+    spec = "synthetic?resolution=300&n_frames=4"
+    code = cli.main(["compare", spec, "--methods", "bp_good", "bp_sleep", "--metrics", "vertex_error_mean", "--timeout", str(LIMIT), "--quiet"])
+    out = capsys.readouterr().out
+    assert code == 0
+    line = next(line for line in out.splitlines() if "bp_sleep:" in line)
+    assert "error" in line and named(line, "bp_sleep") and "PluginTimeoutError" in line
+
+
+def test_batch_stops_slow_and_crashing_jobs_and_goes_on(reg, bundles, tmp_path):
+    extra = {"bp_sleep": "timeout = 1.5\n"}  # a job's own limit wins over the batch's
+    results = batch_with_failures(tmp_path, bundles, reg, list(SLOW), extra, workers=2, timeout=LIMIT)
+    assert "PluginTimeoutError: did not finish within its time limit of 1.5 s" in results["out/bp_sleep.npz"].error
+    assert f"time limit of {LIMIT:g} s" in results["out/bp_spin.npz"].error
+    assert "PluginError: its worker process exited with code 9" in results["out/bp_exit.npz"].error
+
+
+@pytest.fixture
+def slow_site(tmp_path, monkeypatch):
+    """A distribution with one plugin that takes a minute to import and one that is fine."""
+    info = tmp_path / "slowplugins-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: slowplugins\nVersion: 1.0\n")
+    (tmp_path / "sp_slow_import.py").write_text("import time\ntime.sleep(60)\n")
+    (tmp_path / "sp_quick.py").write_text(textwrap.dedent(plugin_module("bp_good").replace("bp_good", "sp_quick")))
+    (tmp_path / "sp_slow_hook.py").write_text(
+        "import time\nimport faceretarget as fr\n@fr.hookimpl\ndef faceretarget_retargeters():\n    time.sleep(60)\n    return []\n"
+    )
+    (info / "entry_points.txt").write_text("[faceretarget]\nsp_slow_import = sp_slow_import\nsp_quick = sp_quick\nsp_slow_hook = sp_slow_hook\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delenv("FACERETARGET_DISABLE_PLUGINS", raising=False)
+    monkeypatch.setenv("FACERETARGET_PLUGINS", "slowplugins")
+    monkeypatch.setenv("FACERETARGET_IMPORT_TIMEOUT", "1")
+    importlib.invalidate_caches()
+    return tmp_path
+
+
+def test_a_plugin_slow_to_import_is_skipped_and_named(slow_site, monkeypatch, capsys):
+    loaded = Registry().load()
+    count(AREA, 3)
+    failures = {f.name: f for f in loaded.failures}
+    assert set(failures) == {"sp_slow_import", "sp_slow_hook"}
+    assert "took longer than 1 s importing" in failures["sp_slow_import"].error
+    assert "took longer than 1 s calling its registration hooks" in failures["sp_slow_hook"].error
+    assert all(f.distribution == "slowplugins" and "FACERETARGET_IMPORT_TIMEOUT" in f.error for f in failures.values())
+    assert "sp_quick" in loaded.retargeters and any(e.plugin.builtin for e in loaded.retargeters.values())
+    monkeypatch.setattr(registry_module, "_REGISTRY", loaded)
+    assert cli.main(["list"]) == 0
+    failed = capsys.readouterr().out.split("plugins that failed to load:")[1]
+    assert "sp_slow_import" in failed and "slowplugins" in failed and "took longer than 1 s" in failed
+
+
+def test_dask_batch_stops_a_slow_job(reg, bundles, tmp_path):
+    """On Dask (daemonic worker processes) a job with a limit runs in a child process of its own."""
+    pytest.importorskip("distributed")
+    results = batch_with_failures(tmp_path, bundles, reg, ["bp_sleep"], executor="dask", workers=2, timeout=LIMIT)
+    assert "PluginTimeoutError" in results["out/bp_sleep.npz"].error

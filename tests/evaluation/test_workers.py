@@ -1,0 +1,140 @@
+"""Supervised worker processes: every task ends in exactly one outcome, overrunning or
+crashing workers are replaced and their groups go on."""
+import multiprocessing as mp
+
+import pytest
+
+import worker_tasks as t
+from faceretarget.evaluation._workers import DIED, DONE, ERROR, TIMEOUT, Task, _Worker, run_supervised
+
+
+def outcomes(groups, workers=1):
+    got = []
+    run_supervised(groups, workers=workers, on_outcome=got.append)
+    return {o.key: o for o in got}, [o.key for o in got]
+
+
+def test_every_task_ends_once_with_its_value_or_error():
+    groups = [[Task("sum", t.add, (2, 3)), Task("boom", t.fail, ("no luck",)), Task("exit", t.exit_call), Task("after", t.add, (1, 1))]]
+    got, order = outcomes(groups)
+    assert order == ["sum", "boom", "exit", "after"], "tasks of a group run in order"
+    assert got["sum"].status == DONE and got["sum"].value == 5
+    assert got["boom"].status == ERROR and got["boom"].message == "ValueError: no luck"
+    assert "ValueError" in got["boom"].value, "the worker's traceback comes back for --debug"
+    assert got["exit"].status == ERROR and "SystemExit" in got["exit"].message
+    assert got["after"].value == 2, "a task that raised leaves the worker usable"
+
+
+def test_overrunning_tasks_are_killed_and_their_group_goes_on():
+    groups = [
+        [Task("sleepy", t.sleep, (600,), timeout=1.0), Task("next", t.add, (1, 2), timeout=1.0)],
+        [Task("spinner", t.spin, (), timeout=1.0), Task("then", t.add, (2, 2))],
+    ]
+    got, _ = outcomes(groups, workers=2)
+    for key in ("sleepy", "spinner"):
+        assert got[key].status == TIMEOUT and got[key].started
+        assert "did not finish within its time limit of 1 s; its worker process was stopped" == got[key].message
+        assert got[key].seconds >= 1.0
+    assert got["next"].value == 3 and got["then"].value == 4
+
+
+def test_a_fast_task_is_not_stopped_by_a_limit():
+    got, _ = outcomes([[Task("quick", t.sleep, (0.1,), timeout=30.0)]])
+    assert got["quick"].status == DONE and got["quick"].value == "woke up"
+
+
+def test_a_dying_worker_is_reported_and_replaced():
+    got, _ = outcomes([[Task("pid1", t.pid), Task("dies", t.die, (7,)), Task("pid2", t.pid)]])
+    assert got["dies"].status == DIED and got["dies"].message == "its worker process exited with code 7 while running it"
+    assert got["pid1"].value != got["pid2"].value, "the rest of the group runs in a fresh worker"
+
+
+def test_unsendable_results_and_unloadable_tasks_are_errors():
+    got, _ = outcomes([[Task("lambda", t.unsendable), Task("unloadable", t.add, (t.Unloadable(), 1)), Task("fine", t.add, (1, 1))]])
+    assert got["lambda"].status == ERROR and "could not be sent back" in got["lambda"].message
+    assert got["unloadable"].status == ERROR and not got["unloadable"].started
+    assert got["unloadable"].message == "the worker could not load the task: RuntimeError: this object cannot be loaded in a worker"
+    assert got["fine"].value == 2
+
+
+def test_a_task_that_does_not_pickle_is_an_error_and_the_rest_runs():
+    got, order = outcomes([[Task("first", t.add, (1, 2)), Task("lambda", lambda: 1), Task("last", t.add, (3, 4))]])
+    assert got["lambda"].status == ERROR and got["lambda"].message.startswith("the task could not be handed to a worker process")
+    assert got["first"].value == 3 and got["last"].value == 7
+    assert order.index("lambda") < order.index("last")
+
+
+def test_more_workers_than_groups_and_empty_groups():
+    got, _ = outcomes([[Task("a", t.add, (1, 1))], [], [Task("b", t.add, (2, 2))]], workers=4)
+    assert {k: o.value for k, o in got.items()} == {"a": 2, "b": 4}
+    assert outcomes([], workers=2) == ({}, [])
+
+
+def test_subprocess_workers_inside_daemonic_processes(monkeypatch):
+    """In a Dask worker (a daemonic process) workers are plain subprocesses."""
+    monkeypatch.setattr(mp.current_process(), "_config", {**mp.current_process()._config, "daemon": True})
+    worker = _Worker()
+    try:
+        assert worker.process is None and worker.popen is not None
+    finally:
+        worker.kill()
+    got, _ = outcomes([[Task("sum", t.add, (2, 5)), Task("sleepy", t.sleep, (600,), timeout=1.0), Task("dies", t.die, (3,)), Task("after", t.add, (1, 1))]])
+    assert got["sum"].value == 7 and got["sleepy"].status == TIMEOUT
+    assert got["dies"].status == DIED and "exited with code 3" in got["dies"].message
+    assert got["after"].value == 2
+
+
+def test_time_limit_settings(monkeypatch):
+    from faceretarget import config
+    from faceretarget.errors import ConfigError
+
+    assert config.check_timeout(None) is None and config.check_timeout(0) is None and config.check_timeout(2) == 2.0
+    for bad in (-1, float("nan"), float("inf"), True, "10"):
+        with pytest.raises(ConfigError, match="finite number of seconds"):
+            config.check_timeout(bad)
+    monkeypatch.delenv(config.ENV_RUN_TIMEOUT, raising=False)
+    assert config.seconds_setting(config.ENV_RUN_TIMEOUT, config.DEFAULT_RUN_TIMEOUT) == config.DEFAULT_RUN_TIMEOUT
+    monkeypatch.setenv(config.ENV_RUN_TIMEOUT, "0")
+    assert config.seconds_setting(config.ENV_RUN_TIMEOUT, 5) is None
+    for bad in ("soon", "-3", "inf"):
+        monkeypatch.setenv(config.ENV_RUN_TIMEOUT, bad)
+        with pytest.raises(ConfigError, match="FACERETARGET_TIMEOUT"):
+            config.seconds_setting(config.ENV_RUN_TIMEOUT, 5)
+
+
+def test_compare_and_batch_refuse_bad_time_limits(tiny, fake_registry, capsys):
+    from faceretarget import cli
+    from faceretarget.errors import ConfigError
+    from faceretarget.evaluation import compare
+
+    with pytest.raises(ConfigError, match="compare: timeout"):
+        compare([tiny], methods=["fake_neutral"], registry=fake_registry, timeout=-1)
+    assert cli.main(["compare", "synthetic", "--timeout", "nan"]) == cli.EXIT_ERROR
+    assert "--timeout must be a finite number of seconds" in capsys.readouterr().err
+
+
+def test_deadline_interrupts_python_code_and_restores_the_previous_timer():
+    import signal
+    import time
+
+    from faceretarget._deadline import deadline
+
+    fired = []
+
+    def outer(*args):
+        fired.append("outer")
+
+    previous = signal.signal(signal.SIGALRM, outer)
+    signal.setitimer(signal.ITIMER_REAL, 30)
+    try:
+        with pytest.raises(TimeoutError, match="too slow"):
+            with deadline(0.2, lambda: TimeoutError("too slow")):
+                time.sleep(10)
+        with deadline(5, lambda: TimeoutError("never")):
+            pass
+        left, _ = signal.getitimer(signal.ITIMER_REAL)
+        assert 0 < left <= 30, "the outer timer is re-armed with the time it had left"
+        assert signal.getsignal(signal.SIGALRM) is outer and not fired
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)

@@ -1,0 +1,50 @@
+"""Task functions for the supervised-worker tests (importable by name in worker processes)."""
+import os
+import time
+
+
+def add(a, b):
+    return a + b
+
+
+def fail(message):
+    raise ValueError(message)
+
+
+def sleep(seconds):
+    time.sleep(seconds)
+    return "woke up"
+
+
+def spin():
+    """A busy loop that never returns (a plugin stuck in Python code)."""
+    n = 0
+    while True:
+        n += 1
+
+
+def die(code):
+    os._exit(code)
+
+
+def unsendable():
+    return lambda: None  # cannot be pickled back to the parent
+
+
+def exit_call():
+    raise SystemExit(5)
+
+
+def pid():
+    return os.getpid()
+
+
+def _refuse_to_load():
+    raise RuntimeError("this object cannot be loaded in a worker")
+
+
+class Unloadable:
+    """Pickles fine, fails to unpickle (like a class whose module the worker cannot import)."""
+
+    def __reduce__(self):
+        return (_refuse_to_load, ())
