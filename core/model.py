@@ -445,6 +445,8 @@ class WeightSequence:
 
 
 def _check_finite_chunked(arr: np.ndarray, name: str) -> None:
+    if arr.size == 0:
+        return
     flat = arr.reshape(arr.shape[0], -1)
     step = max(1, _CHUNK // max(1, flat.shape[1]))
     for start in range(0, flat.shape[0], step):
@@ -934,6 +936,8 @@ class Animation:
                 raise ShapeError(f"Animation.vertices: expected (F, V, 3), got {tuple(arr.shape)}")
             if arr.shape[1] == 0:
                 raise ShapeError("Animation.vertices: no vertices, shape (F, 0, 3)")
+            if arr.shape[0] == 0:
+                raise ShapeError(f"Animation.vertices: no frames, shape {tuple(arr.shape)}")
             if arr.dtype in (np.float32, np.float64):
                 _check_finite_chunked(arr, "Animation.vertices")  # no full-size temporary
             else:
