@@ -45,6 +45,9 @@ ENV_IMPORT_TIMEOUT = "FACERETARGET_IMPORT_TIMEOUT"
 #: Default time limit for importing one third-party plugin.
 DEFAULT_IMPORT_TIMEOUT = 60.0
 
+#: The longest time limit accepted (30 days); for none, give 0.
+MAX_TIMEOUT = 30 * 24 * 3600.0
+
 #: A worker process gets at least this long (seconds) to start and import a plugin's
 #: module before its first call's own time limit begins.
 WORKER_STARTUP_SECONDS = 60.0
@@ -87,8 +90,8 @@ def seconds_setting(name: str, default: float) -> float | None:
         value = float(raw) if raw else float(default)
     except ValueError:
         raise ConfigError(f"{name}={raw!r} is not a number of seconds; use e.g. {name}=600 (0 for no limit)") from None
-    if not value >= 0 or value == float("inf"):
-        raise ConfigError(f"{name}={raw!r}: a time limit is a finite number of seconds >= 0 (0 for no limit)")
+    if not 0 <= value <= MAX_TIMEOUT:
+        raise ConfigError(f"{name}={raw!r}: a time limit is a number of seconds from 0 (no limit) to {MAX_TIMEOUT:g} (30 days)")
     return value or None
 
 
@@ -98,6 +101,6 @@ def check_timeout(value, what: str = "timeout") -> float | None:
 
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0 or value == float("inf"):
-        raise ConfigError(f"{what} must be a finite number of seconds >= 0 (0 or None for no limit), got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= MAX_TIMEOUT:
+        raise ConfigError(f"{what} must be a number of seconds from 0 to {MAX_TIMEOUT:g} (30 days; 0 or None for no limit), got {value!r}")
     return float(value) or None

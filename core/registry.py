@@ -30,7 +30,7 @@ from typing import Any
 import pluggy
 
 from . import config
-from ._deadline import deadline
+from ._deadline import DeadlineExpired, deadline
 from .errors import ConfigError, DuplicatePluginError, PluginError, PluginLoadError, PluginTimeoutError, UnknownNameError
 from .hookspecs import PROJECT, FaceRetargetSpec, Metric, Reader, Writer
 from .retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS, Capabilities, Retargeter
@@ -190,27 +190,38 @@ class Registry:
                 if allow and ep.name not in allow and info.distribution not in allow:
                     continue
                 try:
-                    with deadline(limit, lambda: _too_slow(info, limit, "importing")):
+                    with deadline(limit):
                         module = ep.load()
+                except DeadlineExpired:
+                    self._fail(info, _too_slow(info, limit, "importing"), fatal=False)
+                    continue
                 except BaseException as exc:  # a plugin may even call sys.exit on import
                     if isinstance(exc, KeyboardInterrupt):
                         raise
                     info.error = f"failed to import {ep.value!r}: {type(exc).__name__}: {exc}"
                     self.failures.append(info)
                     continue
+                before = self._snapshot()
                 try:
-                    with deadline(limit, lambda: _too_slow(info, limit, "calling its registration hooks")):
+                    with deadline(limit):
                         self._register(module, info, fatal=False)
-                except PluginTimeoutError as exc:  # interrupted outside a hook call
+                except DeadlineExpired:  # roll back whatever it had registered
+                    self._restore(before)
                     if self.pm.is_registered(module):
                         self.pm.unregister(module)
-                    if info in self.plugins:
-                        self.plugins.remove(info)
-                    self._fail(info, str(exc), fatal=False)
+                    self._fail(info, _too_slow(info, limit, "calling its registration hooks"), fatal=False)
         for name, module in extra or []:
             self._register(module, PluginInfo(name, "local", "-", builtin=False), fatal=False)
         self._check_catalogue()
         return self
+
+    def _snapshot(self) -> tuple:
+        return (dict(self.retargeters), dict(self.aliases), len(self.readers), len(self.writers), dict(self.metrics), len(self.plugins), len(self.failures))
+
+    def _restore(self, snapshot: tuple) -> None:
+        retargeters, aliases, n_readers, n_writers, metrics, n_plugins, n_failures = snapshot
+        self.retargeters, self.aliases, self.metrics = retargeters, aliases, metrics
+        del self.readers[n_readers:], self.writers[n_writers:], self.plugins[n_plugins:], self.failures[n_failures:]
 
     def _register(self, module: Any, info: PluginInfo, *, fatal: bool) -> None:
         try:
@@ -357,9 +368,9 @@ def reload() -> Registry:
     return registry()
 
 
-def _too_slow(info: PluginInfo, seconds: float, doing: str) -> PluginTimeoutError:
-    return PluginTimeoutError(
-        f"plugin {info.name!r} ({info.origin}) took longer than {seconds:g} s {doing}; "
+def _too_slow(info: PluginInfo, seconds: float, doing: str) -> str:
+    return (
+        f"{PluginTimeoutError.__name__}: plugin {info.name!r} ({info.origin}) took longer than {seconds:g} s {doing}; "
         f"it was skipped (raise {config.ENV_IMPORT_TIMEOUT} to allow more time)"
     )
 

@@ -331,13 +331,11 @@ def _job_timeout(job: Job, default: float | None) -> float | None:
 
 
 def _failed_run(job: Job, outcome) -> JobResult:
-    """The result of a job whose worker was stopped (time limit) or died; no output is left."""
-    from ..errors import PluginError, PluginTimeoutError
-
+    """The result of a job whose worker failed it (time limit, crash, task not movable)."""
     _remove_stale_temporaries(Path(job.out))
-    error_type = PluginTimeoutError if outcome.status == "timeout" else PluginError
+    error = outcome.error()
     where = f"{job.method} [{job.origin}]: " if job.origin else f"{job.method}: "
-    return JobResult(job.name, "failed", job.out, outcome.seconds, f"{where}{error_type.__name__}: {outcome.message}; nothing was written", job.method)
+    return JobResult(job.name, "failed", job.out, outcome.seconds, f"{where}{type(error).__name__}: {error}; no partial output is left", job.method)
 
 
 def _supervised(jobs: list[Job], workers: int, timeout: float | None, on_result: Callable[[JobResult], None]) -> None:
@@ -402,14 +400,15 @@ def _run_dask(jobs: list[Job], workers: int, scheduler: str | None, processes: b
         futures = {}
         for i, job in enumerate(jobs):
             limit = _job_timeout(job, timeout)
-            call = (run_job, job) if limit is None else (run_job_supervised, job, limit)
+            call = (run_job, job) if limit is None else (run_job_supervised, _portable([job])[0], limit)
             futures[client.submit(*call, key=f"faceretarget-job-{i}-{token}", pure=False)] = job
         for future in as_completed(list(futures)):
             job = futures[future]
             try:
                 result = future.result()
             except Exception as exc:  # e.g. KilledWorker
-                result = JobResult(job.name, "failed", job.out, 0.0, f"dask worker failed: {type(exc).__name__}: {exc}", job.method)
+                where = f"{job.method} [{job.origin}]" if job.origin else job.method
+                result = JobResult(job.name, "failed", job.out, 0.0, f"{where}: the Dask worker failed: {type(exc).__name__}: {exc}", job.method)
             results.append(result)
             bar.update()
             bar.set_postfix_str(f"{result.name}: {result.status}")

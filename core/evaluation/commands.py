@@ -182,10 +182,11 @@ def run_demo(args) -> int:
     from .report import write_report
 
     start = time.perf_counter()
+    timeout = _timeout(args.timeout)  # checked before the folder is made
     folder = _new_folder(args.out, "faceretarget-demo")
     print(f"faceretarget demo: writing into {folder}", file=sys.stderr)
     result = compare(
-        demo_cases(args.frames), methods=args.methods, progress=not args.quiet, n_jobs=_jobs(args.jobs, 2), timeout=_timeout(args.timeout)
+        demo_cases(args.frames), methods=args.methods, progress=not args.quiet, n_jobs=_jobs(args.jobs, 2), timeout=timeout
     )
     if not args.no_presets:
         run_presets(result)

@@ -531,9 +531,19 @@ def _light_extras(extras: Mapping) -> dict:
     return kept
 
 
-def _run_item(method: _Method, params: dict, cname: str, ref) -> Run:
+class _CaseByName:
+    """A case sent to a worker by name: unpickling it there builds (or reuses) the case,
+    so the building happens while the task loads, before the run's clock starts."""
+
+    def __init__(self, spec: str):
+        self.spec = spec
+
+    def __reduce__(self):
+        return (cached_case, (self.spec,))
+
+
+def _run_item(method: _Method, params: dict, cname: str, case) -> Run:
     """Worker side of an isolated compare: one method on one case (heavy extras dropped)."""
-    case = cached_case(ref) if isinstance(ref, str) else ref
     run = _run_one(case, cname, method, params)
     if run.animation is not None and run.animation.extras:
         run.animation = run.animation.replace(extras=_light_extras(run.animation.extras))
@@ -569,15 +579,15 @@ def _isolated(refs: dict, chosen: list[_Method], per_method: dict, n_jobs: int, 
     compiles them once; a run that overruns or kills its worker is recorded as an error
     naming the plugin and its distribution, and the group goes on in a fresh worker.
     """
-    from ..errors import PluginError, PluginTimeoutError
-    from ._workers import DONE, TIMEOUT, Task, run_supervised
+    from ._workers import DONE, Task, run_supervised
 
     by_name = {m.name: m for m in chosen}
     groups: dict[str, list[Task]] = {}
     for m in chosen:
         tasks = groups.setdefault(m.cls.__module__, [])
         for cname, ref in refs.items():
-            tasks.append(Task((cname, m.name), _run_item, (m, per_method[m.name], cname, ref), timeout))
+            case = _CaseByName(ref) if isinstance(ref, str) else ref
+            tasks.append(Task((cname, m.name), _run_item, (m, per_method[m.name], cname, case), timeout))
 
     def on_outcome(outcome) -> None:
         cname, name = outcome.key
@@ -586,9 +596,7 @@ def _isolated(refs: dict, chosen: list[_Method], per_method: dict, n_jobs: int, 
             return
         m = by_name[name]
         run = Run(cname, name, ERROR, plugin=m.plugin, distribution=m.distribution, version=m.version)
-        error_type = PluginTimeoutError if outcome.status == TIMEOUT else PluginError
-        stage = "run" if outcome.started else "worker start-up"
-        _failed(run, error_type(outcome.message), m, stage)
+        _failed(run, outcome.error(), m, "run" if outcome.started else "hand-over to a worker")
         if isinstance(outcome.value, str):
             run.error["traceback"] = outcome.value
         on_run(run)
@@ -684,7 +692,7 @@ def compare(
         bar.update()
 
     if timeout is not None or (n_jobs > 1 and len(chosen) > 1):
-        _isolated(refs, chosen, per_method, min(n_jobs, len(chosen)), timeout, on_run)
+        _isolated(refs, chosen, per_method, max(1, min(n_jobs, len(chosen))), timeout, on_run)
     else:
         for cname, case in resolved.items():
             for method in chosen:

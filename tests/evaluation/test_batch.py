@@ -46,7 +46,7 @@ def many_jobs(folder: Path, count: int, delay: float) -> Path:
         (f'[[job]]\nshot = "case:nope"\nmethod = "fake_transfer"\nout = "o.fnpz"', UnknownNameError, "no case named"),
         ('[[job]\nshot = ', ConfigError, "not valid TOML"),
         ("[defaults]\nmethod = 'x'\n", ConfigError, "no \\[\\[job\\]\\] entries"),
-        (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\ntimeout = -5', ConfigError, "job #1: timeout must be a finite number of seconds"),
+        (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\ntimeout = -5', ConfigError, "job #1: timeout must be a number of seconds from 0 to"),
         (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\ntimeout = "soon"', ConfigError, "timeout must be"),
         (f'[defaults]\ntimeout = inf\n[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"', ConfigError, "timeout must be"),
     ],

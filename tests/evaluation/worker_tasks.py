@@ -48,3 +48,36 @@ class Unloadable:
 
     def __reduce__(self):
         return (_refuse_to_load, ())
+
+
+class LoadsOnlyInWorkers:
+    """Pickles in the worker, fails to unpickle in the supervising process."""
+
+    def __reduce__(self):
+        return (_refuse_to_load, ())
+
+
+def result_that_does_not_load():
+    return LoadsOnlyInWorkers()
+
+
+def fork_helper_then_die(pid_file):
+    """Start a helper process (as a library might), then die: the helper keeps the
+    worker's connection open, so only the process sentinel shows the death."""
+    child = os.fork()
+    if child == 0:
+        time.sleep(60)
+        os._exit(0)
+    with open(pid_file, "w") as f:
+        f.write(str(child))
+    os._exit(4)
+
+
+def nbytes(array):
+    return int(array.nbytes)
+
+
+def worker_pid_then_spin(pid_file):
+    with open(pid_file, "w") as f:
+        f.write(str(os.getpid()))
+    spin()
