@@ -10,7 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import IndexRangeError, InputError, NonFiniteError, ShapeError
+from .errors import ConfigError, IndexRangeError, InputError, NonFiniteError, ShapeError
 
 
 def readonly(array: np.ndarray) -> np.ndarray:
@@ -146,8 +146,12 @@ def as_fps(value, name: str = "fps") -> float:
     return fps
 
 
-def _short(value, limit: int = 60) -> str:
-    text = repr(value)
+def short_repr(value, limit: int = 60) -> str:
+    """``repr(value)`` cut to ``limit`` characters, for error messages (never raises)."""
+    try:
+        text = repr(value)
+    except Exception:  # a repr that fails must not hide the real error
+        text = f"<{type(value).__name__}>"
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
@@ -156,17 +160,22 @@ def _fmt(shape: Sequence[int | None]) -> str:
 
 
 def check_number(value, name: str, *, integer: bool = False, low: float | None = None, high: float | None = None,
-                 open_low: bool = False, allow_none: bool = False):
+                 open_low: bool = False, allow_none: bool = False, choices: Sequence[str] = ()):
     """A numeric parameter (of a retargeter, reader...) checked for type, finiteness and range.
 
-    Returns the value as ``int`` or ``float`` (None passes when ``allow_none``); raises
-    :class:`InputError` naming ``name``, the valid range and the value given.
+    Returns the value as ``int`` or ``float`` (None passes when ``allow_none``, and one of the
+    strings ``choices`` is returned as is, for parameters such as ``"auto"`` or a number);
+    raises :class:`InputError` naming ``name``, the valid values and the value given.
     """
     if value is None and allow_none:
         return None
+    if isinstance(value, str) and value in choices:
+        return value
     want = "a whole number" if integer else "a finite number"
+    if choices:
+        want = f"{', '.join(map(repr, choices))} or {want}"
     limits = ([f"{'>' if open_low else '>='} {low}"] if low is not None else []) + ([f"<= {high}"] if high is not None else [])
-    message = f"{name}: expected {want}{' ' + ' and '.join(limits) if limits else ''}, got {_short(value)}"
+    message = f"{name}: expected {want}{' ' + ' and '.join(limits) if limits else ''}, got {short_repr(value)}"
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise InputError(message)
     try:
@@ -184,5 +193,28 @@ def check_number(value, name: str, *, integer: bool = False, low: float | None =
 def check_choice(value, name: str, choices: Sequence[str]) -> str:
     """A string parameter that must be one of ``choices`` (InputError listing them otherwise)."""
     if not isinstance(value, str) or value not in choices:
-        raise InputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {_short(value)}")
+        raise InputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {short_repr(value)}")
     return value
+
+
+def check_bool(value, name: str) -> bool:
+    """A flag parameter: ``True``/``False`` (also ``np.bool_`` and the integers 0 and 1).
+
+    Anything else (an array, a string, None...) is an :class:`InputError` naming ``name``;
+    truthiness is never used, so ``"no"`` or an array cannot pass as a flag.
+    """
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)) and value in (0, 1):
+        return bool(value)
+    raise InputError(f"{name}: expected True or False, got {short_repr(value)}")
+
+
+def check_param(check, value, name: str, *args, **kwargs):
+    """``check(value, name, ...)`` (:func:`check_number`, :func:`check_choice`, :func:`check_bool`)
+    for a retargeter's constructor parameter: a bad value is a :class:`ConfigError` naming
+    the parameter, the valid values and the value given."""
+    try:
+        return check(value, name, *args, **kwargs)
+    except InputError as exc:
+        raise ConfigError(str(exc)) from None

@@ -41,7 +41,6 @@ from ..errors import (
     CapabilityError,
     ConfigError,
     FaceRetargetError,
-    OutputError,
     PluginOutputError,
     UnknownNameError,
 )

@@ -15,30 +15,38 @@ from typing import ClassVar, Iterator
 
 import numpy as np
 
-from faceretarget.errors import ConfigError, InputError, OutputError, ShapeError, TopologyMismatchError
+from faceretarget._validate import check_bool, check_choice, check_number, check_param
+from faceretarget.errors import InputError, OutputError, TopologyMismatchError
 from faceretarget.geometry.deformation_gradients import DeformationTransfer, check_triangles, gradient_columns, reference_inverse
 from faceretarget.model import Animation, MeshSequence, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
 
 from .alignment import RigidFit, frame_chunks, stable_vertices, to_local, to_world
-from .topology import common_topology, describe, same_topology
+from .topology import common_topology, describe
 
 __all__ = ["CoatingRetargeter", "DeformationTransferRetargeter"]
+
+#: Bounds of the numeric parameters, far beyond any useful value: they keep the solves
+#: finite (squared weights) and the run time bounded.
+MAX_ITERATIONS = 10_000
+MAX_WEIGHT = 1e8
+#: The coating's reconstruction error grows as 1 / screening below about 1e-3 (the Poisson
+#: system tends to the singular L): 1e-4 gives ~10x the default's error, 1e-8 ~10 face heights.
+SCREENING_RANGE = (1e-4, 1e6)
+MAX_DETAIL_SCALE = 1e3
+LAPLACIANS = ("uniform", "cotangent")
 
 
 class _MeshTransfer(Retargeter):
     """Shared plumbing: parameter checks, topology, head motion, chunked output."""
 
-    def _check_positive(self, **values) -> None:
-        for k, v in values.items():
-            if not (isinstance(v, (int, float, np.integer, np.floating)) and np.isfinite(v) and v > 0):
-                raise ConfigError(f"{self.name}: parameter {k} must be a positive number, got {v!r}")
+    def _check_shared(self) -> None:
+        """The parameters both methods have: ``stable_fraction`` in (0, 1], ``chunk_frames`` >= 1."""
+        check_param(check_number, self.stable_fraction, f"{self.name}.stable_fraction", low=0, high=1, open_low=True)
+        check_param(check_number, self.chunk_frames, f"{self.name}.chunk_frames", integer=True, low=1)
 
     def _prepare(self, source: Source, target: TargetRig):
         """Common topology and the stable vertices of the fit source (one pass over its frames)."""
-        self._check_positive(chunk_frames=self.chunk_frames, stable_fraction=self.stable_fraction)
-        if self.stable_fraction > 1:
-            raise ConfigError(f"{self.name}: stable_fraction must be in (0, 1], got {self.stable_fraction!r}")
         perf = source.performance
         check_triangles(perf.reference.vertices, perf.triangles, f"{self.name} (source reference)")
         check_triangles(target.neutral.vertices, target.neutral.triangles, f"{self.name} (target neutral)")
@@ -174,18 +182,37 @@ class CoatingRetargeter(_MeshTransfer):
         self.lambda_boundary = lambda_boundary
 
     # -- fit -------------------------------------------------------------------------------
+    def _check_params(self) -> None:
+        """Every constructor parameter (the edit weights too, so a bad one fails at fit, not at
+        the first edit): a :class:`ConfigError` naming it, its valid range and the value."""
+        self._check_shared()
+        check_param(check_number, self.iterations, "coating.iterations", integer=True, low=0, high=MAX_ITERATIONS)
+        check_param(check_number, self.epsilon, "coating.epsilon", low=0, open_low=True)
+        check_param(check_number, self.max_bases, "coating.max_bases", integer=True, low=1)
+        check_param(check_number, self.max_selection_frames, "coating.max_selection_frames", integer=True, low=1)
+        check_param(check_number, self.sigma, "coating.sigma", low=0, open_low=True, high=MAX_WEIGHT)
+        check_param(check_choice, self.laplacian, "coating.laplacian", LAPLACIANS)
+        check_param(check_number, self.screening, "coating.screening", low=SCREENING_RANGE[0], high=SCREENING_RANGE[1])
+        check_param(check_number, self.detail_scale, "coating.detail_scale", low=0, open_low=True, high=MAX_DETAIL_SCALE, choices=("auto",))
+        check_param(check_bool, self.cache_details, "coating.cache_details")
+        self._edit_weights(self.lambda_b, self.lambda_w, self.lambda_c)
+        check_param(check_number, self.detail_threshold, "coating.detail_threshold", low=0, high=1)
+        check_param(check_number, self.lambda_key, "coating.lambda_key", low=0, open_low=True, high=MAX_WEIGHT)
+        check_param(check_number, self.lambda_gradient, "coating.lambda_gradient", low=0, open_low=True, high=MAX_WEIGHT)
+        check_param(check_number, self.lambda_boundary, "coating.lambda_boundary", low=0, high=MAX_WEIGHT)
+
+    @staticmethod
+    def _edit_weights(lambda_b, lambda_w, lambda_c) -> tuple[float, float, float]:
+        """The large-scale edit's term weights, each a finite number in (0, MAX_WEIGHT]."""
+        return tuple(
+            check_param(check_number, value, f"coating.{name}", low=0, open_low=True, high=MAX_WEIGHT)
+            for name, value in (("lambda_b", lambda_b), ("lambda_w", lambda_w), ("lambda_c", lambda_c))
+        )
+
     def _fit(self, source: Source, target: TargetRig) -> None:
         from .model import CoatingModel
 
-        if not (isinstance(self.iterations, (int, np.integer)) and self.iterations >= 0):
-            raise ConfigError(f"coating: iterations must be a non-negative integer, got {self.iterations!r}")
-        for key in ("max_bases", "max_selection_frames"):
-            value = getattr(self, key)
-            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 1):
-                raise ConfigError(f"coating: {key} must be a positive integer, got {value!r}")
-        self._check_positive(epsilon=self.epsilon, sigma=self.sigma, screening=self.screening)
-        if self.detail_scale != "auto":
-            self._check_positive(detail_scale=self.detail_scale)
+        self._check_params()
         missing = sorted(set(target.feature_lines) - set(source.feature_lines))
         if missing:
             raise TopologyMismatchError(
@@ -207,7 +234,7 @@ class CoatingRetargeter(_MeshTransfer):
             laplacian=self.laplacian,
             screening=float(self.screening),
             sigma=float(self.sigma),
-            detail_scale=self.detail_scale,
+            detail_scale=self.detail_scale if isinstance(self.detail_scale, str) else float(self.detail_scale),
         )
         setup = time.perf_counter() - start
         start = time.perf_counter()
@@ -356,7 +383,7 @@ class CoatingRetargeter(_MeshTransfer):
         curve at a key frame, scale / remove / copy-paste them or deform them to a drawn
         curve, and propagate the change through the detail's active frame range.
         """
-        from .editing import apply_large_scale
+        from .editing import _MODES, apply_large_scale
         from .details import DetailEdit, apply_detail_edit
 
         self._check_fitted()
@@ -372,7 +399,8 @@ class CoatingRetargeter(_MeshTransfer):
             spec = detail if isinstance(detail, DetailEdit) else DetailEdit(**dict(detail))
             new_track, changed, diagnostics = apply_detail_edit(self, track, animation, spec)
         else:
-            lambdas = (
+            mode = check_param(check_choice, mode, "coating.edit: mode", _MODES)
+            lambdas = self._edit_weights(
                 self.lambda_b if lambda_b is None else lambda_b,
                 self.lambda_w if lambda_w is None else lambda_w,
                 self.lambda_c if lambda_c is None else lambda_c,
@@ -412,6 +440,7 @@ class DeformationTransferRetargeter(_MeshTransfer):
     def _fit(self, source: Source, target: TargetRig) -> None:
         from .model import size_ratio
 
+        self._check_shared()
         topo, stable = self._prepare(source, target)
         start = time.perf_counter()
         self.transfer_ = DeformationTransfer(topo.target_reference, self.source_triangles_, gauge_weights=stable)

@@ -13,7 +13,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from faceretarget._validate import check_choice, check_number
+from faceretarget._validate import check_bool, check_choice, check_number, check_param, short_repr
 from faceretarget.errors import CapabilityError, ConfigError, InputError, ShapeError, TopologyMismatchError
 from faceretarget.model import Animation, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
@@ -33,24 +33,18 @@ MAX_ITER = 10_000
 
 def _number(value, name: str, **limits):
     """``check_number`` with the plugin's error type (ConfigError, message naming ``name``)."""
-    try:
-        return check_number(value, name, **limits)
-    except InputError as exc:
-        raise ConfigError(str(exc)) from None
+    return check_param(check_number, value, name, **limits)
 
 
 def _choice(value, name: str, choices) -> str:
-    try:
-        return check_choice(value, name, choices)
-    except InputError as exc:
-        raise ConfigError(str(exc)) from None
+    return check_param(check_choice, value, name, choices)
 
 
 def _name_or_index(value, name: str, what: str):
     """None, a name (str) or a whole-number index (range checked later, against the model)."""
     if value is None or isinstance(value, str):
         return value
-    message = f"{name}: expected None, the name of a {what} or its 0-based index (a whole number), got {_short(value)}"
+    message = f"{name}: expected None, the name of a {what} or its 0-based index (a whole number), got {short_repr(value)}"
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise ConfigError(message)
     try:
@@ -63,7 +57,7 @@ def _lip_markers(value):
     if value is None:
         return None
     message = ("lip_markers: expected None or a pair (upper, lower) of marker/track names or 3D marker indices, "
-               f"got {_short(value)}")
+               f"got {short_repr(value)}")
     if not isinstance(value, (list, tuple, np.ndarray)) or (isinstance(value, np.ndarray) and value.ndim != 1):
         raise ConfigError(message)
     items = list(value)
@@ -81,16 +75,7 @@ def _lip_markers(value):
 
 
 def _flag(value, name: str) -> bool:
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)) and value in (0, 1):
-        return bool(value)
-    raise ConfigError(f"{name}: expected True or False, got {_short(value)}")
-
-
-def _short(value, limit: int = 60) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+    return check_param(check_bool, value, name)
 
 
 class LayersRetargeter(Retargeter):
@@ -155,7 +140,7 @@ class LayersRetargeter(Retargeter):
         """Every constructor parameter, checked (ConfigError naming it and the valid values)."""
         speech = self.speech_layer
         if not isinstance(speech, str):
-            raise ConfigError(f"speech_layer: expected the name (str) of the layer holding the visemes, got {_short(speech)}")
+            raise ConfigError(f"speech_layer: expected the name (str) of the layer holding the visemes, got {short_repr(speech)}")
         return dict(
             smoothing=_number(self.smoothing, "smoothing", low=0, high=MAX_SMOOTHING),
             lip_sigma=_number(self.lip_sigma, "lip_sigma", low=0, high=MAX_LIP_SIGMA),
@@ -172,7 +157,7 @@ class LayersRetargeter(Retargeter):
         )
 
     def _gamma_max(self) -> float:
-        message = f"gamma_max: expected a finite number >= 0 and < 1, got {_short(self.gamma_max)}"
+        message = f"gamma_max: expected a finite number >= 0 and < 1, got {short_repr(self.gamma_max)}"
         try:
             value = check_number(self.gamma_max, "gamma_max", low=0, high=1)
         except InputError:

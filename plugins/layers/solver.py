@@ -44,10 +44,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from faceretarget._validate import check_number
+from faceretarget._validate import check_number, check_param
 from faceretarget.errors import (
     ConfigError,
-    InputError,
     DegenerateGeometryError,
     IndexRangeError,
     NonFiniteError,
@@ -89,10 +88,7 @@ class LipBias:
 
 def _config_number(value, name: str, **limits):
     """``check_number`` raising :class:`ConfigError` (a bad parameter, named in the message)."""
-    try:
-        return check_number(value, name, **limits)
-    except InputError as exc:
-        raise ConfigError(str(exc)) from None
+    return check_param(check_number, value, name, **limits)
 
 
 def _index(value, name: str) -> int:

@@ -28,6 +28,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from faceretarget._validate import as_array, check_choice, check_number
 from faceretarget.errors import InputError, ShapeError, TopologyMismatchError
 from faceretarget.geometry.procrustes import fit_rigid, to_matrix
 from faceretarget.geometry.raycast import RayCaster
@@ -56,6 +57,16 @@ HEAD_REWEIGHTS = 2
 HEAD_VERTICES = 2000
 #: Frames per chunk of the retargeting loop (each chunk starts its walks from the neutral).
 CHUNK_FRAMES = 32
+#: Upper bounds of the numeric parameters, far beyond any useful value (they keep the RBF
+#: solve and the offsets finite).
+MAX_RBF_C = 1e6
+MAX_RBF_SMOOTHING = 1e6
+MAX_OFFSET = 1e3
+MAX_DETAIL_SCALE = 1e3
+DETAIL_SCALES = ("area", "length")
+HEAD_MOTIONS = ("auto", "estimate", "none")
+BOUNDARY_MOTIONS = ("transfer", "initial")
+BACKENDS = ("auto", "embree", "bvh")
 
 PARAMETER_DOCS = {
     "levels": "normal-mesh levels above the base mesh (paper: 4-5); each level has 4x the triangles",
@@ -121,29 +132,17 @@ class NormalMeshRetargeter(Retargeter):
     # fit
     # ------------------------------------------------------------------------------
     def _check_params(self) -> None:
-        def bad(name, want):
-            raise InputError(f"normalmesh: parameter {name}={getattr(self, name)!r} is invalid; expected {want}")
-
-        if not isinstance(self.levels, (int, np.integer)) or not 0 <= self.levels <= MAX_LEVELS:
-            bad("levels", f"an integer 0..{MAX_LEVELS}")
-        if not isinstance(self.detail_levels, (int, np.integer)) or self.detail_levels < -1:
-            bad("detail_levels", "an integer >= 0, or -1 for all levels")
-        for name, low in (("rbf_c", 0.0), ("max_offset", 0.0), ("rbf_smoothing", None)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)) or not np.isfinite(value) or value < 0 or value == low:
-                bad(name, "a finite number > 0" if low is not None else "a finite number >= 0")
-        ds = self.detail_scale
-        if isinstance(ds, str):
-            if ds not in ("area", "length"):
-                bad("detail_scale", "'area', 'length' or a number >= 0")
-        elif isinstance(ds, bool) or not isinstance(ds, (int, float, np.number)) or not np.isfinite(ds) or ds < 0:
-            bad("detail_scale", "'area', 'length' or a number >= 0")
-        if self.head_motion not in ("auto", "estimate", "none"):
-            bad("head_motion", "'auto', 'estimate' or 'none'")
-        if self.boundary_motion not in ("transfer", "initial"):
-            bad("boundary_motion", "'transfer' or 'initial'")
-        if self.backend not in ("auto", "embree", "bvh"):
-            bad("backend", "'auto', 'embree' or 'bvh'")
+        """Every constructor parameter: an :class:`InputError` naming it, its valid values and the
+        value given. (The feature points and base triangles are checked where they are read.)"""
+        check_number(self.levels, "normalmesh.levels", integer=True, low=0, high=MAX_LEVELS)
+        check_number(self.detail_levels, "normalmesh.detail_levels (-1 = all levels)", integer=True, low=-1)
+        check_number(self.rbf_c, "normalmesh.rbf_c", low=0, open_low=True, high=MAX_RBF_C)
+        check_number(self.rbf_smoothing, "normalmesh.rbf_smoothing", low=0, high=MAX_RBF_SMOOTHING)
+        check_number(self.max_offset, "normalmesh.max_offset", low=0, open_low=True, high=MAX_OFFSET)
+        check_number(self.detail_scale, "normalmesh.detail_scale", low=0, high=MAX_DETAIL_SCALE, choices=DETAIL_SCALES)
+        check_choice(self.head_motion, "normalmesh.head_motion", HEAD_MOTIONS)
+        check_choice(self.boundary_motion, "normalmesh.boundary_motion", BOUNDARY_MOTIONS)
+        check_choice(self.backend, "normalmesh.backend", BACKENDS)
 
     def _feature_points(self, source: Source, target: TargetRig) -> tuple[Landmarks, Landmarks]:
         src = self.source_feature_points if self.source_feature_points is not None else source.landmarks
@@ -200,7 +199,7 @@ class NormalMeshRetargeter(Retargeter):
         if self.base_triangles is None:
             base_tri = bm.automatic_base_triangles(src_pts, src_v, src_mesh.vertex_normals, src_caster, tgt_pts, tgt_caster, src_nrm, tgt_nrm, src_lm.names)
         else:
-            base_tri = bm.as_base_triangles(self.base_triangles, len(src_lm))
+            base_tri = bm.as_base_triangles(as_array(self.base_triangles, "normalmesh.base_triangles"), len(src_lm))
         bm.check_base_triangles(base_tri, src_pts, src_nrm, "source", src_lm.names)
         bm.check_base_triangles(base_tri, tgt_pts, tgt_nrm, "target", tgt_lm.names)
         hierarchy = make_hierarchy(base_tri, len(src_lm), int(self.levels))

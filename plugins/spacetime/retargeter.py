@@ -29,7 +29,7 @@ from faceretarget.errors import (
     TopologyMismatchError,
     UnknownNameError,
 )
-from faceretarget._validate import as_array, check_choice, check_number
+from faceretarget._validate import as_array, check_bool, check_choice, check_number, check_param, short_repr
 from faceretarget.model import Animation, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
 
@@ -222,7 +222,7 @@ class SpacetimeRetargeter(Retargeter):
             if self.boundary not in BOUNDARIES:
                 raise ConfigError(
                     f"spacetime: boundary: expected one of {', '.join(map(repr, BOUNDARIES))} or a (2, M) array of weights "
-                    f"[first, last], got {_short(self.boundary)}"
+                    f"[first, last], got {short_repr(self.boundary)}"
                 )
             if self.boundary == "none" and mode == "movement" and beta == 0:
                 raise ConfigError(
@@ -253,7 +253,7 @@ class SpacetimeRetargeter(Retargeter):
             chosen = [] if self.prior_animations is not None else range(rig.n_shapes)
         elif isinstance(chosen, (str, bytes, Mapping)) or not _iterable(chosen):
             raise ConfigError(
-                f"spacetime: prior_shapes: expected None or a sequence of blendshape names or indices, got {_short(chosen)}"
+                f"spacetime: prior_shapes: expected None or a sequence of blendshape names or indices, got {short_repr(chosen)}"
             )
         index = np.array([self._shape_index(rig, c) for c in chosen], dtype=np.intp)
         samples = [neutral.ravel()[None] + basis.T[index]]
@@ -287,7 +287,7 @@ class SpacetimeRetargeter(Retargeter):
             return int(key) % rig.n_shapes
         if not isinstance(key, str):
             raise ConfigError(
-                f"spacetime: prior_shapes: entries must be blendshape names (str) or indices (int), got {_short(key)}"
+                f"spacetime: prior_shapes: entries must be blendshape names (str) or indices (int), got {short_repr(key)}"
             )
         try:
             return rig.index(key)
@@ -542,20 +542,12 @@ def _frame_index(frame, n_frames: int, what: str = "frame") -> int:
         f = int(frame)
         whole = bool(f == frame)
     except (TypeError, ValueError, OverflowError):
-        raise IndexRangeError(f"spacetime: {what} {_short(frame)} is not an integer frame index") from None
+        raise IndexRangeError(f"spacetime: {what} {short_repr(frame)} is not an integer frame index") from None
     if not whole or not -n_frames <= f < n_frames:
         raise IndexRangeError(
-            f"spacetime: {what} {_short(frame)} out of range for {n_frames} frames (valid {-n_frames}..{n_frames - 1})"
+            f"spacetime: {what} {short_repr(frame)} out of range for {n_frames} frames (valid {-n_frames}..{n_frames - 1})"
         )
     return f % n_frames
-
-
-def _short(value, limit: int = 60) -> str:
-    try:
-        text = repr(value)
-    except Exception:  # a repr that fails must not hide the real error
-        text = f"<{type(value).__name__}>"
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _config(check, value, name: str, *args, **kwargs):
@@ -569,11 +561,7 @@ def _config(check, value, name: str, *args, **kwargs):
 
 def _flag(value, name: str) -> bool:
     """A boolean parameter (True/False, or the integers 0/1)."""
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)) and value in (0, 1):
-        return bool(value)
-    raise ConfigError(f"spacetime: {name}: expected True or False, got {_short(value)}")
+    return check_param(check_bool, value, f"spacetime: {name}")
 
 
 def _iterable(value) -> bool:
@@ -595,7 +583,7 @@ def _float_array(value, name: str, valid: str) -> np.ndarray:
             return arr.astype(np.float64)
         except (TypeError, ValueError, OverflowError):
             pass
-    raise ShapeError(f"spacetime: {name}: expected {valid}, got {_short(value)}")
+    raise ShapeError(f"spacetime: {name}: expected {valid}, got {short_repr(value)}")
 
 
 def _with_defaults(base: type, name: str, summary: str, capabilities: Capabilities, **defaults) -> type:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 import faceretarget as fr
-from faceretarget.errors import DegenerateGeometryError, ShapeError
+from faceretarget.errors import DegenerateGeometryError, InputError, ShapeError
 from faceretarget.geometry import procrustes
 from faceretarget.geometry.rbf import fit_rbf
 
@@ -38,6 +38,9 @@ class DisplacementRetargeter(fr.Retargeter):
         self.head_motion = head_motion
 
     def _fit(self, source, target):
+        # parameters are checked here, not in __init__ (the estimator contract)
+        self.jacobian_ = _flag(self.jacobian, "jacobian")
+        self.head_motion_ = _flag(self.head_motion, "head_motion")
         src = np.asarray(source.marker_reference(), dtype=np.float64)
         tgt = target.landmarks.positions(target.neutral.vertices, target.neutral.triangles)
         if src.shape != tgt.shape:
@@ -45,7 +48,7 @@ class DisplacementRetargeter(fr.Retargeter):
         if len(src) < 4:
             raise DegenerateGeometryError("displacement: at least 4 landmarks are needed for the RBF warp")
         warp = fit_rbf(src, tgt, kernel="linear")
-        self.jacobians_ = _jacobians(warp, src) if self.jacobian else np.repeat(np.eye(3)[None], len(src), axis=0)
+        self.jacobians_ = _jacobians(warp, src) if self.jacobian_ else np.repeat(np.eye(3)[None], len(src), axis=0)
         self.source_reference_ = src
         self.interpolation_ = _interpolation_matrix(tgt, np.asarray(target.neutral.vertices))
         self.target_neutral_ = np.array(target.neutral.vertices)
@@ -56,7 +59,7 @@ class DisplacementRetargeter(fr.Retargeter):
         if markers.shape[1] != len(self.source_reference_):
             raise ShapeError(f"displacement: fitted for {len(self.source_reference_)} landmarks, got {markers.shape[1]}")
         motion = None
-        if self.head_motion:
+        if self.head_motion_:
             if source.head_motion is not None:
                 motion = np.asarray(source.head_motion)
             else:
@@ -71,6 +74,15 @@ class DisplacementRetargeter(fr.Retargeter):
         if motion is not None:
             vertices = procrustes.apply(motion, vertices)
         return fr.Animation(vertices=vertices, head_motion=motion, triangles=self.triangles_, fps=source.fps)
+
+
+def _flag(value, name: str) -> bool:
+    """A True/False parameter (numpy booleans and the integers 0/1 too). Never judged by
+    truthiness, so an array, None or the string "no" is an InputError naming the parameter."""
+    if isinstance(value, (bool, np.bool_)) or (isinstance(value, (int, np.integer)) and value in (0, 1)):
+        return bool(value)
+    text = repr(value)
+    raise InputError(f"displacement: parameter {name} must be True or False, got {text if len(text) <= 60 else text[:57] + '...'}")
 
 
 def _jacobians(warp, points: np.ndarray, step: float | None = None) -> np.ndarray:
