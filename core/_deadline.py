@@ -3,7 +3,8 @@
 :func:`deadline` arms ``SIGALRM`` so that Python code still running after ``seconds``
 is interrupted by :class:`DeadlineExpired` (a ``time.sleep``, a busy loop, a slow
 import). It derives from ``BaseException`` and is raised again every second, so plugin
-code catching ``Exception`` or ``OSError`` cannot swallow it. It works in the main
+code catching ``Exception`` or ``OSError`` cannot swallow it; a block that caught it
+anyway and finished is answered with it on exit. It works in the main
 thread of a POSIX process only; elsewhere, or when a C extension owns ``SIGALRM``, it
 does nothing. A timer and handler already in place (pytest-timeout, the user's own) are
 restored afterwards with the time they had left. Runs of methods are limited
@@ -43,10 +44,11 @@ def deadline(seconds: float | None) -> Iterator[None]:
     if not seconds or not _usable():
         yield
         return
-    state = {"armed": True}
+    state = {"armed": True, "fired": False}
 
     def expired(signum, frame):
         if state["armed"]:
+            state["fired"] = True
             raise DeadlineExpired(f"still running after {seconds:g} s")
 
     previous_handler = signal.getsignal(signal.SIGALRM)
@@ -56,6 +58,8 @@ def deadline(seconds: float | None) -> Iterator[None]:
         signal.signal(signal.SIGALRM, expired)
         previous_delay, previous_interval = signal.setitimer(signal.ITIMER_REAL, seconds, _REPEAT)
         yield
+        if state["fired"]:  # the block caught every DeadlineExpired and went on: still too slow
+            raise DeadlineExpired(f"ran past {seconds:g} s")
     finally:
         state["armed"] = False  # an alarm arriving from here on is ignored
         signal.setitimer(signal.ITIMER_REAL, 0)

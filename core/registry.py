@@ -238,7 +238,9 @@ class Registry:
             caller = self.pm.subset_hook_caller(hook, remove_plugins=others)
             try:
                 results = caller()
-            except Exception as exc:
+            except (KeyboardInterrupt, DeadlineExpired):
+                raise
+            except BaseException as exc:  # incl. SystemExit from a plugin's hook
                 self.pm.unregister(module)
                 self._fail(info, f"hook {hook} raised {type(exc).__name__}: {exc}", fatal)
                 return

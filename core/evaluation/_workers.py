@@ -3,20 +3,24 @@
 ``compare`` and ``batch`` hand their runs to :func:`run_supervised` as groups of
 :class:`Task` (the runs of one plugin module form a group, so its numba kernels compile
 once per worker). Up to ``workers`` processes each take a group and run its tasks one by
-one. A task that does not finish within its ``timeout`` has its worker killed (SIGKILL to
-the worker's whole process group: a plugin stuck in compiled code, or one that started
-helper processes, cannot be stopped any other way) and the rest of its group goes on in
-a fresh worker. A worker that dies (segfault, out of memory, ``os._exit``) is reported
-the same way. Every task ends in exactly one :class:`Outcome`.
+one; a worker moving on to another plugin's tasks is replaced first, so a failure is
+always charged to the plugin that caused it. A task that does not finish within its
+``timeout`` has its worker killed (SIGKILL to the worker's whole process group: a plugin
+stuck in compiled code, or one that started helper processes, cannot be stopped any
+other way) and the rest of its group goes on in a fresh worker. A worker that dies
+(segfault, out of memory, ``os._exit``) is reported the same way. Every task ends in
+exactly one :class:`Outcome`.
 
-Workers are ``spawn`` processes (fresh interpreters: no inherited locks or threads).
-Inside a daemonic process (a Dask worker), where ``multiprocessing`` may not start
-children, a worker is a plain ``subprocess`` talking over a private socket pair. Each
-worker leads its own process group and dies with the process that supervises it.
+A worker is a fresh interpreter (``python -c``) prepared the way ``multiprocessing``'s
+spawn prepares its children (``sys.path``, working directory, the main module as
+``__mp_main__``), talking to the supervisor over a private socket pair; unlike a
+``multiprocessing`` child it can also be started inside a daemonic process (a Dask
+worker). It leads its own process group and dies with its supervisor (Linux:
+``PR_SET_PDEATHSIG``; elsewhere a thread polls). Messages are pickled, as in
+``multiprocessing``: only between a supervisor and the workers it started, never from files.
 """
 from __future__ import annotations
 
-import multiprocessing as mp
 import os
 import signal
 import socket
@@ -27,6 +31,7 @@ import time
 import traceback
 from collections import deque
 from dataclasses import dataclass
+from multiprocessing import spawn
 from multiprocessing.connection import Connection, wait
 from multiprocessing.reduction import ForkingPickler
 from typing import Any, Callable, Hashable, Iterable, Sequence
@@ -41,9 +46,8 @@ DONE, ERROR, TIMEOUT, DIED = "done", "error", "timeout", "died"
 #: Longest wait between checks of the workers' exit status (for systems without pidfd).
 _POLL_SECONDS = 2.0
 
-#: Payloads larger than this are written by a helper thread, so a worker still starting
-#: up cannot block the supervisor (a socket buffer holds a few hundred KiB).
-_DIRECT_SEND_BYTES = 64 * 1024
+#: Exit status of a worker whose connection broke or could not be read.
+_BROKEN_CONNECTION = 75
 
 
 @dataclass(frozen=True)
@@ -52,12 +56,15 @@ class Task:
 
     key : identifies the task in its :class:`Outcome`
     timeout : seconds allowed once the worker has loaded the task (None: no limit)
+    owner : who is answerable for the task (e.g. the plugin module); a worker never
+        runs tasks of two owners
     """
 
     key: Hashable
     fn: Callable
     args: tuple = ()
     timeout: float | None = None
+    owner: Hashable = None
 
 
 @dataclass
@@ -84,49 +91,51 @@ class Outcome:
         return (PluginTimeoutError if self.status == TIMEOUT else PluginError)(self.message)
 
 
-# ---------------------------------------------------------------------------------------
-# Worker side
-# ---------------------------------------------------------------------------------------
 def _describe(exc: BaseException) -> str:
     text = " ".join(str(exc).split())
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
+# ---------------------------------------------------------------------------------------
+# Worker side
+# ---------------------------------------------------------------------------------------
 def _die_with(parent_pid: int) -> None:
-    """End this worker when its supervisor is gone (killed, crashed, shut down)."""
-    try:  # Linux: the kernel sends SIGKILL when the parent exits
+    """End this worker (and its process group) when its supervisor is gone."""
+    try:  # Linux: the kernel kills this process when the parent exits
         import ctypes
 
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
 
-    def watch() -> None:  # elsewhere (and for the instant before prctl): poll the parent
+    def stop() -> None:
+        if hasattr(os, "killpg"):
+            os.killpg(0, signal.SIGKILL)
+        os._exit(_BROKEN_CONNECTION)
+
+    def watch() -> None:  # elsewhere, and for helper processes: poll the parent
         while os.getppid() == parent_pid:
             time.sleep(1.0)
-        os._exit(70)
+        stop()
 
     if os.getppid() != parent_pid:
-        os._exit(70)
+        stop()
     threading.Thread(target=watch, name="faceretarget-parent-watch", daemon=True).start()
 
 
-def _serve(conn: Connection, parent_pid: int) -> None:
+def _serve(conn: Connection) -> None:
     """The worker loop: receive ``(fn, args)``, answer ``("started", t)`` then ``("done", value)``
     or ``("error", message, traceback)``; ``None`` or a closed connection ends it."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
-    try:
-        os.setsid()  # own process group: a kill reaches helper processes a plugin starts
-    except OSError:
-        pass
-    _die_with(parent_pid)
     while True:
         try:
-            message = conn.recv()
-        except (EOFError, OSError):
+            data = conn.recv_bytes()
+        except EOFError:
             return
-        except Exception as exc:  # the task did not unpickle, e.g. its module cannot be imported here
+        except BaseException:  # a broken or unreadable connection cannot be resynchronised
+            os._exit(_BROKEN_CONNECTION)
+        try:
+            message = ForkingPickler.loads(data)  # may import the plugin, build the case...
+        except BaseException as exc:
             conn.send(("error", f"the worker could not load the task: {_describe(exc)}", traceback.format_exc(limit=-6)))
             continue
         if message is None:
@@ -144,61 +153,53 @@ def _serve(conn: Connection, parent_pid: int) -> None:
             conn.send(("error", f"the result could not be sent back from the worker: {_describe(exc)}", ""))
 
 
-def _serve_socket() -> None:
-    """Entry of a subprocess worker: ``python -c ... FD PARENT_PID``; the first message is ``sys.path``."""
+def _main() -> None:
+    """Entry of a worker: ``python -c ... FD PARENT_PID``; the first message prepares it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's to handle
+    if hasattr(os, "setsid"):
+        os.setsid()  # own process group: a kill reaches helper processes a plugin starts
+    _die_with(int(sys.argv[2]))
     conn = Connection(int(sys.argv[1]))
-    sys.path[:] = conn.recv()
-    _serve(conn, int(sys.argv[2]))
+    spawn.prepare(conn.recv())  # sys.path, cwd, the main module (classes defined in scripts)
+    _serve(conn)
 
 
 # ---------------------------------------------------------------------------------------
-# Parent side
+# Supervisor side
 # ---------------------------------------------------------------------------------------
 class _Worker:
-    """One worker process and its connection, started by multiprocessing or subprocess."""
+    """One worker process: its connection, exit watch and current task.
+
+    The process is reaped only in :meth:`kill`, after its group was signalled, so its
+    process id cannot have been reused by then.
+    """
 
     def __init__(self):
         self.group: deque[Task] | None = None
-        self.task: Task | None = None
-        self.sent_at = self.started_at = 0.0
-        self._writer: threading.Thread | None = None
         self._start()
 
     def _start(self) -> None:
-        self.task = None
-        if mp.current_process().daemon:
-            self._start_subprocess()
-            return
-        ctx = mp.get_context("spawn")
-        self.conn, child = ctx.Pipe(duplex=True)
-        self.process = ctx.Process(target=_serve, args=(child, os.getpid()), name="faceretarget-worker")
-        self.process.start()
-        child.close()
-        self.popen = None
-        self.pid = self.process.pid
-        self._watch_exit()
-
-    def _start_subprocess(self) -> None:
+        self.task: Task | None = None
+        self.owner: Hashable = None
+        self.used = False
+        self.sent_at = self.started_at = 0.0
+        self._writer: threading.Thread | None = None
         ours, theirs = socket.socketpair()
-        code = "from faceretarget.evaluation._workers import _serve_socket; _serve_socket()"
+        code = "from faceretarget.evaluation._workers import _main; _main()"
         argv = [sys.executable, "-c", code, str(theirs.fileno()), str(os.getpid())]
-        self.popen = subprocess.Popen(argv, pass_fds=(theirs.fileno(),))
-        theirs.close()
-        self.conn = Connection(ours.detach())
-        self.conn.send(list(sys.path))
-        self.process = None
-        self.pid = self.popen.pid
-        self._watch_exit()
-
-    def _watch_exit(self) -> None:
-        """``self.sentinel``: a handle that becomes ready when the process exits, even if a
-        helper process it started still holds its pipes (a pidfd, Linux 5.3+), else None
-        (the supervisor then polls)."""
         try:
-            self._pidfd = os.pidfd_open(self.pid)
+            self.popen = subprocess.Popen(argv, pass_fds=(theirs.fileno(),))
+        finally:
+            theirs.close()
+        self.pid = self.popen.pid
+        self.conn = Connection(ours.detach())
+        preparation = spawn.get_preparation_data("faceretarget-worker")
+        preparation.pop("authkey", None)  # not needed: the socket pair is private
+        self.conn.send(preparation)
+        try:  # readable once the process has exited, even if a helper holds its pipes (Linux 5.3+)
+            self.sentinel = os.pidfd_open(self.pid)
         except (AttributeError, OSError):
-            self._pidfd = None
-        self.sentinel = self._pidfd
+            self.sentinel = None
 
     def restart(self) -> None:
         """Kill this worker's process and start a fresh one (the group stays)."""
@@ -206,23 +207,29 @@ class _Worker:
         self._start()
 
     def send(self, task: Task, payload: bytes) -> None:
-        """Hand over ``task`` (already pickled as ``payload``); big payloads are written by a thread."""
-        self.task, self.sent_at, self.started_at = task, time.monotonic(), 0.0
-        if len(payload) <= _DIRECT_SEND_BYTES:
-            self.conn.send_bytes(payload)
-            return
+        """Hand over ``task`` (pickled as ``payload``) from a thread: a worker still starting
+        up must not block the supervisor, whose deadlines keep running."""
+        self.task, self.owner, self.used = task, task.owner, True
+        self.sent_at, self.started_at = time.monotonic(), 0.0
 
         def write() -> None:
             try:
                 self.conn.send_bytes(payload)
-            except OSError:  # the worker died or was killed meanwhile; noticed by the supervisor
+            except (OSError, TypeError, ValueError):  # the worker died or was killed meanwhile
                 pass
 
         self._writer = threading.Thread(target=write, name="faceretarget-task-writer", daemon=True)
         self._writer.start()
 
+    def status(self):
+        """The exit status (``os.waitid_result``) without reaping, or None while running."""
+        try:
+            return os.waitid(os.P_PID, self.pid, os.WEXITED | os.WNOHANG | os.WNOWAIT)
+        except ChildProcessError:  # already reaped (by Popen, or by someone else: status unknown)
+            return self.popen.returncode if self.popen.returncode is not None else -signal.SIGKILL
+
     def exited(self) -> bool:
-        return (self.process.exitcode if self.process is not None else self.popen.poll()) is not None
+        return self.status() is not None
 
     def deadline(self) -> float:
         """Monotonic time by which the current task must finish (inf: no limit)."""
@@ -234,46 +241,61 @@ class _Worker:
         return self.sent_at + max(limit, config.WORKER_STARTUP_SECONDS)
 
     def exit_note(self) -> str:
-        self.wait_exit(1)
-        code = self.process.exitcode if self.process is not None else self.popen.poll()
-        if code is None:
-            return "its worker process stopped answering"
-        if code < 0:
-            try:
-                return f"its worker process was killed by {signal.Signals(-code).name}"
-            except ValueError:
-                return f"its worker process was killed by signal {-code}"
-        return f"its worker process exited with code {code}"
-
-    def wait_exit(self, seconds: float) -> None:
-        """Wait up to ``seconds`` for the process to exit (polling: its pipes may outlive it)."""
-        end = time.monotonic() + seconds
+        end = time.monotonic() + 1.0
         while not self.exited() and time.monotonic() < end:
             time.sleep(0.02)
+        status = self.status()
+        if status is None:
+            return "its worker process stopped answering"
+        if isinstance(status, int):
+            code, killed = abs(status), status < 0
+        else:
+            code, killed = status.si_status, status.si_code != os.CLD_EXITED
+        if killed:
+            try:
+                return f"its worker process was killed by {signal.Signals(code).name}"
+            except ValueError:
+                return f"its worker process was killed by signal {code}"
+        return f"its worker process exited with code {code}"
 
     def kill(self) -> None:
-        """SIGKILL the worker and its process group; close the connection."""
-        for target in (lambda: os.killpg(self.pid, signal.SIGKILL), lambda: os.kill(self.pid, signal.SIGKILL)):
+        """SIGKILL the worker's process group (it is still unreaped, so the id is its own),
+        reap it, and close the connection."""
+        if self.popen.returncode is None:
+            for send in (getattr(os, "killpg", None), os.kill):
+                if send is not None:
+                    try:
+                        send(self.pid, signal.SIGKILL)
+                    except OSError:
+                        pass
             try:
-                target()
-            except (ProcessLookupError, PermissionError, OSError):
+                self.popen.wait(10)
+            except subprocess.TimeoutExpired:
                 pass
-        self.wait_exit(5)
+        try:  # wake a writer blocked on a full socket, so it ends before the fd is closed
+            with socket.socket(fileno=os.dup(self.conn.fileno())) as sock:
+                sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
         if self._writer is not None:
-            self._writer.join(5)  # it fails fast once the peer is gone; never write into a reused fd
+            self._writer.join()
             self._writer = None
         self.conn.close()
-        if self._pidfd is not None:
-            os.close(self._pidfd)
-            self._pidfd = None
+        if self.sentinel is not None:
+            os.close(self.sentinel)
+            self.sentinel = None
 
     def close(self) -> None:
         """Ask the worker to finish, then make sure it has."""
+        if self._writer is not None:
+            self._writer.join(5)
         try:
             self.conn.send(None)
         except OSError:
             pass
-        self.wait_exit(5)
+        end = time.monotonic() + 5.0
+        while not self.exited() and time.monotonic() < end:
+            time.sleep(0.02)
         self.kill()
 
 
@@ -295,36 +317,43 @@ def run_supervised(
     """Run every task of ``groups`` in at most ``workers`` processes; call ``on_outcome``
     (in this process, in completion order) once per task.
 
-    The tasks of a group run in order in one worker (a replacement after a kill).
-    A task's clock starts when its worker has loaded it (unpickled its function and
-    arguments, which may import a plugin or build a case); loading gets
-    ``max(timeout, config.WORKER_STARTUP_SECONDS)`` from the hand-over, start-up included.
+    The tasks of a group run in order in one worker (a replacement after a kill); a
+    worker takes groups of one ``owner`` only (else it is replaced first). A task's clock
+    starts when its worker has loaded it (unpickled its function and arguments, which may
+    import a plugin or build a case); loading gets ``max(timeout,
+    config.WORKER_STARTUP_SECONDS)`` from the hand-over, start-up included.
     """
     queue = deque(deque(group) for group in groups if group)
     _check(workers, list(queue))
     pool: list[_Worker] = []
 
+    def take_group(worker: _Worker) -> bool:
+        """Give ``worker`` a new group (one of its owner's if queued); False if none is left."""
+        if not queue:
+            return False
+        same = next((g for g in queue if g[0].owner == worker.owner), None) if worker.used else None
+        group = same or queue[0]
+        queue.remove(group)
+        if worker.used and group[0].owner != worker.owner:
+            worker.restart()  # another plugin's tasks: a clean process, so blame stays right
+        worker.group = group
+        return True
+
     def next_task(worker: _Worker) -> None:
         """Hand ``worker`` its next task, or close it and drop it from the pool when none is left."""
         while True:
-            while not worker.group:
-                if not queue:
-                    worker.close()
-                    pool.remove(worker)
-                    return
-                worker.group = queue.popleft()
+            if not worker.group and not take_group(worker):
+                worker.close()
+                pool.remove(worker)
+                return
             task = worker.group.popleft()
             try:
                 payload = bytes(ForkingPickler.dumps((task.fn, task.args)))
             except Exception as exc:  # the task does not pickle; nothing was sent
                 on_outcome(Outcome(task.key, ERROR, message=f"the task could not be handed to a worker process: {_describe(exc)}"))
                 continue
-            try:
-                worker.send(task, payload)
-                return
-            except OSError as exc:  # the worker died before it could take the task
-                on_outcome(Outcome(task.key, DIED, message=f"{worker.exit_note()} before it could take the task ({_describe(exc)})"))
-                worker.restart()
+            worker.send(task, payload)
+            return
 
     def add_worker() -> None:
         worker = _Worker()
@@ -349,10 +378,12 @@ def run_supervised(
     def receive(worker: _Worker, now: float) -> None:
         task = worker.task
         try:
-            message = worker.conn.recv()
+            data = worker.conn.recv_bytes()
         except (EOFError, OSError):
             died(worker, now)
             return
+        try:
+            message = ForkingPickler.loads(data)
         except Exception as exc:  # the result pickled in the worker but does not load here
             outcome = Outcome(task.key, ERROR, message=f"its result could not be loaded by the supervising process: {_describe(exc)}",
                               started=True, seconds=now - worker.sent_at)
@@ -382,8 +413,7 @@ def run_supervised(
         while pool:
             soonest = min(w.deadline() for w in pool)
             handles = [w.conn for w in pool] + [w.sentinel for w in pool if w.sentinel is not None]
-            pause = min(max(0.0, soonest - time.monotonic()), _POLL_SECONDS)
-            ready = set(wait(handles, timeout=pause))
+            ready = set(wait(handles, timeout=min(max(0.0, soonest - time.monotonic()), _POLL_SECONDS)))
             now = time.monotonic()
             for worker in list(pool):
                 if worker not in pool or worker.task is None:

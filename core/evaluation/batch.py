@@ -319,7 +319,7 @@ def run_job(job: Job) -> JobResult:
         return JobResult(job.name, "done", job.out, time.perf_counter() - start, method=job.method)
     except Exception as exc:  # reported per job; the batch goes on
         message = " ".join(str(exc).split()) or type(exc).__name__
-        where = f"{job.method} [{job.origin}]: " if job.origin else ""
+        where = f"{job.method} [{job.origin}]: " if job.origin else f"{job.method}: "
         return JobResult(job.name, "failed", job.out, time.perf_counter() - start, f"{where}{type(exc).__name__}: {message}", job.method)
 
 
@@ -348,7 +348,8 @@ def _supervised(jobs: list[Job], workers: int, timeout: float | None, on_result:
         job = by_name[outcome.key]
         on_result(outcome.value if outcome.status == DONE else _failed_run(job, outcome))
 
-    run_supervised(([Task(job.name, run_job, (job,), _job_timeout(job, timeout))] for job in jobs), workers=workers, on_outcome=on_outcome)
+    groups = ([Task(job.name, run_job, (job,), _job_timeout(job, timeout), owner=getattr(job.cls, "__module__", job.method))] for job in jobs)
+    run_supervised(groups, workers=workers, on_outcome=on_outcome)
 
 
 def run_job_supervised(job: Job, timeout: float | None) -> JobResult:

@@ -586,7 +586,7 @@ def _isolated(refs: dict, chosen: list[_Method], per_method: dict, n_jobs: int, 
         tasks = groups.setdefault(m.cls.__module__, [])
         for cname, ref in refs.items():
             case = _CaseByName(ref) if isinstance(ref, str) else ref
-            tasks.append(Task((cname, m.name), _run_item, (m, per_method[m.name], cname, case), timeout))
+            tasks.append(Task((cname, m.name), _run_item, (m, per_method[m.name], cname, case), timeout, owner=m.cls.__module__))
 
     def on_outcome(outcome) -> None:
         cname, name = outcome.key

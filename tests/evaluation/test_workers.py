@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import worker_tasks as t
-from faceretarget.evaluation._workers import DIED, DONE, ERROR, TIMEOUT, Task, _Worker, run_supervised
+from faceretarget.evaluation._workers import DIED, DONE, ERROR, TIMEOUT, Task, run_supervised
 
 
 def outcomes(groups, workers=1):
@@ -78,18 +78,21 @@ def test_more_workers_than_groups_and_empty_groups():
     assert outcomes([], workers=2) == ({}, [])
 
 
-def test_subprocess_workers_inside_daemonic_processes(monkeypatch):
-    """In a Dask worker (a daemonic process) workers are plain subprocesses."""
+def test_workers_start_inside_daemonic_processes(monkeypatch):
+    """A Dask worker is a daemonic process, where multiprocessing may not start children."""
     monkeypatch.setattr(mp.current_process(), "_config", {**mp.current_process()._config, "daemon": True})
-    worker = _Worker()
-    try:
-        assert worker.process is None and worker.popen is not None
-    finally:
-        worker.kill()
     got, _ = outcomes([[Task("sum", t.add, (2, 5)), Task("sleepy", t.sleep, (600,), timeout=1.0), Task("dies", t.die, (3,)), Task("after", t.add, (1, 1))]])
     assert got["sum"].value == 7 and got["sleepy"].status == TIMEOUT
     assert got["dies"].status == DIED and "exited with code 3" in got["dies"].message
     assert got["after"].value == 2
+
+
+def test_a_worker_never_runs_two_owners_tasks():
+    """A death after a task has returned is charged to that task's owner, not to the next one."""
+    groups = [[Task("a1", t.pid, owner="a"), Task("a2", t.pid, owner="a")], [Task("b1", t.pid, owner="b")], [Task("a3", t.pid, owner="a")]]
+    got, order = outcomes(groups, workers=1)
+    assert order == ["a1", "a2", "a3", "b1"], "a worker prefers more of its owner's groups"
+    assert got["a1"].value == got["a2"].value == got["a3"].value != got["b1"].value
 
 
 def test_time_limit_settings(monkeypatch):
@@ -159,6 +162,13 @@ def test_deadline_cannot_be_swallowed_by_plugin_code():
                 except Exception:
                     pass
     assert signal.getsignal(signal.SIGALRM) is handler, "the handler in place before is back"
+    with pytest.raises(DeadlineExpired, match="ran past"):  # catching even BaseException does not help
+        with deadline(0.2):
+            while time.monotonic() - start < 1.0:
+                try:
+                    time.sleep(0.05)
+                except BaseException:
+                    pass
 
 
 def test_a_result_that_does_not_load_here_is_an_error():

@@ -32,7 +32,7 @@ DANGEROUS = {
     "dill.load": "unpickling runs code", "dill.loads": "unpickling runs code",
     "cloudpickle.load": "unpickling runs code", "cloudpickle.loads": "unpickling runs code",
     "joblib.load": "unpickling runs code", "torch.load": "unpickling runs code",
-    "pandas.read_pickle": "unpickling runs code", "jsonpickle.decode": "unpickling runs code",
+    "pandas.read_pickle": "unpickling runs code", "multiprocessing.reduction.ForkingPickler.loads": "unpickling runs code", "jsonpickle.decode": "unpickling runs code",
     "marshal.load": "unmarshalling code objects", "marshal.loads": "unmarshalling code objects",
     "shelve.open": "shelve unpickles", "yaml.unsafe_load": "arbitrary Python objects", "yaml.full_load": "Python objects",
     "eval": "evaluates text as code", "exec": "executes text as code", "compile": "compiles text to code",
@@ -51,6 +51,9 @@ REVIEWED = {
     ("core/io/__init__.py", "importlib.import_module"): "lazy format modules named by literals in builtin_readers/writers",
     ("core/cli.py", "importlib.import_module"): "sub-command modules named by literals in build_parser",
     ("core/testing.py", "pickle.loads"): "round trip of a retargeter pickled one line above (check_clone_pickle)",
+    ("core/evaluation/_workers.py", "multiprocessing.reduction.ForkingPickler.loads"): (
+        "messages between a supervisor and the worker processes it started, over a private socket pair (as multiprocessing does)"
+    ),
 }
 
 
