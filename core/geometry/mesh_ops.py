@@ -20,11 +20,18 @@ def face_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return 0.5 * np.linalg.norm(triangle_cross(vertices, triangles), axis=1)
 
 
+def unit_rows(vectors: np.ndarray) -> np.ndarray:
+    """(N, 3) rows scaled to unit length; zero rows stay zero. Each row is first divided by
+    its largest component, so tiny (subnormal) or huge rows come out unit length too."""
+    scale = np.abs(vectors).max(axis=1, keepdims=True)
+    scaled = np.divide(vectors, scale, out=np.zeros_like(vectors), where=scale > 0)
+    norm = np.linalg.norm(scaled, axis=1, keepdims=True)
+    return np.divide(scaled, norm, out=np.zeros_like(scaled), where=norm > 0)
+
+
 def face_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(T, 3) unit triangle normals; zero rows for zero-area triangles."""
-    cross = triangle_cross(vertices, triangles)
-    norm = np.linalg.norm(cross, axis=1, keepdims=True)
-    return np.divide(cross, norm, out=np.zeros_like(cross), where=norm > 0)
+    return unit_rows(triangle_cross(vertices, triangles))
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -34,8 +41,7 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     acc = np.zeros((n, 3))
     for k in range(3):
         np.add.at(acc, triangles[:, k], cross)
-    norm = np.linalg.norm(acc, axis=1, keepdims=True)
-    return np.divide(acc, norm, out=np.zeros_like(acc), where=norm > 0)
+    return unit_rows(acc)
 
 
 def directed_edges(triangles: np.ndarray) -> np.ndarray:

@@ -41,6 +41,11 @@ MODES = ("movement", "noconst", "rangepf", "priorpf")
 BOUNDARIES = ("per_frame", "neutral", "none")
 KERNELS = ("linear", "multiquadric", "gaussian", "thin_plate")
 CENTERS = ("neutral", "mean")
+#: Upper limit of the weights ``alpha`` and ``beta`` (far beyond any useful value; the
+#: prior and Sobolev terms must stay finite when scaled by face size and frame rate).
+MAX_WEIGHT = 1e12
+#: Limit of ``lower`` / ``upper`` (blendshape weights, normally 0..1).
+MAX_RANGE = 1e6
 #: Upper limit of ``head_motion_refinement`` (each step is a full per-frame Gauss-Newton pass;
 #: a few steps converge, see the parameter's documentation).
 MAX_HEAD_MOTION_REFINEMENT = 100
@@ -203,10 +208,10 @@ class SpacetimeRetargeter(Retargeter):
         their shapes are known.
         """
         mode = _config(check_choice, self.mode, "mode", MODES)
-        alpha = _config(check_number, self.alpha, "alpha", low=0)
-        beta = _config(check_number, self.beta, "beta", low=0)
-        lower = _config(check_number, self.lower, "lower")
-        upper = _config(check_number, self.upper, "upper")
+        alpha = _config(check_number, self.alpha, "alpha", low=0, high=MAX_WEIGHT)
+        beta = _config(check_number, self.beta, "beta", low=0, high=MAX_WEIGHT)
+        lower = _config(check_number, self.lower, "lower", low=-MAX_RANGE, high=MAX_RANGE)
+        upper = _config(check_number, self.upper, "upper", low=-MAX_RANGE, high=MAX_RANGE)
         if not lower < upper:
             raise ConfigError(
                 f"spacetime: lower/upper: need lower < upper (the weight range of 'rangepf'), got lower={lower!r}, upper={upper!r}"
@@ -553,15 +558,12 @@ def _frame_index(frame, n_frames: int, what: str = "frame") -> int:
 def _config(check, value, name: str, *args, **kwargs):
     """``check_number`` / ``check_choice`` of a constructor parameter; a bad value is a
     :class:`ConfigError` naming the parameter and the valid values."""
-    try:
-        return check(value, name, *args, **kwargs)
-    except InputError as exc:
-        raise ConfigError(f"spacetime: {exc}") from None
+    return check_param(check, value, f"spacetime: {name}", *args, **kwargs)
 
 
 def _flag(value, name: str) -> bool:
     """A boolean parameter (True/False, or the integers 0/1)."""
-    return check_param(check_bool, value, f"spacetime: {name}")
+    return _config(check_bool, value, name)
 
 
 def _iterable(value) -> bool:
