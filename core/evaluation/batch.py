@@ -302,6 +302,11 @@ def _portable(jobs: list[Job]) -> list[Job]:
     return out
 
 
+def _who(job: Job) -> str:
+    """The method of ``job`` with its plugin and distribution, for error messages."""
+    return f"{job.method} [{job.origin}]" if job.origin else job.method
+
+
 def run_job(job: Job) -> JobResult:
     """Run one job and write its output atomically; never raises (errors are returned)."""
     from .harness import validate_output
@@ -319,8 +324,7 @@ def run_job(job: Job) -> JobResult:
         return JobResult(job.name, "done", job.out, time.perf_counter() - start, method=job.method)
     except Exception as exc:  # reported per job; the batch goes on
         message = " ".join(str(exc).split()) or type(exc).__name__
-        where = f"{job.method} [{job.origin}]: " if job.origin else f"{job.method}: "
-        return JobResult(job.name, "failed", job.out, time.perf_counter() - start, f"{where}{type(exc).__name__}: {message}", job.method)
+        return JobResult(job.name, "failed", job.out, time.perf_counter() - start, f"{_who(job)}: {type(exc).__name__}: {message}", job.method)
 
 
 # ---------------------------------------------------------------------------------------
@@ -334,8 +338,7 @@ def _failed_run(job: Job, outcome) -> JobResult:
     """The result of a job whose worker failed it (time limit, crash, task not movable)."""
     _remove_stale_temporaries(Path(job.out))
     error = outcome.error()
-    where = f"{job.method} [{job.origin}]: " if job.origin else f"{job.method}: "
-    return JobResult(job.name, "failed", job.out, outcome.seconds, f"{where}{type(error).__name__}: {error}; no partial output is left", job.method)
+    return JobResult(job.name, "failed", job.out, outcome.seconds, f"{_who(job)}: {type(error).__name__}: {error}; no partial output is left", job.method)
 
 
 def _supervised(jobs: list[Job], workers: int, timeout: float | None, on_result: Callable[[JobResult], None]) -> None:
@@ -408,8 +411,7 @@ def _run_dask(jobs: list[Job], workers: int, scheduler: str | None, processes: b
             try:
                 result = future.result()
             except Exception as exc:  # e.g. KilledWorker
-                where = f"{job.method} [{job.origin}]" if job.origin else job.method
-                result = JobResult(job.name, "failed", job.out, 0.0, f"{where}: the Dask worker failed: {type(exc).__name__}: {exc}", job.method)
+                result = JobResult(job.name, "failed", job.out, 0.0, f"{_who(job)}: the Dask worker failed: {type(exc).__name__}: {exc}", job.method)
             results.append(result)
             bar.update()
             bar.set_postfix_str(f"{result.name}: {result.status}")
