@@ -13,7 +13,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .. import config
-from ..errors import FaceRetargetError, FileFormatError, InputError, ResourceLimitError
+from ..errors import FaceRetargetError, FileFormatError, InputError, OutputError, ResourceLimitError
 from ._atomic import note_input
 
 __all__ = [
@@ -41,6 +41,21 @@ TEXT_MEMORY_FACTOR = 4
 def bad(path, what: str) -> FileFormatError:
     """A :class:`FileFormatError` whose message starts with the file name."""
     return FileFormatError(f"{path}: {what}")
+
+
+def to_float32(values, what: str, dtype: str = "<f4") -> np.ndarray:
+    """``values`` converted for a float32 format (``dtype`` sets the byte order). Raises
+    :class:`OutputError` if a value lies beyond float32's range (it would be stored as inf);
+    NaN (a missing marker sample) passes."""
+    with np.errstate(over="ignore"):
+        out = np.asarray(values).astype(dtype)
+    if np.isinf(out).any() and not np.isinf(np.asarray(values)).any():
+        limit = float(np.finfo(np.float32).max)
+        raise OutputError(
+            f"{what}: values beyond float32's range (|x| > {limit:.3g}) cannot be stored in this format; "
+            "rescale the data or write a float64 format (.npz, .obj)"
+        )
+    return out
 
 
 def human_size(n: float) -> str:

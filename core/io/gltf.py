@@ -39,7 +39,7 @@ import numpy as np
 from ..errors import InputError, OutputError
 from ..model import Animation, BlendshapeRig, Mesh, MeshSequence
 from ._atomic import note_input, write_bytes
-from ._common import bad, check_budget, fps_from_times, guarded_reader, join_arrays, read_bytes, split_arrays
+from ._common import bad, check_budget, fps_from_times, guarded_reader, join_arrays, read_bytes, split_arrays, to_float32
 
 __all__ = [
     "read_gltf_mesh",
@@ -730,7 +730,10 @@ class _Builder:
         return len(self.views) - 1
 
     def accessor(self, data: np.ndarray, atype: str, *, component: int = FLOAT, target: int | None = None, minmax: bool = False, view: int | None = None, offset: int = 0) -> int:
-        arr = np.ascontiguousarray(data, dtype=_COMPONENTS[component])
+        if component == FLOAT:
+            arr = np.ascontiguousarray(to_float32(data, "glTF"))
+        else:
+            arr = np.ascontiguousarray(data, dtype=_COMPONENTS[component])
         ncomp = _N_COMPONENTS[atype]
         arr = arr.reshape(-1, ncomp)
         if view is None:

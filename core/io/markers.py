@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import InputError
 from ..model import MarkerSequence
 from ._atomic import atomic_file, write_bytes
-from ._common import bad, check_budget, fmt_float, fps_from_times, guarded_reader, parse_float, read_text
+from ._common import bad, check_budget, fmt_float, fps_from_times, guarded_reader, parse_float, read_text, to_float32
 
 __all__ = ["read_c3d", "read_trc", "read_marker_csv", "write_c3d", "write_trc", "write_marker_csv", "csv_rows", "is_marker_header", "META_COLUMNS"]
 
@@ -292,7 +292,7 @@ def write_c3d(markers: MarkerSequence, path, *, force: bool = False, inputs=(), 
             raise InputError(f"C3D labels are ASCII; marker name {n!r} cannot be stored")
     writer = c3d.Writer(point_rate=float(markers.fps), point_scale=-1.0)
     writer.set_point_labels(list(markers.names))
-    pos = np.asarray(markers.positions)
+    pos = to_float32(markers.positions, "C3D")
     frames = []
     for f in range(markers.n_frames):
         pts = np.zeros((markers.n_markers, 5), dtype=np.float32)

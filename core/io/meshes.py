@@ -20,7 +20,7 @@ import numpy as np
 
 from ..model import Mesh
 from ._atomic import write_bytes
-from ._common import TEXT_MEMORY_FACTOR, bad, check_budget, fmt_float, guarded_reader, parse_int, read_bytes, read_text
+from ._common import TEXT_MEMORY_FACTOR, bad, check_budget, fmt_float, guarded_reader, parse_int, read_bytes, read_text, to_float32
 
 __all__ = [
     "mesh_arrays",
@@ -628,7 +628,7 @@ def stl_bytes(vertices: np.ndarray, triangles: np.ndarray) -> bytes:
     from ..geometry.mesh_ops import face_normals
 
     records = np.zeros(len(triangles), dtype=_STL_RECORD)
-    records["corners"] = np.asarray(vertices, dtype=np.float32)[triangles]
+    records["corners"] = to_float32(vertices, "STL")[triangles]
     records["normal"] = face_normals(np.asarray(vertices, dtype=np.float64), triangles).astype(np.float32)
     header = b"faceretarget binary STL".ljust(80, b" ")
     return header + struct.pack("<I", len(triangles)) + records.tobytes()

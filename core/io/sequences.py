@@ -26,7 +26,7 @@ import numpy as np
 from ..errors import FileFormatError, InputError
 from ..model import Animation, Mesh, MeshSequence
 from ._atomic import atomic_dir, atomic_file, write_file_synced
-from ._common import bad, check_budget, fps_from_times, guarded_reader, load_npy, natural_key
+from ._common import bad, check_budget, fps_from_times, guarded_reader, load_npy, natural_key, to_float32
 from .meshes import obj_text
 
 __all__ = [
@@ -265,7 +265,7 @@ def read_mdd(path: Path, *, topology=None, fps=None, **options) -> MeshSequence:
 def _stream_frames(fh, vertices: np.ndarray, dtype: str) -> None:
     step = max(1, _WRITE_CHUNK // max(1, vertices.shape[1] * 3))
     for start in range(0, vertices.shape[0], step):
-        fh.write(np.ascontiguousarray(vertices[start : start + step], dtype=dtype).tobytes())
+        fh.write(np.ascontiguousarray(to_float32(vertices[start : start + step], "point cache", dtype)).tobytes())
 
 
 def write_pc2(obj, path, *, force: bool = False, inputs=(), **options) -> None:
