@@ -90,9 +90,7 @@ def seconds_setting(name: str, default: float) -> float | None:
         value = float(raw) if raw else float(default)
     except ValueError:
         raise ConfigError(f"{name}={raw!r} is not a number of seconds; use e.g. {name}=600 (0 for no limit)") from None
-    if not 0 <= value <= MAX_TIMEOUT:
-        raise ConfigError(f"{name}={raw!r}: a time limit is a number of seconds from 0 (no limit) to {MAX_TIMEOUT:g} (30 days)")
-    return value or None
+    return check_timeout(value, f"{name}={raw!r}")
 
 
 def check_timeout(value, what: str = "timeout") -> float | None:

@@ -404,7 +404,10 @@ def _run_dask(jobs: list[Job], workers: int, scheduler: str | None, processes: b
         futures = {}
         for i, job in enumerate(jobs):
             limit = _job_timeout(job, timeout)
-            call = (run_job, job) if limit is None else (run_job_supervised, _portable([job])[0], limit)
+            if limit is None:
+                call = (run_job, job)
+            else:  # the job goes on to a worker process (with dask_processes, run_batch made it portable already)
+                call = (run_job_supervised, job if processes else _portable([job])[0], limit)
             futures[client.submit(*call, key=f"faceretarget-job-{i}-{token}", pure=False)] = job
         for future in as_completed(list(futures)):
             job = futures[future]
