@@ -13,7 +13,8 @@ working. Messages say what was wrong *and* how to fix it.
     │   ├── NonFiniteError                    NaN / inf where not allowed
     │   ├── IndexRangeError                   indices outside their range
     │   ├── DegenerateGeometryError           zero-area / duplicate triangles ...
-    │   └── TopologyMismatchError             vertex or triangle counts disagree
+    │   ├── TopologyMismatchError             vertex or triangle counts disagree
+    │   └── CorrespondenceError               two faces could not be matched reliably
     ├── UnknownNameError (KeyError)           a name (method, shape, format) not known
     ├── CapabilityError                       a method asked for what it cannot do
     ├── NotFittedError (AttributeError)       retarget() before fit()
@@ -38,6 +39,7 @@ __all__ = [
     "IndexRangeError",
     "DegenerateGeometryError",
     "TopologyMismatchError",
+    "CorrespondenceError",
     "UnknownNameError",
     "CapabilityError",
     "NotFittedError",
@@ -80,6 +82,11 @@ class DegenerateGeometryError(InputError):
 
 class TopologyMismatchError(InputError):
     """Two meshes, frames or rig shapes that must share topology do not."""
+
+
+class CorrespondenceError(InputError):
+    """Two faces of different topology could not be put in correspondence reliably
+    (too few matched points, landmarks that do not correspond)."""
 
 
 class UnknownNameError(FaceRetargetError, KeyError):

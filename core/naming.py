@@ -424,3 +424,18 @@ def _pairs_to_mapping(rows: Sequence, origin: str) -> dict[str, tuple[str, ...]]
         if dst and dst not in targets:
             targets.append(dst)
     return {k: tuple(v) for k, v in out.items()}
+
+
+#: A rig whose shape names are mostly (this fraction or more) ARKit / ICT / Live Link names
+#: follows their convention of weights in [0, 1].
+BOUNDED_CONVENTION_FRACTION = 0.5
+
+
+def conventionally_bounded(names: Iterable[str]) -> bool:
+    """True when ``names`` follow a naming convention whose weights are in [0, 1] (ARKit,
+    ICT-FaceKit, Live Link Face), whatever the spelling (``eyeBlink_L``, ``EyeBlinkLeft``...)."""
+    keys = {canonical(n) for names_ in _SETS.values() for n in names_}
+    given = [canonical(str(n)) for n in names]
+    if not given:
+        return False
+    return sum(k in keys for k in given) >= BOUNDED_CONVENTION_FRACTION * len(given)

@@ -69,10 +69,48 @@ def modal_sweep(s, bphi, pbphi, beta, c0, lam, known, yk, phi_t, out, z, zpos, y
     to the right-hand side of their neighbours. The products are plain loops (no BLAS), so
     the time does not depend on BLAS threading.
     """
-    n_frames, m = z.shape
     _project(s, bphi, z)
     if beta != 0.0:
         _project(s, pbphi, zpos)
+    laplacian_rhs(z, zpos, beta, c0, known, y)
+    tridiagonal_modes(y, lam, known, yk, y, scratch)
+    _project(y, phi_t, out)
+
+
+@nb.njit(cache=True)
+def laplacian_rhs(z, zpos, beta, c0, known, out):
+    """``out_t = L z_t + beta zpos_t + c0`` for the unknown frames (rows of known frames: 0).
+
+    ``L`` is the path-graph Laplacian in time with Neumann ends (a frame's degree is its
+    number of neighbours). ``out`` must not alias ``z`` or ``zpos``.
+    """
+    n_frames, m = z.shape
+    for t in range(n_frames):
+        if known[t]:
+            for j in range(m):
+                out[t, j] = 0.0
+            continue
+        has_prev = t > 0
+        has_next = t < n_frames - 1
+        deg = (1.0 if has_prev else 0.0) + (1.0 if has_next else 0.0)
+        for j in range(m):
+            r = deg * z[t, j] + c0[j]
+            if beta != 0.0:
+                r += beta * zpos[t, j]
+            if has_prev:
+                r -= z[t - 1, j]
+            if has_next:
+                r -= z[t + 1, j]
+            out[t, j] = r
+
+
+@nb.njit(cache=True)
+def tridiagonal_modes(r, lam, known, yk, y, scratch):
+    """Solve ``((1 - lam_j) L + lam_j I) y_j = r_j`` for every mode j by one Thomas sweep.
+
+    Rows of known frames are the identity (``y_t = yk_t``). ``y`` may alias ``r``.
+    """
+    n_frames, m = r.shape
     for t in range(n_frames):
         if known[t]:
             for j in range(m):
@@ -84,25 +122,90 @@ def modal_sweep(s, bphi, pbphi, beta, c0, lam, known, yk, phi_t, out, z, zpos, y
         deg = (1.0 if has_prev else 0.0) + (1.0 if has_next else 0.0)
         for j in range(m):
             g = 1.0 - lam[j]
-            r = deg * z[t, j] + c0[j]
-            if beta != 0.0:
-                r += beta * zpos[t, j]
             diag = g * deg + lam[j]
             if has_prev:
-                r -= z[t - 1, j]
-            if has_next:
-                r -= z[t + 1, j]
-            if has_prev:
                 denom = diag + g * scratch[t - 1, j]
-                y[t, j] = (r + g * y[t - 1, j]) / denom
+                y[t, j] = (r[t, j] + g * y[t - 1, j]) / denom
             else:
                 denom = diag
-                y[t, j] = r / denom
+                y[t, j] = r[t, j] / denom
             scratch[t, j] = (-g / denom) if has_next else 0.0
     for t in range(n_frames - 2, -1, -1):
         for j in range(m):
             y[t, j] -= scratch[t, j] * y[t + 1, j]
-    _project(y, phi_t, out)
+
+
+@nb.njit(cache=True)
+def admm_box(r0, lam, known, yk, phi, phi_t, rho, relax, lo, hi, l1, z, u, w, max_iter, eps_abs, eps_rel, ex, y, scratch):
+    """ADMM for movement matching with box bounds and an L1 term on the weights.
+
+    Minimizes ``1/2 w^T H w - r^T w + l1 |w|_1`` subject to ``lo <= w <= hi`` over the unknown
+    frames, where ``H = L kron G + I kron K`` is the movement-matching normal matrix. Split
+    ``w = z``: the w-step solves ``(H + rho I) w = r + rho (z - u)``, which keeps the Kronecker
+    structure (``phi``/``lam`` are the generalized eigenpairs of ``(K + rho I, G + K + rho I)``),
+    so it is one tridiagonal sweep per mode; the z-step is the prox of the box + L1 term,
+    ``clip(soft(v, l1 / rho), lo, hi)``, element by element (Boyd et al. 2011, sec. 5-6, with
+    over-relaxation ``relax``).
+
+    r0 : (F, m) modal right-hand side ``Phi^T r`` of the unknown frames; known frames keep
+    ``yk`` (modal) and their ``z`` rows. ``z``, ``u`` (scaled dual) and ``w`` are updated in place;
+    ``ex``, ``y``, ``scratch`` are (F, m) work arrays. Returns ``(iterations, primal, dual,
+    eps_primal, eps_dual)`` of the last iteration; iterations is negative if the tolerance was
+    not reached within ``max_iter``.
+    """
+    n_frames, m = r0.shape
+    n_free = 0
+    for t in range(n_frames):
+        if not known[t]:
+            n_free += m
+    root = np.sqrt(max(n_free, 1))
+    primal = dual = eps_p = eps_d = 0.0
+    for it in range(max_iter):
+        for t in range(n_frames):
+            if known[t]:
+                for j in range(m):
+                    ex[t, j] = 0.0
+            else:
+                for j in range(m):
+                    ex[t, j] = rho * (z[t, j] - u[t, j])
+        _project(ex, phi, y)
+        for t in range(n_frames):
+            for j in range(m):
+                y[t, j] += r0[t, j]
+        tridiagonal_modes(y, lam, known, yk, y, scratch)
+        _project(y, phi_t, w)
+        p2 = d2 = wn = zn = un = 0.0
+        thresh = l1 / rho
+        for t in range(n_frames):
+            if known[t]:
+                continue
+            for j in range(m):
+                wr = relax * w[t, j] + (1.0 - relax) * z[t, j]
+                v = wr + u[t, j]
+                if thresh > 0.0:
+                    if v > thresh:
+                        v -= thresh
+                    elif v < -thresh:
+                        v += thresh
+                    else:
+                        v = 0.0
+                zn_ = min(max(v, lo[j]), hi[j])
+                u[t, j] += wr - zn_
+                diff = w[t, j] - zn_
+                p2 += diff * diff
+                dz = zn_ - z[t, j]
+                d2 += dz * dz
+                wn += w[t, j] * w[t, j]
+                zn += zn_ * zn_
+                un += u[t, j] * u[t, j]
+                z[t, j] = zn_
+        primal = np.sqrt(p2)
+        dual = rho * np.sqrt(d2)
+        eps_p = eps_abs * root + eps_rel * np.sqrt(max(wn, zn))
+        eps_d = eps_abs * root + eps_rel * rho * np.sqrt(un)
+        if primal <= eps_p and dual <= eps_d:
+            return it + 1, primal, dual, eps_p, eps_d
+    return -max_iter, primal, dual, eps_p, eps_d
 
 
 @nb.njit(cache=True)

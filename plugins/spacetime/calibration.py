@@ -181,3 +181,58 @@ def to_local(motion: np.ndarray | None, markers: np.ndarray) -> np.ndarray:
     if motion is None:
         return np.asarray(markers, dtype=np.float64)
     return procrustes.remove(motion, markers)
+
+
+#: With ``transfer="scale"`` the landmark fit's rotation is still applied when it exceeds
+#: this angle (degrees): the two faces are then posed in different coordinate frames, not
+#: merely shaped differently.
+AUTO_ROTATION_DEGREES = 10.0
+
+
+class Transfer:
+    """How target positions and blendshape displacements are carried into the source's space.
+
+    ``"rbf"``: the paper's scale-proportion matching (sec. 3.2), ``d(n + delta) - d(n)`` with
+    the landmark RBF warp ``d``. ``"scale"`` (default) and ``"similarity"``: one global
+    similarity transform ``x -> s R x + t`` fitted to the neutral landmarks (Umeyama);
+    displacements are multiplied by ``s`` (``"scale"``; the rotation is used only beyond
+    ``AUTO_ROTATION_DEGREES``) or by ``s R`` (``"similarity"``). Measured on real rig pairs
+    (FIDELITY_NOTES), the warp's local Jacobian is a poor displacement scale because the
+    phi(r) = r kernel has a kink at every centre and markers sit on the centres.
+    """
+
+    def __init__(self, how: str, warp=None, scale: float = 1.0, rotation=None, translation=None, angle: float = 0.0):
+        self.how = how
+        self.warp = warp
+        self.scale = float(scale)
+        self.rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        self.translation = np.zeros(3) if translation is None else np.asarray(translation, dtype=np.float64)
+        self.angle = float(angle)  # degrees, of the fitted similarity's rotation
+
+    def points(self, points: np.ndarray) -> np.ndarray:
+        """Target-space points ``(..., 3)`` in the source's space."""
+        p = np.asarray(points, dtype=np.float64)
+        if self.warp is not None:
+            return self.warp(p.reshape(-1, 3)).reshape(p.shape)
+        return self.scale * p @ self.rotation.T + self.translation
+
+    def deltas(self, points: np.ndarray, deltas: np.ndarray) -> np.ndarray:
+        """Displacements ``(M, P, 3)`` at target ``points (P, 3)`` carried to the source's space."""
+        d = np.asarray(deltas, dtype=np.float64)
+        if self.warp is not None:
+            base = self.points(points)
+            return self.points(np.asarray(points)[None] + d) - base[None]
+        return self.scale * d @ self.rotation.T
+
+
+def fit_transfer(target_landmarks: np.ndarray, source_landmarks: np.ndarray, how: str = "scale", kernel: str = "linear") -> Transfer:
+    """A :class:`Transfer` from corresponding neutral landmarks ``(N, 3)`` of target and source."""
+    if how == "rbf":
+        return Transfer(how, warp=fit_rbf(target_landmarks, source_landmarks, kernel=kernel))
+    rot, trans, scale = procrustes.fit_rigid(target_landmarks, source_landmarks, scale=True)
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0))))
+    if how == "scale" and angle <= AUTO_ROTATION_DEGREES:
+        centre_t = np.mean(target_landmarks, axis=0)
+        centre_s = np.mean(source_landmarks, axis=0)
+        return Transfer(how, scale=scale, translation=centre_s - scale * centre_t, angle=angle)
+    return Transfer(how, scale=scale, rotation=rot, translation=trans, angle=angle)

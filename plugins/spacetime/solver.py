@@ -30,6 +30,7 @@ is lost; the same normal equations are then solved exactly as a block-tridiagona
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -68,6 +69,8 @@ class System:
     position_matrix: np.ndarray = field(init=False)  # alpha Q + eps P_0 (common to all frames)
     _modal: tuple | None = field(default=None, init=False, repr=False)
     _marker_grams: np.ndarray | None = field(default=None, init=False, repr=False)
+    _shifted: dict = field(default_factory=dict, init=False, repr=False)
+    l1: float = field(default=0.0, init=False)  # L1 weight of the bounded solve (normal-equation units)
 
     def __post_init__(self):
         b = np.ascontiguousarray(self.basis, dtype=np.float64)
@@ -123,6 +126,22 @@ class System:
             blocks = self.basis.reshape(self.n_markers, 3, self.n_shapes)
             self._marker_grams = np.ascontiguousarray(np.einsum("nki,nkj->nij", blocks, blocks))
         return self._marker_grams
+
+    def shifted_modal(self, rho: float):
+        """``(Phi, Phi^T, lam, (G + K + rho I) Phi)`` for the generalized eigenproblem
+        ``(K + rho I) phi = lam (G + K + rho I) phi`` (the w-step of the bounded solve), cached."""
+        cache = self._shifted
+        if rho not in cache:
+            k = self.position_matrix + self.sobolev_matrix + rho * np.eye(self.n_shapes)
+            mass = self.gram + k
+            try:
+                lam, phi = scipy.linalg.eigh(k, mass)
+            except (np.linalg.LinAlgError, scipy.linalg.LinAlgError) as exc:
+                raise NumericalError(f"spacetime: generalized eigendecomposition failed ({exc})") from None
+            if len(cache) > 8:
+                cache.clear()
+            cache[rho] = (np.ascontiguousarray(phi), np.ascontiguousarray(phi.T), np.clip(lam, 0.0, 1.0), mass @ phi)
+        return cache[rho]
 
     @property
     def modal(self):
@@ -185,6 +204,167 @@ def solve_movement(system: System, deltas: np.ndarray, known: np.ndarray, known_
     return w
 
 
+@dataclass
+class BoundedStats:
+    """How a bounded solve went (kept in the retargeter's diagnostics)."""
+
+    iterations: int = 0
+    converged: bool = True
+    rho: float = 0.0
+    primal: float = 0.0
+    dual: float = 0.0
+
+
+def solve_movement_bounded(
+    system: System,
+    deltas: np.ndarray,
+    known: np.ndarray,
+    known_weights: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    l1: float = 0.0,
+    frame_weights: np.ndarray | None = None,
+    stats: BoundedStats | None = None,
+) -> np.ndarray:
+    """Movement matching (as :func:`solve_movement`) with ``lower <= w <= upper`` and an L1 term.
+
+    Minimizes the energy of :func:`solve_movement` plus ``2 * l1 * sum |w|`` (``l1`` in the
+    units of the normal equations, i.e. half the energy weight) over the frames that are not
+    known, subject to the per-shape bounds, by ADMM (:func:`._kernels.admm_box`): every
+    iteration is one structured solve of the shifted system ``(H + rho I)``, so the cost per
+    iteration is that of the unconstrained solve without its data projection. When the
+    unconstrained solution already satisfies the bounds and ``l1 == 0`` it is returned as is.
+
+    lower, upper : (M,) float (``-inf`` / ``inf`` allowed); known frames keep
+    ``known_weights`` even outside the bounds (a user's explicit choice).
+    Returns (F, M) float64; the unknown frames satisfy the bounds exactly.
+    """
+    s = flatten_deltas(deltas)
+    known = np.ascontiguousarray(known, dtype=np.bool_)
+    wk = np.ascontiguousarray(known_weights, dtype=np.float64)
+    m = system.n_shapes
+    lo = np.ascontiguousarray(np.broadcast_to(np.asarray(lower, dtype=np.float64), (m,)))
+    hi = np.ascontiguousarray(np.broadcast_to(np.asarray(upper, dtype=np.float64), (m,)))
+    stats = BoundedStats() if stats is None else stats
+    missing = np.isnan(s[:, 0::3])
+    structured = not missing.any() and frame_weights is None
+    if structured:
+        start = _solve_structured(system, s, known, wk)
+    else:
+        start = _solve_general(system, s, missing, known, wk, frame_weights)
+    start[known] = wk[known]
+    free = ~known
+    inside = np.all((start[free] >= lo) & (start[free] <= hi))
+    if inside and l1 == 0.0:
+        stats.iterations, stats.converged = 0, True
+        return start
+    z = np.where(free[:, None], np.clip(start, lo, hi), wk)
+    u = np.zeros_like(z)
+    if structured:
+        _admm_structured(system, s, known, wk, lo, hi, float(l1), z, u, stats)
+    else:
+        _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, float(l1), z, u, stats)
+    z[known] = wk[known]
+    return z
+
+
+#: ADMM settings of the bounded solve: absolute / relative tolerances (weights are O(1)),
+#: over-relaxation, iterations between step-size updates and in all.
+ADMM_EPS_ABS = 1e-6
+ADMM_EPS_REL = 1e-4
+ADMM_RELAX = 1.6
+ADMM_CHUNK = 10
+ADMM_MAX_ITER = 2000
+
+
+def _initial_rho(system: System) -> float:
+    """Step size: the mean diagonal of the per-frame position terms plus the Gram."""
+    k = system.position_matrix + system.sobolev_matrix
+    return float(np.trace(k + system.gram) / system.n_shapes) * ADMM_RHO_SCALE
+
+
+#: Initial ADMM step size relative to the mean diagonal of ``G + K``.
+ADMM_RHO_SCALE = 0.1
+
+
+def _rho_update(rho: float, primal: float, dual: float, eps_p: float, eps_d: float) -> float:
+    """Residual balancing (Boyd et al. 2011, sec. 3.4.1; OSQP's ratio of scaled residuals)."""
+    ratio = np.sqrt(max(primal / max(eps_p, 1e-300), 1e-12) / max(dual / max(eps_d, 1e-300), 1e-12))
+    if 0.2 < ratio < 5.0:
+        return rho
+    return float(rho * np.clip(ratio, 1e-3, 1e3))
+
+
+def _admm_structured(system, s, known, wk, lo, hi, l1, z, u, stats) -> None:
+    from ._kernels import admm_box, laplacian_rhs
+
+    n_frames, m = z.shape
+    b = system.basis
+    sb = s @ b
+    spb = (s * np.repeat(system.marker_weights, 3)) @ b if system.beta != 0.0 else sb
+    r_w = np.empty((n_frames, m))
+    laplacian_rhs(sb, spb, float(system.beta), system.prior_vector, known, r_w)
+    rho = _initial_rho(system)
+    work = np.empty((4, n_frames, m))
+    done = 0
+    while True:
+        phi, phi_t, lam, mass_phi = system.shifted_modal(rho)
+        r0 = r_w @ phi
+        yk = wk @ mass_phi
+        chunk = min(ADMM_CHUNK, ADMM_MAX_ITER - done)
+        it, primal, dual, eps_p, eps_d = admm_box(
+            r0, lam, known, yk, phi, phi_t, rho, ADMM_RELAX, lo, hi, l1, z, u, work[0], chunk,
+            ADMM_EPS_ABS, ADMM_EPS_REL, work[1], work[2], work[3],
+        )
+        done += abs(it)
+        stats.iterations, stats.rho, stats.primal, stats.dual = done, rho, primal, dual
+        if it > 0:
+            stats.converged = True
+            return
+        if done >= ADMM_MAX_ITER:
+            stats.converged = False
+            return
+        new = _rho_update(rho, primal, dual, eps_p, eps_d)
+        u *= rho / new
+        rho = new
+
+
+def _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, l1, z, u, stats) -> None:
+    """ADMM as in :func:`_admm_structured`, the w-step by the exact block-tridiagonal solve."""
+    rho = _initial_rho(system)
+    m = system.n_shapes
+    shifted = dataclasses.replace(system, prior_matrix=system.prior_matrix + rho * np.eye(m))
+    done = 0
+    free = ~known
+    while done < ADMM_MAX_ITER:
+        vector = system.prior_vector[None, :] + rho * (z - u)
+        w = _solve_general(shifted, s, missing, known, wk, frame_weights, prior_vector=vector)
+        done += 1
+        wr = ADMM_RELAX * w + (1.0 - ADMM_RELAX) * z
+        v = wr + u
+        if l1 > 0.0:
+            v = np.sign(v) * np.maximum(np.abs(v) - l1 / rho, 0.0)
+        znew = np.clip(v, lo, hi)
+        u[free] += (wr - znew)[free]
+        primal = float(np.linalg.norm((w - znew)[free]))
+        dual = rho * float(np.linalg.norm((znew - z)[free]))
+        z[free] = znew[free]
+        root = np.sqrt(max(free.sum() * m, 1))
+        eps_p = ADMM_EPS_ABS * root + ADMM_EPS_REL * max(np.linalg.norm(w[free]), np.linalg.norm(z[free]))
+        eps_d = ADMM_EPS_ABS * root + ADMM_EPS_REL * rho * np.linalg.norm(u[free])
+        stats.iterations, stats.rho, stats.primal, stats.dual = done, rho, primal, dual
+        if primal <= eps_p and dual <= eps_d:
+            stats.converged = True
+            return
+        if done % ADMM_CHUNK == 0:
+            new = _rho_update(rho, primal, dual, eps_p, eps_d)
+            if new != rho:
+                u *= rho / new
+                rho = new
+                shifted = dataclasses.replace(system, prior_matrix=system.prior_matrix + rho * np.eye(m))
+    stats.converged = False
+
+
 def _solve_structured(system: System, s: np.ndarray, known: np.ndarray, wk: np.ndarray) -> np.ndarray:
     from ._kernels import modal_sweep
 
@@ -199,7 +379,8 @@ def _solve_structured(system: System, s: np.ndarray, known: np.ndarray, wk: np.n
     return out
 
 
-def _solve_general(system, s, missing, known, wk, frame_weights) -> np.ndarray:
+def _solve_general(system, s, missing, known, wk, frame_weights, prior_vector=None) -> np.ndarray:
+    """Block-tridiagonal solve; ``prior_vector`` (F, M) replaces ``system.prior_vector`` when given."""
     from ._kernels import block_thomas
 
     n_frames, m = s.shape[0], system.n_shapes
@@ -207,7 +388,7 @@ def _solve_general(system, s, missing, known, wk, frame_weights) -> np.ndarray:
     s0 = np.where(np.repeat(valid, 3, axis=1), s, 0.0)
     b = system.basis
     rhs = np.zeros((n_frames, m))
-    rhs += system.prior_vector
+    rhs += system.prior_vector if prior_vector is None else prior_vector
     if n_frames > 1:
         edge_valid = valid[1:] & valid[:-1]
         ds = (s0[1:] - s0[:-1]) * np.repeat(edge_valid, 3, axis=1)
@@ -288,8 +469,9 @@ def _factor(mat: np.ndarray, ridge: float):
     raise NumericalError("spacetime: a per-frame system is singular even after regularization")
 
 
-def solve_bounded(system: System, deltas: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """Per-frame bounded least squares "Range PF": ``min ||B w - s_t||^2, lower <= w <= upper``.
+def solve_bounded(system: System, deltas: np.ndarray, lower: np.ndarray, upper: np.ndarray, *, use_prior: bool = False) -> np.ndarray:
+    """Per-frame bounded least squares "Range PF": ``min ||B w - s_t||^2, lower <= w <= upper``
+    (plus the prior with ``use_prior``: the boundary values of bounded movement matching).
 
     A primal active-set method (numba), warm-started from the previous frame, on the
     normal equations (with the null-space ridge so duplicate shapes stay well posed).
@@ -300,10 +482,13 @@ def solve_bounded(system: System, deltas: np.ndarray, lower: np.ndarray, upper: 
     s = flatten_deltas(deltas)
     missing = np.ascontiguousarray(np.isnan(s[:, 0::3]))
     m = system.n_shapes
-    rhs = np.ascontiguousarray(_masked_rhs(system, s, ~missing))
+    rhs = _masked_rhs(system, s, ~missing)
+    if use_prior:
+        rhs += system.prior_vector
+    rhs = np.ascontiguousarray(rhs)
     lo = np.ascontiguousarray(np.broadcast_to(np.asarray(lower, dtype=np.float64), (m,)))
     hi = np.ascontiguousarray(np.broadcast_to(np.asarray(upper, dtype=np.float64), (m,)))
-    gram = system.gram + system.ridge_matrix
+    gram = system.gram + (system.position_matrix if use_prior else system.ridge_matrix)
     out = np.empty((s.shape[0], m))
     x0 = np.clip(np.zeros(m), lo, hi)
     max_iter = ACTIVE_SET_ITER_PER_SHAPE * m + 50

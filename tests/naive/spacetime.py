@@ -180,3 +180,27 @@ def procrustes_rotation(reference, points):
         vt[-1] *= -1
         r = vt.T @ u.T
     return r
+
+
+def solve_rows_bounded(basis, deltas, known, known_weights, lower, upper, l1=0.0, **energy):
+    """:func:`solve_rows` with ``lower <= w <= upper`` on the unknown frames and ``2 * l1 * sum(w)``
+    added to the energy (the L1 norm, valid for ``lower >= 0``), by BVLS (``lsq_linear``) on the
+    assembled rows. The linear term is moved into the right-hand side: with ``A`` of full column
+    rank, ``||A x - b||^2 + c^T x = ||A x - (b + d)||^2 + const`` for ``d = -A (A^T A)^-1 c / 2``.
+    """
+    a, rhs = energy_rows(basis, deltas, **energy)
+    n_frames, m = len(deltas), np.asarray(basis).shape[1]
+    known = np.asarray(known, bool)
+    fixed = np.repeat(known, m)
+    x = np.zeros(n_frames * m)
+    x[fixed] = np.asarray(known_weights, float)[known].ravel()
+    au = a[:, ~fixed].toarray()
+    r = rhs - a[:, fixed] @ x[fixed]
+    if l1:
+        c = np.full(au.shape[1], 2.0 * l1)
+        r = r - 0.5 * au @ np.linalg.solve(au.T @ au, c)
+    n_free = int((~fixed).sum())
+    lo = np.tile(np.broadcast_to(lower, (m,)), n_free // m)
+    hi = np.tile(np.broadcast_to(upper, (m,)), n_free // m)
+    x[~fixed] = scipy.optimize.lsq_linear(au, r, bounds=(lo, hi), method="bvls", tol=1e-14).x
+    return x.reshape(n_frames, m)

@@ -15,7 +15,14 @@ from faceretarget.errors import (
     TopologyMismatchError,
     UnknownNameError,
 )
-from faceretarget.plugins.spacetime.retargeter import SpacetimeRetargeter
+from faceretarget.plugins.spacetime.retargeter import PAPER
+from faceretarget.plugins.spacetime.retargeter import SpacetimeRetargeter as DefaultSpacetime
+
+
+def SpacetimeRetargeter(**params):
+    """The paper's method as published (these tests check its equations); the defaults'
+    departures from the paper are tested in test_bounded.py and test_fidelity.py."""
+    return DefaultSpacetime(**{**PAPER, **params})
 
 
 def fitted(toy, **params):
