@@ -270,21 +270,21 @@ def solve_movement_bounded(
 
 #: ADMM settings of the bounded solve: absolute / relative tolerances (weights are O(1)),
 #: over-relaxation, iterations between step-size updates and in all.
-ADMM_EPS_ABS = 1e-6
-ADMM_EPS_REL = 1e-4
+ADMM_EPS_ABS = 1e-5
+ADMM_EPS_REL = 2e-3
 ADMM_RELAX = 1.6
 ADMM_CHUNK = 10
 ADMM_MAX_ITER = 2000
 
 
-def _initial_rho(system: System) -> float:
-    """Step size: the mean diagonal of the per-frame position terms plus the Gram."""
-    k = system.position_matrix + system.sobolev_matrix
-    return float(np.trace(k + system.gram) / system.n_shapes) * ADMM_RHO_SCALE
-
-
 #: Initial ADMM step size relative to the mean diagonal of ``G + K``.
 ADMM_RHO_SCALE = 0.1
+
+
+def _unit(system: System) -> float:
+    """The mean diagonal of ``G + K``: the scale of the normal equations (length squared)."""
+    k = system.position_matrix + system.sobolev_matrix
+    return float(np.trace(k + system.gram) / system.n_shapes)
 
 
 def _rho_update(rho: float, primal: float, dual: float, eps_p: float, eps_d: float) -> float:
@@ -304,7 +304,8 @@ def _admm_structured(system, s, known, wk, lo, hi, l1, z, u, stats) -> None:
     spb = (s * np.repeat(system.marker_weights, 3)) @ b if system.beta != 0.0 else sb
     r_w = np.empty((n_frames, m))
     laplacian_rhs(sb, spb, float(system.beta), system.prior_vector, known, r_w)
-    rho = _initial_rho(system)
+    unit = _unit(system)
+    rho = ADMM_RHO_SCALE * unit
     work = np.empty((4, n_frames, m))
     done = 0
     while True:
@@ -314,7 +315,7 @@ def _admm_structured(system, s, known, wk, lo, hi, l1, z, u, stats) -> None:
         chunk = min(ADMM_CHUNK, ADMM_MAX_ITER - done)
         it, primal, dual, eps_p, eps_d = admm_box(
             r0, lam, known, yk, phi, phi_t, rho, ADMM_RELAX, lo, hi, l1, z, u, work[0], chunk,
-            ADMM_EPS_ABS, ADMM_EPS_REL, work[1], work[2], work[3],
+            ADMM_EPS_ABS, ADMM_EPS_REL, unit, work[1], work[2], work[3],
         )
         done += abs(it)
         stats.iterations, stats.rho, stats.primal, stats.dual = done, rho, primal, dual
@@ -331,7 +332,8 @@ def _admm_structured(system, s, known, wk, lo, hi, l1, z, u, stats) -> None:
 
 def _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, l1, z, u, stats) -> None:
     """ADMM as in :func:`_admm_structured`, the w-step by the exact block-tridiagonal solve."""
-    rho = _initial_rho(system)
+    unit = _unit(system)
+    rho = ADMM_RHO_SCALE * unit
     m = system.n_shapes
     shifted = dataclasses.replace(system, prior_matrix=system.prior_matrix + rho * np.eye(m))
     done = 0
@@ -351,7 +353,7 @@ def _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, l1, z, u
         z[free] = znew[free]
         root = np.sqrt(max(free.sum() * m, 1))
         eps_p = ADMM_EPS_ABS * root + ADMM_EPS_REL * max(np.linalg.norm(w[free]), np.linalg.norm(z[free]))
-        eps_d = ADMM_EPS_ABS * root + ADMM_EPS_REL * rho * np.linalg.norm(u[free])
+        eps_d = ADMM_EPS_ABS * root * unit + ADMM_EPS_REL * rho * np.linalg.norm(u[free])
         stats.iterations, stats.rho, stats.primal, stats.dual = done, rho, primal, dual
         if primal <= eps_p and dual <= eps_d:
             stats.converged = True

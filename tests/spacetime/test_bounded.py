@@ -1,0 +1,157 @@
+"""Bounded movement matching (ADMM over the structured solve) and the defaults that depart
+from the paper: weight bounds, the position term that keeps held expressions, the global
+similarity scale, dense samples for mesh sources."""
+import numpy as np
+import pytest
+
+import faceretarget as fr
+from faceretarget.plugins.spacetime import solver
+from naive import spacetime as naive
+from spacetime.test_solver import known_frames, random_problem
+
+
+def energy(system, deltas, weights, l1=0.0):
+    """Half the movement-matching energy (the ADMM objective) with ``l1 * sum |w|``."""
+    terms = solver.energy_terms(system, deltas, weights)
+    prior = np.einsum("fi,ij,fj->", weights, system.prior_matrix, weights) - 2 * np.sum(weights @ system.prior_vector)
+    return 0.5 * (terms["velocity"].sum() + system.beta * terms["position"].sum() + prior) + l1 * np.abs(weights).sum()
+
+
+@pytest.fixture
+def tight(monkeypatch):
+    monkeypatch.setattr(solver, "ADMM_EPS_ABS", 1e-10)
+    monkeypatch.setattr(solver, "ADMM_EPS_REL", 1e-9)
+    monkeypatch.setattr(solver, "ADMM_MAX_ITER", 20000)
+
+
+@pytest.mark.parametrize("beta, l1", [(0.0, 0.0), (0.7, 0.0), (0.7, 0.3)])
+@pytest.mark.parametrize("missing", [False, True])
+def test_bounded_solve_matches_bvls_on_the_assembled_rows(tight, beta, l1, missing):
+    system, deltas, energy_kw = random_problem(beta=beta, n_frames=40)
+    if missing:
+        deltas = deltas.copy()
+        deltas[5, 1] = deltas[17, 3] = np.nan
+    known, values = known_frames(40, [0, 20, 39], 5)
+    values = np.clip(values, 0, 1)
+    lo, hi = np.zeros(5), np.ones(5)
+    stats = solver.BoundedStats()
+    got = solver.solve_movement_bounded(system, deltas, known, values, lo, hi, l1=l1, stats=stats)
+    want = naive.solve_rows_bounded(system.basis, deltas, known, values, lo, hi, l1=l1, **energy_kw)
+    assert stats.converged and stats.iterations > 0
+    assert np.abs(got - want).max() < 1e-6
+    # the bounds bind on this problem: the unconstrained solution leaves them
+    free = solver.solve_movement(system, deltas, known, values)
+    assert ((free < -1e-3) | (free > 1 + 1e-3)).mean() > 0.1
+
+
+def test_default_tolerance_is_near_optimal_and_exactly_feasible():
+    system, deltas, _ = random_problem(beta=0.7, n_frames=60)
+    known, values = known_frames(60, [], 5)
+    lo, hi = np.zeros(5), np.ones(5)
+    got = solver.solve_movement_bounded(system, deltas, known, values, lo, hi)
+    assert got.min() >= 0.0 and got.max() <= 1.0
+    want = naive.solve_rows_bounded(system.basis, deltas, known, values, lo, hi, **random_problem(beta=0.7, n_frames=60)[2])
+    assert energy(system, deltas, got) - energy(system, deltas, want) < 1e-3 * energy(system, deltas, want)
+
+
+def test_unconstrained_solution_inside_the_bounds_is_returned_unchanged():
+    system, deltas, _ = random_problem(beta=0.7, n_frames=30)
+    known, values = known_frames(30, [0], 5)
+    free = solver.solve_movement(system, deltas, known, values)
+    stats = solver.BoundedStats()
+    got = solver.solve_movement_bounded(system, deltas, known, values, free.min(0) - 1, free.max(0) + 1, stats=stats)
+    assert stats.iterations == 0 and np.array_equal(got, free)
+
+
+def test_l1_shrinks_small_weights_to_exactly_zero():
+    system, deltas, _ = random_problem(beta=1.0, n_frames=30)
+    known, values = known_frames(30, [], 5)
+    lo, hi = np.zeros(5), np.ones(5)
+    plain = solver.solve_movement_bounded(system, deltas, known, values, lo, hi)
+    sparse = solver.solve_movement_bounded(system, deltas, known, values, lo, hi, l1=5.0)
+    assert (sparse == 0).sum() > (plain == 0).sum()
+    assert np.abs(sparse).sum() < np.abs(plain).sum()
+
+
+# ---------------------------------------------------------------------------------------
+# Through the retargeter
+# ---------------------------------------------------------------------------------------
+def held_smile(n_hold: int = 300):
+    """The synthetic source with a smile ramped in over 15 frames, held, ramped out."""
+    case = fr.cases.synthetic(n_frames=30, head_motion=False)
+    src = case.source
+    names = list(src.rig.names)
+    n = 15 + n_hold + 15
+    w = np.zeros((n, len(names)))
+    ramp = np.linspace(0, 1, 15)
+    for shape in ("mouthSmileLeft", "mouthSmileRight"):
+        j = names.index(shape)
+        w[:15, j], w[15:-15, j], w[-15:, j] = ramp, 1.0, ramp[::-1]
+    perf = fr.MeshSequence(src.rig.evaluate(w), src.performance.triangles, fps=30.0)
+    return src.replace(performance=perf, head_motion=None), case.target, case.target.blendshapes.evaluate(w)
+
+
+@pytest.mark.parametrize("name, keeps", [("spacetime", True), ("spacetime_paper", False)])
+def test_held_expression_keeps_its_amplitude_by_default(name, keeps):
+    """A smile held 10 s at 30 fps: the default keeps >= 95% of it mid-hold; the paper's pure
+    movement matching under the prior lets it fade (a high-pass filter in time)."""
+    source, target, truth = held_smile()
+    out = np.asarray(fr.get(name).fit(source, target).retarget(source).vertices)
+    mid = len(truth) // 2
+    kept = np.linalg.norm(out[mid] - truth[0]) / np.linalg.norm(truth[mid] - truth[0])
+    assert (kept >= 0.95) == keeps, kept
+
+
+def test_error_does_not_grow_with_shot_length():
+    """The same performance at 120 and at 1,200 frames: error within 20%."""
+    errors = []
+    for n in (120, 1200):
+        case = fr.cases.synthetic(n_frames=n, head_motion=False, resolution=1500)
+        anim = fr.get("spacetime").fit(case.source, case.target).retarget(case.source)
+        truth = np.asarray(case.truth.vertices)
+        errors.append(np.sqrt(np.mean(np.sum((np.asarray(anim.vertices) - truth) ** 2, axis=-1))))
+    assert abs(errors[1] / errors[0] - 1) < 0.2, errors
+
+
+def test_default_weights_stay_in_the_rig_bounds_and_paper_leaves_them(synthetic_case):
+    case = synthetic_case
+    anim = fr.get("spacetime").fit(case.source, case.target).retarget(case.source)
+    paper = fr.get("spacetime_paper").fit(case.source, case.target).retarget(case.source)
+    assert anim.weights.min() >= 0.0 and anim.weights.max() <= 1.0
+    assert anim.provenance["diagnostics"]["fraction_outside_bounds"] == 0.0
+    assert ((paper.weights < 0) | (paper.weights > 1)).mean() > 0.01
+    declared = case.target.replace(blendshapes=fr.BlendshapeRig(
+        case.target.blendshapes.neutral, case.target.blendshapes.deltas, case.target.blendshapes.names,
+        bounds=np.tile([0.0, 0.5], (case.target.blendshapes.n_shapes, 1)),
+    ))
+    capped = fr.get("spacetime").fit(case.source, declared).retarget(case.source)
+    assert capped.weights.max() <= 0.5 and capped.weights.max() > 0.45  # the rig's own bounds win
+
+
+def test_mesh_source_is_fitted_densely_and_markers_on_landmarks(synthetic_case):
+    case = synthetic_case
+    dense = fr.get("spacetime").fit(case.source, case.target).retarget(case.source)
+    diag = dense.provenance["diagnostics"]
+    assert diag["samples"] == "dense" and diag["n_points"] > 10 * len(case.target.landmarks)
+    markers = fr.Source(fr.MarkerSequence(case.source.marker_positions(), names=case.source.landmarks.names,
+                                          reference=case.source.marker_reference(), fps=case.source.fps))
+    sparse = fr.get("spacetime").fit(markers, case.target).retarget(markers)
+    assert sparse.provenance["diagnostics"]["samples"] == "landmarks"
+    with pytest.raises(fr.errors.CapabilityError, match="mesh-sequence source"):
+        fr.get("spacetime", samples="dense").fit(markers, case.target)
+
+
+def test_units_of_the_source_do_not_change_the_weights(synthetic_case):
+    """Source in metres instead of centimetres: the global scale absorbs the unit."""
+    case = synthetic_case
+    perf = case.source.performance
+    metres = case.source.replace(
+        performance=fr.MeshSequence(np.asarray(perf.vertices) * 0.01, perf.triangles, fps=perf.fps,
+                                    reference=np.asarray(perf.reference.vertices) * 0.01),
+        examples=None, rig=None, actor_layers=None, head_motion=None,
+    )
+    plain = case.source.replace(examples=None, rig=None, actor_layers=None, head_motion=None)
+    a = fr.get("spacetime").fit(plain, case.target).retarget(plain)
+    b = fr.get("spacetime").fit(metres, case.target).retarget(metres)
+    assert np.abs(a.weights - b.weights).max() < 1e-4
+    assert abs(b.provenance["diagnostics"]["transfer_scale"] / a.provenance["diagnostics"]["transfer_scale"] - 0.01) < 1e-9
