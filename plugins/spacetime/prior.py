@@ -86,13 +86,16 @@ def fit_prior(samples: np.ndarray, basis: np.ndarray, neutral: np.ndarray, cente
     n_samples = x.shape[0]
     mean = x.mean(axis=0) if center == "mean" else n
     centred = x - mean
-    u, sig, _ = np.linalg.svd(centred.T, full_matrices=False)
-    lam = sig**2 / max(n_samples, 1)
+    # eigenvectors of the (3N, 3N) covariance from the small (K, K) Gram of the samples:
+    # centred^T = U S V^T, so centred centred^T = V S^2 V^T and U = centred^T V / S
+    sig2, v = np.linalg.eigh(centred @ centred.T)
+    sig2, v = sig2[::-1], v[:, ::-1]
+    lam = np.maximum(sig2, 0.0) / max(n_samples, 1)
     keep = lam > config.RANK_RTOL * (lam.max() if lam.size else 0.0)
     if not keep.any():
         m = b.shape[1]
         return Prior(np.zeros((m, m)), np.zeros(m), np.zeros((0, m)), np.zeros(0), np.zeros(0), n_samples)
-    e = u[:, keep]
+    e = (centred.T @ v[:, keep]) / np.sqrt(sig2[keep])
     inv_sqrt = 1.0 / np.sqrt(lam[keep])
     factor = inv_sqrt[:, None] * (e.T @ b)
     offset = inv_sqrt * (e.T @ (n - mean))
