@@ -35,6 +35,7 @@ from faceretarget.model import Animation, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
 
 from . import calibration
+from .examples import adapt_basis, example_weights
 from .prior import fit_prior
 from .solver import BoundedStats, System, energy_terms, solve_bounded, solve_movement, solve_movement_bounded, solve_per_frame
 
@@ -141,6 +142,7 @@ class SpacetimeRetargeter(Retargeter):
         transfer="scale",
         samples="auto",
         max_samples=1000,
+        example_weight=0.3,
     ):
         self.mode = mode
         self.alpha = alpha
@@ -162,6 +164,7 @@ class SpacetimeRetargeter(Retargeter):
         self.transfer = transfer
         self.samples = samples
         self.max_samples = max_samples
+        self.example_weight = example_weight
 
     # ------------------------------------------------------------------------------------
     # fit
@@ -194,6 +197,10 @@ class SpacetimeRetargeter(Retargeter):
         deltas = self.transfer_.deltas(points, point_deltas)
         n_points, n_shapes = len(points), rig.n_shapes
         basis = deltas.reshape(n_shapes, -1).T  # (3P, M), x-y-z interleaved per point
+        self.resolved_bounds_ = self._resolve_bounds(rig)
+        self.examples_used_ = ()
+        if params["example_weight"] > 0:
+            basis = self._adapt_to_examples(source, target, basis, pairs, points)
         samples = self._prior_samples(rig, landmarks, neutral, basis)
         names = [source_names[i] for i in pairs]
         if self.dense_ is not None and self.marker_weights is not None:
@@ -215,10 +222,38 @@ class SpacetimeRetargeter(Retargeter):
         self.marker_weights_ = marker_weights
         self.frame_weights_ = frame_weights
         self.rig_ = rig
-        self.bounds_ = self._resolve_bounds(rig)
+        self.bounds_ = self.resolved_bounds_
         self.systems_ = {}
         self.system_ = self._system(source.fps if self.mode == "movement" else None)
         self.alpha_effective_ = self.system_.alpha
+
+    def _adapt_to_examples(self, source: Source, target: TargetRig, basis, pairs, points) -> np.ndarray:
+        """The basis corrected by the example pose pairs both sides have (see ``examples.py``)."""
+        if source.examples is None or target.examples is None:
+            return basis
+        common = [n for n in target.example_names if n in source.example_names]
+        if not common:
+            return basis
+        rig = target.blendshapes
+        t_idx = [target.example_names.index(n) for n in common]
+        s_idx = [source.example_names.index(n) for n in common]
+        bounds = self.resolved_bounds_
+        weights = example_weights(rig.deltas, target.examples[t_idx] - rig.neutral.vertices, *(bounds or (None, None)))
+        if self.dense_ is not None:
+            corr = self.dense_.source
+            source_pts = corr.apply(source.examples[s_idx]) - corr.apply(source.performance.reference.vertices)[None]
+        elif source.kind == "mesh":
+            ref = source.performance.reference.vertices
+            tris = source.performance.triangles
+            source_pts = (source.landmarks.positions(source.examples[s_idx], tris) - source.landmarks.positions(ref, tris)[None])[:, pairs]
+        else:
+            if source.examples.shape[1] != len(source.performance.names):
+                return basis
+            source_pts = source.examples[s_idx][:, pairs] - np.asarray(source.marker_reference())[pairs][None]
+        if not np.isfinite(source_pts).all():
+            return basis
+        self.examples_used_ = tuple(common)
+        return adapt_basis(basis, weights, source_pts.reshape(len(common), -1), self.params_["example_weight"])
 
     def _dense_pairs(self, source: Source, rig, target_landmarks, source_landmarks):
         """Dense target-source pairs for a mesh source (``samples``), or None for landmarks only."""
@@ -298,6 +333,7 @@ class SpacetimeRetargeter(Retargeter):
         samples = _config(check_choice, self.samples, "samples", SAMPLES)
         max_samples = _config(check_number, self.max_samples, "max_samples", integer=True, low=20, high=MAX_SAMPLES)
         sparsity = _config(check_number, self.sparsity, "sparsity", low=0, high=MAX_WEIGHT)
+        example_weight = _config(check_number, self.example_weight, "example_weight", low=0, high=MAX_WEIGHT)
         if sparsity > 0 and mode == "movement" and beta == 0:
             raise ConfigError(
                 "spacetime: sparsity > 0 weighs the L1 term against the position term, which beta=0 turns off; "
@@ -341,6 +377,7 @@ class SpacetimeRetargeter(Retargeter):
             "samples": samples,
             "max_samples": max_samples,
             "sparsity": sparsity,
+            "example_weight": example_weight,
         }
 
     def _prior_samples(self, rig, landmarks, neutral, basis) -> np.ndarray:
@@ -456,6 +493,7 @@ class SpacetimeRetargeter(Retargeter):
             "transfer": self.transfer_.how,
             "transfer_scale": self.transfer_.scale,
             "transfer_rotation_degrees": self.transfer_.angle,
+            "examples": list(self.examples_used_),
             "velocity_error": float(terms["velocity"].sum()),
             "position_error": float(terms["position"].sum()),
             "fraction_in_range": float(inside.mean()),
@@ -744,7 +782,7 @@ _PER_FRAME_CAPABILITIES = dataclasses.replace(SpacetimeRetargeter.capabilities, 
 #: the measured effect of each): no weight bounds in the whole-sequence solve, no position
 #: or L1 term, boundary values from per-frame solves, scale-proportion matching by the RBF
 #: warp on the landmarks only.
-PAPER = dict(bounds=None, beta=0.0, sparsity=0.0, boundary="per_frame", transfer="rbf", samples="landmarks")
+PAPER = dict(bounds=None, beta=0.0, sparsity=0.0, boundary="per_frame", transfer="rbf", samples="landmarks", example_weight=0.0)
 
 SpacetimePaper = _with_defaults(
     SpacetimeRetargeter, "spacetime_paper",
