@@ -9,23 +9,30 @@ true weights, with the same rigid head motion), so that::
     anim = faceretarget.get("spacetime").fit(case.source, case.target).retarget(case.source)
     error = anim.vertices - case.truth.vertices
 
-Two generators:
+Three generators:
 
 - :func:`synthetic`: procedural parallel rigs on a face-like open surface with eye and
   mouth holes, defined over a shared (u, v) parameter domain so every blendshape means
   the same thing on source and target (see ``_shape_fields``); any resolution.
 - :func:`ict`: real parallel rigs from the ICT-FaceKit face region (committed fixture
   ``data/ict_face_fixture.npz``, MIT licence in ``data/ICT-FaceKit-LICENSE.txt``).
+- :func:`cross_rig`: a pair of *different* rigs built from the ICT data like a real
+  production pair (a remeshed source in metres, ~2K vertices; the ICT-topology target in
+  centimetres; same-named shapes whose deltas differ), driven by sparse held weight curves
+  with blinks and speech bursts (committed fixture ``data/ict_cross_rig_fixture.npz``).
 
-Both carry every rig part a built-in method may need (dense source mesh sequence with
+All carry every rig part a built-in method may need (dense source mesh sequence with
 landmarks = marker layout, feature lines, example pose pairs, actor layers over the
 markers; target blendshapes, layered poses with region masks, landmarks, feature lines,
-examples). Frame weights are generated from the layered model of
-:mod:`faceretarget.recipes` (per frame a convex emotion mix + a convex viseme mix + a
-blink), so the layered description is exact.
+examples). For :func:`synthetic` and :func:`ict` the frame weights are generated from the
+layered model of :mod:`faceretarget.recipes` (per frame a convex emotion mix + a convex
+viseme mix + a blink), so the layered description is exact; :func:`cross_rig` gives its
+own animation-like curves, which the layers only approximate.
 """
 from __future__ import annotations
 
+import copy
+import functools
 from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any, NamedTuple
@@ -34,12 +41,14 @@ import numpy as np
 
 from . import recipes
 from .correspond.topology import boundary_loops
+from ._validate import as_fps
 from .errors import InputError, UnknownNameError
 from .model import (
     Animation,
     BlendshapeRig,
     Landmarks,
     LayeredRig,
+    MarkerSequence,
     Mesh,
     MeshSequence,
     Source,
@@ -47,7 +56,7 @@ from .model import (
     apply_head_motion,
 )
 
-__all__ = ["Case", "synthetic", "ict", "face_surface", "CASES", "get_case", "MARKER_LAYOUT", "EMOTION_LAYER", "SPEECH_LAYER", "BLINK_LAYER", "EXAMPLES"]
+__all__ = ["Case", "synthetic", "ict", "cross_rig", "face_surface", "CASES", "get_case", "MARKER_LAYOUT", "EMOTION_LAYER", "SPEECH_LAYER", "BLINK_LAYER", "EXAMPLES"]
 
 #: Poses of the three layers (names of recipes in :mod:`faceretarget.recipes`).
 EMOTION_LAYER = ("neutral", "happiness", "sadness", "anger", "surprise", "disgust")
@@ -85,12 +94,14 @@ class Case:
     meta : dict
         ``weights`` (F, M) true weights, ``weight_names``, ``layer_coefficients``
         {layer: (F, K) convex coefficients}, ``layer_recipes`` {layer: (K, M) weights of
-        each pose}, so ``weights = sum_layer coefficients @ recipes``; ``head_motion``
+        each pose}, so ``weights = sum_layer coefficients @ recipes`` (:func:`cross_rig`:
+        ``layer_coefficients`` is None, its curves are not layered); ``head_motion``
         (F, 4, 4) (also inside the source vertices and the truth; ``source.head_motion``
         is None so methods estimate it); ``face_height`` (target, mesh units),
         ``source_face_height``, ``unmapped_recipe_names``, ``seed``; :func:`synthetic`
         adds ``source_uv`` / ``target_uv`` (vertex parameters), ``boundary_loops``,
-        ``target_kind``, ``wrinkles``; :func:`ict` adds ``expressions``.
+        ``target_kind``, ``wrinkles``; :func:`ict` adds ``expressions``; :func:`cross_rig`
+        adds ``source_kind``, ``unit_scale``, ``source_correspondence``, ``perturbation``.
     """
 
     name: str
@@ -257,38 +268,69 @@ class _Side(NamedTuple):
 
 
 def _assemble(name: str, src: _Side, tgt: _Side, *, n_frames: int, fps: float, seed: int, head_motion: bool,
-              pivot: np.ndarray, meta: dict) -> Case:
-    """Build the Source, TargetRig and truth from two parallel rigs (shared by both generators)."""
+              pivot: np.ndarray, meta: dict, weights: np.ndarray | None = None, source_kind: str = "mesh",
+              unit_scale: float = 1.0) -> Case:
+    """Build the Source, TargetRig and truth from two parallel rigs (shared by the generators).
+
+    ``weights`` (F, M): the weight curves to use (default: generated from the layered
+    model). ``source_kind``: "mesh" (a MeshSequence with ``src.landmarks``) or "markers"
+    (a MarkerSequence of the landmark positions, named like them). ``unit_scale``: target
+    units per source unit; the truth's head motion is the source's with its translation
+    scaled by it (the same motion seen in the target's units).
+    """
     source_rig, target_rig = src.rig, tgt.rig
     rng = np.random.default_rng(seed)
     names = source_rig.names
     layer_w, unmapped = _layer_recipe_matrices(names)
-    coeffs = _layer_curves(rng, n_frames, fps, len(EMOTION_LAYER), len(SPEECH_LAYER))
-    weights = sum(coeffs[k] @ layer_w[k] for k in ("emotion", "speech", "blink"))
+    if weights is None:
+        coeffs = _layer_curves(rng, n_frames, fps, len(EMOTION_LAYER), len(SPEECH_LAYER))
+        weights = sum(coeffs[k] @ layer_w[k] for k in ("emotion", "speech", "blink"))
+    else:
+        coeffs = None
     source_height = source_rig.neutral.height
     motion = _head_motion(rng, n_frames, fps, pivot, source_height, head_motion)
+    target_motion = motion
+    if unit_scale != 1.0:
+        target_motion = motion.copy()
+        target_motion[:, :3, 3] *= unit_scale
 
-    local = source_rig.evaluate(weights)
-    world = apply_head_motion(motion, local)
     source_neutral = source_rig.neutral
     ex_w = _example_weights(names)
     ex_names = [e[0] for e in EXAMPLES]
-    src_ids = src.landmarks.vertex_ids
+    src_tri = source_neutral.triangles
 
-    def poses(rig, ids=None):
+    def at_landmarks(points):
+        """(..., V, 3) source points -> (..., N, 3) at the source landmarks."""
+        return src.landmarks.positions(points, src_tri)
+
+    if source_kind == "markers":  # the rig sampled at the markers, not the whole mesh
+        lm_deltas = at_landmarks(source_rig.deltas)
+        local = at_landmarks(source_neutral.vertices) + (weights @ lm_deltas.reshape(len(lm_deltas), -1)).reshape(len(weights), -1, 3)
+    else:
+        local = source_rig.evaluate(weights)
+    # identity motion leaves the points bit-identical: skip the (F, V, 3) product
+    world = apply_head_motion(motion, local) if head_motion else local
+
+    def poses(rig, on_landmarks=False):
         out = {}
         for layer, w in layer_w.items():
             p = rig.evaluate(w)
-            out[layer] = p if ids is None else p[:, ids]
+            out[layer] = at_landmarks(p) if on_landmarks else p
         return out
 
     pose_names = {"emotion": list(EMOTION_LAYER), "speech": list(SPEECH_LAYER), "blink": list(BLINK_LAYER)}
-    actor_layers = LayeredRig(poses(source_rig, src_ids), src.masks[:, src_ids], pose_names=pose_names, region_names=REGION_NAMES)
+    landmark_masks = at_landmarks(src.masks[:, :, None])[:, :, 0]
+    actor_layers = LayeredRig(poses(source_rig, True), landmark_masks, pose_names=pose_names, region_names=REGION_NAMES)
+    if source_kind == "markers":
+        performance = MarkerSequence(world, names=src.landmarks.names, fps=fps,
+                                     reference=at_landmarks(source_neutral.vertices))
+        parts = dict(examples=at_landmarks(source_rig.evaluate(ex_w)))
+    else:
+        performance = MeshSequence(world, source_neutral.triangles, fps=fps, reference=source_neutral, name=f"{name} source")
+        parts = dict(landmarks=src.landmarks, feature_lines=src.feature_lines, examples=source_rig.evaluate(ex_w))
     source = Source(
-        MeshSequence(world, source_neutral.triangles, fps=fps, reference=source_neutral, name=f"{name} source"),
-        landmarks=src.landmarks,
-        feature_lines=src.feature_lines,
-        examples=source_rig.evaluate(ex_w),
+        performance,
+        **parts,
         example_names=ex_names,
         rig=source_rig,
         actor_layers=actor_layers,
@@ -304,7 +346,7 @@ def _assemble(name: str, src: _Side, tgt: _Side, *, n_frames: int, fps: float, s
         example_names=ex_names,
         name=f"{name} target",
     )
-    truth = Animation(weights=weights, rig=target_rig, head_motion=motion, fps=fps, provenance={"method": "ground truth"})
+    truth = Animation(weights=weights, rig=target_rig, head_motion=target_motion, fps=fps, provenance={"method": "ground truth"})
     meta = dict(meta)
     meta.update(
         weights=weights,
@@ -757,6 +799,39 @@ def _load_ict_fixture() -> dict[str, np.ndarray]:
     return out
 
 
+def _ict_identity(data: dict, coeffs, default, what: str, case: str = "ict") -> np.ndarray:
+    """(V, 3) ICT face ``neutral + sum_k c_k identity_k`` for coefficients ``coeffs`` (or ``default``)."""
+    n_modes = data["identity_deltas"].shape[0]
+    c = np.asarray(default if coeffs is None else coeffs, dtype=np.float64)
+    if c.ndim != 1 or c.shape[0] > n_modes or not np.isfinite(c).all():
+        raise InputError(f"{case}: {what} must be up to {n_modes} finite identity coefficients, got shape {c.shape}")
+    return data["neutral"].astype(np.float64) + np.tensordot(c, data["identity_deltas"][: c.shape[0]], axes=1)
+
+
+@functools.lru_cache(maxsize=8)
+def _ict_transferred_deltas(coeffs: tuple) -> np.ndarray:
+    """(45, V, 3) read-only: the generic ICT expressions carried to identity ``coeffs`` by
+    deformation transfer (Sumner & Popovic 2004); cached, as it takes seconds."""
+    from .geometry.deformation_gradients import DeformationTransfer
+
+    data = _load_ict_fixture()
+    tri = data["faces"].astype(np.int64)
+    face = _ict_identity(data, coeffs, None, "identity")
+    generic = data["neutral"].astype(np.float64)
+    out = DeformationTransfer(face, tri).transfer(generic, generic + data["expression_deltas"]) - face
+    out.setflags(write=False)
+    return out
+
+
+def _ict_masks(mesh: Mesh, landmark_points: np.ndarray) -> np.ndarray:
+    """Region masks (3, V) of an ICT-like face cut at the brow/eye and nose landmark heights."""
+    y = mesh.vertices[:, 1]
+    brow = landmark_points[17:27, 1].mean()
+    eye = landmark_points[36:48, 1].mean()
+    nose = landmark_points[33, 1]
+    return _region_masks(y, 0.5 * (brow + eye), nose, _MASK_SOFTNESS * mesh.height)
+
+
 def ict(
     source_identity=None,
     target_identity=None,
@@ -788,13 +863,12 @@ def ict(
     if expressions not in ("same", "transferred"):
         raise UnknownNameError(f"ict: expressions must be 'same' or 'transferred', got {expressions!r}")
     data = _load_ict_fixture()
-    n_modes = data["identity_deltas"].shape[0]
 
     def identity(coeffs, default, what):
-        c = np.asarray(default if coeffs is None else coeffs, dtype=np.float64)
-        if c.ndim != 1 or c.shape[0] > n_modes or not np.isfinite(c).all():
-            raise InputError(f"ict: {what} must be up to {n_modes} finite identity coefficients, got shape {c.shape}")
-        return data["neutral"].astype(np.float64) + np.tensordot(c, data["identity_deltas"][: c.shape[0]], axes=1)
+        return _ict_identity(data, coeffs, default, what)
+
+    def key(coeffs, default) -> tuple:
+        return tuple(float(c) for c in np.asarray(default if coeffs is None else coeffs, dtype=np.float64))
 
     tri = data["faces"].astype(np.int64)
     names = [str(n) for n in data["expression_names"]]
@@ -802,15 +876,8 @@ def ict(
     src = Mesh(identity(source_identity, ICT_SOURCE_IDENTITY, "source_identity"), tri, name="ICT source", _trusted=True)
     tgt = Mesh(identity(target_identity, ICT_TARGET_IDENTITY, "target_identity"), tri, name="ICT target", _trusted=True)
     if expressions == "transferred":
-        from .geometry.deformation_gradients import DeformationTransfer
-
-        generic = data["neutral"].astype(np.float64)
-
-        def adapted(mesh: Mesh) -> np.ndarray:
-            return DeformationTransfer(mesh.vertices, tri).transfer(generic, generic + deltas) - mesh.vertices
-
-        source_rig = BlendshapeRig(src, adapted(src), names)
-        target_rig = BlendshapeRig(tgt, adapted(tgt), names)
+        source_rig = BlendshapeRig(src, _ict_transferred_deltas(key(source_identity, ICT_SOURCE_IDENTITY)), names)
+        target_rig = BlendshapeRig(tgt, _ict_transferred_deltas(key(target_identity, ICT_TARGET_IDENTITY)), names)
     else:
         source_rig = BlendshapeRig(src, deltas, names)
         target_rig = BlendshapeRig(tgt, deltas, names)
@@ -828,11 +895,7 @@ def ict(
     lines["mouth_outer"] = lm_ids[48:60]
 
     def masks(mesh: Mesh) -> np.ndarray:
-        y = mesh.vertices[:, 1]
-        brow = mesh.vertices[lm_ids[17:27], 1].mean()
-        eye = mesh.vertices[lm_ids[36:48], 1].mean()
-        nose = mesh.vertices[lm_ids[33], 1]
-        return _region_masks(y, 0.5 * (brow + eye), nose, _MASK_SOFTNESS * mesh.height)
+        return _ict_masks(mesh, mesh.vertices[lm_ids])
 
     return _assemble(
         "ict",
@@ -847,12 +910,391 @@ def ict(
     )
 
 
+# =======================================================================================
+# A cross-rig pair from the ICT data: different topology, units and shape meanings
+# =======================================================================================
+_CROSS_RIG_FIXTURE = "ict_cross_rig_fixture.npz"
+#: Source units per target unit: the source rig is in metres, the target (ICT) in centimetres.
+CROSS_RIG_SOURCE_SCALE = 0.01
+#: Expression-track accents: single actions an actor holds alone (ARKit names).
+_ACCENT_SHAPES = (
+    "browInnerUp", "browDownLeft", "browDownRight", "browOuterUpLeft", "browOuterUpRight",
+    "eyeSquintLeft", "eyeSquintRight", "eyeWideLeft", "eyeWideRight", "cheekSquintLeft",
+    "cheekSquintRight", "cheekPuff", "noseSneerLeft", "noseSneerRight", "mouthDimpleLeft",
+    "mouthDimpleRight", "mouthSmileLeft", "mouthSmileRight", "mouthLeft", "mouthRight",
+    "mouthShrugUpper", "mouthShrugLower", "mouthRollUpper", "mouthPressLeft", "mouthPressRight",
+    "jawLeft", "jawRight", "jawForward",
+)
+
+
+def _load_cross_rig_fixture() -> dict[str, np.ndarray]:
+    path = resources.files("faceretarget") / "data" / _CROSS_RIG_FIXTURE
+    with resources.as_file(path) as p, np.load(p) as data:
+        return {k: data[k] for k in data.files}
+
+
+def _smooth_keys(times: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Smoothstep between consecutive keys ``(times (K,) increasing, values (K, M))`` at ``t`` -> (len(t), M).
+
+    Equal consecutive keys give exactly constant holds; outside the keys the end values hold.
+    """
+    k = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    s = np.clip((t - times[k]) / (times[k + 1] - times[k]), 0.0, 1.0)
+    s = s * s * (3.0 - 2.0 * s)
+    v0 = values[k]
+    return v0 + s[:, None] * (values[k + 1] - v0)
+
+
+class _Track:
+    """Keys of one animation track (times in seconds, strictly increasing)."""
+
+    def __init__(self, n_shapes: int):
+        self.times: list[float] = [0.0]
+        self.values: list[np.ndarray] = [np.zeros(n_shapes)]
+
+    def key(self, time: float, value: np.ndarray) -> None:
+        if time > self.times[-1] + 1e-9:
+            self.times.append(time)
+            self.values.append(value)
+
+    def sample(self, t: np.ndarray) -> np.ndarray:
+        self.key(max(self.times[-1], float(t[-1])) + 1.0, self.values[-1])
+        return _smooth_keys(np.asarray(self.times), np.asarray(self.values), t)
+
+
+def _performance_weights(rng: np.random.Generator, n_frames: int, fps: float, names) -> np.ndarray:
+    """(F, M) animation-like weight curves in [0, 1] on a rig with shapes ``names``.
+
+    Three tracks, each keyed in seconds and smoothstep-interpolated (C1, exact holds), are
+    combined per shape as ``1 - (1 - expression)(1 - speech)(1 - blink)``:
+
+    - expressions: an emotion recipe (scaled 0.5-1, jittered per shape, sometimes with an
+      accent) or 1-3 accents alone (brow raise, squint, dimple, jaw shift...), ramping in
+      over 0.15-0.5 s and held 1-4 s, then either blended into the next expression or
+      released to rest for 0.3-2.5 s;
+    - speech: bursts of 1-3.5 s separated by 0.5-3.5 s pauses; inside a burst a viseme key
+      (jaw and mouth shapes) every 0.1-0.25 s (4-10 Hz), with lower-lip, mouthClose and
+      shrug variations;
+    - blinks: both eyes, about 150 ms (close 50-70 ms, open 80-120 ms), every 2-6 s,
+      sometimes doubled.
+    """
+    m = len(names)
+    t = np.arange(n_frames, dtype=np.float64) / fps
+    t_end = float(t[-1])
+
+    def vec(recipe):
+        return recipes.resolve(recipe, names, on_unmapped="ignore")
+
+    emotions = [vec(r) for k, r in recipes.EMOTIONS.items() if k != "neutral"]
+    accents = [vec({a: 1.0}) for a in _ACCENT_SHAPES]
+    accents = [a for a in accents if a.any()]
+    visemes = {k: vec(r) for k, r in recipes.VISEMES.items()}
+    one = {n: vec({n: 1.0}) for n in ("jawOpen", "mouthClose", "mouthLowerDownLeft", "mouthLowerDownRight",
+                                       "mouthShrugUpper", "mouthRollUpper", "eyeBlinkLeft", "eyeBlinkRight")}
+    jaw = int(np.argmax(one["jawOpen"])) if one["jawOpen"].any() else None
+
+    # expressions
+    expr = _Track(m)
+    time, current = float(rng.uniform(0.0, 0.8)), np.zeros(m)
+    while time < t_end:
+        if rng.random() < 0.65 and emotions:
+            pose = emotions[int(rng.integers(len(emotions)))] * rng.uniform(0.5, 1.0) * rng.uniform(0.85, 1.15, m)
+            if accents and rng.random() < 0.35:
+                pose = pose + accents[int(rng.integers(len(accents)))] * rng.uniform(0.2, 0.6)
+        else:
+            pose = np.zeros(m)
+            for i in rng.choice(len(accents), size=int(rng.integers(1, 4)), replace=False):
+                pose = pose + accents[i] * rng.uniform(0.3, 0.9)
+        pose = np.clip(pose, 0.0, 1.0)
+        ramp, hold = rng.uniform(0.15, 0.5), rng.uniform(1.0, 4.0)
+        expr.key(time, current)
+        expr.key(time + ramp, pose)
+        expr.key(time + ramp + hold, pose)
+        time, current = time + ramp + hold, pose
+        if rng.random() < 0.5:
+            ramp = rng.uniform(0.15, 0.5)
+            expr.key(time + ramp, np.zeros(m))
+            time, current = time + ramp + rng.uniform(0.3, 2.5), np.zeros(m)
+
+    # speech
+    speech = _Track(m)
+    viseme_names = list(visemes)
+    time = float(rng.uniform(0.2, 1.5))
+    while time < t_end:
+        speech.key(time, np.zeros(m))
+        stop, key_t = time + rng.uniform(1.0, 3.5), time
+        rate = rng.uniform(4.0, 10.0)
+        while True:
+            step = float(np.clip(rng.uniform(0.8, 1.25) / rate, 0.1, 0.25))
+            if key_t + step >= stop:
+                break
+            key_t += step
+            name = viseme_names[int(rng.integers(len(viseme_names)))]
+            pose = visemes[name] * rng.uniform(0.6, 1.15)
+            open_ = pose[jaw] if jaw is not None else 0.3
+            if name == "MBP" and rng.random() < 0.6:
+                closed = rng.uniform(0.05, 0.25)
+                pose = pose + closed * (one["jawOpen"] + one["mouthClose"])
+            elif rng.random() < 0.25:
+                pose = pose + rng.uniform(0.3, 0.9) * open_ * one["mouthClose"]
+            if rng.random() < 0.4:
+                pose = pose + rng.uniform(0.1, 0.4) * (one["mouthLowerDownLeft"] + one["mouthLowerDownRight"])
+            if rng.random() < 0.2:
+                pose = pose + rng.uniform(0.1, 0.3) * one[("mouthShrugUpper", "mouthRollUpper")[int(rng.integers(2))]]
+            speech.key(key_t, np.clip(pose, 0.0, 1.0))
+        end = key_t + rng.uniform(0.1, 0.25)
+        speech.key(end, np.zeros(m))
+        time = end + rng.uniform(0.5, 3.5)
+
+    # blinks
+    blink = _Track(m)
+    time = float(rng.uniform(0.3, 2.0))
+    while time < t_end:
+        for _ in range(2 if rng.random() < 0.1 else 1):
+            depth = rng.uniform(0.85, 1.0)
+            pose = depth * (one["eyeBlinkLeft"] * rng.uniform(0.95, 1.0) + one["eyeBlinkRight"] * rng.uniform(0.95, 1.0))
+            close, shut, opening = rng.uniform(0.05, 0.07), rng.uniform(0.0, 0.03), rng.uniform(0.08, 0.12)
+            blink.key(time, np.zeros(m))
+            blink.key(time + close, pose)
+            blink.key(time + close + shut, pose)
+            blink.key(time + close + shut + opening, np.zeros(m))
+            time += close + shut + opening + rng.uniform(0.1, 0.2)
+        time += rng.uniform(2.0, 6.0)
+
+    rest = (1.0 - expr.sample(t)) * (1.0 - speech.sample(t)) * (1.0 - blink.sample(t))
+    return np.clip(1.0 - rest, 0.0, 1.0)
+
+
+def _random_rotation(rng: np.random.Generator, low_deg: float, high_deg: float) -> np.ndarray:
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    angle = np.deg2rad(rng.uniform(low_deg, high_deg))
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
+
+
+def _gain_field(rng: np.random.Generator, points: np.ndarray, height: float, amplitude: float) -> np.ndarray:
+    """(V,) smooth gains ``1 + amplitude * u``, ``u`` in [-1, 1] a sum of 3 plane waves (0.25-0.6 face heights)."""
+    x = (points - points.mean(axis=0)) / height
+    u = np.zeros(len(points))
+    for _ in range(3):
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        u += rng.uniform(0.5, 1.0) * np.sin(2 * np.pi * (x @ direction) / rng.uniform(0.25, 0.6) + rng.uniform(0, 2 * np.pi))
+    return 1.0 + amplitude * u / max(np.abs(u).max(), 1e-12)
+
+
+def _cross_family_mix(rng: np.random.Generator, names) -> tuple[np.ndarray, dict]:
+    """(M, M) mix ``A`` (target shape i = sum_j A_ij transferred shape j) and its drawn parameters."""
+    ix = {n: i for i, n in enumerate(names)}
+    mix = np.eye(len(names))
+    params: dict[str, Any] = {}
+    # mouthClose: the source's mouthClose = kappa * target mouthClose + gamma * each mouthFrown
+    kappa, gamma = rng.uniform(0.65, 0.75), rng.uniform(0.4, 0.6)
+    c = ix["mouthClose"]
+    mix[c] = 0.0
+    mix[c, c] = 1.0 / kappa
+    mix[c, ix["mouthFrown_L"]] = mix[c, ix["mouthFrown_R"]] = -gamma / kappa
+    params["mouthClose"] = {"kappa": kappa, "gamma": gamma}
+    # mouthPucker takes in mouthFunnel, mouthFunnel is exaggerated away from the pucker:
+    # the source's mouthFunnel lands mostly on the target's mouthPucker
+    mu, nu = rng.uniform(0.45, 0.55), rng.uniform(0.8, 1.0)
+    f, p = ix["mouthFunnel"], ix["mouthPucker"]
+    mix[p] = 0.0
+    mix[p, p], mix[p, f] = 1.0 - mu, mu
+    mix[f] = 0.0
+    mix[f, f], mix[f, p] = 1.0 + nu, -nu
+    params["mouthFunnel/mouthPucker"] = {"mu": mu, "nu": nu}
+    # a fraction of a neighbouring action baked into some mouth shapes (both sides alike)
+    for shape, other, low, high in (("mouthSmile", "cheekSquint", 0.15, 0.35), ("mouthStretch", "mouthLowerDown", 0.15, 0.35),
+                                    ("mouthUpperUp", "noseSneer", 0.15, 0.35), ("jawOpen", "mouthLowerDown", 0.1, 0.2)):
+        frac = rng.uniform(low, high)
+        for side in ("_L", "_R"):
+            row = ix[shape + side] if shape + side in ix else ix[shape]
+            mix[row, ix[other + side]] = frac
+        params[f"{shape}+{other}"] = frac
+    frac = rng.uniform(0.15, 0.35)
+    mix[ix["mouthRollLower"], ix["mouthShrugLower"]] = frac
+    params["mouthRollLower+mouthShrugLower"] = frac
+    return mix, params
+
+
+@functools.lru_cache(maxsize=4)
+def _cross_rig_pair(source_identity: tuple, target_identity: tuple, seed: int):
+    """The two sides of :func:`cross_rig` (cached) and the meta entries describing them."""
+    data = _load_ict_fixture()
+    fixture = _load_cross_rig_fixture()
+    tri = data["faces"].astype(np.int64)
+    names = [str(n) for n in data["expression_names"]]
+    lm_ids = data["landmarks68"].astype(np.int64)
+    scale = CROSS_RIG_SOURCE_SCALE
+
+    # source: the remeshed ICT face on the source identity with the generic deltas, in metres
+    s_tri = fixture["triangles"].astype(np.int64)
+    on_ict, bary = fixture["vertex_triangles"].astype(np.int64), fixture["vertex_barycentric"]
+    corners = tri[on_ict]
+
+    def carry(values: np.ndarray) -> np.ndarray:
+        return np.einsum("...skd,sk->...sd", values[..., corners, :], bary)
+
+    s_mesh = Mesh(scale * carry(_ict_identity(data, source_identity, None, "source_identity", "cross_rig")), s_tri,
+                  name="cross-rig source (m)", _trusted=True)
+    source_rig = BlendshapeRig(s_mesh, scale * carry(data["expression_deltas"]), names)
+    s_landmarks = Landmarks(triangle_ids=fixture["landmark_triangles"].astype(np.int64),
+                            barycentric=fixture["landmark_barycentric"], names=ICT_LANDMARK_NAMES)
+    s_points = s_landmarks.positions(s_mesh.vertices, s_tri)
+
+    # target: the ICT face on the target identity, deformation-transferred deltas perturbed
+    t_mesh = Mesh(_ict_identity(data, target_identity, None, "target_identity", "cross_rig"), tri,
+                  name="cross-rig target (cm)", _trusted=True)
+    transferred = _ict_transferred_deltas(target_identity)
+    rng = np.random.default_rng([seed, 7])
+    mix, mix_params = _cross_family_mix(rng, names)
+    mixed = np.tensordot(mix, transferred, axes=1)
+    gains = np.stack([_gain_field(rng, t_mesh.vertices, t_mesh.height, rng.uniform(0.2, 0.3)) for _ in names])
+    rotations = np.stack([_random_rotation(rng, 6.0, 12.0) for _ in names])
+    deltas = gains[:, :, None] * np.einsum("mij,mvj->mvi", rotations, mixed)
+    target_rig = BlendshapeRig(t_mesh, deltas, names)
+
+    def lines(vertices: np.ndarray, triangles: np.ndarray, points: np.ndarray) -> dict:
+        loops = boundary_loops(triangles)
+        centres = {"eye_L": points[42:48].mean(axis=0), "eye_R": points[36:42].mean(axis=0), "mouth_inner": points[60:68].mean(axis=0)}
+        out = {k: min(loops, key=lambda lp: np.linalg.norm(vertices[lp].mean(axis=0) - c)) for k, c in centres.items()}
+        return out
+
+    s_lines = lines(s_mesh.vertices, s_tri, s_points)
+    nearest = np.argmin(((s_points[48:60, None] - s_mesh.vertices[None]) ** 2).sum(axis=-1), axis=1)
+    s_lines["mouth_outer"] = nearest[np.r_[True, nearest[1:] != nearest[:-1]]]
+    t_lines = lines(data["neutral"], tri, data["neutral"][lm_ids])
+    t_lines["mouth_outer"] = lm_ids[48:60]
+
+    src = _Side(source_rig, s_landmarks, s_lines, _ict_masks(s_mesh, s_points))
+    tgt = _Side(target_rig, Landmarks(lm_ids, names=ICT_LANDMARK_NAMES), t_lines, _ict_masks(t_mesh, t_mesh.vertices[lm_ids]))
+    for arr in (on_ict, bary, mix, gains, rotations):
+        arr.setflags(write=False)
+    meta = {
+        "source_correspondence": {"triangles": on_ict, "barycentric": bary},
+        "perturbation": {"transferred": transferred, "mix": mix, "mix_parameters": mix_params, "gain": gains, "rotation": rotations},
+    }
+    return src, tgt, meta
+
+
+def cross_rig(
+    seed: int = 0,
+    n_frames: int = 300,
+    fps: float = 30.0,
+    head_motion: bool = False,
+    source_kind: str = "mesh",
+    source_identity=None,
+    target_identity=None,
+) -> Case:
+    """A pair of *different* rigs built from the ICT-FaceKit data, like a real production pair.
+
+    Nothing here is parallel by construction except the shape names:
+
+    - **Topology and units.** The source is the ICT face remeshed by quadric decimation to
+      2,074 vertices / 4,000 triangles (committed fixture ``data/ict_cross_rig_fixture.npz``:
+      each source vertex is a barycentric point on the ICT mesh, so every source vertex and
+      delta is interpolated from the ICT data) and scaled to **metres**; the target keeps
+      the ICT topology (9,409 vertices) in **centimetres**.
+    - **Identities.** Source and target are different ICT identities
+      (:data:`ICT_SOURCE_IDENTITY`, :data:`ICT_TARGET_IDENTITY` by default).
+    - **Shape meanings.** Source deltas are the generic ICT expressions on the source
+      face. Target deltas start from the generic ones carried to the target face by
+      deformation transfer (as ``ict(expressions="transferred")``) and are then changed
+      per shape, deterministically from ``seed``:
+
+      * cross-family mixes of mouth shapes: the target's ``mouthClose`` is
+        ``(close - gamma (frown_L + frown_R)) / kappa`` (kappa 0.65-0.75, gamma 0.4-0.6),
+        so the source's mouthClose is the target's mouthClose ~0.7 + each mouthFrown ~0.5;
+        the target's ``mouthPucker`` is ``(1 - mu) pucker + mu funnel`` (mu 0.45-0.55)
+        and its ``mouthFunnel`` ``(1 + nu) funnel - nu pucker`` (nu 0.8-1.0), so the
+        source's mouthFunnel lands mostly on the target's mouthPucker; mouthSmile takes in
+        0.15-0.35 of cheekSquint, mouthStretch of mouthLowerDown, mouthUpperUp of
+        noseSneer, mouthRollLower of mouthShrugLower, and jawOpen 0.1-0.2 of mouthLowerDown;
+      * a smooth spatial gain field per shape, ``1 + a u(x)`` with ``a`` 0.2-0.3 and
+        ``u`` in [-1, 1] a sum of three plane waves of 0.25-0.6 face heights (so gains
+        within 0.7-1.3);
+      * a small rotation of each shape's displacement directions (6-12 degrees).
+
+      ``meta["perturbation"]`` holds ``transferred`` (the unperturbed deltas), ``mix``
+      (M, M), ``mix_parameters``, ``gain`` (M, V) and ``rotation`` (M, 3, 3): target
+      deltas = ``gain * rotation @ (mix @ transferred)``.
+    - **Animation.** Sparse weight curves in [0, 1] like production animation: expressions
+      ramped in over 0.15-0.5 s and held 1-4 s, both-eye blinks (~150 ms, every 2-6 s),
+      speech bursts with jaw/mouth keys at 4-10 Hz; smooth (C1), several shapes at once.
+      No head motion unless asked.
+
+    Parameters
+    ----------
+    seed : int
+        Seeds the weight curves, the head motion and the target's perturbations.
+    n_frames : int
+        Any length (tested up to 20,000 frames).
+    fps : float
+        Given explicitly to the source sequence.
+    head_motion : bool
+        Add smooth rigid head motion (about 10 degrees, 5% of face height) to the source
+        and, in target units, to the truth.
+    source_kind : "mesh" | "markers"
+        "mesh": a MeshSequence of the source rig with the 68 landmarks as barycentric
+        points on its triangles, feature lines (its eye/mouth hole loops + the nearest
+        vertices to the outer-lip landmarks) and region masks; "markers": a
+        MarkerSequence of those 68 landmark positions, named like the target's landmarks
+        (:data:`ICT_LANDMARK_NAMES`).
+    source_identity, target_identity : (<= 10,) float, optional
+        ICT identity coefficients, as in :func:`ict`.
+
+    The case carries 7 example pose pairs (source / target rig expressions of the same
+    recipes), the source rig (for the record), the target's blendshapes, layered poses
+    with region masks, landmarks and feature lines, and actor layers over the source
+    landmarks. The truth is the target rig driven by the same weights. The rigs declare
+    no weight bounds. ``meta`` adds ``source_kind``, ``unit_scale`` (target units per
+    source unit, 100), ``source_correspondence`` (each source vertex as ``triangles`` +
+    ``barycentric`` on the target's triangles: the exact dense correspondence) and
+    ``perturbation``.
+    """
+    _check_counts(n_frames=n_frames)
+    if source_kind not in ("mesh", "markers"):
+        raise UnknownNameError(f"cross_rig: source_kind must be 'mesh' or 'markers', got {source_kind!r}")
+    fps = as_fps(fps)
+    data = None
+
+    def key(coeffs, default, what) -> tuple:
+        nonlocal data
+        if coeffs is not None:
+            data = data if data is not None else _load_ict_fixture()
+            _ict_identity(data, coeffs, default, what, "cross_rig")  # validates
+        return tuple(float(c) for c in np.asarray(default if coeffs is None else coeffs, dtype=np.float64))
+
+    src, tgt, pair_meta = _cross_rig_pair(key(source_identity, ICT_SOURCE_IDENTITY, "source_identity"),
+                                          key(target_identity, ICT_TARGET_IDENTITY, "target_identity"), int(seed))
+    weights = _performance_weights(np.random.default_rng([int(seed), 3]), int(n_frames), fps, src.rig.names)
+    s_vertices = src.rig.neutral.vertices
+    return _assemble(
+        "cross-rig",
+        src,
+        tgt,
+        n_frames=int(n_frames),
+        fps=fps,
+        seed=seed,
+        head_motion=head_motion,
+        pivot=np.array([0.0, s_vertices[:, 1].min(), s_vertices[:, 2].min()]),
+        meta={"seed": seed, "source_kind": source_kind, "unit_scale": 1.0 / CROSS_RIG_SOURCE_SCALE,
+              "source_correspondence": dict(pair_meta["source_correspondence"]),
+              "perturbation": {**pair_meta["perturbation"], "mix_parameters": copy.deepcopy(pair_meta["perturbation"]["mix_parameters"])}},
+        weights=weights,
+        source_kind=source_kind,
+        unit_scale=1.0 / CROSS_RIG_SOURCE_SCALE,
+    )
+
+
 #: Built-in case generators by name.
-CASES = {"synthetic": synthetic, "ict": ict}
+CASES = {"synthetic": synthetic, "ict": ict, "cross_rig": cross_rig}
 
 
 def get_case(name: str, **options: Any) -> Case:
-    """A built-in case by name (``"synthetic"``, ``"ict"``) with generator ``options``."""
+    """A built-in case by name (``"synthetic"``, ``"ict"``, ``"cross_rig"``) with generator ``options``."""
     try:
         make = CASES[name]
     except KeyError:

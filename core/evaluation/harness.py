@@ -74,6 +74,7 @@ CASE_NAMES = {
     "synthetic-human": ("synthetic", {"target": "human"}),
     "synthetic-stylized": ("synthetic", {"target": "stylized"}),
     "ict": ("ict", {}),
+    "cross_rig": ("cross_rig", {}),
 }
 DEFAULT_CASES = ("synthetic-human", "synthetic-stylized", "ict")
 
