@@ -221,6 +221,8 @@ class _Doc:
         dtype = np.dtype(dtype_name)
         n = int(np.prod(shape)) if shape else 1
         check_budget(self.path, n * 8.0, where)
+        if n == 0 and "bufferView" not in spec:
+            return np.zeros(shape, dtype=dtype)
         buf, offset, length, _ = self.view_bytes(self.get(spec, "bufferView", int, where), where)
         if n * dtype.itemsize > length:
             raise self.fail(f"{where}: shape {shape} needs {n * dtype.itemsize} bytes, the buffer view has {length}")
@@ -752,6 +754,8 @@ class _Builder:
         arr = np.asarray(array)
         dtype = "<i8" if arr.dtype.kind in "iub" else "<f8"
         arr = np.ascontiguousarray(arr, dtype=dtype)
+        if arr.size == 0:  # glTF buffer views hold at least one byte: an empty array is its shape alone
+            return {"dtype": dtype, "shape": list(arr.shape)}
         return {"bufferView": self.view(arr.tobytes(), align=8), "dtype": dtype, "shape": list(arr.shape)}
 
 

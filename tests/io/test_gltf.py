@@ -259,3 +259,16 @@ def test_uneven_keys_without_fps_resample_at_the_default_rate(tmp_path):
     anim = fr.load(path)
     assert anim.fps == 30.0 and anim.n_frames == 10  # 0 .. 0.3 s at 30 fps
     np.testing.assert_allclose(anim.weights[-1], [1, 1])
+
+
+def test_empty_arrays_in_extras_round_trip_without_an_empty_buffer_view(tmp_path):
+    """A spacetime animation with no fixed frames stores known_frames of shape (0,): glTF
+    buffer views must hold at least one byte, so the empty array is stored by its shape."""
+    import faceretarget as fr
+
+    rig = fr.BlendshapeRig(fr.Mesh(np.eye(3), [[0, 1, 2]]), np.ones((1, 3, 3)), ["a"])
+    anim = fr.Animation(weights=np.zeros((2, 1)), rig=rig, fps=30.0, extras={"empty": np.zeros(0, dtype=np.int64)})
+    path = tmp_path / "a.glb"
+    fr.save(anim, path)
+    back = fr.load(path)
+    assert back.extras["empty"].shape == (0,)
