@@ -249,7 +249,8 @@ def solve_movement_bounded(
     missing = np.isnan(s[:, 0::3])
     structured = not missing.any() and frame_weights is None
     if structured:
-        start = _solve_structured(system, s, known, wk)
+        r_w = _normal_rhs(system, s, known)
+        start = _modal_solve(system, r_w, known, wk, 0.0)
     else:
         start = _solve_general(system, s, missing, known, wk, frame_weights)
     start[known] = wk[known]
@@ -261,7 +262,7 @@ def solve_movement_bounded(
     z = np.where(free[:, None], np.clip(start, lo, hi), wk)
     u = np.zeros_like(z)
     if structured:
-        _admm_structured(system, s, known, wk, lo, hi, float(l1), z, u, stats)
+        _admm_structured(system, r_w, known, wk, lo, hi, float(l1), z, u, stats)
     else:
         _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, float(l1), z, u, stats)
     z[known] = wk[known]
@@ -295,15 +296,33 @@ def _rho_update(rho: float, primal: float, dual: float, eps_p: float, eps_d: flo
     return float(rho * np.clip(ratio, 1e-3, 1e3))
 
 
-def _admm_structured(system, s, known, wk, lo, hi, l1, z, u, stats) -> None:
-    from ._kernels import admm_box, laplacian_rhs
+def _normal_rhs(system: System, s: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Right-hand side (F, M) of the movement-matching normal equations (unknown frames;
+    complete data): ``B^T L s_t + beta B^T P s_t + alpha q``."""
+    from ._kernels import laplacian_rhs
 
-    n_frames, m = z.shape
     b = system.basis
     sb = s @ b
     spb = (s * np.repeat(system.marker_weights, 3)) @ b if system.beta != 0.0 else sb
-    r_w = np.empty((n_frames, m))
+    r_w = np.empty((s.shape[0], system.n_shapes))
     laplacian_rhs(sb, spb, float(system.beta), system.prior_vector, known, r_w)
+    return r_w
+
+
+def _modal_solve(system: System, r_w: np.ndarray, known: np.ndarray, wk: np.ndarray, rho: float) -> np.ndarray:
+    """Solve ``(H + rho I) w = r_w`` with known frames fixed, through the shifted eigenpairs."""
+    from ._kernels import tridiagonal_modes
+
+    phi, phi_t, lam, mass_phi = system.shifted_modal(rho)
+    y = r_w @ phi
+    tridiagonal_modes(y, lam, known, wk @ mass_phi, y, np.empty_like(y))
+    return y @ phi_t
+
+
+def _admm_structured(system, r_w, known, wk, lo, hi, l1, z, u, stats) -> None:
+    from ._kernels import admm_box
+
+    n_frames, m = z.shape
     unit = _unit(system)
     rho = ADMM_RHO_SCALE * unit
     work = np.empty((4, n_frames, m))
