@@ -7,7 +7,9 @@
   frames of the source, the ground truth and every method side by side (canvas 2D
   renderer in ``assets/report.js``, shaded or coloured by per-vertex error), key frames
   side by side, per-vertex error heat maps on the target mesh, the velocity error over
-  time, weight curves, the paper reproductions (presets) and the metric definitions;
+  time, weight curves, the paper reproductions (presets: each paper's claim and setting,
+  and whether the measurement agrees, in red with the numbers when it does not) and the
+  metric definitions;
 - ``results.csv``: the tidy table ``case, method, metric, value, unit, status, reason``;
 - ``results.json``: the rows, the ranking, every run (parameters, timings, errors), the
   metric definitions and the presets.
@@ -433,9 +435,54 @@ def _table_cell(value) -> str:
     return f"<td>{html.escape('' if value is None else str(value))}</td>"
 
 
+#: CSS class and heading of a reproduction's verdict (``PresetResult.agrees``).
+_VERDICTS = {True: ("agree", "Agrees with the paper"), False: ("disagree", "Disagrees with the paper"), None: ("undecided", "Not decided")}
+
+
+def _verdict_html(preset) -> str:
+    """The reproduction's verdict: green when it agrees with the paper's claim, red with the
+    measured numbers when it disagrees, grey when it was not decided."""
+    esc = html.escape
+    agrees = getattr(preset, "agrees", None)
+    cls, label = _VERDICTS[None if agrees is None else bool(agrees)]
+    evidence = getattr(preset, "evidence", "") or ("the preset did not run" if preset.status != OK else "")
+    return f'<div class="verdict {cls}" data-verdict="{cls}"><strong>{label}</strong>: {esc(evidence)}</div>'
+
+
+def _claim_html(preset) -> str:
+    esc = html.escape
+    out = []
+    claim, setting = getattr(preset, "claim", ""), getattr(preset, "setting", "")
+    if claim:
+        out.append(f'<p class="claim"><strong>The paper\'s claim.</strong> {esc(claim)}</p>')
+    if setting:
+        out.append(f'<p class="setting"><strong>The paper\'s setting, as reproduced.</strong> {esc(setting)}</p>')
+    return "".join(out)
+
+
+def _presets_summary(presets) -> str:
+    """One line per reproduction: its claim and whether the measurement agrees (coloured as the verdict)."""
+    esc = html.escape
+    if not presets:
+        return ""
+    rows = []
+    for p in presets:
+        agrees = getattr(p, "agrees", None)
+        cls, label = _VERDICTS[None if agrees is None else bool(agrees)]
+        rows.append(
+            f'<tr><th><a href="#preset-{esc(p.name)}">{esc(p.name)}</a></th><td>{esc(getattr(p, "claim", ""))}</td>'
+            f'<td class="verdict-cell {cls}">{esc(label)}</td></tr>'
+        )
+    return ('<table class="metrics presets-summary"><thead><tr><th>reproduction</th><th>the paper\'s claim</th><th>measured</th></tr></thead><tbody>'
+            + "".join(rows) + "</tbody></table>")
+
+
 def _preset_html(preset) -> str:
     esc = html.escape
-    out = [f'<section class="preset" id="preset-{esc(preset.name)}"><h3>{esc(preset.title)}</h3><p class="paper">{esc(preset.paper)}</p><p>{esc(preset.description)}</p>']
+    out = [f'<section class="preset" id="preset-{esc(preset.name)}"><h3>{esc(preset.title)}</h3><p class="paper">{esc(preset.paper)}</p>']
+    out.append(_claim_html(preset))
+    out.append(_verdict_html(preset))
+    out.append(f"<p>{esc(preset.description)}</p>")
     if preset.status != OK:
         out.append(f'<p class="{"err" if preset.status == ERROR else "na"} note">{esc(preset.status)}: {esc(preset.reason)}</p>')
     for plot in preset.plots:
@@ -489,7 +536,7 @@ def render_html(result: ComparisonResult, *, title: str = "faceretarget comparis
         sec.append("</section>")
         sections.append("".join(sec))
         views.append(_case_view(result, cname, case, vertex_budget, max_frames))
-    presets = "".join(_preset_html(p) for p in result.presets) or '<p class="note">No paper reproductions in this run.</p>'
+    presets = (_presets_summary(result.presets) + "".join(_preset_html(p) for p in result.presets)) or '<p class="note">No paper reproductions in this run.</p>'
     definitions = "".join(
         f"<tr><th>{esc(name)}</th><td>{esc(m.unit)}</td><td>{esc(m.better)}</td><td>{esc(m.description)}</td></tr>" for name, m in result.metrics.items()
     )

@@ -25,6 +25,14 @@ def _plots_render(result):
         assert ET.fromstring(svg_plot(plot)).tag.endswith("svg")
 
 
+def _consistent_verdict(res, parts):
+    """``res.agrees`` is True iff every part holds; the evidence names every part."""
+    assert res.claim and res.setting and res.evidence
+    assert res.agrees is all(parts), (res.agrees, parts, res.evidence)
+    assert res.evidence.count("agrees:") + res.evidence.count("DISAGREES:") == len(parts)
+    assert res.evidence.count("DISAGREES:") == sum(not p for p in parts)
+
+
 def test_seol_fig11(small_cases):
     res = presets.run_preset("seol_fig11", small_cases)
     assert res.status == "ok", res.reason
@@ -33,7 +41,60 @@ def test_seol_fig11(small_cases):
     assert all(row["velocity error (vs truth)"] > 0 for row in res.table)
     assert [p.kind for p in res.plots] == ["bar", "line"]
     assert len(res.plots[1].series) == 3 and len(res.plots[1].series[0].x) == 19
+    assert "movement matching adds less velocity error than both Range PF and Prior PF" in res.claim
+    assert "0.01" in res.setting and "0.5" in res.setting and "noise" in res.setting
+    added = {row["method"]: row["added over No Const"] for row in res.table}
+    assert res.table[0]["weights in range"] < 1.0  # the stylized target: the range binds, as in the paper
+    _consistent_verdict(res, [added["movement matching"] < added["Range PF"], added["movement matching"] < added["Prior PF"]])
+    assert f"{added['movement matching']:.3g}" in res.evidence and f"{added['Prior PF']:.3g}" in res.evidence
     _plots_render(res)
+
+
+def test_seol_fig11_passes_the_paper_parameters(small_cases, monkeypatch):
+    """The reproduction runs the paper's settings whatever the methods' defaults are (only
+    parameters the installed version accepts are passed)."""
+    calls = []
+    real_get = faceretarget.get
+
+    def recording(name, **params):
+        if params:
+            calls.append((name, params))
+        return real_get(name, **params)
+
+    monkeypatch.setattr(faceretarget, "get", recording)
+    res = presets.run_preset("seol_fig11", small_cases)
+    assert res.status == "ok", res.reason
+    used = dict(calls)
+    assert set(used) == {"spacetime_noconst", "spacetime_rangepf", "spacetime_priorpf", "spacetime"}
+    assert used["spacetime"]["alpha"] == 0.01 and used["spacetime_priorpf"]["alpha"] == 0.5
+    for name, params in used.items():
+        assert set(params) <= set(real_get(name).get_params()), name
+        assert params["prior_center"] == "mean" and "head_motion_refinement" not in params  # head motion is given
+        assert params["lower"] == -0.5 and params["upper"] == 1.5 and params["beta"] == 0.0
+        for key, value in (("bounds", None), ("transfer", "rbf"), ("samples", "landmarks"), ("sparsity", 0.0)):
+            if key in real_get(name).get_params():
+                assert params[key] == value, (name, key)
+
+
+def test_seol_head_motion_is_the_papers_procrustes(small_cases):
+    """Sec. 3.1: per frame, the rotation aligning the neutral markers with the frame's (SVD of
+    Y^T X), given to every method as a known head motion."""
+    from naive import spacetime as naive
+
+    source, sigma = presets._noisy_markers(small_cases["synthetic-stylized"].source, procrustes=True)
+    markers, reference = source.performance.positions, source.performance.reference
+    assert sigma > 0 and source.head_motion is not None
+    for f in (0, 7, 19):
+        rot = naive.procrustes_rotation(reference, markers[f])
+        np.testing.assert_allclose(source.head_motion[f, :3, :3], rot, atol=1e-10)
+        np.testing.assert_allclose(source.head_motion[f, :3, 3], markers[f].mean(0) - rot @ reference.mean(0), atol=1e-10)
+
+
+def test_paper_params_keeps_only_accepted_parameters():
+    known = faceretarget.get("spacetime").get_params()
+    out = presets.paper_params("spacetime", {"alpha": 0.01, "no_such_parameter": 1, "beta": 0.0})
+    assert out == {"alpha": 0.01, "beta": 0.0}
+    assert set(presets.seol_params("spacetime")) <= set(known)
 
 
 def test_kholgade_fig8(small_cases):
@@ -41,8 +102,16 @@ def test_kholgade_fig8(small_cases):
     assert res.status == "ok", res.reason
     assert [row["model"] for row in res.table] == ["layered", "emotion only", "speech only", "blink only"]
     assert sum(row["frames where best"] for row in res.table) == 20
-    blink = res.table[3]["mean RMS error (% face height)"]
-    assert res.table[0]["mean RMS error (% face height)"] < blink  # a blink-only model cannot speak
+    mean = {row["model"]: row["mean RMS error (% face height)"] for row in res.table}
+    assert mean["layered"] < mean["blink only"]  # a blink-only model cannot speak
+    assert "layered < emotion < speech < blink" in res.claim
+    best = res.table[0]["frames where best"]
+    _consistent_verdict(res, [
+        best > 10,
+        mean["emotion only"] > mean["layered"],
+        mean["speech only"] > mean["emotion only"],
+        mean["blink only"] > max(mean["layered"], mean["emotion only"], mean["speech only"]),
+    ])
     _plots_render(res)
 
 
@@ -52,6 +121,15 @@ def test_xu_fig4(small_cases):
     rows = {row["mode"]: row for row in res.table}
     assert rows["weights only"]["mean change outside window"] == 0.0  # fig. 4d: the edit stays in the window
     assert rows["bases only"]["mean change outside window"] > 0.0  # fig. 4b: similar expressions change too
+    assert "updating the weights only does not change frames outside the window" in res.claim
+    b, j, w = rows["bases only"], rows["bases and weights"], rows["weights only"]
+    limit = 100 * presets.XU_CONSTRAINT_TOLERANCE * presets.XU_EDIT
+    _consistent_verdict(res, [
+        all(r["constraint error (% face height)"] <= limit for r in rows.values()),
+        b["change of similar frames outside"] > b["change of dissimilar frames outside"],
+        w["max change outside window"] <= 1e-9,
+        j["mean change inside window"] > 0 and j["mean change outside window"] > 0,
+    ])
     _plots_render(res)
 
 
@@ -64,6 +142,12 @@ def test_najung_table1_counts_per_mesh(small_cases):
     for row in counted:
         assert 0 <= row["vertices with piercing error"] <= row["vertices"]
         assert row["%"] == pytest.approx(100 * row["vertices with piercing error"] / row["vertices"])
+    assert "under 0.1% on every mesh" in res.claim
+    if counted:
+        _consistent_verdict(res, [all(row["%"] < presets.NAJUNG_LIMIT_PERCENT for row in counted)])
+        for row in counted:
+            if row["%"] >= presets.NAJUNG_LIMIT_PERCENT:
+                assert f"{row['mesh']} {row['%']:.3g}%" in res.evidence  # the offending mesh, with its number
 
 
 def test_missing_or_failing_retargeters_are_reported(small_cases, monkeypatch):
@@ -80,6 +164,7 @@ def test_missing_or_failing_retargeters_are_reported(small_cases, monkeypatch):
     res = presets.run_preset("seol_fig11", small_cases)
     assert res.status == "error" and res.reason == "RuntimeError: spacetime exploded"
     assert res.title.startswith("Seol 2012 fig. 11") and res.paper
+    assert res.agrees is None and res.verdict == "undecided" and res.claim  # a failed run decides nothing
 
     def unknown(name, **params):
         raise UnknownNameError(f"no retargeter named {name!r}")
@@ -87,6 +172,16 @@ def test_missing_or_failing_retargeters_are_reported(small_cases, monkeypatch):
     monkeypatch.setattr(faceretarget, "get", unknown)
     res = presets.run_preset("xu_fig4", small_cases)
     assert res.status == "not applicable" and "no retargeter named 'coating'" in res.reason
+
+    def decides_then_fails(cases, res):
+        res.agrees, res.evidence = True, "agrees: something"
+        raise RuntimeError("late failure")
+
+    monkeypatch.setitem(presets.PRESETS, "late", ("Late", "paper", "description", decides_then_fails))
+    monkeypatch.setitem(presets.CLAIMS, "late", ("A claim.", "A setting."))
+    res = presets.run_preset("late", small_cases)
+    assert res.status == "error" and res.agrees is None and "did not run" in res.evidence  # a failed run decides nothing
+    assert (res.claim, res.setting) == ("A claim.", "A setting.")
 
 
 def test_run_presets_attaches_to_a_result(small_cases):
@@ -96,3 +191,17 @@ def test_run_presets_attaches_to_a_result(small_cases):
     out = presets.run_presets(result, names=["seol_fig11"])
     assert result.presets == out and out[0].status == "ok"
     assert np.isfinite(out[0].as_dict()["table"][0]["velocity error (vs truth)"])
+
+
+def test_preset_claims_are_in_the_json(small_cases, tmp_path):
+    import json
+
+    from faceretarget.evaluation.harness import ComparisonResult
+
+    result = ComparisonResult([], [], dict(small_cases), {})
+    out = presets.run_presets(result, names=["seol_fig11", "kholgade_fig8"])
+    data = json.loads(result.to_json(tmp_path / "r.json").read_text())["presets"]
+    for res, entry in zip(out, data):
+        assert entry["claim"] == res.claim and entry["setting"] == res.setting and entry["evidence"] == res.evidence
+        assert entry["agrees"] is res.agrees and entry["verdict"] == res.verdict
+    assert all(name in presets.CLAIMS and all(presets.CLAIMS[name]) for name in presets.PRESETS)

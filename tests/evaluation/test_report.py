@@ -116,3 +116,55 @@ def test_report_loads_in_headless_chromium(report, tmp_path):
     run = _chromium(f"--screenshot={shot}", "--window-size=1280,1600", url)
     assert run.returncode == 0 and shot.exists(), run.stderr[-2000:]
     assert _png_size(shot) == (1280, 1600) and shot.stat().st_size > 50_000
+
+
+def _reproductions():
+    from faceretarget.evaluation.presets import PresetResult
+
+    disagreeing = PresetResult(
+        "fake_disagree", "Fake 2099 fig. 1", "Nobody. A paper. 2099", "what it runs",
+        claim="Method A has a lower error than method B.", setting="the paper's inputs, alpha = 0.5",
+        agrees=False, evidence="DISAGREES: method A 0.731 > method B 0.412.",
+    )
+    agreeing = PresetResult(
+        "fake_agree", "Fake 2099 fig. 2", "Nobody. A paper. 2099", "what it runs",
+        claim="Method C is faster than method D.", setting="as published", agrees=True, evidence="agrees: C 1.5 s < D 9 s.",
+    )
+    failed = PresetResult("fake_failed", "Fake 2099 fig. 3", "Nobody", "d", claim="Something holds.", status="error", reason="RuntimeError: boom")
+    return [disagreeing, agreeing, failed]
+
+
+def test_report_flags_a_disagreeing_reproduction_in_red(fake_registry, tmp_path):
+    """A reproduction whose measurement disagrees with its paper is shown in red with the measured
+    numbers and the paper's claim; one that agrees in green; an undecided one in grey."""
+    case = fakes.tiny_case(n=11, n_frames=6)
+    result = compare([case], methods=["fake_oracle"], registry=fake_registry, metrics=["vertex_error_rms"])
+    result.presets.extend(_reproductions())
+    paths = write_report(result, tmp_path / "out")
+    page = paths["html"].read_text()
+    section = re.search(r'<section class="preset" id="preset-fake_disagree">(.*?)</section>', page, re.S).group(1)
+    verdict = re.search(r'<div class="verdict (\w+)" data-verdict="\w+"><strong>([^<]*)</strong>: ([^<]*)</div>', section)
+    assert verdict.groups() == ("disagree", "Disagrees with the paper", "DISAGREES: method A 0.731 &gt; method B 0.412.")
+    assert "Method A has a lower error than method B." in section and "alpha = 0.5" in section
+    agree = re.search(r'id="preset-fake_agree">.*?<div class="verdict (\w+)"', page, re.S).group(1)
+    failed = re.search(r'id="preset-fake_failed">.*?<div class="verdict (\w+)"', page, re.S).group(1)
+    assert (agree, failed) == ("agree", "undecided")
+    # the summary at the top of the reproductions, coloured the same way
+    summary = re.search(r'<table class="metrics presets-summary">(.*?)</table>', page, re.S).group(1)
+    cells = re.findall(r'<td class="verdict-cell (\w+)">([^<]*)</td>', summary)
+    assert cells == [("disagree", "Disagrees with the paper"), ("agree", "Agrees with the paper"), ("undecided", "Not decided")]
+    # red is red: the stylesheet (inline in the page) colours a disagreement with the error colour
+    css = re.search(r"<style>(.*?)</style>", page, re.S).group(1)
+    assert re.search(r"--err:\s*#b42318", css)
+    declarations = lambda selector: dict(  # noqa: E731
+        tuple(part.strip() for part in d.split(":", 1))
+        for d in re.search(selector + r"\s*\{([^}]*)\}", css).group(1).split(";") if d.strip()
+    )
+    disagree = declarations(r"\.verdict\.disagree")
+    assert disagree["color"] == "var(--err)" and disagree["border-left-color"] == "var(--err)"
+    assert declarations(r"\.verdict\.agree")["color"] == "var(--ok)"
+    data = json.loads(paths["json"].read_text())["presets"]
+    assert [(p["name"], p["agrees"], p["verdict"]) for p in data] == [
+        ("fake_disagree", False, "disagrees"), ("fake_agree", True, "agrees"), ("fake_failed", None, "undecided")
+    ]
+    assert data[0]["claim"] == "Method A has a lower error than method B." and data[0]["evidence"].startswith("DISAGREES: method A 0.731")
