@@ -65,9 +65,10 @@ def fit_prior(samples: np.ndarray, basis: np.ndarray, neutral: np.ndarray, cente
         linearly dependent at the markers (e.g. a symmetric shape equal to the sum of its
         left and right halves) the mean-centred prior gives the neutral itself a non-zero
         energy, so a source at rest would be pulled toward the mean expression; centred at the
-        neutral, ``w = 0`` always has zero prior energy. For linearly independent shapes
-        (all of them in the prior) the two differ only in the direction of equal weights:
-        mean-centred ``Q = K (I - 11^T / K)``, neutral-centred ``Q = K I``.
+        neutral, ``w = 0`` always has zero prior energy. With linearly independent shapes the
+        mean-centred prior also gives the neutral a non-zero energy in general (the part of
+        the mean's offset that lies in the samples' span), so a source at rest is pulled
+        toward the mean there too (tests/spacetime/test_prior_center.py).
 
     Eigen-directions with (numerically) zero variance are left out (Eq. 3 keeps the ``h``
     eigenvectors with non-zero eigenvalues), so the prior does not constrain motion outside
