@@ -36,6 +36,18 @@ Conventions shared by the definitions:
 - *Regions* (per-region errors): the target's layer masks (``TargetRig.layers``): vertex
   ``v`` is in region ``r`` when ``masks[r, v] >= 0.5``; without layers, the upper and
   lower face as defined above.
+- *Fine-scale detail* (``detail_error``, ``detail_correlation``): for a displacement field
+  ``d : (F, V, 3)`` on the target mesh, ``h(d) = d - S^k d`` is its high-pass, with ``S`` one
+  step of uniform Laplacian smoothing ``(1 - lambda) I + lambda D^-1 A`` (k = 5, lambda = 0.5)
+  in which a vertex on a boundary (eye, mouth, outer rim) averages only its two neighbours
+  along that boundary, so the smooth motion of lids and lips is not mistaken for detail; and
+  ``hn(d)`` is the component of ``h(d)`` along the target neutral's vertex normal (wrinkles
+  are offsets along the normal; a tangential high-frequency field only slides vertices
+  within the surface). The smoothing counts edges, not lengths, so it is free of the
+  target's units; the cut-off is in edges, so "fine" means the finest few rings of the
+  target mesh. At the built-in cases' resolutions it keeps about 97% of the synthetic
+  wrinkles (wavelength about 4% of H) and leaves under 2% (RMS) of a smooth error bump 20%
+  of H wide and under 1% of an affine or rotation error.
 """
 from __future__ import annotations
 
@@ -59,10 +71,13 @@ __all__ = [
     "per_vertex_error",
     "regions",
     "high_pass",
+    "detail_smoothing_operator",
+    "normal_detail",
 ]
 
-#: Laplacian smoothing used as the low-pass of ``detail_correlation``: steps and step size
-#: of ``x <- x + lambda * (mean of neighbours - x)`` (uniform weights).
+#: Laplacian smoothing used as the low-pass of ``detail_error`` and ``detail_correlation``:
+#: steps and step size of ``x <- x + lambda * (mean of neighbours - x)`` (uniform weights;
+#: boundary vertices average their boundary neighbours only).
 DETAIL_SMOOTHING_STEPS = 5
 DETAIL_SMOOTHING_LAMBDA = 0.5
 #: |w| below this counts as an inactive weight for ``weight_sparsity``.
@@ -277,6 +292,47 @@ def smoothing_operator(n_vertices: int, triangles: np.ndarray, lam: float = DETA
     return (sp.diags(np.where(has, 1.0 - lam, 1.0)) + lam * neighbours).tocsr()
 
 
+def detail_smoothing_operator(n_vertices: int, triangles: np.ndarray, lam: float = DETAIL_SMOOTHING_LAMBDA):
+    """Sparse ``S`` of the detail metrics: :func:`smoothing_operator`, except that a vertex on a
+    boundary edge averages only its neighbours along boundary edges (a smooth field along an
+    eye, mouth or outer rim stays nearly smooth, as it would in the interior).
+
+    Rows sum to 1 (constants pass unchanged); the weights count edges, never lengths, so the
+    operator is the same in any unit.
+    """
+    import scipy.sparse as sp
+
+    from ..geometry.mesh_ops import boundary_edges
+
+    interior = smoothing_operator(n_vertices, triangles, lam)
+    edges = boundary_edges(np.asarray(triangles))
+    if len(edges) == 0:
+        return interior
+    rows = np.concatenate([edges[:, 0], edges[:, 1]])
+    cols = np.concatenate([edges[:, 1], edges[:, 0]])
+    ring = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n_vertices, n_vertices))
+    ring.sum_duplicates()
+    ring.data[:] = 1.0  # an edge listed twice still counts once
+    degree = np.asarray(ring.sum(axis=1)).ravel()
+    on = degree > 0
+    along = sp.diags(np.where(on, 1.0 / np.maximum(degree, 1.0), 0.0)) @ ring
+    boundary = (sp.diags(np.full(n_vertices, 1.0 - lam)) + lam * along).tocsr()
+    keep = sp.diags((~on).astype(np.float64))
+    return (keep @ interior + sp.diags(on.astype(np.float64)) @ boundary).tocsr()
+
+
+def normal_detail(displacements: np.ndarray, triangles: np.ndarray, neutral: np.ndarray, steps: int = DETAIL_SMOOTHING_STEPS) -> np.ndarray:
+    """(F, V) ``hn(d)``: the high-pass of ``displacements : (F, V, 3)`` by ``steps`` steps of
+    :func:`detail_smoothing_operator` on the mesh ``(neutral (V, 3), triangles)``, along the
+    neutral's unit vertex normals (the module docstring's *fine-scale detail*)."""
+    from ..geometry.mesh_ops import vertex_normals
+
+    neutral = np.asarray(neutral, dtype=np.float64)
+    smoother = detail_smoothing_operator(neutral.shape[0], np.asarray(triangles))
+    normals = vertex_normals(neutral, np.asarray(triangles))
+    return np.einsum("fvd,vd->fv", high_pass(np.asarray(displacements, dtype=np.float64), smoother, steps), normals)
+
+
 def high_pass(displacements: np.ndarray, smoother, steps: int = DETAIL_SMOOTHING_STEPS) -> np.ndarray:
     """``d - S^steps d`` for ``displacements : (F, V, 3)`` with sparse ``smoother : (V, V)``."""
     f, v, _ = displacements.shape
@@ -474,14 +530,30 @@ def fdd_abs(v: _Views):
     return float(100.0 * np.abs(diff).mean() / v.height)
 
 
+def _normal_details(v: _Views) -> tuple[np.ndarray, np.ndarray]:
+    """(hn(X - N), hn(Y - N)), each (F, V), in the head frame (cached per run)."""
+
+    def make():
+        neutral = np.asarray(v.target.neutral.vertices, dtype=np.float64)
+        both = np.concatenate([v.X_local - neutral, v.Y_local - neutral])
+        details = normal_detail(both, np.asarray(v.target.neutral.triangles), neutral)
+        return details[: v.X.shape[0]], details[v.X.shape[0]:]
+
+    return v.get("normal_details", make)
+
+
+def detail_error(v: _Views):
+    """Fine-scale (wrinkle) error: sqrt(mean over frames and vertices of (hn(X - N) - hn(Y - N))^2) in the head frame, in % of H, where N is the target neutral and hn(d) the component along the neutral's vertex normal of the high-pass h(d) = d - S^5 d, S = 0.5 I + 0.5 D^-1 A one step of uniform Laplacian smoothing on the target mesh (a boundary vertex averages its boundary neighbours only). Blind to smooth (low-frequency) and tangential errors; dropping the truth's wrinkles costs their whole high-pass."""
+    hx, hy = _normal_details(v)
+    return float(100.0 * np.sqrt(np.mean((hx - hy) ** 2)) / v.height)
+
+
 def detail_correlation(v: _Views):
-    """Detail preservation: Pearson correlation, pooled over frames, vertices and coordinates, of h(X - N) and h(Y - N) in the head frame, where N is the target neutral and h(d) = d - S^5 d the high-pass by 5 steps of uniform Laplacian smoothing S = 0.5 I + 0.5 D^-1 A on the target mesh. 1 = fine-scale motion reproduced."""
-    neutral = np.asarray(v.target.neutral.vertices, dtype=np.float64)
-    smoother = smoothing_operator(neutral.shape[0], np.asarray(v.target.neutral.triangles))
-    hx = high_pass(v.X_local - neutral, smoother).ravel()
-    hy = high_pass(v.Y_local - neutral, smoother).ravel()
+    """Detail preservation: Pearson correlation, pooled over frames and vertices, of hn(X - N) and hn(Y - N) (the fine-scale normal motion of detail_error: the high-pass by 5 steps of uniform Laplacian smoothing on the target mesh, along the neutral's normals, head frame). 1 = the truth's fine-scale motion reproduced up to a factor; 0 = none of it."""
+    hx, hy = _normal_details(v)
+    hx, hy = hx.ravel(), hy.ravel()
     sx, sy = hx.std(), hy.std()
-    if sy <= 1e-12 * max(v.height, 1.0):
+    if sy <= 1e-12 * v.height:
         raise NotApplicable("the ground truth has no fine-scale motion to preserve")
     if sx == 0.0:
         return 0.0
@@ -573,6 +645,7 @@ _TABLE: list[tuple[Callable, str, str, tuple]] = [
     (lve, PERCENT, "lower", (_needs_truth, _needs_group("mouth"))),
     (fdd, "(% face height)^2", "none", (_needs_truth, _needs_upper_face, _frames(2))),
     (fdd_abs, PERCENT, "lower", (_needs_truth, _needs_upper_face, _frames(2))),
+    (detail_error, PERCENT, "lower", (_needs_truth, _needs_triangles)),
     (detail_correlation, "Pearson r", "higher", (_needs_truth, _needs_triangles)),
     (weight_min, "weight", "none", (_needs_weights,)),
     (weight_max, "weight", "none", (_needs_weights,)),
@@ -596,6 +669,7 @@ RANKED_METRICS = (
     "eyelid_closure_error",
     "lve",
     "fdd_abs",
+    "detail_error",
     "detail_correlation",
 )
 

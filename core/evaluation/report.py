@@ -46,7 +46,7 @@ MIN_VERTICES = 300
 #: Weight curves drawn per case (the shapes with the largest variance in the ground truth).
 MAX_WEIGHT_PANELS = 6
 #: Columns of the per-case summary table.
-SUMMARY_METRICS = ("vertex_error_rms", "vertex_error_max", "marker_error_mean", "velocity_error", "lip_closure_error", "eyelid_closure_error", "lve", "fdd_abs", "detail_correlation", "weight_outside_share", "time_total", "peak_memory")
+SUMMARY_METRICS = ("vertex_error_rms", "vertex_error_max", "marker_error_mean", "velocity_error", "lip_closure_error", "eyelid_closure_error", "lve", "fdd_abs", "detail_error", "detail_correlation", "weight_outside_share", "time_total", "peak_memory")
 
 _PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
 

@@ -20,6 +20,19 @@ def small_cases():
     }
 
 
+#: Smaller detail cases for the tests (60 frames: the wrinkle shapes are active).
+SMALL_DETAIL_CASES = (("human", "synthetic-human?resolution=600&n_frames=60"), ("stylized", "synthetic-stylized?resolution=600&n_frames=60"))
+DENSE = ("najung_table1", "xu_fig4", "xu_fig6", "najung_fig14")
+
+
+@pytest.fixture(scope="module")
+def dense(small_cases):
+    """The dense methods' reproductions, run once: name -> PresetResult."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(presets, "DETAIL_CASES", SMALL_DETAIL_CASES)
+        return {name: presets.run_preset(name, small_cases) for name in DENSE}
+
+
 def _plots_render(result):
     for plot in result.plots:
         assert ET.fromstring(svg_plot(plot)).tag.endswith("svg")
@@ -115,8 +128,8 @@ def test_kholgade_fig8(small_cases):
     _plots_render(res)
 
 
-def test_xu_fig4(small_cases):
-    res = presets.run_preset("xu_fig4", small_cases)
+def test_xu_fig4(dense):
+    res = dense["xu_fig4"]
     assert res.status == "ok", res.reason
     rows = {row["mode"]: row for row in res.table}
     assert rows["weights only"]["mean change outside window"] == 0.0  # fig. 4d: the edit stays in the window
@@ -133,8 +146,8 @@ def test_xu_fig4(small_cases):
     _plots_render(res)
 
 
-def test_najung_table1_counts_per_mesh(small_cases):
-    res = presets.run_preset("najung_table1", small_cases)
+def test_najung_table1_counts_per_mesh(dense):
+    res = dense["najung_table1"]
     assert res.status in ("ok", "error"), res.reason
     counted = [row for row in res.table if "%" in row]
     failed = [row for row in res.table if "error" in row]
@@ -148,6 +161,60 @@ def test_najung_table1_counts_per_mesh(small_cases):
         for row in counted:
             if row["%"] >= presets.NAJUNG_LIMIT_PERCENT:
                 assert f"{row['mesh']} {row['%']:.3g}%" in res.evidence  # the offending mesh, with its number
+
+
+@pytest.mark.parametrize("name, method, ablation", [("xu_fig6", "coating", "coating without details"), ("najung_fig14", "normalmesh", "normalmesh without details")])
+def test_detail_reproductions(dense, name, method, ablation):
+    """Each wrinkled case: the method, its detail layer switched off, and deformation transfer,
+    measured by the detail_error metric; the verdict holds iff every part does."""
+    res = dense[name]
+    assert res.status == "ok", res.reason
+    rows = {(row["case"], row["retargeter"]): row for row in res.table}
+    assert sorted(rows) == sorted((case, m) for case, _ in SMALL_DETAIL_CASES for m in (method, ablation, "deformation_transfer"))
+    assert all(row["wrinkle fine-scale motion (% face height)"] > presets.DETAIL_MIN_WRINKLE for row in res.table)
+    assert "wrinkle" in res.claim and "deformation transfer" in res.claim
+    parts = []
+    for case, _ in SMALL_DETAIL_CASES:
+        m, off, dt = (rows[(case, k)] for k in (method, ablation, "deformation_transfer"))
+        parts += [m["detail error (% face height)"] < off["detail error (% face height)"], m["detail error (% face height)"] < dt["detail error (% face height)"]]
+        if name == "xu_fig6":
+            parts.append(m["RMS error (% face height)"] <= dt["RMS error (% face height)"])
+        assert f"{m['detail error (% face height)']:.3g}%" in res.evidence and f"{dt['detail error (% face height)']:.3g}%" in res.evidence
+    _consistent_verdict(res, parts)
+    assert res.plots[0].kind == "bar" and len(res.plots[0].series) == 6
+    _plots_render(res)
+
+
+def test_detail_reproductions_need_active_wrinkles(small_cases, monkeypatch):
+    """20 frames of the synthetic performance hold no wrinkle shape: nothing to decide, nothing run."""
+    monkeypatch.setattr(presets, "DETAIL_CASES", (("human", "synthetic-human?resolution=300&n_frames=20"),))
+    monkeypatch.setattr(faceretarget, "get", lambda name, **params: pytest.fail(f"{name} run on a case without wrinkles"))
+    res = presets.run_preset("xu_fig6", small_cases)
+    assert res.status == "ok" and res.agrees is None and res.verdict == "undecided"
+    assert res.evidence.startswith("not decided: human: no wrinkle is active"), res.evidence
+
+
+def test_dense_reproductions_render_their_verdict(dense):
+    """The dense methods' paper claims in the report: red with the numbers when the measurement
+    disagrees, green when it agrees (whatever the methods measure today)."""
+    import html
+    import re
+
+    from faceretarget.evaluation.harness import ComparisonResult
+    from faceretarget.evaluation.report import render_html
+
+    result = ComparisonResult([], [], {}, {}, presets=list(dense.values()))
+    page = render_html(result)
+    summary = dict(re.findall(r'<a href="#preset-(\w+)">\w+</a></th><td>[^<]*</td><td class="verdict-cell (\w+)">', page))
+    for name, res in dense.items():
+        expected = {True: "agree", False: "disagree", None: "undecided"}[res.agrees]
+        section = re.search(rf'<section class="preset" id="preset-{name}">(.*?)</section>', page, re.S).group(1)
+        verdict = re.search(r'<div class="verdict (\w+)" data-verdict="\w+"><strong>[^<]*</strong>: ([^<]*)</div>', section)
+        assert verdict.group(1) == expected == summary[name], (name, verdict.group(1), summary.get(name))
+        assert verdict.group(2) == html.escape(res.evidence)
+        assert html.escape(res.claim) in section
+        if res.agrees is False:
+            assert "DISAGREES" in verdict.group(2)
 
 
 def test_missing_or_failing_retargeters_are_reported(small_cases, monkeypatch):
