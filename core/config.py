@@ -18,6 +18,44 @@ RANK_RTOL = 1e-10
 #: rank deficient (duplicate blendshapes, coincident RBF centres).
 RIDGE_EPS = 1e-9
 
+#: Head-motion estimation (``geometry.head_motion``): rigidity weights ``1 / (eps^2 + m_i^2)``
+#: of the markers, ``m_i`` = RMS displacement of marker i over the expression basis, with
+#: ``eps`` this fraction of the face size (RMS radius of the neutral markers; 0.02 = 1.2 mm
+#: on a human face). Smaller trusts the stillest markers more (less leakage of rig mismatch
+#: into the head motion, more marker noise); measured on the ICT pairs 0.01-0.02 is best.
+HEAD_MOTION_RIGIDITY = 0.02
+
+#: Head-motion significance gate: the fitted rigid motion is kept only if, over some
+#: ``HEAD_MOTION_WINDOW`` consecutive frames, it reduces the weighted marker residual left by
+#: the expressions by more than this many times the residual that remains (plus the noise
+#: floor below); otherwise the head motion is exactly the identity. Measured with
+#: spacetime's shapes at the markers: sources without head motion 0.2-1.5 on animated
+#: shots (synthetic, ICT, ICT with transferred expressions, cross_rig seeds 0-3), up to 2.3
+#: with one expression held at full strength (cheekPuff, or mouthClose + jawOpen, on the
+#: transferred ICT pair); real head motion 13-18 at 0.25 degrees, 50-70 at 0.5, 200-270 at
+#: 1, over 20,000 at 10 (largest angle, smooth motion over the shot); a 20-frame yaw turn 8
+#: at 1 degree, 30 at 2, 66 at 3. 20 leaves a factor 8 over the worst source without head
+#: motion measured (real pairs mismatch more than these cases: an invented head wobble is
+#: re-applied to the target, a missed half-degree is not).
+HEAD_MOTION_SIGNIFICANCE = 20.0
+
+#: Frames over which the head-motion gate sums (the largest ratio over any this many
+#: consecutive frames decides; the whole shot if shorter): one second at 30 fps, so a short
+#: head turn in a long still shot is not averaged away. spacetime passes one second of its
+#: source's frames.
+HEAD_MOTION_WINDOW = 30
+
+#: Marker-noise floor of the head-motion gate, as a fraction of the face size (0.001 = 0.06 mm
+#: on a human face): with exact rigs (nothing left unexplained) a rigid motion must still
+#: move the markers by more than about this much to count.
+HEAD_MOTION_NOISE_FLOOR = 1e-3
+
+#: A rigid direction (rotation or translation combination) is estimated only if at least
+#: this fraction of its effect on the visible markers cannot be mimicked by the expressions
+#: (generalized eigenvalue of the expression-eliminated rigid normal matrix). Complete ICT
+#: and synthetic marker sets give 0.09-0.25; with most markers missing it drops to 1e-5.
+HEAD_MOTION_IDENTIFIABLE = 0.01
+
 #: Environment variable: "1" disables third-party plugins (built-ins still load).
 ENV_DISABLE_PLUGINS = "FACERETARGET_DISABLE_PLUGINS"
 
@@ -102,3 +140,46 @@ def check_timeout(value, what: str = "timeout") -> float | None:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= MAX_TIMEOUT:
         raise ConfigError(f"{what} must be a number of seconds from 0 to {MAX_TIMEOUT:g} (30 days; 0 or None for no limit), got {value!r}")
     return float(value) or None
+
+# ---------------------------------------------------------------------------------------
+# Cross-topology correspondence (``correspond.resample_to_topology`` and its QualityReport)
+# ---------------------------------------------------------------------------------------
+#: A source boundary loop is pulled onto the nearest target boundary loop only if the mean
+#: distance from each to the other (after the landmark warp, then at each stiffness stage)
+#: is below this fraction of the face size (RMS radius of the target landmarks). Measured
+#: after the warp: loops that correspond (synthetic eyes/mouth/outline, the cross-rig ICT
+#: loops) 0.001-0.12; an outline cut elsewhere (cases.cross_topology: forehead cut, skirt
+#: beyond the target) 0.44-0.46.
+CORRESPONDENCE_LOOP_MATCH = 0.25
+
+#: Flipped triangles of the face interior (every corner matched on the target) above this
+#: count warn (CorrespondenceWarning) ...
+CORRESPONDENCE_FLIPPED_WARN = 0
+#: ... and above this share of the interior triangles raise CorrespondenceError.
+CORRESPONDENCE_FLIPPED_ERROR = 0.02
+
+#: Largest landmark distance after the fit, as a fraction of the target's bounding-box
+#: diagonal (QualityReport.scale): warn above / raise above. Good fits: below 0.008.
+CORRESPONDENCE_LANDMARK_WARN = 0.02
+CORRESPONDENCE_LANDMARK_ERROR = 0.1
+
+#: Mean distance of the matched source vertices to the target surface (fraction of the
+#: bounding-box diagonal): warn above / raise above. After snapping, good fits: < 1e-4.
+CORRESPONDENCE_RESIDUAL_WARN = 0.005
+CORRESPONDENCE_RESIDUAL_ERROR = 0.03
+
+#: A target vertex is "not reached" when it lies farther than this many mean target edge
+#: lengths from the matched part of the resampled surface ...
+CORRESPONDENCE_UNCOVERED_EDGES = 3.0
+#: ... counted only more than this many edge rings inside the target's outline (a source
+#: cut elsewhere leaves a band along it; that is reported, not warned about) ...
+CORRESPONDENCE_OUTLINE_RINGS = 15
+#: ... warn when that share of the target's vertices is not reached, raise above the second.
+CORRESPONDENCE_UNCOVERED_WARN = 0.05
+CORRESPONDENCE_UNCOVERED_ERROR = 0.5
+
+#: The face interior of a cross-topology fit excludes source triangles whose closest target
+#: points lie within this many edge rings of a target boundary (eye, mouth and outline rims:
+#: a closed lid on an open one, or an outline cut elsewhere, cannot correspond vertex for
+#: vertex there); their flips are counted apart (``details["flipped_rim"]``).
+CORRESPONDENCE_RIM_RINGS = 2

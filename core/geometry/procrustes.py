@@ -49,10 +49,10 @@ def fit_rigid(reference: np.ndarray, frames: np.ndarray, weights: np.ndarray | N
     x = np.where(valid[..., None], frm, 0.0)
     wn = w / total[:, None]
     mu_ref = wn @ ref  # (F, D)
-    mu_frm = np.einsum("fn,fnd->fd", wn, x)
+    mu_frm = np.matmul(wn[:, None, :], x)[:, 0]
     a = ref[None] - mu_ref[:, None]
     b = x - mu_frm[:, None]
-    cov = np.einsum("fn,fni,fnj->fij", wn, b, a)  # frame x ref
+    cov = np.matmul((b * wn[..., None]).transpose(0, 2, 1), a)  # frame x ref
     u, sig, vt = np.linalg.svd(cov)
     det = np.sign(np.linalg.det(u @ vt))
     det[det == 0] = 1.0
@@ -60,11 +60,11 @@ def fit_rigid(reference: np.ndarray, frames: np.ndarray, weights: np.ndarray | N
     fix[:, -1] = det
     rot = (u * fix[:, None, :]) @ vt
     if scale:
-        var_ref = np.einsum("fn,fnd,fnd->f", wn, a, a)
+        var_ref = np.sum(wn * np.sum(a * a, axis=2), axis=1)
         s = np.einsum("fd,fd->f", sig, fix) / np.maximum(var_ref, np.finfo(float).tiny)
     else:
         s = np.ones(n_frames)
-    trans = mu_frm - s[:, None] * np.einsum("fij,fj->fi", rot, mu_ref)
+    trans = mu_frm - s[:, None] * np.matmul(rot, mu_ref[..., None])[..., 0]
     if single:
         return rot[0], trans[0], s[0]
     return rot, trans, s
@@ -88,9 +88,7 @@ def apply(transforms: np.ndarray, points: np.ndarray) -> np.ndarray:
     dim = m.shape[-1] - 1
     p = np.asarray(points, dtype=np.float64)
     lin = m[:, :dim, :dim]
-    if p.ndim == 2:
-        return np.einsum("fij,pj->fpi", lin, p) + m[:, None, :dim, dim]
-    return np.einsum("fij,fpj->fpi", lin, p) + m[:, None, :dim, dim]
+    return np.matmul(p, lin.transpose(0, 2, 1)) + m[:, None, :dim, dim]  # rows: p @ L^T (broadcasts (P, D))
 
 
 def remove(transforms: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -193,10 +193,11 @@ class Transfer:
     """How target positions and blendshape displacements are carried into the source's space.
 
     ``"rbf"``: the paper's scale-proportion matching (sec. 3.2), ``d(n + delta) - d(n)`` with
-    the landmark RBF warp ``d``. ``"scale"`` (default) and ``"similarity"``: one global
+    the landmark RBF warp ``d``. ``"similarity"`` (default) and ``"scale"``: one global
     similarity transform ``x -> s R x + t`` fitted to the neutral landmarks (Umeyama);
-    displacements are multiplied by ``s`` (``"scale"``; the rotation is used only beyond
-    ``AUTO_ROTATION_DEGREES``) or by ``s R`` (``"similarity"``). Measured on real rig pairs
+    displacements are multiplied by ``s R`` (``"similarity"``: the result does not depend on
+    the units or pose of either face) or by ``s`` (``"scale"``; the rotation is used only
+    beyond ``AUTO_ROTATION_DEGREES``). Measured on real rig pairs
     (FIDELITY_NOTES), the warp's local Jacobian is a poor displacement scale because the
     phi(r) = r kernel has a kink at every centre and markers sit on the centres.
     """
@@ -236,3 +237,37 @@ def fit_transfer(target_landmarks: np.ndarray, source_landmarks: np.ndarray, how
         centre_s = np.mean(source_landmarks, axis=0)
         return Transfer(how, scale=scale, translation=centre_s - scale * centre_t, angle=angle)
     return Transfer(how, scale=scale, rotation=rot, translation=trans, angle=angle)
+
+
+def similarity_matrix(target_landmarks: np.ndarray, source_landmarks: np.ndarray) -> np.ndarray:
+    """(4, 4) similarity ``T`` taking target coordinates to source coordinates,
+    ``x_s ~ s R x_t + t``, fitted to corresponding neutral landmarks (Umeyama)."""
+    rot, trans, scale = procrustes.fit_rigid(target_landmarks, source_landmarks, scale=True)
+    return procrustes.to_matrix(rot[None], trans[None], np.atleast_1d(scale))[0]
+
+
+def motion_to_target(motion: np.ndarray | None, frame: np.ndarray) -> np.ndarray | None:
+    """Source head motion ``(F, 4, 4)`` expressed in the target's units.
+
+    Rotations are kept; translations are converted to the target's length unit (see
+    :func:`unit_ratio`; ``frame`` = T is the landmark similarity from target to source).
+    """
+    if motion is None:
+        return None
+    motion = np.asarray(motion, dtype=np.float64)
+    if np.array_equal(motion, np.broadcast_to(np.eye(4), motion.shape)):
+        return motion
+    scale = float(np.cbrt(np.linalg.det(frame[:3, :3])))
+    out = motion.copy()
+    out[:, :3, 3] /= unit_ratio(scale)
+    return out
+
+
+def unit_ratio(scale: float) -> float:
+    """The power of ten nearest to a source/target size ratio: the ratio of their length units.
+
+    Head translations are carried over in world distance, converted between units (metres to
+    centimetres is 0.01) but not stretched by the faces' proportions (a source face 13%
+    larger moves its head as far, not 13% farther). The rest of the ratio is the faces' sizes.
+    """
+    return float(10.0 ** np.round(np.log10(scale)))
