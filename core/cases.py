@@ -9,7 +9,7 @@ true weights, with the same rigid head motion), so that::
     anim = faceretarget.get("spacetime").fit(case.source, case.target).retarget(case.source)
     error = anim.vertices - case.truth.vertices
 
-Three generators:
+Four generators:
 
 - :func:`synthetic`: procedural parallel rigs on a face-like open surface with eye and
   mouth holes, defined over a shared (u, v) parameter domain so every blendshape means
@@ -20,6 +20,10 @@ Three generators:
   production pair (a remeshed source in metres, ~2K vertices; the ICT-topology target in
   centimetres; same-named shapes whose deltas differ), driven by sparse held weight curves
   with blinks and speech bursts (committed fixture ``data/ict_cross_rig_fixture.npz``).
+- :func:`cross_topology`: a source of another topology like a scanned head: eyes closed
+  with the lid holes filled, a mouth bag, the forehead cut lower and a skirt beyond the
+  outline (2,357 vertices), onto the open-eye ICT face; the same generic shapes on both
+  (committed fixture ``data/ict_cross_topology_fixture.npz``).
 
 All carry every rig part a built-in method may need (dense source mesh sequence with
 landmarks = marker layout, feature lines, example pose pairs, actor layers over the
@@ -56,7 +60,7 @@ from .model import (
     apply_head_motion,
 )
 
-__all__ = ["Case", "synthetic", "ict", "cross_rig", "face_surface", "CASES", "get_case", "MARKER_LAYOUT", "EMOTION_LAYER", "SPEECH_LAYER", "BLINK_LAYER", "EXAMPLES"]
+__all__ = ["Case", "synthetic", "ict", "cross_rig", "cross_topology", "face_surface", "CASES", "get_case", "MARKER_LAYOUT", "EMOTION_LAYER", "SPEECH_LAYER", "BLINK_LAYER", "EXAMPLES"]
 
 #: Poses of the three layers (names of recipes in :mod:`faceretarget.recipes`).
 EMOTION_LAYER = ("neutral", "happiness", "sadness", "anger", "surprise", "disgust")
@@ -1289,8 +1293,143 @@ def cross_rig(
     )
 
 
+# =======================================================================================
+# A cross-topology pair: a closed-eye head with a mouth bag onto the open-eye ICT face
+# =======================================================================================
+_CROSS_TOPOLOGY_FIXTURE = "ict_cross_topology_fixture.npz"
+#: Region codes of ``meta["source_region"]`` in :func:`cross_topology`.
+CROSS_TOPOLOGY_REGIONS = ("face", "eye_fill", "mouth_bag", "skirt")
+#: Shapes the closed-eye source cannot perform (its lids are sewn shut): zero in its curves.
+_CLOSED_EYE_SHAPES = ("eyeBlink_L", "eyeBlink_R", "eyeWide_L", "eyeWide_R")
+
+
+@functools.lru_cache(maxsize=4)
+def _cross_topology_pair(source_identity: tuple, target_identity: tuple):
+    """The two sides of :func:`cross_topology` (cached) and the meta entries describing them."""
+    import scipy.sparse as sp
+
+    data = _load_ict_fixture()
+    path = resources.files("faceretarget") / "data" / _CROSS_TOPOLOGY_FIXTURE
+    with resources.as_file(path) as p, np.load(p) as fx:
+        fixture = {k: fx[k] for k in fx.files}
+    tri = data["faces"].astype(np.int64)
+    names = [str(n) for n in data["expression_names"]]
+    deltas = data["expression_deltas"]
+    lm_ids = data["landmarks68"].astype(np.int64)
+    s_tri = fixture["triangles"].astype(np.int64)
+    region = fixture["region"].astype(np.int64)
+    w = sp.csr_matrix((fixture["w_data"], fixture["w_indices"], fixture["w_indptr"]), shape=(len(region), len(data["neutral"])))
+    blink = deltas[names.index("eyeBlink_L")] + deltas[names.index("eyeBlink_R")]
+
+    # source: the closed-eye head on the source identity (lids shut by the two blinks)
+    s_face = _ict_identity(data, source_identity, None, "source_identity", "cross_topology") + blink
+    s_vertices = w @ s_face + fixture["offset"]
+    s_mesh = Mesh(s_vertices, s_tri, name="cross-topology source (closed eyes, mouth bag)", _trusted=True)
+    s_deltas = np.stack([w @ d for d in deltas])
+    source_rig = BlendshapeRig(s_mesh, s_deltas, names)
+    s_landmarks = Landmarks(triangle_ids=fixture["landmark_triangles"].astype(np.int64),
+                            barycentric=fixture["landmark_barycentric"], names=ICT_LANDMARK_NAMES)
+    s_points = s_landmarks.positions(s_vertices, s_tri)
+
+    # target: the open-eye ICT face on the target identity, the same generic deltas
+    t_mesh = Mesh(_ict_identity(data, target_identity, None, "target_identity", "cross_topology"), tri,
+                  name="cross-topology target (ICT)", _trusted=True)
+    target_rig = BlendshapeRig(t_mesh, deltas, names)
+
+    # feature lines: the target's hole loops; on the source (no holes) the nearest vertex chains
+    loops = boundary_loops(tri)
+    base = data["neutral"]
+    centres = {"eye_L": base[lm_ids[42:48]].mean(axis=0), "eye_R": base[lm_ids[36:42]].mean(axis=0),
+               "mouth_inner": base[lm_ids[60:68]].mean(axis=0)}
+    t_lines = {k: min(loops, key=lambda lp: np.linalg.norm(base[lp].mean(axis=0) - c)) for k, c in centres.items()}
+    t_lines["mouth_outer"] = lm_ids[48:60]
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(s_vertices)
+
+    def chain(points):
+        ids = tree.query(points)[1]
+        ids = ids[np.r_[True, ids[1:] != ids[:-1]]]
+        _, first = np.unique(ids, return_index=True)
+        return ids[np.sort(first)].astype(np.int64)
+
+    s_lines = {"eye_L": chain(s_points[42:48]), "eye_R": chain(s_points[36:42]), "mouth_outer": chain(s_points[48:60]),
+               "mouth_inner": chain(s_face[t_lines["mouth_inner"]])}
+
+    src = _Side(source_rig, s_landmarks, s_lines, _ict_masks(s_mesh, s_points))
+    tgt = _Side(target_rig, Landmarks(lm_ids, names=ICT_LANDMARK_NAMES), t_lines, _ict_masks(t_mesh, t_mesh.vertices[lm_ids]))
+    region.setflags(write=False)
+    meta = {"source_region": region, "source_weights": w}
+    return src, tgt, meta
+
+
+def cross_topology(
+    seed: int = 0,
+    n_frames: int = 120,
+    fps: float = 30.0,
+    head_motion: bool = False,
+    source_identity=None,
+    target_identity=None,
+) -> Case:
+    """A source mesh of another topology: a closed-eye head with a mouth bag onto the open-eye ICT face.
+
+    The source is what a scanned or sculpted head looks like next to the ICT face
+    (committed fixture ``data/ict_cross_topology_fixture.npz``, derived by
+    ``data/derive_ict_cross_topology.py``):
+
+    - **eyes closed, eyelid holes filled**: the lids are shut (the ICT ``eyeBlink`` shapes
+      at 1), what was hidden behind them removed and the slit sewn, so the source has no
+      eye holes where the target has two;
+    - **a mouth bag**: a 3 cm pocket continues the lips into the mouth (the target has a
+      mouth hole and no bag);
+    - **different boundaries**: the forehead cut 4 cm lower than the target's, and a 2.4 cm
+      skirt continuing the sides, jaw line and neck beyond the target's outline;
+    - **remeshed** to 2,357 vertices / 4,600 triangles (the target: ICT, 9,409 vertices).
+
+    Both rigs are ICT-FaceKit rigs with the same generic expression deltas on different
+    identities (as ``ict(expressions="same")``), so the target driven by the source's
+    weights is the right answer. Units agree (centimetres). The weights are the
+    animation-like curves of :func:`cross_rig` (expressions held, speech) with the shapes
+    a sewn-shut eye cannot perform (``eyeBlink``, ``eyeWide``) at zero.
+
+    ``meta`` adds ``source_region`` (V_s,) int (index into :data:`CROSS_TOPOLOGY_REGIONS`:
+    face, eye fill, mouth bag, skirt) and ``source_weights``: the (V_s, 9409) sparse
+    matrix ``W`` with ``source = W @ (ICT face + blinks) + offset``; for face vertices
+    ``W @ target.neutral.vertices`` is the exact corresponding target point.
+    """
+    _check_counts(n_frames=n_frames)
+    fps = as_fps(fps)
+    data = None
+
+    def key(coeffs, default, what) -> tuple:
+        nonlocal data
+        if coeffs is not None:
+            data = data if data is not None else _load_ict_fixture()
+            _ict_identity(data, coeffs, default, what, "cross_topology")  # validates
+        return tuple(float(c) for c in np.asarray(default if coeffs is None else coeffs, dtype=np.float64))
+
+    src, tgt, pair_meta = _cross_topology_pair(key(source_identity, ICT_SOURCE_IDENTITY, "source_identity"),
+                                               key(target_identity, ICT_TARGET_IDENTITY, "target_identity"))
+    names = src.rig.names
+    weights = _performance_weights(np.random.default_rng([int(seed), 5]), int(n_frames), fps, names)
+    weights[:, [names.index(n) for n in _CLOSED_EYE_SHAPES]] = 0.0
+    s_vertices = src.rig.neutral.vertices
+    return _assemble(
+        "cross-topology",
+        src,
+        tgt,
+        n_frames=int(n_frames),
+        fps=fps,
+        seed=seed,
+        head_motion=head_motion,
+        pivot=np.array([0.0, s_vertices[:, 1].min(), s_vertices[:, 2].min()]),
+        meta={"seed": seed, "source_region": pair_meta["source_region"], "source_weights": pair_meta["source_weights"].copy()},
+        weights=weights,
+    )
+
+
 #: Built-in case generators by name.
-CASES = {"synthetic": synthetic, "ict": ict, "cross_rig": cross_rig}
+CASES = {"synthetic": synthetic, "ict": ict, "cross_rig": cross_rig, "cross_topology": cross_topology}
 
 
 def get_case(name: str, **options: Any) -> Case:

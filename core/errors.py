@@ -28,6 +28,11 @@ working. Messages say what was wrong *and* how to fix it.
         ├── DuplicatePluginError
         ├── PluginOutputError
         └── PluginTimeoutError (TimeoutError)  a plugin overran its time limit
+
+Warnings (``warnings.warn``; filter them with ``warnings.simplefilter``)::
+
+    FaceRetargetWarning (UserWarning)
+    └── CorrespondenceWarning              a cross-topology correspondence is poor somewhere
 """
 from __future__ import annotations
 
@@ -53,6 +58,8 @@ __all__ = [
     "DuplicatePluginError",
     "PluginOutputError",
     "PluginTimeoutError",
+    "FaceRetargetWarning",
+    "CorrespondenceWarning",
 ]
 
 
@@ -146,3 +153,15 @@ class PluginOutputError(PluginError):
 class PluginTimeoutError(PluginError, TimeoutError):
     """A plugin did not finish importing or running within its time limit
     (``FACERETARGET_TIMEOUT`` / ``--timeout`` per run, ``FACERETARGET_IMPORT_TIMEOUT`` per import)."""
+
+
+class FaceRetargetWarning(UserWarning):
+    """Base class of the warnings faceretarget issues: a result was produced, but part of it
+    may be wrong; the message names what and where."""
+
+
+class CorrespondenceWarning(FaceRetargetWarning):
+    """The correspondence between two faces of different topology is poor in some regions
+    (flipped triangles, landmarks not reached, target parts the source does not cover); the
+    message names the regions. Past the hard limits a :class:`CorrespondenceError` is raised
+    instead (thresholds ``CORRESPONDENCE_*`` in :mod:`faceretarget.config`)."""

@@ -28,6 +28,15 @@ Each check tests one invariant on a tiny synthetic parallel-rig case
 - ``check_stream``: ``stream`` agrees with ``retarget`` (where offered)
 - ``check_capabilities``: declared capabilities are honest (unsupported sources and missing
   rig parts raise :class:`CapabilityError`; "weights" outputs carry weights)
+- ``check_unit_invariance``: scaling the source or the target by 0.01, 100 and 1000, or moving
+  either rigidly, changes the result (expressed in the target's units and frame) by less
+  than ``UNIT_TOLERANCE`` of the face height
+- ``check_cross_topology_neutral``: on a source of another topology (:func:`tiny_cross_topology_case`:
+  closed eyes, a mouth bag, another outline) resting at its neutral, the result is the
+  target's neutral within ``CROSS_NEUTRAL_TOLERANCE`` (0.01%) of the face height
+- ``check_declared_needs``: wherever ``why_not(source, target)`` is None (parts stripped one at a
+  time, same and other topology, with and without landmarks) ``fit`` raises no
+  :class:`CapabilityError`: declared needs are the real needs
 
 The module is also a pytest plugin (entry point ``pytest11``) giving the fixture
 ``faceretarget_case`` (the tiny case).
@@ -53,6 +62,9 @@ __all__ = [
     "CHECKS",
     "REST_TOLERANCE",
     "RIGID_TOLERANCE",
+    "UNIT_TOLERANCE",
+    "CROSS_NEUTRAL_TOLERANCE",
+    "tiny_cross_topology_case",
 ]
 
 #: RMS error allowed for the rest-pose and rigid checks, as a fraction of the target face height.
@@ -60,6 +72,13 @@ REST_TOLERANCE = 2e-3
 RIGID_TOLERANCE = 5e-3
 #: Agreement required between float32 and float64 inputs (fraction of face height).
 FLOAT32_TOLERANCE = 1e-3
+#: Largest change (RMS, fraction of the target's face height) allowed when the source or the
+#: target is rescaled (x0.01, x100, x1000) or moved rigidly, the result mapped back.
+UNIT_TOLERANCE = 1e-6
+#: Scales and rigid moves tried by check_unit_invariance.
+UNIT_SCALES = (0.01, 100.0, 1000.0)
+#: RMS error allowed for a cross-topology source resting at its neutral (fraction of face height: 0.01%).
+CROSS_NEUTRAL_TOLERANCE = 1e-4
 
 
 @functools.lru_cache(maxsize=4)
@@ -78,9 +97,97 @@ def tiny_case(seed: int = 0):
     return copy.deepcopy(_build_tiny_case(seed))
 
 
+@functools.lru_cache(maxsize=2)
+def _build_tiny_cross_topology_case(seed: int):
+    from . import cases
+
+    return cases.cross_topology(seed=seed, n_frames=6)
+
+
+def tiny_cross_topology_case(seed: int = 0):
+    """A short case whose source is of another topology than the target: the closed-eye head
+    with a mouth bag and another outline of :func:`faceretarget.cases.cross_topology` (2,357
+    vertices) onto the open-eye ICT face (9,409 vertices), 6 frames. A deep copy per call."""
+    return copy.deepcopy(_build_tiny_cross_topology_case(seed))
+
+
 # ------------------------------------------------------------------------------------
 # helpers
 # ------------------------------------------------------------------------------------
+class _Affine:
+    """``x -> scale * R x + t`` on points, ``scale * R d`` on displacements."""
+
+    def __init__(self, scale: float = 1.0, rotation=None, translation=None):
+        self.scale = float(scale)
+        self.rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        self.translation = np.zeros(3) if translation is None else np.asarray(translation, dtype=np.float64)
+
+    def points(self, x):
+        return None if x is None else self.scale * (np.asarray(x, dtype=np.float64) @ self.rotation.T) + self.translation
+
+    def vectors(self, d):
+        return None if d is None else self.scale * (np.asarray(d, dtype=np.float64) @ self.rotation.T)
+
+    def inverse_points(self, y):
+        return ((np.asarray(y, dtype=np.float64) - self.translation) @ self.rotation) / self.scale
+
+    def matrix(self) -> np.ndarray:
+        m = np.eye(4)
+        m[:3, :3] = self.scale * self.rotation
+        m[:3, 3] = self.translation
+        return m
+
+    def conjugate(self, motion):
+        """Rigid motions ``(F, 4, 4)`` seen in the moved frame: ``A M A^-1``."""
+        if motion is None:
+            return None
+        a = self.matrix()
+        return a @ np.asarray(motion, dtype=np.float64) @ np.linalg.inv(a)
+
+    def mesh(self, mesh: Mesh) -> Mesh:
+        return Mesh(self.points(mesh.vertices), mesh.triangles, name=mesh.name)
+
+    def rig(self, rig):
+        if rig is None:
+            return None
+        return BlendshapeRig(self.mesh(rig.neutral), self.vectors(rig.deltas), rig.names, bounds=rig.bounds)
+
+    def layers(self, layers):
+        if layers is None:
+            return None
+        return LayeredRig({k: self.points(v) for k, v in layers.layers.items()}, np.asarray(layers.masks),
+                          pose_names=layers.pose_names, region_names=layers.region_names)
+
+
+def _rotation(axis, degrees: float) -> np.ndarray:
+    axis = np.asarray(axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    a = np.deg2rad(degrees)
+    return np.eye(3) + np.sin(a) * k + (1.0 - np.cos(a)) * (k @ k)
+
+
+def _moved_source(source: Source, a: _Affine) -> Source:
+    """The same performance with every 3D position moved by ``a`` (2D tracks stay in the image)."""
+    perf = source.performance
+    if isinstance(perf, MeshSequence):
+        moved = MeshSequence(a.points(perf.vertices), perf.triangles, fps=perf.fps, reference=a.mesh(perf.reference), name=perf.name)
+    elif isinstance(perf, MarkerSequence):
+        moved = MarkerSequence(a.points(perf.positions), names=perf.names, fps=perf.fps, reference=a.points(perf.reference))
+    else:
+        moved = perf
+    return source.replace(performance=moved, examples=a.points(source.examples), rig=a.rig(source.rig),
+                          actor_layers=a.layers(source.actor_layers), head_motion=a.conjugate(source.head_motion))
+
+
+def _moved_target(target: TargetRig, a: _Affine) -> TargetRig:
+    neutral = a.mesh(target.neutral)
+    rig = None
+    if target.blendshapes is not None:
+        rig = BlendshapeRig(neutral, a.vectors(target.blendshapes.deltas), target.blendshapes.names, bounds=target.blendshapes.bounds)
+    return target.replace(neutral=neutral, blendshapes=rig, layers=a.layers(target.layers), examples=a.points(target.examples))
+
+
 def _instance(obj) -> Retargeter:
     if isinstance(obj, Retargeter):
         return clone(obj)
@@ -479,6 +586,133 @@ def check_capabilities(r: Retargeter, case=None) -> None:
             raise AssertionError(f"{_label(r)}: declares edit=False but edit() does not raise CapabilityError")
 
 
+def check_unit_invariance(r: Retargeter, case=None) -> None:
+    """Rescaling (x0.01, x100, x1000) or rigidly moving the source or the target changes
+    nothing but the units and frame of the result.
+
+    Run on the case's expressions without head motion (see :func:`_without_head_motion`).
+    """
+    case = _without_head_motion(case or tiny_case())
+    source = _preferred_source(_instance(r), case)
+    target = case.target
+    height = target.neutral.height
+    base = np.asarray(_instance(r).fit(source, target).retarget(source).vertices, dtype=np.float64)
+    centre = np.asarray(target.neutral.vertices).mean(axis=0)
+    rigid = _Affine(1.0, _rotation([0.3, 1.0, 0.2], 25.0), np.array([1.0, -2.0, 0.5]) * height)
+    moves = [(f"source x{s:g}", _Affine(s), None) for s in UNIT_SCALES]
+    moves += [(f"target x{s:g}", None, _Affine(s, None, centre * (1.0 - s))) for s in UNIT_SCALES]
+    moves += [("source moved rigidly", rigid, None), ("target moved rigidly", None, rigid)]
+    failures = []
+    for label, on_source, on_target in moves:
+        if on_source is not None and source.kind == "weights":
+            continue  # weight curves have no units
+        src = _moved_source(source, on_source) if on_source is not None else source
+        tgt = _moved_target(target, on_target) if on_target is not None else target
+        try:
+            got = np.asarray(_instance(r).fit(src, tgt).retarget(src).vertices, dtype=np.float64)
+        except FaceRetargetError as exc:
+            failures.append(f"{label}: {type(exc).__name__}: {exc}")
+            continue
+        if on_target is not None:
+            got = on_target.inverse_points(got)
+        err = _rms(got, base) / height
+        if not err <= UNIT_TOLERANCE:
+            failures.append(f"{label}: result differs by {err:.3g} of the face height")
+    assert not failures, (
+        f"{_label(r)}: the result must not depend on units or placement (allowed {UNIT_TOLERANCE:g} of the face height, "
+        f"RMS, in the target's units): " + "; ".join(failures)
+    )
+
+
+def _without_head_motion(case):
+    """The case with its mesh performance rebuilt from the source rig and true weights
+    (expressions only): head motion is applied in world coordinates, so moving the target
+    would rightly change where a head turn takes it (check_rigid_motion covers head motion)."""
+    import dataclasses
+
+    src = case.source
+    weights = case.meta.get("weights") if isinstance(getattr(case, "meta", None), dict) else None
+    if src.kind != "mesh" or src.rig is None or weights is None:
+        return case
+    perf = src.performance
+    local = MeshSequence(src.rig.evaluate(weights), perf.triangles, fps=perf.fps, reference=perf.reference, name=perf.name)
+    return dataclasses.replace(case, source=src.replace(performance=local, head_motion=None))
+
+
+def check_cross_topology_neutral(r: Retargeter, case=None) -> None:
+    """A source of another topology resting at its neutral gives the target's neutral.
+
+    Uses :func:`tiny_cross_topology_case` (``case`` is ignored: the check needs a pair of
+    different topologies). Not applicable (returns) to weight-only retargeters, and where
+    ``why_not`` rules the pair out.
+    """
+    r = _instance(r)
+    kinds = [k for k in ("mesh", "markers") if k in r.capabilities.sources]
+    if not kinds:
+        return  # weight curves have no topology
+    xcase = tiny_cross_topology_case()
+    source = _static_source(_source_of_kind(xcase, kinds[0]))
+    if type(r).why_not(source, xcase.target) is not None:
+        return
+    anim = r.fit(source, xcase.target).retarget(source)
+    want = np.repeat(np.asarray(xcase.target.neutral.vertices)[None], source.n_frames, axis=0)
+    got = np.asarray(anim.vertices, dtype=np.float64)
+    err = _rms(got, want) / xcase.target.neutral.height
+    per_vertex = np.linalg.norm(got - want, axis=-1).max(axis=0) / xcase.target.neutral.height
+    assert err <= CROSS_NEUTRAL_TOLERANCE, (
+        f"{_label(r)}: a {source.kind} source of another topology ({xcase.source.performance.reference.n_vertices} vertices, "
+        f"closed eyes, mouth bag) resting at its neutral must give the target's neutral; RMS error is {100 * err:.4f}% of "
+        f"face height (allowed {100 * CROSS_NEUTRAL_TOLERANCE:.2f}%), {100 * np.mean(per_vertex > 0.01):.1f}% of the "
+        f"vertices off by more than 1%"
+    )
+
+
+def _stripped_variants(source: Source, target: TargetRig):
+    """(label, source, target): the pair as given, then with one part removed at a time."""
+    yield "as given", source, target
+    for part in TargetRig.PARTS:
+        if target.has(part):
+            yield f"target without {part}", source, _target_without(target, (part,))
+    extras = {"landmarks": dict(landmarks=None), "examples": dict(examples=None, example_names=None),
+              "feature_lines": dict(feature_lines=None), "actor_layers": dict(actor_layers=None), "rig": dict(rig=None)}
+    for part, change in extras.items():
+        if getattr(source, part, None) is not None and not (part == "feature_lines" and not source.feature_lines):
+            if part == "landmarks" and source.kind != "mesh":
+                continue
+            yield f"source without {part}", source.replace(**change), target
+    if source.kind == "mesh" and source.landmarks is not None and target.landmarks is not None:
+        yield "neither with landmarks", source.replace(landmarks=None), _target_without(target, ("landmarks",))
+
+
+def check_declared_needs(r: Retargeter, case=None) -> None:
+    """Where ``why_not(source, target)`` is None, ``fit`` must not raise CapabilityError.
+
+    Tried on the given (or tiny) case and on :func:`tiny_cross_topology_case`, each as given
+    and with one rig part or source extra removed at a time (and landmarks removed from
+    both): a need that ``fit`` enforces must be declared (``capabilities.needs``, or a
+    ``why_not`` override for a conditional need such as "landmarks when the topologies differ").
+    """
+    cls = type(_instance(r))
+    pairs = [("same topology", case or tiny_case())]
+    kinds = [k for k in ("mesh", "markers") if k in cls.capabilities.sources]
+    if kinds:
+        pairs.append(("other topology", tiny_cross_topology_case()))
+    failures = []
+    for pair_label, c in pairs:
+        base = _preferred_source(_instance(r), c)
+        for label, source, target in _stripped_variants(base, c.target):
+            if cls.why_not(source, target) is not None:
+                continue
+            try:
+                _instance(r).fit(source, target)
+            except CapabilityError as exc:
+                failures.append(f"{pair_label}, {label}: {exc}")
+    assert not failures, (
+        f"{_label(r)}: why_not() said it applies but fit() raised CapabilityError; declare the need "
+        "(capabilities.needs, or override why_not for a conditional need): " + "; ".join(failures)
+    )
+
+
 def _target_without(target: TargetRig, parts: Iterable[str]) -> TargetRig:
     return target.replace(**{p: None for p in parts})
 
@@ -505,6 +739,9 @@ CHECKS: tuple[Callable, ...] = (
     check_clone_pickle,
     check_stream,
     check_capabilities,
+    check_unit_invariance,
+    check_cross_topology_neutral,
+    check_declared_needs,
 )
 
 

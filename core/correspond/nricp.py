@@ -16,12 +16,27 @@ coordinates (SuperLU through :class:`~faceretarget.geometry.factorized.SPDFactor
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import DegenerateGeometryError, InputError
+from ..config import (
+    CORRESPONDENCE_FLIPPED_ERROR,
+    CORRESPONDENCE_FLIPPED_WARN,
+    CORRESPONDENCE_LANDMARK_ERROR,
+    CORRESPONDENCE_LANDMARK_WARN,
+    CORRESPONDENCE_LOOP_MATCH,
+    CORRESPONDENCE_OUTLINE_RINGS,
+    CORRESPONDENCE_RESIDUAL_ERROR,
+    CORRESPONDENCE_RESIDUAL_WARN,
+    CORRESPONDENCE_RIM_RINGS,
+    CORRESPONDENCE_UNCOVERED_EDGES,
+    CORRESPONDENCE_UNCOVERED_ERROR,
+    CORRESPONDENCE_UNCOVERED_WARN,
+)
+from ..errors import CorrespondenceError, CorrespondenceWarning, DegenerateGeometryError, InputError
 from ..geometry.closest import closest_on_polyline
 from ..geometry.factorized import SPDFactor
 from ..geometry.laplacian import uniform_laplacian
@@ -44,6 +59,10 @@ _NORMAL_COS = 0.2
 _OUTLIER_FACTOR = 6.0
 #: Barycentric weight below which a closest point counts as lying on an edge / vertex.
 _ON_EDGE = 1e-9
+#: Rounds of untangling (drop the matches around flipped interior triangles, re-solve).
+_UNTANGLE_ROUNDS = 6
+#: Edge rings around a flipped triangle whose matches are dropped.
+_UNTANGLE_RINGS = 1
 
 
 @dataclass(frozen=True)
@@ -59,11 +78,28 @@ class QualityReport:
     landmark_error : float
         Largest distance between a resampled source landmark and its target landmark.
     flipped_triangles : int
-        Resampled triangles whose normal points against the target surface normal.
+        Triangles of the *face interior* (all three corners matched on the target) whose
+        normal points against the target surface normal. Source parts with no
+        counterpart on the target (a filled eye over an eye hole, a mouth bag, a skirt
+        beyond the target's outline) are not interior; ``details["flipped_all"]`` counts
+        every triangle.
     rejected : int
-        Vertices without an accepted closest-point match in the last iteration.
+        Vertices without a counterpart on the target (no accepted closest-point match).
     iterations : int
     scale : float
+    details : dict
+        Per-vertex ``residuals`` (V_s,), ``coverage`` (V_t,: distance of each target vertex
+        to the matched part of the resampled surface), ``matched`` (V_s,) bool,
+        ``interior_triangles``, ``flipped_all``, ``flipped_ids``,
+        ``matched_residual_mean`` / ``_max`` (relative to ``scale``), ``uncovered_share``
+        (target vertices farther than
+        :data:`~faceretarget.config.CORRESPONDENCE_UNCOVERED_EDGES` mean edges from the
+        matched surface) and ``uncovered_inner_share`` (those more than
+        :data:`~faceretarget.config.CORRESPONDENCE_OUTLINE_RINGS` rings inside the
+        target's outline), ``released`` / ``untangle_rounds`` (untangling), ``loops_paired``
+        and ``regions``: ``{"flipped" | "landmarks" | "uncovered" | "residual": {region: count}}``,
+        regions named from the landmark names (eyes, mouth, brows, nose, jaw, cheeks,
+        boundary).
     """
 
     residual_mean: float
@@ -77,9 +113,63 @@ class QualityReport:
     details: dict = field(default_factory=dict, repr=False)
 
     def as_dict(self) -> dict:
-        """The scalar fields as a plain (JSON-friendly) dict."""
-        return {k: getattr(self, k) for k in ("residual_mean", "residual_max", "coverage_max", "landmark_error",
-                                              "flipped_triangles", "rejected", "iterations", "scale")}
+        """The scalar fields (and the problems found, as text) as a plain (JSON-friendly) dict."""
+        out = {k: getattr(self, k) for k in ("residual_mean", "residual_max", "coverage_max", "landmark_error",
+                                             "flipped_triangles", "rejected", "iterations", "scale")}
+        for k in ("interior_triangles", "flipped_all", "matched_residual_mean", "uncovered_share", "uncovered_inner_share"):
+            if k in self.details:
+                out[k] = self.details[k]
+        out["problems"] = [f"{level}: {text}" for level, text in self.problems()]
+        return out
+
+    def problems(self) -> list[tuple[str, str]]:
+        """``[(level, text)]``, level "error" (past a hard limit) or "warning", for every quality
+        measure past its threshold in :mod:`faceretarget.config` (``CORRESPONDENCE_*``); each
+        text names the regions concerned."""
+        d = self.details
+        out: list[tuple[str, str]] = []
+        regions = d.get("regions", {})
+
+        def where(key):
+            r = regions.get(key) or {}
+            return " (" + ", ".join(f"{k}: {v}" for k, v in list(r.items())[:5]) + ")" if r else ""
+
+        interior = max(int(d.get("interior_triangles", 0)), 1)
+        share = self.flipped_triangles / interior
+        if self.flipped_triangles > CORRESPONDENCE_FLIPPED_WARN:
+            level = "error" if share > CORRESPONDENCE_FLIPPED_ERROR else "warning"
+            out.append((level, f"{self.flipped_triangles} triangles of the face interior ({100 * share:.2f}%) point against "
+                               f"the target surface{where('flipped')}"))
+        if self.landmark_error > CORRESPONDENCE_LANDMARK_WARN:
+            level = "error" if self.landmark_error > CORRESPONDENCE_LANDMARK_ERROR else "warning"
+            out.append((level, f"a landmark ends {100 * self.landmark_error:.2f}% of the target's size from its target "
+                               f"landmark{where('landmarks')}"))
+        res = d.get("matched_residual_mean")
+        if res is not None and res > CORRESPONDENCE_RESIDUAL_WARN:
+            level = "error" if res > CORRESPONDENCE_RESIDUAL_ERROR else "warning"
+            out.append((level, f"matched vertices lie {100 * res:.2f}% of the target's size off its surface on average{where('residual')}"))
+        unc = d.get("uncovered_inner_share")
+        if unc is not None and unc > CORRESPONDENCE_UNCOVERED_WARN:
+            level = "error" if unc > CORRESPONDENCE_UNCOVERED_ERROR else "warning"
+            out.append((level, f"{100 * unc:.1f}% of the target's vertices inside its outline are not reached by the "
+                               f"source surface{where('uncovered')}"))
+        return out
+
+    def check(self, what: str = "correspondence") -> "QualityReport":
+        """Raise :class:`~faceretarget.errors.CorrespondenceError` past a hard limit, else warn
+        (:class:`~faceretarget.errors.CorrespondenceWarning`) below a warning threshold;
+        returns self."""
+        found = self.problems()
+        if not found:
+            return self
+        text = "; ".join(t for _, t in found)
+        hint = ("check that source and target landmarks correspond (same order, same points: the upper lid on both "
+                "faces, not on a closed lid's fold), or give more landmarks around the regions named")
+        if any(level == "error" for level, _ in found):
+            raise CorrespondenceError(f"{what}: the source and target surfaces could not be put in correspondence: {text}; {hint}")
+        warnings.warn(f"{what}: poor correspondence between source and target: {text}; results there may be wrong; {hint}",
+                      CorrespondenceWarning, stacklevel=3)
+        return self
 
 
 def _edge_keys(edges: np.ndarray, n: int) -> np.ndarray:
@@ -103,8 +193,11 @@ def _on_boundary(tri_ids, bary, triangles, boundary_vertex, boundary_keys, n_ver
     return out
 
 
-def _match_loops(src_points, src_loops, tgt_vertices, tgt_loops):
-    """For each source loop, the target loop nearest on average (index into ``tgt_loops``)."""
+def _match_loops(src_points, src_loops, tgt_vertices, tgt_loops, src_triangles=None, max_distance=np.inf):
+    """For each source loop, the target loop nearest on average (index into ``tgt_loops``),
+    or -1 when even that one does not follow it: the mean distance from the source loop to
+    the target loop, or back, exceeds ``max_distance`` (a closed-eye source's outline cut
+    elsewhere than the target's, a skirt beyond it)."""
     out = []
     for loop in src_loops:
         best, best_d = -1, np.inf
@@ -113,6 +206,11 @@ def _match_loops(src_points, src_loops, tgt_vertices, tgt_loops):
             d = closest_on_polyline(src_points[loop], tgt_vertices, seg)[3].mean()
             if d < best_d:
                 best, best_d = j, d
+        if best >= 0 and np.isfinite(max_distance):
+            tl = tgt_loops[best]
+            back = closest_on_polyline(tgt_vertices[tl], src_points, np.stack([loop, np.roll(loop, -1)], axis=1))[3].mean()
+            if max(best_d, back) > max_distance:
+                best = -1
         out.append(best)
     return out
 
@@ -128,8 +226,21 @@ def resample_to_topology(
     landmark_weight: float = DEFAULT_LANDMARK_WEIGHT,
     match_boundaries: bool = True,
     snap: bool = True,
+    check: bool = True,
+    what: str = "resample_to_topology",
 ) -> tuple[Mesh, QualityReport]:
     """Fit the source mesh onto the target surface: the target resampled in the source topology.
+
+    The two faces may differ in more than triangulation: eyes closed (no eye holes) in one
+    and open in the other, a mouth bag or none, outlines cut elsewhere (a head onto a
+    face). Source parts with no counterpart on the target (a filled eye over the target's
+    eye hole, a mouth bag, a skirt beyond the target's outline) find no accepted closest
+    point and follow their matched neighbours through the membrane; a boundary loop is
+    pulled onto a target loop only where the two follow each other (mean distance both
+    ways below :data:`~faceretarget.config.CORRESPONDENCE_LOOP_MATCH` of the face size).
+    Triangles of the *face interior* (every corner matched) that still point against the
+    target surface are untangled: their corners' matches are dropped and the membrane
+    re-solved, a few rounds.
 
     Parameters
     ----------
@@ -137,18 +248,27 @@ def resample_to_topology(
         Any topologies; the source's vertex order and triangles are kept.
     source_landmarks, target_landmarks : Landmarks
         Corresponding points (paired by order; vertex ids or barycentric), at least 4 not
-        in one plane.
+        in one plane. Their names (e.g. ``eye_L_inner``, ``lip_upper_2``) name the regions
+        in quality messages.
     stiffness : sequence of float
         Decreasing membrane weights, one stage each (see :data:`DEFAULT_STIFFNESS`).
     iterations : int
         Closest-point iterations per stage.
     landmark_weight : float
     match_boundaries : bool
-        Pull each source boundary loop onto the nearest target boundary loop (open
-        surfaces: eye, mouth and outline loops).
+        Pull each source boundary loop onto the target boundary loop that follows it
+        (open surfaces: eye, mouth and outline loops).
     snap : bool
         Finally move every accepted vertex exactly onto its closest target point, unless
         that would flip a triangle.
+    check : bool
+        Judge the result (:meth:`QualityReport.check`): a
+        :class:`~faceretarget.errors.CorrespondenceWarning` naming the regions below the
+        warning thresholds of :mod:`faceretarget.config`, a
+        :class:`~faceretarget.errors.CorrespondenceError` past the hard limits. False: only
+        return the report.
+    what : str
+        Who is asking (a method's name), for the messages.
 
     Returns
     -------
@@ -177,30 +297,66 @@ def resample_to_topology(
     p = sp.csr_matrix((lm.barycentric.ravel(), (np.repeat(np.arange(len(lm)), 3), corners.ravel())), shape=(len(lm), n))
     ptp = (p.T @ p) * landmark_weight
     pt_t = (p.T @ tgt_pos) * landmark_weight
+    size = float(np.sqrt(np.mean(np.sum((tgt_pos - tgt_pos.mean(axis=0)) ** 2, axis=1))))
 
-    matcher = _Matcher(target_mesh, source_mesh, match_boundaries)
+    matcher = _Matcher(target_mesh, source_mesh, match_boundaries, CORRESPONDENCE_LOOP_MATCH * size)
     x = x0.copy()
     lx0 = lap @ x0
+
+    def solve(alpha, targets, weights):
+        a = sp.diags(weights) + alpha * lap + ptp
+        b = weights[:, None] * targets + alpha * lx0 + pt_t
+        return SPDFactor(a, what="the non-rigid ICP system").solve(b)
+
     total = 0
     for alpha in stiffness:
         matcher.pair_loops(x)
         for _ in range(int(iterations)):
             total += 1
             targets, weights = matcher(x)
-            a = sp.diags(weights) + alpha * lap + ptp
-            b = weights[:, None] * targets + alpha * lx0 + pt_t
-            x = SPDFactor(a, what="the non-rigid ICP system").solve(b)
+            x = solve(alpha, targets, weights)
+    # untangle: drop the matches around interior triangles that point against the target
+    # (a released vertex that had a match still belongs to the face interior: releasing it
+    # does not take its triangles out of the count)
+    released = np.zeros(n, dtype=bool)
+    released_matched = np.zeros(n, dtype=bool)
+    rounds = 0
+    for _ in range(_UNTANGLE_ROUNDS):
+        targets, weights = matcher(x)
+        matched = (weights > 0) | released_matched
+        bad = _flipped(x, tri_s, matcher.caster, target_mesh) & matched[tri_s].all(axis=1)
+        if not bad.any():
+            break
+        rounds += 1
+        grow = np.zeros(n, dtype=bool)
+        grow[tri_s[bad]] = True
+        for _ in range(_UNTANGLE_RINGS):
+            grow |= (source_mesh.adjacency @ grow.astype(np.float64)) > 0
+        released_matched |= grow & (weights > 0)
+        released |= grow
+        weights = np.where(released, 0.0, weights)
+        # a middle stiffness: stiff enough to carry the released vertices smoothly over the
+        # gap, soft enough to keep the matched ones near the surface (snapped below)
+        x = solve(stiffness[len(stiffness) // 2], targets, weights)
+        total += 1
     targets, weights = matcher(x)
+    matched = (weights > 0) | released_matched
+    accepted = (weights > 0) & ~released
     if snap:
-        x = _snap(x, targets, weights > 0, tri_s)
+        x = _snap(x, targets, accepted, tri_s)
     mesh = Mesh(x, tri_s, name=(target_mesh.name or "target") + " resampled", _trusted=True)
-    return mesh, quality_report(mesh, source_landmarks, target_mesh, tgt_pos, rejected=int((weights == 0).sum()), iterations=total)
+    report = quality_report(mesh, source_landmarks, target_mesh, tgt_pos, rejected=int((~matched).sum()), iterations=total,
+                            matched=matched, target_landmarks=target_landmarks, released=int(released.sum()),
+                            untangle_rounds=rounds, loops_paired=[int(j) for j in matcher.pairs])
+    if check:
+        report.check(what)
+    return mesh, report
 
 
 class _Matcher:
     """Closest-point targets and acceptance weights on one target mesh."""
 
-    def __init__(self, target: Mesh, source: Mesh, match_boundaries: bool):
+    def __init__(self, target: Mesh, source: Mesh, match_boundaries: bool, loop_distance: float = np.inf):
         from ..geometry.mesh_ops import boundary_edges
         from ..geometry.raycast import RayCaster
 
@@ -212,14 +368,16 @@ class _Matcher:
         self.source_triangles = source.triangles
         self.tgt_loops = boundary_loops(target.triangles) if match_boundaries else []
         self.src_loops = boundary_loops(source.triangles) if (match_boundaries and self.tgt_loops) else []
+        self.loop_distance = loop_distance
         self.pairs: list[int] = []
         edges = target.edges
         # a match within one mean edge length of the surface is never an outlier
         self.floor = float(np.linalg.norm(target.vertices[edges[:, 0]] - target.vertices[edges[:, 1]], axis=1).mean())
 
     def pair_loops(self, x: np.ndarray) -> None:
-        """Pair each source boundary loop with the nearest target loop at the current fit."""
-        self.pairs = _match_loops(x, self.src_loops, self.target.vertices, self.tgt_loops) if self.src_loops else []
+        """Pair each source boundary loop with the target loop that follows it at the current fit (-1: none)."""
+        self.pairs = (_match_loops(x, self.src_loops, self.target.vertices, self.tgt_loops, max_distance=self.loop_distance)
+                      if self.src_loops else [])
 
     def __call__(self, x: np.ndarray):
         """Targets ``(V, 3)`` and weights ``(V,)`` in {0, 1} for the current fit ``x``."""
@@ -233,12 +391,35 @@ class _Matcher:
         ok = agree & ~border
         dist = np.abs(hits.distance)
         if ok.any():
-            ok &= dist <= _OUTLIER_FACTOR * max(float(np.median(dist[ok])), self.floor / _OUTLIER_FACTOR)
+            gate = _OUTLIER_FACTOR * max(float(np.median(dist[ok])), self.floor / _OUTLIER_FACTOR)
+            ok &= dist <= gate
+            # the target must lie under the vertex too, not only beside it: a line along the
+            # vertex normal that meets no target surface nearby crosses a hole (a filled eye
+            # over an open one, a mouth bag behind the lips)
+            idx = np.flatnonzero(ok)
+            along = self.caster.cast(x[idx], normals[idx], max_distance=2.0 * gate + self.floor)
+            ok[idx[~along.hit]] = False
         for loop, j in zip(self.src_loops, self.pairs):
+            if j < 0:
+                continue
             tl = self.tgt_loops[j]
             targets[loop] = closest_on_polyline(x[loop], self.target.vertices, np.stack([tl, np.roll(tl, -1)], axis=1))[2]
             ok[loop] = True
         return targets, ok.astype(np.float64)
+
+
+def _flipped(x: np.ndarray, triangles: np.ndarray, caster, target: Mesh) -> np.ndarray:
+    """(T,) bool: triangles of the fit ``x`` whose normal points against the target surface
+    under them: the sum of the target normals at the closest points of the centroid and of
+    the three corners (a triangle straddling a sharp crease, a lip or lid margin, is judged
+    against both sides, not against whichever side its centroid happens to be nearest)."""
+    from ..geometry.mesh_ops import face_normals
+
+    normals = target.face_normals
+    at = caster.closest(x[triangles].mean(axis=1)).triangle
+    corner = caster.closest(x).triangle
+    ref = normals[at] + normals[corner[triangles]].sum(axis=1)
+    return np.einsum("ij,ij->i", face_normals(x, triangles), ref) < 0
 
 
 def _snap(x, targets, accepted, triangles):
@@ -257,27 +438,129 @@ def _snap(x, targets, accepted, triangles):
     return y
 
 
+#: Landmark-name keywords -> region named in quality messages (first match wins).
+_REGION_WORDS = (
+    ("eye", "eyes"), ("lid", "eyes"), ("brow", "brows"), ("lip", "mouth"), ("mouth", "mouth"), ("nose", "nose"),
+    ("jaw", "jaw"), ("chin", "jaw"), ("cheek", "cheeks"), ("forehead", "forehead"),
+)
+
+
+def _region_of(name: str | None, index: int) -> str:
+    low = (name or "").lower()
+    for word, region in _REGION_WORDS:
+        if word in low:
+            return region
+    return f"near landmark {name or index}"
+
+
+def _regions(points: np.ndarray, landmark_points: np.ndarray, names, boundary: np.ndarray | None = None) -> dict[str, int]:
+    """Count ``points (P, 3)`` per named region (nearest landmark's name; "boundary" where ``boundary``)."""
+    if len(points) == 0:
+        return {}
+    nearest = np.argmin(((points[:, None, :] - landmark_points[None]) ** 2).sum(axis=-1), axis=1)
+    labels = [_region_of(names[i] if names is not None else None, int(i)) for i in nearest]
+    if boundary is not None:
+        labels = ["boundary" if b else lab for lab, b in zip(labels, boundary)]
+    out: dict[str, int] = {}
+    for lab in labels:
+        out[lab] = out.get(lab, 0) + 1
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
+
+
 def quality_report(resampled: Mesh, source_landmarks: Landmarks, target_mesh: Mesh, target_landmark_positions, *, rejected: int = 0,
-                   iterations: int = 0) -> QualityReport:
-    """Measure how well ``resampled`` (source topology) fits ``target_mesh``."""
+                   iterations: int = 0, matched: np.ndarray | None = None, target_landmarks: Landmarks | None = None,
+                   released: int = 0, untangle_rounds: int = 0, loops_paired=None) -> QualityReport:
+    """Measure how well ``resampled`` (source topology) fits ``target_mesh``.
+
+    ``matched (V_s,)``: the source vertices that have a counterpart on the target (the
+    face interior is the triangles with three matched corners; default: all vertices).
+    """
     from ..geometry.raycast import RayCaster
 
     scale = target_mesh.scale
+    tri = resampled.triangles
+    n = resampled.n_vertices
+    matched = np.ones(n, dtype=bool) if matched is None else np.asarray(matched, dtype=bool)
     on_target = RayCaster(target_mesh.vertices, target_mesh.triangles, backend="bvh")
-    res = np.abs(on_target.closest(resampled.vertices).distance)
-    back = RayCaster(resampled.vertices, resampled.triangles, backend="bvh").closest(target_mesh.vertices)
+    hits = on_target.closest(resampled.vertices)
+    res = np.abs(hits.distance)
+    # the face interior: every corner matched, and none on the rim band of a target hole or
+    # outline (where a closed lid meets an open one, or an outline cut elsewhere, the two
+    # surfaces do not correspond vertex for vertex; flips there are reported apart)
+    rim_band = _rings_from(target_mesh, target_mesh.boundary_vertices, CORRESPONDENCE_RIM_RINGS)
+    on_rim = rim_band[target_mesh.triangles[hits.triangle]].any(axis=1)
+    interior = matched[tri].all(axis=1) & ~on_rim[tri].any(axis=1)
+    # target coverage by the matched (interior) part of the resampled surface
+    covering = matched[tri].all(axis=1)
+    if covering.any():
+        back = RayCaster(resampled.vertices, tri[covering], backend="bvh").closest(target_mesh.vertices)
+        coverage = np.abs(back.distance)
+    else:
+        coverage = np.full(target_mesh.n_vertices, np.inf)
     # triangle normals against the target normal at each centroid's closest point
-    at = on_target.closest(resampled.vertices[resampled.triangles].mean(axis=1))
-    flipped = int((np.einsum("ij,ij->i", resampled.face_normals, target_mesh.face_normals[at.triangle]) < 0).sum())
-    lm_err = np.linalg.norm(source_landmarks.positions(resampled.vertices, resampled.triangles) - target_landmark_positions, axis=1)
+    flipped_all = _flipped(resampled.vertices, tri, on_target, target_mesh)
+    flipped = flipped_all & interior
+    tgt_lm = np.asarray(target_landmark_positions, dtype=np.float64)
+    lm_err = np.linalg.norm(source_landmarks.positions(resampled.vertices, tri) - tgt_lm, axis=1)
+    names = None
+    if target_landmarks is not None and target_landmarks.names is not None:
+        names = list(target_landmarks.names)
+    elif source_landmarks.names is not None:
+        names = list(source_landmarks.names)
+    edges = target_mesh.edges
+    edge = float(np.linalg.norm(target_mesh.vertices[edges[:, 0]] - target_mesh.vertices[edges[:, 1]], axis=1).mean())
+    uncovered = coverage > CORRESPONDENCE_UNCOVERED_EDGES * edge
+    t_boundary = np.zeros(target_mesh.n_vertices, dtype=bool)
+    t_boundary[target_mesh.boundary_vertices] = True
+    near_outline = _rings_from(target_mesh, _outline(target_mesh), CORRESPONDENCE_OUTLINE_RINGS)
+    centroids = resampled.vertices[tri[flipped]].mean(axis=1)
+    s_boundary = np.zeros(n, dtype=bool)
+    s_boundary[resampled.boundary_vertices] = True
+    details = {
+        "residuals": res,
+        "coverage": coverage,
+        "matched": matched,
+        "interior_triangles": int(interior.sum()),
+        "flipped_all": int(flipped_all.sum()),
+        "flipped_rim": int((flipped_all & matched[tri].all(axis=1) & ~interior).sum()),
+        "flipped_ids": np.flatnonzero(flipped),
+        "matched_residual_mean": float(res[matched].mean() / scale) if matched.any() else float("inf"),
+        "matched_residual_max": float(res[matched].max() / scale) if matched.any() else float("inf"),
+        "uncovered_share": float(uncovered.mean()),
+        "uncovered_inner_share": float((uncovered & ~near_outline).mean()),
+        "released": int(released),
+        "untangle_rounds": int(untangle_rounds),
+        "loops_paired": list(loops_paired or []),
+        "regions": {
+            "flipped": _regions(centroids, tgt_lm, names, s_boundary[tri[flipped]].any(axis=1)),
+            "landmarks": _regions(tgt_lm[lm_err > CORRESPONDENCE_LANDMARK_WARN * scale], tgt_lm, names),
+            "uncovered": _regions(target_mesh.vertices[uncovered & ~near_outline], tgt_lm, names),
+            "residual": _regions(resampled.vertices[matched & (res > CORRESPONDENCE_RESIDUAL_WARN * scale)], tgt_lm, names),
+        },
+    }
     return QualityReport(
         residual_mean=float(res.mean() / scale),
         residual_max=float(res.max() / scale),
-        coverage_max=float(np.abs(back.distance).max() / scale),
+        coverage_max=float(coverage.max() / scale),
         landmark_error=float(lm_err.max() / scale),
-        flipped_triangles=flipped,
-        rejected=rejected,
+        flipped_triangles=int(flipped.sum()),
+        rejected=int(rejected),
         iterations=iterations,
         scale=scale,
-        details={"residuals": res, "coverage": np.abs(back.distance)},
+        details=details,
     )
+
+
+def _outline(mesh: Mesh) -> np.ndarray:
+    loops = boundary_loops(mesh.triangles)
+    return loops[0] if loops else np.zeros(0, dtype=np.int64)
+
+
+def _rings_from(mesh: Mesh, seeds: np.ndarray, rings: int) -> np.ndarray:
+    """(V,) bool: vertices within ``rings`` edge rings of ``seeds``."""
+    out = np.zeros(mesh.n_vertices, dtype=bool)
+    out[seeds] = True
+    adjacency = mesh.adjacency
+    for _ in range(int(rings)):
+        out |= (adjacency @ out.astype(np.float64)) > 0
+    return out

@@ -75,6 +75,7 @@ CASE_NAMES = {
     "synthetic-stylized": ("synthetic", {"target": "stylized"}),
     "ict": ("ict", {}),
     "cross_rig": ("cross_rig", {}),
+    "cross_topology": ("cross_topology", {}),
 }
 DEFAULT_CASES = ("synthetic-human", "synthetic-stylized", "ict")
 
