@@ -16,9 +16,6 @@ KNOWN: dict[tuple[str, str], str] = {
     ("coating", "check_declared_needs"): "needs landmarks on both faces when topologies differ, undeclared",
     ("deformation_transfer", "check_unit_invariance"): "6.2e-4 of face height at source x0.01; 1.3e-3 for a rigid move",
     ("deformation_transfer", "check_declared_needs"): "needs landmarks on both faces when topologies differ, undeclared",
-    ("normalmesh", "check_unit_invariance"): "detail_scale='area': 0.095 of face height at source x0.01, 0.95 at target x1000",
-    ("layers", "check_declared_needs"): "a mesh source without landmarks passes why_not() and fails fit",
-    ("layers", "check_cross_topology_neutral"): "3.1e-4 of face height (limit 1e-4)",
     ("displacement", "check_unit_invariance"): "the example plugin applies the source's head translation in source units",
 }
 

@@ -109,6 +109,39 @@ def flipped_odd(Y, X, triangles, n_coarse, flags):
 
 
 @nb.njit(cache=True, nogil=True)
+def fold_culprits(Y, X, triangles, n_coarse, edges, flags):
+    """For each triangle whose normal in ``Y`` opposes that in ``X`` and none of whose odd
+    vertices is flagged yet, flag the odd vertex that moved farthest from ``X`` relative to the
+    length of the coarse edge it splits (its culprit). Triangles are visited in order and a
+    flag counts at once. Returns the number of folded triangles."""
+    folded = 0
+    for t in range(triangles.shape[0]):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        p0, p1, p2 = _cross(X, a, b, c)
+        m0, m1, m2 = _cross(Y, a, b, c)
+        if p0 * m0 + p1 * m1 + p2 * m2 >= 0.0:
+            continue
+        folded += 1
+        best, worst = -1, -1.0
+        for v in (a, b, c):
+            if v < n_coarse:
+                continue
+            e = v - n_coarse
+            if flags[e]:
+                best = -2
+                break
+            i, j = edges[e, 0], edges[e, 1]
+            length = (X[j, 0] - X[i, 0]) ** 2 + (X[j, 1] - X[i, 1]) ** 2 + (X[j, 2] - X[i, 2]) ** 2
+            moved = (Y[v, 0] - X[v, 0]) ** 2 + (Y[v, 1] - X[v, 1]) ** 2 + (Y[v, 2] - X[v, 2]) ** 2
+            score = moved / length if length > 0.0 else np.inf
+            if score > worst:
+                best, worst = e, score
+        if best >= 0:
+            flags[best] = True
+    return folded
+
+
+@nb.njit(cache=True, nogil=True)
 def neighbour_average(Y, vertices, indptr, indices, iterations):
     """Replace ``Y[vertices]`` by the mean of their ring neighbours (Jacobi sweeps, in place)."""
     tmp = np.empty((vertices.shape[0], 3))
@@ -206,3 +239,65 @@ def trace_level(vertices, triangles, neighbors, X, pred, normals, edges, n_coars
         Y[v, 1] = pred[v, 1] + t * n1
         Y[v, 2] = pred[v, 2] + t * n2
         status[e] = TRACE_HIT
+
+
+@nb.njit(cache=True, inline="always")
+def _vertex_frame(X, normals, neighbour, v):
+    """(t1, t2, n) at vertex ``v``: n its unit normal, t1 the direction to ``neighbour[v]`` made
+    perpendicular to n, t2 = n x t1 (each as three floats)."""
+    n0, n1, n2 = normals[v, 0], normals[v, 1], normals[v, 2]
+    w = neighbour[v]
+    d0, d1, d2 = X[w, 0] - X[v, 0], X[w, 1] - X[v, 1], X[w, 2] - X[v, 2]
+    dn = d0 * n0 + d1 * n1 + d2 * n2
+    d0, d1, d2 = d0 - dn * n0, d1 - dn * n1, d2 - dn * n2
+    s = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    if s > 0.0:
+        d0, d1, d2 = d0 / s, d1 / s, d2 / s
+    return d0, d1, d2, n1 * d2 - n2 * d1, n2 * d0 - n0 * d2, n0 * d1 - n1 * d0, n0, n1, n2
+
+
+@nb.njit(cache=True, nogil=True)
+def local_frames(X, normals, neighbour, out):
+    """``out (V, 3, 3)``: rows t1, t2, n of :func:`_vertex_frame` at every vertex."""
+    for v in range(X.shape[0]):
+        f = _vertex_frame(X, normals, neighbour, v)
+        for r in range(3):
+            for c in range(3):
+                out[v, r, c] = f[3 * r + c]
+
+
+@nb.njit(cache=True, nogil=True)
+def slide(source, source_normals, material, target, target_normals, neighbour, slide0, delta, out):
+    """``out = target + delta * F_t^T (F_s (material - source) - slide0)`` per vertex, with F_s,
+    F_t the vertex frames (:func:`_vertex_frame`) of the source's and the target's finest
+    level: the source's sliding of its material points past its normal-mesh vertices, carried
+    to the target in local coordinates."""
+    for v in range(source.shape[0]):
+        s = _vertex_frame(source, source_normals, neighbour, v)
+        t = _vertex_frame(target, target_normals, neighbour, v)
+        d0, d1, d2 = material[v, 0] - source[v, 0], material[v, 1] - source[v, 1], material[v, 2] - source[v, 2]
+        l0 = s[0] * d0 + s[1] * d1 + s[2] * d2 - slide0[v, 0]
+        l1 = s[3] * d0 + s[4] * d1 + s[5] * d2 - slide0[v, 1]
+        l2 = s[6] * d0 + s[7] * d1 + s[8] * d2 - slide0[v, 2]
+        for k in range(3):
+            out[v, k] = target[v, k] + delta * (l0 * t[k] + l1 * t[3 + k] + l2 * t[6 + k])
+
+
+@nb.njit(cache=True, nogil=True)
+def multiquadric_maps(x, centers, weights, constant, c, linear, out):
+    """Per point ``i``: ``out[i] = sum_j weights[i, j] sqrt(|x[i] - centers[i, j]|^2 + c[i]^2)
+    + constant[i] + linear @ x[i]`` (the per-point maps of ``base_retarget.BaseMap``)."""
+    for i in range(x.shape[0]):
+        x0, x1, x2 = x[i, 0], x[i, 1], x[i, 2]
+        cc = c[i] * c[i]
+        for k in range(3):
+            out[i, k] = constant[i, k] + linear[k, 0] * x0 + linear[k, 1] * x1 + linear[k, 2] * x2
+        for j in range(centers.shape[1]):
+            w0, w1, w2 = weights[i, j, 0], weights[i, j, 1], weights[i, j, 2]
+            if w0 == 0.0 and w1 == 0.0 and w2 == 0.0:
+                continue
+            r2 = (x0 - centers[i, j, 0]) ** 2 + (x1 - centers[i, j, 1]) ** 2 + (x2 - centers[i, j, 2]) ** 2
+            h = np.sqrt(r2 + cc)
+            out[i, 0] += w0 * h
+            out[i, 1] += w1 * h
+            out[i, 2] += w2 * h

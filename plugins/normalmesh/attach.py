@@ -21,6 +21,9 @@ from faceretarget.geometry.raycast import closest_points
 
 #: Largest offset, in longest edges of the finest triangle, that turns with that triangle.
 LEVER = 1.0
+#: Largest offset, in longest edges of the finest triangle, of a point on the normal mesh
+#: (see :func:`coverage`).
+COVERED = 0.25
 
 
 @dataclass(frozen=True)
@@ -55,17 +58,54 @@ def _longest_edges(X: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.sqrt(np.max(np.stack([np.sum((b - a) ** 2, 1), np.sum((c - b) ** 2, 1), np.sum((a - c) ** 2, 1)]), axis=0))
 
 
+def _lowest_tied_triangle(triangles: np.ndarray, tri: np.ndarray, bary: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """A closest point on an edge or a corner lies on every triangle sharing that edge or corner;
+    which one the query returns depends on rounding (so on where the mesh is placed). Take
+    the lowest-numbered of them, with the point's barycentric weights in it."""
+    tri, bary = tri.copy(), bary.copy()
+    on = bary <= 1e-12
+    n_t = len(triangles)
+    ids = np.repeat(np.arange(n_t), 3)
+    # corners: the lowest triangle at each vertex
+    at_vertex = np.full(n_vertices, n_t, dtype=np.int64)
+    np.minimum.at(at_vertex, triangles.ravel(), ids)
+    # edges: the lowest triangle at each (sorted) edge, by key a * V + b
+    pairs = np.sort(np.stack([triangles, np.roll(triangles, -1, axis=1)], axis=2).reshape(-1, 2), axis=1).astype(np.int64)
+    keys, inverse = np.unique(pairs[:, 0] * n_vertices + pairs[:, 1], return_inverse=True)
+    at_edge = np.full(len(keys), n_t, dtype=np.int64)
+    np.minimum.at(at_edge, inverse.ravel(), ids)
+    corners = triangles[tri]
+    rows = np.flatnonzero(on.sum(axis=1) == 2)  # at a corner
+    if rows.size:
+        k = np.argmax(~on[rows], axis=1)
+        v = corners[rows, k]
+        tri[rows] = at_vertex[v]
+        bary[rows] = (triangles[tri[rows]] == v[:, None]).astype(float)
+    rows = np.flatnonzero(on.sum(axis=1) == 1)  # on an edge
+    if rows.size:
+        k = np.argmax(on[rows], axis=1)  # the corner off the edge
+        a, b = corners[rows, (k + 1) % 3], corners[rows, (k + 2) % 3]
+        wa, wb = bary[rows, (k + 1) % 3], bary[rows, (k + 2) % 3]
+        key = np.sort(np.stack([a, b], axis=1), axis=1).astype(np.int64)
+        pos = np.searchsorted(keys, key[:, 0] * n_vertices + key[:, 1])
+        tri[rows] = at_edge[pos]
+        t = triangles[tri[rows]]
+        bary[rows] = (t == a[:, None]) * wa[:, None] + (t == b[:, None]) * wb[:, None]
+    return tri, bary
+
+
 def attach(points: np.ndarray, finest: np.ndarray, triangles: np.ndarray) -> Attachment:
     """Attach ``points (P, 3)`` to the finest level ``finest (V, 3)``, ``triangles (T, 3)``."""
     hits = closest_points(finest, triangles, points)
-    offset = points - hits.points
-    turns = np.linalg.norm(offset, axis=1) <= LEVER * _longest_edges(finest, triangles)[hits.triangle]
+    tri, bary = _lowest_tied_triangle(np.asarray(triangles), hits.triangle, hits.barycentric, len(finest))
+    offset = points - np.einsum("pk,pkd->pd", bary, finest[triangles[tri]])
+    turns = np.linalg.norm(offset, axis=1) <= LEVER * _longest_edges(finest, triangles)[tri]
     local = offset.copy()
-    frames = triangle_frames(finest, triangles, hits.triangle[turns])
+    frames = triangle_frames(finest, triangles, tri[turns])
     local[turns] = np.einsum("pkd,pd->pk", frames, offset[turns])
-    corners = triangles[hits.triangle]
+    corners = triangles[tri]
     frame_corners = np.where(turns[:, None], corners, -1)
-    return Attachment(hits.triangle, np.ascontiguousarray(hits.barycentric), turns, local, corners, frame_corners)
+    return Attachment(tri, np.ascontiguousarray(bary), turns, local, corners, frame_corners)
 
 
 def carry(att: Attachment, finest: np.ndarray) -> np.ndarray:
@@ -75,3 +115,26 @@ def carry(att: Attachment, finest: np.ndarray) -> np.ndarray:
     out = np.empty((len(att.triangle), 3))
     k.carry_points(finest, att.corners, att.barycentric, att.frame_corners, att.local, out)
     return out
+
+
+def coverage(points: np.ndarray, att: Attachment, finest: np.ndarray, triangles: np.ndarray, band: float) -> np.ndarray:
+    """(P,) weight of the normal mesh in the output of each attached point: 0 off the normal
+    mesh, 1 on it farther than ``band`` from any point off it, a smoothstep in between.
+
+    A point is on the normal mesh when its offset from its closest point there is at most
+    ``COVERED`` times the longest edge of that triangle (the finest level's chord error);
+    distances are straight-line distances between the points (the target neutral's vertices).
+    """
+    from scipy.spatial import cKDTree
+
+    offset = np.linalg.norm(np.einsum("pk,pkd->pd", att.barycentric, finest[att.corners]) - points, axis=1)
+    on = offset <= COVERED * _longest_edges(finest, triangles)[att.triangle]
+    weight = np.zeros(len(points))
+    if not on.any():
+        return weight
+    if on.all() or band <= 0:
+        return on.astype(float)
+    d, _ = cKDTree(points[~on]).query(points[on], distance_upper_bound=band)
+    s = np.clip(d / band, 0.0, 1.0)  # inf (nothing within the band) -> 1
+    weight[on] = s * s * (3.0 - 2.0 * s)
+    return weight

@@ -3,24 +3,38 @@
 fit(source, target)
     1. feature points (landmarks, or ``source_feature_points`` / ``target_feature_points``) on
        both neutrals; base connectivity given (``base_triangles``) or automatic (base_mesh);
-    2. the normal mesh of the target's neutral and of the source's neutral (``levels`` levels),
-       with piercing errors repaired and counted (Table 1);
+    2. ``levels`` (default: from the source's resolution); the normal mesh of the target's
+       neutral and of the source's neutral, with piercing errors repaired and counted (Table
+       1); base triangles whose patch fails on more than ``max_piercing`` of its vertices (on
+       either neutral or a source example) are removed and the meshes built again;
     3. per base point, the example-based multiquadric map (Eq. 3-4, base_retarget);
-    4. delta = finest-level area of the target / of the source (Eq. 9; ``detail_scale``);
+    4. delta = (finest-level area of the target / of the source) ** 1/2 (``detail_scale``;
+       Eq. 9 without the root is ``"area"``);
     5. each target vertex attached to the finest level of the target's normal mesh: closest
-       triangle, barycentric point and its offset (in that triangle's frame if the vertex is on
-       the normal mesh; in head coordinates beyond its border, see attach).
+       triangle, barycentric point and its offset (see attach), and its coverage: 1 on the
+       normal mesh, 0 off it, a smoothstep over ``BAND`` edges in between;
+    6. the dense fallback (``fallback="examples"``): every target vertex not fully covered
+       gets its own example-based map (Eq. 3-4, as a base point without a base mesh) from its
+       corresponding source point (the same vertex for same-topology pairs with the same
+       feature points; else an RBF warp through the feature points and the two normal meshes,
+       then the closest source point).
 retarget(source), per frame
     1. rigid head motion: ``Source.head_motion`` if given, else fitted (weighted Procrustes,
        then two robust reweightings) to the 2000 source vertices the examples move least
-       (forehead, temples, nose bridge); removed from the frame, re-applied to the result;
+       (forehead, temples, nose bridge) and kept if it explains the motion of those vertices
+       (``HEAD_SIGNIFICANCE``); removed from the frame, re-applied to the result (its
+       translation converted to the target's units);
     2. the frame's normal offsets over its own base mesh (temporal correspondence, sec. 3.1);
     3. target base = target neutral base + map(source base displacement) (Eq. 3);
     4. target levels: prediction + (TN_0 + delta * (SN_k - SN_0)) (Eq. 5-8) for the first
        ``detail_levels`` levels, TN_0 alone above; boundary vertices' displacement vectors
        (sec. 4.4), in their local frames, change the same way (``boundary_motion="transfer"``)
        or stay the target neutral's (``"initial"``, the paper);
-    5. target vertices carried by their finest-level triangles.
+    5. ``sliding="transfer"``: each finest-level vertex also slides over the target as the
+       source's material point under it slides away from the source's normal-mesh vertex
+       (in local frames, times delta): normal-mesh vertices are not material points;
+    6. target vertices carried by their finest-level triangles, blended by coverage with the
+       dense fallback.
 """
 from __future__ import annotations
 
@@ -29,56 +43,83 @@ from typing import ClassVar
 import numpy as np
 
 from faceretarget._validate import as_array, check_choice, check_number
-from faceretarget.errors import InputError, ShapeError, TopologyMismatchError
+from faceretarget.errors import DegenerateGeometryError, InputError, ShapeError, TopologyMismatchError
 from faceretarget.geometry.procrustes import fit_rigid, to_matrix
 from faceretarget.geometry.raycast import RayCaster
 from faceretarget.model import Animation, Landmarks, MeshSequence, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
 
 from . import base_mesh as bm
-from .attach import attach, carry
+from .attach import attach, carry, coverage
 from .base_retarget import fit_base_map
 from .normal_mesh import (
     KIND_BOUNDARY,
+    KIND_REPAIRED,
+    REPAIRS,
     FrameDecomposer,
     Surface,
     build_normal_mesh,
     feature_point_loops,
     make_hierarchy,
     normal_mesh_area,
+    piercing_share,
     reconstruct,
 )
 
 #: Most subdivision levels accepted (level 7 of a 54-point base is ~1.5M vertices).
 MAX_LEVELS = 7
+#: ``levels="auto"``: the finest level's median edge at most this times the source's (median
+#: edges of irregular meshes vary by some 20%).
+LEVEL_EDGE = 1.2
 #: Robust reweighting rounds of the head-motion fit.
 HEAD_REWEIGHTS = 2
 #: Source vertices (the most stable under the examples) the head motion is fitted to.
 HEAD_VERTICES = 2000
+#: An estimated head motion is kept (``head_motion="auto"``) only if, over the shot, it
+#: removes more than this share of the weighted squared motion of the stable vertices.
+HEAD_SIGNIFICANCE = 0.5
 #: Frames per chunk of the retargeting loop (each chunk starts its walks from the neutral).
 CHUNK_FRAMES = 32
+#: Width of the band over which the output passes from the normal mesh to the dense
+#: fallback, in median edges of the target's finest normal-mesh level or of the target mesh,
+#: whichever are longer.
+BAND = 2.0
+#: Rounds of removing base triangles with too many piercing errors (``max_piercing``).
+PRUNE_ROUNDS = 3
+#: A warning names the removed base triangles when they made up more than this share of the
+#: base mesh's area on the target.
+REMOVED_WARNING = 0.25
+#: Most vertex pairs of the two normal meshes used to warp the target onto the source for
+#: the fallback's correspondence (the finest level with at most this many vertices).
+WARP_PAIRS = 1500
 #: Upper bounds of the numeric parameters, far beyond any useful value (they keep the RBF
 #: solve and the offsets finite).
 MAX_RBF_C = 1e6
 MAX_RBF_SMOOTHING = 1e6
 MAX_OFFSET = 1e3
 MAX_DETAIL_SCALE = 1e3
-DETAIL_SCALES = ("area", "length")
+DETAIL_SCALES = ("length", "area")
 HEAD_MOTIONS = ("auto", "estimate", "none")
 BOUNDARY_MOTIONS = ("transfer", "initial")
+SLIDINGS = ("transfer", "none")
+FALLBACKS = ("examples", "nearest")
 BACKENDS = ("auto", "embree", "bvh")
 
 PARAMETER_DOCS = {
-    "levels": "normal-mesh levels above the base mesh (paper: 4-5); each level has 4x the triangles",
+    "levels": "normal-mesh levels above the base mesh (paper: 4-5; each level has 4x the triangles); 'auto' = the finest level's edges as long as the source mesh's",
     "detail_levels": "levels whose source normal-offset changes are transferred (Eq. 8); -1 = all, 0 = base motion only",
     "rbf_c": "multiquadric c of Eq. 3, in units of the mean distance between a base point's example displacements",
     "rbf_smoothing": "ridge of the per-point RBF solve, times c (0 = exact interpolation of the examples, Eq. 4)",
-    "detail_scale": "scale delta of the offset changes: 'area' = target/source area (Eq. 9), 'length' = its square root, or a number",
+    "detail_scale": "scale delta of the offset changes: 'length' = square root of the target/source area ratio (unit-free), 'area' = the ratio itself (Eq. 9 as printed), or a number",
     "max_offset": "piercing error if the hit is farther than this times the length of the edge the new vertex splits",
+    "repair": "a piercing error's vertex: 'surface' = neighbour average moved to its closest surface point (frames: the material point of its neutral place); 'average' = neighbour average (sec. 4.4)",
+    "max_piercing": "base triangles whose patch has piercing errors on more than this share of its vertices (either neutral or a source example) are removed and left to the fallback; 1 = keep all (the paper)",
+    "sliding": "'transfer' = finest-level vertices also slide over the target as the source's material points slide past the source's normal mesh; 'none' = target vertices ride the normal mesh (the paper)",
+    "fallback": "target vertices off the normal mesh: 'examples' = each by its own example-based map (Eq. 3-4) of its corresponding source point's motion, blended in over a band; 'nearest' = follow the nearest normal-mesh point's translation",
     "base_triangles": "base connectivity (K, 3) over the feature points; default None = automatic (Delaunay in a shared 2D projection)",
     "source_feature_points": "Landmarks on the source mesh for the base mesh; default None = Source.landmarks",
     "target_feature_points": "Landmarks on the target mesh, in the same order; default None = TargetRig.landmarks",
-    "head_motion": "'auto' = Source.head_motion if given else estimated from the feature points; 'estimate'; 'none'",
+    "head_motion": "'auto' = Source.head_motion if given, else estimated and kept if significant; 'estimate' = always estimated; 'none'",
     "boundary_motion": "boundary vertices: 'transfer' their displacement-vector changes like the normal offsets, or keep the neutral's vectors ('initial', sec. 4.4)",
     "backend": "ray casting: 'auto' (Embree if embreex imports, else the numba BVH), 'embree' or 'bvh'",
 }
@@ -102,12 +143,16 @@ class NormalMeshRetargeter(Retargeter):
     def __init__(
         self,
         *,
-        levels=4,
+        levels="auto",
         detail_levels=-1,
         rbf_c=1.0,
         rbf_smoothing=0.05,
-        detail_scale="area",
+        detail_scale="length",
         max_offset=1.0,
+        repair="surface",
+        max_piercing=0.1,
+        sliding="transfer",
+        fallback="examples",
         base_triangles=None,
         source_feature_points=None,
         target_feature_points=None,
@@ -121,6 +166,10 @@ class NormalMeshRetargeter(Retargeter):
         self.rbf_smoothing = rbf_smoothing
         self.detail_scale = detail_scale
         self.max_offset = max_offset
+        self.repair = repair
+        self.max_piercing = max_piercing
+        self.sliding = sliding
+        self.fallback = fallback
         self.base_triangles = base_triangles
         self.source_feature_points = source_feature_points
         self.target_feature_points = target_feature_points
@@ -134,12 +183,16 @@ class NormalMeshRetargeter(Retargeter):
     def _check_params(self) -> None:
         """Every constructor parameter: an :class:`InputError` naming it, its valid values and the
         value given. (The feature points and base triangles are checked where they are read.)"""
-        check_number(self.levels, "normalmesh.levels", integer=True, low=0, high=MAX_LEVELS)
+        check_number(self.levels, "normalmesh.levels", integer=True, low=0, high=MAX_LEVELS, choices=("auto",))
         check_number(self.detail_levels, "normalmesh.detail_levels (-1 = all levels)", integer=True, low=-1)
         check_number(self.rbf_c, "normalmesh.rbf_c", low=0, open_low=True, high=MAX_RBF_C)
         check_number(self.rbf_smoothing, "normalmesh.rbf_smoothing", low=0, high=MAX_RBF_SMOOTHING)
         check_number(self.max_offset, "normalmesh.max_offset", low=0, open_low=True, high=MAX_OFFSET)
         check_number(self.detail_scale, "normalmesh.detail_scale", low=0, high=MAX_DETAIL_SCALE, choices=DETAIL_SCALES)
+        check_choice(self.repair, "normalmesh.repair", REPAIRS)
+        check_number(self.max_piercing, "normalmesh.max_piercing", low=0, high=1)
+        check_choice(self.sliding, "normalmesh.sliding", SLIDINGS)
+        check_choice(self.fallback, "normalmesh.fallback", FALLBACKS)
         check_choice(self.head_motion, "normalmesh.head_motion", HEAD_MOTIONS)
         check_choice(self.boundary_motion, "normalmesh.boundary_motion", BOUNDARY_MOTIONS)
         check_choice(self.backend, "normalmesh.backend", BACKENDS)
@@ -182,60 +235,172 @@ class NormalMeshRetargeter(Retargeter):
         order = [s_names.index(n) for n in t_names]
         return np.asarray(source.examples)[order], np.asarray(target.examples), tuple(t_names)
 
+    def _levels(self, base_tri: np.ndarray, src_pts: np.ndarray, src_v: np.ndarray, src_tri: np.ndarray) -> int:
+        """``levels``, or with "auto" the fewest halvings of the base mesh's median edge that
+        reach ``LEVEL_EDGE`` times the source mesh's median edge: the finest level samples the
+        surface (and its wrinkles) as densely as the source does (the paper's 69K-vertex faces
+        over 78 dots: 5 levels)."""
+        if self.levels != "auto":
+            return int(self.levels)
+        ratio = bm.median_edge(src_pts, base_tri) / max(bm.median_edge(src_v, src_tri), np.finfo(float).tiny)
+        return int(np.clip(np.ceil(np.log2(max(ratio / LEVEL_EDGE, 1.0))), 1, MAX_LEVELS))
+
+    def _normal_meshes(self, base_tri, levels, src, tgt, src_examples):
+        """Hierarchy and normal meshes of both neutrals; base triangles whose patch has more than
+        ``max_piercing`` piercing errors (either neutral, or the source's normal mesh walked onto a
+        source example) are removed and the meshes built again (``PRUNE_ROUNDS`` times at most).
+        ``src``, ``tgt``: dicts of vertices, surface, points, loops, caster, landmarks.
+        Returns hierarchy, source and target normal meshes, kept and removed base triangles."""
+        max_offset = float(self.max_offset)
+        removed = np.zeros((0, 3), dtype=np.int64)
+        for rnd in range(PRUNE_ROUNDS + 1):
+            hierarchy = make_hierarchy(base_tri, len(src["points"]), levels)
+            nms = [
+                build_normal_mesh(m["vertices"], m["surface"], m["points"], m["loops"], hierarchy, max_offset=max_offset, caster=m["caster"], repair=self.repair)
+                for m in (src, tgt)
+            ]
+            if self.max_piercing >= 1.0 or levels == 0 or rnd == PRUNE_ROUNDS:
+                break
+            share = np.maximum(piercing_share(hierarchy, nms[0].kind), piercing_share(hierarchy, nms[1].kind))
+            for example in src_examples:
+                decomposer = FrameDecomposer(src["surface"], nms[0], hierarchy, max_offset=max_offset, neutral_vertices=src["vertices"], repair=self.repair)
+                decomposer(example, src["landmarks"].positions(example, src["triangles"]))
+                share = np.maximum(share, piercing_share(hierarchy, decomposer.flagged))
+            drop = share > float(self.max_piercing)
+            if not drop.any():
+                break
+            if drop.all():
+                raise DegenerateGeometryError(
+                    f"normalmesh: the normal mesh of every base triangle has piercing errors on more than "
+                    f"{100 * float(self.max_piercing):g}% of its vertices; raise max_piercing (1 keeps every triangle) or "
+                    "max_offset, or give more feature points where the faces curve most"
+                )
+            removed = np.vstack([removed, base_tri[drop]])
+            base_tri = base_tri[~drop]
+        return hierarchy, nms[0], nms[1], base_tri, removed
+
+    def _correspondence(self, ids, src, tgt, src_nm, tgt_nm, hierarchy, same_topology: bool):
+        """Source points corresponding to target vertices ``ids``: corners (P, 3) of source
+        triangles and barycentric weights (P, 3). Same topology and feature points: the same
+        vertex. Otherwise the target vertices are warped into the source's space (RBF, phi(r) =
+        r + linear, in units of each face's size) through pairs of points known to correspond
+        (the feature points and the vertices of the two normal meshes' finest level with at
+        most ``WARP_PAIRS`` vertices, without off-surface repaired ones) and moved to their
+        closest point on the source's neutral."""
+        from faceretarget.geometry.rbf import fit_rbf
+
+        if same_topology:
+            return np.repeat(ids[:, None], 3, axis=1), np.tile([1.0, 0.0, 0.0], (len(ids), 1))
+        level = max([l for l in range(hierarchy.levels + 1) if hierarchy.n_vertices(l) <= WARP_PAIRS] or [0])
+        keep = np.ones(hierarchy.n_vertices(level), dtype=bool)
+        for nm in (src_nm, tgt_nm):
+            off = np.concatenate([np.zeros(hierarchy.n_base, dtype=bool)] + [(k == KIND_REPAIRED) & (a < 0) for k, a in zip(nm.kind[:level], nm.anchor[:level])])
+            keep &= ~off
+        t_pairs, s_pairs = tgt_nm.positions[level][keep], src_nm.positions[level][keep]
+        t_c, s_c = tgt["vertices"].mean(axis=0), src["vertices"].mean(axis=0)
+        t_s = float(np.sqrt(np.mean(np.sum((tgt["vertices"] - t_c) ** 2, axis=1))))
+        s_s = float(np.sqrt(np.mean(np.sum((src["vertices"] - s_c) ** 2, axis=1))))
+        warp = fit_rbf((t_pairs - t_c) / t_s, (s_pairs - s_c) / s_s, kernel="linear")
+        guess = warp((tgt["vertices"][ids] - t_c) / t_s) * s_s + s_c
+        hits = src["caster"].closest(guess)
+        return np.asarray(src["triangles"])[hits.triangle], hits.barycentric
+
     def _fit(self, source: Source, target: TargetRig) -> None:
         self._check_params()
         src_lm, tgt_lm = self._feature_points(source, target)
         src_ex, tgt_ex, names = self._paired_examples(source, target)
+        src_ex = np.asarray(src_ex, dtype=np.float64)
+        tgt_ex = np.asarray(tgt_ex, dtype=np.float64)
         src_mesh = source.performance.reference
         tgt_mesh = target.neutral
-        src_v = np.asarray(src_mesh.vertices, dtype=np.float64)
-        tgt_v = np.asarray(tgt_mesh.vertices, dtype=np.float64)
-        src_pts = src_lm.positions(src_v, src_mesh.triangles)
-        tgt_pts = tgt_lm.positions(tgt_v, tgt_mesh.triangles)
-        src_nrm = bm.point_normals(src_lm, src_mesh.vertex_normals, src_mesh.triangles)
-        tgt_nrm = bm.point_normals(tgt_lm, tgt_mesh.vertex_normals, tgt_mesh.triangles)
-        src_caster = RayCaster(src_v, src_mesh.triangles, backend=self.backend)
-        tgt_caster = RayCaster(tgt_v, tgt_mesh.triangles, backend=self.backend)
+        sides = []
+        for mesh, lm in ((src_mesh, src_lm), (tgt_mesh, tgt_lm)):
+            v = np.asarray(mesh.vertices, dtype=np.float64)
+            pts = lm.positions(v, mesh.triangles)
+            surface = Surface.of(mesh.triangles, mesh.n_vertices)
+            sides.append(dict(
+                vertices=v, triangles=np.asarray(mesh.triangles), points=pts, landmarks=lm, surface=surface,
+                loops=feature_point_loops(pts, v, surface), caster=RayCaster(v, mesh.triangles, backend=self.backend),
+                normals=bm.point_normals(lm, mesh.vertex_normals, mesh.triangles),
+            ))
+        src, tgt = sides
+        src_v, tgt_v, src_pts, tgt_pts = src["vertices"], tgt["vertices"], src["points"], tgt["points"]
         if self.base_triangles is None:
-            base_tri = bm.automatic_base_triangles(src_pts, src_v, src_mesh.vertex_normals, src_caster, tgt_pts, tgt_caster, src_nrm, tgt_nrm, src_lm.names)
+            surfaces = [(m["points"], bm.nearest_vertices(m["landmarks"], m["vertices"], m["triangles"]), m["vertices"], m["triangles"]) for m in sides]
+            base_tri = bm.automatic_base_triangles(
+                src_pts, src_v, src_mesh.vertex_normals, src["caster"], tgt_pts, tgt["caster"], src["normals"], tgt["normals"], src_lm.names, surfaces=surfaces
+            )
         else:
             base_tri = bm.as_base_triangles(as_array(self.base_triangles, "normalmesh.base_triangles"), len(src_lm))
-        bm.check_base_triangles(base_tri, src_pts, src_nrm, "source", src_lm.names)
-        bm.check_base_triangles(base_tri, tgt_pts, tgt_nrm, "target", tgt_lm.names)
-        hierarchy = make_hierarchy(base_tri, len(src_lm), int(self.levels))
+        bm.check_base_triangles(base_tri, src_pts, src["normals"], "source", src_lm.names)
+        bm.check_base_triangles(base_tri, tgt_pts, tgt["normals"], "target", tgt_lm.names)
+        levels = self._levels(base_tri, src_pts, src_v, src["triangles"])
+        hierarchy, src_nm, tgt_nm, base_tri, removed = self._normal_meshes(base_tri, levels, src, tgt, src_ex)
+        removed_share = _area(tgt_pts, removed) / max(_area(tgt_pts, removed) + _area(tgt_pts, base_tri), np.finfo(float).tiny)
+        if removed_share > REMOVED_WARNING:
+            import warnings
 
-        src_surface = Surface.of(src_mesh.triangles, src_mesh.n_vertices)
-        tgt_surface = Surface.of(tgt_mesh.triangles, tgt_mesh.n_vertices)
+            from faceretarget.errors import FaceRetargetWarning
+
+            point_names = tgt_lm.names or [str(i) for i in range(len(tgt_lm))]
+            listed = "; ".join(", ".join(point_names[i] for i in t) for t in removed[:6])
+            warnings.warn(
+                f"normalmesh: {len(removed)} base triangles ({100 * removed_share:.0f}% of the base mesh's area) had piercing "
+                f"errors on more than {100 * float(self.max_piercing):g}% of their vertices and were removed (first: {listed}); "
+                "their region moves with the dense fallback, without the normal mesh's detail transfer. More feature "
+                "points there, base_triangles or a larger max_offset keep them",
+                FaceRetargetWarning,
+                stacklevel=3,
+            )
         max_offset = float(self.max_offset)
-        src_nm = build_normal_mesh(
-            src_v, src_surface, src_pts, feature_point_loops(src_pts, src_v, src_surface), hierarchy, max_offset=max_offset, caster=src_caster
-        )
-        tgt_nm = build_normal_mesh(
-            tgt_v, tgt_surface, tgt_pts, feature_point_loops(tgt_pts, tgt_v, tgt_surface), hierarchy, max_offset=max_offset, caster=tgt_caster
-        )
-        decomposer = FrameDecomposer(src_surface, src_nm, hierarchy, max_offset=max_offset, neutral_vertices=src_v)
-        src_offsets0, src_pierced0, _ = decomposer(src_v, src_pts)
+        decomposer = FrameDecomposer(src["surface"], src_nm, hierarchy, max_offset=max_offset, neutral_vertices=src_v, repair=self.repair)
+        src_offsets0, src_pierced0, src_levels0 = decomposer(src_v, src_pts, keep_positions=True)
 
         ratio = normal_mesh_area(tgt_nm, hierarchy) / max(normal_mesh_area(src_nm, hierarchy), np.finfo(float).tiny)
         ds = self.detail_scale
-        delta = ratio if ds == "area" else (np.sqrt(ratio) if ds == "length" else float(ds))
+        delta = np.sqrt(ratio) if ds == "length" else (ratio if ds == "area" else float(ds))
 
-        src_ex_pts = src_lm.positions(np.asarray(src_ex, dtype=np.float64), src_mesh.triangles)
-        tgt_ex_pts = tgt_lm.positions(np.asarray(tgt_ex, dtype=np.float64), tgt_mesh.triangles)
+        src_ex_pts = src_lm.positions(src_ex, src["triangles"])
+        tgt_ex_pts = tgt_lm.positions(tgt_ex, tgt["triangles"])
         base_map = fit_base_map(src_pts, tgt_pts, src_ex_pts, tgt_ex_pts, rbf_c=float(self.rbf_c), rbf_smoothing=float(self.rbf_smoothing))
 
-        attachment = attach(tgt_v, reconstruct(tgt_pts, hierarchy, tgt_nm.tangent, tgt_nm.offset)[-1], hierarchy.triangles(hierarchy.levels))
-
-        head_ids, head_w = stable_vertices(src_v, np.asarray(src_ex, dtype=np.float64))
-
         n_levels = hierarchy.levels
+        finest_tri = hierarchy.triangles(n_levels)
+        finest = reconstruct(tgt_pts, hierarchy, tgt_nm.tangent, tgt_nm.offset)[-1]
+        attachment = attach(tgt_v, finest, finest_tri)
+        if self.fallback == "examples":
+            band = BAND * max(bm.median_edge(finest, finest_tri), bm.median_edge(tgt_v, tgt["triangles"]))
+            weight = coverage(tgt_v, attachment, finest, finest_tri, band)
+        else:
+            weight = np.ones(len(tgt_v))
+        dense_ids = np.flatnonzero(weight < 1.0)
+        same_topology = (
+            len(src_v) == len(tgt_v) and np.array_equal(src["triangles"], tgt["triangles"]) and _same_landmarks(src_lm, tgt_lm)
+        )
+        corners, bary = self._correspondence(dense_ids, src, tgt, src_nm, tgt_nm, hierarchy, same_topology)
+        src_at = np.einsum("pk,pkd->pd", bary, src_v[corners])
+        src_ex_at = np.einsum("pk,mpkd->mpd", bary, src_ex[:, corners])
+        dense_map = fit_base_map(src_at, tgt_v[dense_ids], src_ex_at, tgt_ex[:, dense_ids], rbf_c=float(self.rbf_c), rbf_smoothing=float(self.rbf_smoothing), linear=base_map.linear)
+
+        # sliding: the source material point under each finest-level vertex of the neutral
+        neighbour = frame_neighbours(finest_tri, hierarchy.n_vertices(n_levels))
+        y0 = src_levels0[-1]
+        under = src["caster"].closest(y0)
+        slide_corners, slide_bary = src["triangles"][under.triangle], under.barycentric
+        slide0 = np.einsum("pkd,pd->pk", local_frames(y0, finest_tri, neighbour), under.points - y0)
+
+        head_ids, head_w = stable_vertices(src_v, src_ex)
+        scale = float(np.linalg.norm(base_map.linear[:, 0]))
+
         n_detail = n_levels if self.detail_levels == -1 else min(int(self.detail_levels), n_levels)
+        self.levels_ = n_levels
         self.base_triangles_ = base_tri
+        self.removed_base_triangles_ = removed
         self.hierarchy_ = hierarchy
         self.source_feature_points_ = src_lm
         self.target_feature_points_ = tgt_lm
         self.example_names_ = names
-        self.source_surface_ = src_surface
+        self.source_surface_ = src["surface"]
         self.source_normal_mesh_ = src_nm
         self.source_offsets0_ = src_offsets0
         self.target_normal_mesh_ = tgt_nm
@@ -252,25 +417,53 @@ class NormalMeshRetargeter(Retargeter):
             for level in range(n_levels)
         ]
         self.attachment_ = attachment
+        self.coverage_ = weight
+        self.dense_vertices_ = dense_ids
+        self.dense_corners_ = corners
+        self.dense_barycentric_ = bary
+        self.dense_map_ = dense_map
+        self.dense_source0_ = src_at
+        self.frame_neighbours_ = neighbour
+        self.slide_corners_ = slide_corners
+        self.slide_barycentric_ = slide_bary
+        self.slide0_ = slide0
         self.head_vertices_ = head_ids
         self.head_weights_ = head_w
+        # head-motion translations are in the source's units: to the target's by the power of
+        # ten nearest the feature points' similarity scale (1 for faces in the same units)
+        self.unit_ratio_ = float(10.0 ** np.round(np.log10(max(scale, np.finfo(float).tiny))))
         self.source_shape_ = (src_mesh.n_vertices, np.array(src_mesh.triangles))
         self.source_neutral_ = src_v
+        self.target_neutral_ = tgt_v
+        n_nm = hierarchy.n_vertices(n_levels)
         self.piercing_errors_ = {
             "target": tgt_nm.n_pierced,
             "source_neutral": src_pierced0,
-            "normal_mesh_vertices": hierarchy.n_vertices(n_levels),
+            "normal_mesh_vertices": n_nm,
+            "target_share": tgt_nm.n_pierced / n_nm,
+        }
+        self.coverage_stats_ = {
+            "removed_area_share": float(removed_share),
+            "covered": float(np.mean(weight >= 1.0)),
+            "blended": float(np.mean((weight > 0.0) & (weight < 1.0))),
+            "fallback": float(np.mean(weight <= 0.0)),
+            "removed_base_triangles": int(len(removed)),
         }
 
     # ------------------------------------------------------------------------------
     # retarget
     # ------------------------------------------------------------------------------
     def _head_motion(self, source: Source, stable_frames: np.ndarray) -> np.ndarray:
+        """(F, 4, 4) head motion in the source's coordinates."""
         if self.head_motion == "none":
             return np.repeat(np.eye(4)[None], len(stable_frames), axis=0)
         if self.head_motion == "auto" and source.head_motion is not None:
             return np.asarray(source.head_motion, dtype=np.float64)
-        return estimate_head_motion(self.source_neutral_[self.head_vertices_], stable_frames, self.head_weights_)
+        reference = self.source_neutral_[self.head_vertices_]
+        motion = estimate_head_motion(reference, stable_frames, self.head_weights_)
+        if self.head_motion == "auto" and not significant_motion(reference, stable_frames, self.head_weights_, motion):
+            return np.repeat(np.eye(4)[None], len(stable_frames), axis=0)
+        return motion
 
     def _check_source(self, source: Source) -> MeshSequence:
         perf = source.performance
@@ -285,7 +478,7 @@ class NormalMeshRetargeter(Retargeter):
     def _run(self, source: Source, level: int | None = None) -> dict:
         """Retarget every frame. Returns world-coordinate arrays: ``vertices (F, V, 3)``,
         ``base (F, N, 3)``, ``normal_mesh (F, V_level, 3)`` (``level`` given), ``pierced (F,)``
-        and ``motion (F, 4, 4)``.
+        and ``motion (F, 4, 4)`` (the head motion in the target's units).
 
         Frames go in chunks of ``CHUNK_FRAMES``, each walked from the neutral's hits (so the
         result does not depend on how many threads run the chunks), on up to
@@ -296,13 +489,16 @@ class NormalMeshRetargeter(Retargeter):
 
         perf = self._check_source(source)
         motion = self._head_motion(source, np.asarray(perf.vertices[:, self.head_vertices_], dtype=np.float64))
+        target_motion = motion.copy()
+        target_motion[:, :3, 3] *= self.unit_ratio_
         n_frames, hier = perf.n_frames, self.hierarchy_
         out = {
             "vertices": np.empty((n_frames, len(self.attachment_.triangle), 3)),
             "base": np.empty((n_frames, hier.n_base, 3)),
             "normal_mesh": None if level is None else np.empty((n_frames, hier.n_vertices(level), 3)),
             "pierced": np.zeros(n_frames, dtype=np.int64),
-            "motion": motion,
+            "source_motion": motion,
+            "motion": target_motion,
         }
         chunks = [range(a, min(a + CHUNK_FRAMES, n_frames)) for a in range(0, n_frames, CHUNK_FRAMES)]
         workers = max(1, min(len(chunks), os.cpu_count() or 1))
@@ -316,19 +512,43 @@ class NormalMeshRetargeter(Retargeter):
         return out
 
     def _run_chunk(self, perf: MeshSequence, frames: range, level: int | None, out: dict) -> None:
+        from . import _kernels as k
+
         lm, tri, hier = self.source_feature_points_, perf.triangles, self.hierarchy_
-        decomposer = FrameDecomposer(self.source_surface_, self.source_normal_mesh_, hier, max_offset=float(self.max_offset), neutral_vertices=self.source_neutral_)
+        decomposer = FrameDecomposer(
+            self.source_surface_, self.source_normal_mesh_, hier, max_offset=float(self.max_offset), neutral_vertices=self.source_neutral_, repair=self.repair
+        )
+        finest_tri = hier.triangles(hier.levels)
+        sliding = self.sliding == "transfer"
+        dense = self.dense_vertices_
+        w = self.coverage_[dense][:, None]
         for f in frames:
-            rot = np.ascontiguousarray(out["motion"][f, :3, :3])
-            rot_t, trans = np.ascontiguousarray(rot.T), out["motion"][f, :3, 3]
-            local = (np.asarray(perf.vertices[f], dtype=np.float64) - trans) @ rot
+            rot = np.ascontiguousarray(out["source_motion"][f, :3, :3])
+            local = (np.asarray(perf.vertices[f], dtype=np.float64) - out["source_motion"][f, :3, 3]) @ rot
             s_base = lm.positions(local, tri)
-            offsets, out["pierced"][f], _ = decomposer(local, s_base)
+            offsets, out["pierced"][f], positions = decomposer(local, s_base, keep_positions=sliding)
             t_base = self.target_base0_ + self.base_map_((s_base - self.source_base0_)[None])[0]
             # Eq. 8: TN_k = TN_0 + delta * (SN_k - SN_0), level by level (with tangent parts)
             coords = [c0 + self.delta_ * m * (sk - s0) for c0, m, sk, s0 in zip(self.target_coords0_, self.detail_masks_, offsets, self.source_offsets0_)]
             levels = reconstruct(t_base, hier, [c[:, :2] for c in coords], [c[:, 2] for c in coords])
-            out["vertices"][f] = carry(self.attachment_, levels[-1]) @ rot_t + trans
+            finest = levels[-1]
+            if sliding:
+                y = np.ascontiguousarray(positions[-1])
+                material = np.einsum("pk,pkd->pd", self.slide_barycentric_, local[self.slide_corners_])
+                y_normals, t_normals = np.empty_like(y), np.empty_like(finest)
+                k.vertex_normals(y, finest_tri, y_normals)
+                k.vertex_normals(finest, finest_tri, t_normals)
+                slid = np.empty_like(finest)
+                k.slide(y, y_normals, material, finest, t_normals, self.frame_neighbours_, self.slide0_, self.delta_, slid)
+                finest = slid
+            result = carry(self.attachment_, finest)
+            if dense.size:
+                moved = np.einsum("pk,pkd->pd", self.dense_barycentric_, local[self.dense_corners_]) - self.dense_source0_
+                fallback = self.target_neutral_[dense] + self.dense_map_.one(moved)
+                result[dense] = w * result[dense] + (1.0 - w) * fallback
+            rot_t = np.ascontiguousarray(out["motion"][f, :3, :3].T)
+            trans = out["motion"][f, :3, 3]
+            out["vertices"][f] = result @ rot_t + trans
             out["base"][f] = t_base @ rot_t + trans
             if level is not None:
                 out["normal_mesh"][f] = levels[level] @ rot_t + trans
@@ -337,18 +557,20 @@ class NormalMeshRetargeter(Retargeter):
         run = self._run(source)
         diagnostics = dict(self.piercing_errors_)
         diagnostics["source_mean_per_frame"] = float(np.mean(run["pierced"]))
+        diagnostics["source_share_per_frame"] = diagnostics["source_mean_per_frame"] / self.piercing_errors_["normal_mesh_vertices"]
         diagnostics["delta"] = self.delta_
         return Animation(
             vertices=run["vertices"],
             head_motion=run["motion"],
             triangles=self.target_.neutral.triangles,
             fps=source.fps,
-            provenance={"diagnostics": {"piercing_errors": diagnostics}},
+            provenance={"diagnostics": {"piercing_errors": diagnostics, "coverage": dict(self.coverage_stats_), "levels": self.levels_}},
             extras={
                 "base_triangles": self.base_triangles_,
                 "base_vertices": run["base"],
                 "piercing_errors_per_frame": run["pierced"],
                 "delta": self.delta_,
+                "coverage": self.coverage_,
             },
         )
 
@@ -360,6 +582,44 @@ class NormalMeshRetargeter(Retargeter):
             raise InputError(f"normalmesh: level must be 0..{self.hierarchy_.levels}, got {level}")
         frames = self._run(source, level)["normal_mesh"]
         return MeshSequence(frames, self.hierarchy_.triangles(level), fps=source.fps, reference=frames[0])
+
+
+def _area(points: np.ndarray, triangles: np.ndarray) -> float:
+    """Total area of ``triangles`` over ``points``."""
+    if len(triangles) == 0:
+        return 0.0
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+
+
+def _same_landmarks(a: Landmarks, b: Landmarks) -> bool:
+    """Whether two Landmarks name the same points of one topology."""
+    if a.vertex_ids is not None and b.vertex_ids is not None:
+        return np.array_equal(a.vertex_ids, b.vertex_ids)
+    if a.vertex_ids is None and b.vertex_ids is None:
+        return np.array_equal(a.triangle_ids, b.triangle_ids) and np.array_equal(a.barycentric, b.barycentric)
+    return False
+
+
+def frame_neighbours(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(V,) one neighbour of each vertex (fixing the tangent direction of its local frame)."""
+    out = np.arange(n_vertices, dtype=np.int64)
+    for k in range(3):
+        out[triangles[:, k]] = triangles[:, (k + 1) % 3]
+    return out
+
+
+def local_frames(X: np.ndarray, triangles: np.ndarray, neighbour: np.ndarray) -> np.ndarray:
+    """(V, 3, 3) rows t1, t2, n at each vertex of ``X``: n the unit vertex normal, t1 the
+    direction to ``neighbour`` made perpendicular to n, t2 = n x t1."""
+    from . import _kernels as k
+
+    X = np.ascontiguousarray(X, dtype=np.float64)
+    n = np.empty_like(X)
+    k.vertex_normals(X, triangles, n)
+    out = np.empty((len(X), 3, 3))
+    k.local_frames(X, n, neighbour, out)
+    return out
 
 
 def stable_vertices(neutral: np.ndarray, examples: np.ndarray, count: int = HEAD_VERTICES) -> tuple[np.ndarray, np.ndarray]:
@@ -390,3 +650,15 @@ def estimate_head_motion(reference: np.ndarray, frames: np.ndarray, weights: np.
         scale = np.where(scale > 0, scale, 1.0)
         rot, trans, _ = fit_rigid(reference, frames, w / (1.0 + (r / scale) ** 2))
     return to_matrix(rot, trans)
+
+
+def significant_motion(reference: np.ndarray, frames: np.ndarray, weights: np.ndarray, motion: np.ndarray) -> bool:
+    """Whether the rigid ``motion (F, 4, 4)`` removes more than ``HEAD_SIGNIFICANCE`` of the
+    weighted squared motion of ``frames (F, N, 3)`` away from ``reference (N, 3)`` over the
+    shot. A source without head motion still gets a small rigid fit of its expressions (on
+    the synthetic faces ~1e-7 rad) that would move a target placed elsewhere."""
+    w = np.asarray(weights, dtype=np.float64)
+    total = float(np.einsum("n,fn->", w, np.sum((frames - reference) ** 2, axis=-1)))
+    fitted = np.einsum("fij,nj->fni", motion[:, :3, :3], reference) + motion[:, None, :3, 3]
+    left = float(np.einsum("n,fn->", w, np.sum((frames - fitted) ** 2, axis=-1)))
+    return total - left > HEAD_SIGNIFICANCE * total

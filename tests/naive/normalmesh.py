@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from naive.raycast import cast_rays
+from naive.raycast import cast_rays, closest_points
 
 
 def _edges_in_order(triangles):
@@ -86,13 +86,25 @@ def _rings(triangles, n_vertices):
     return ring
 
 
-def normal_mesh_naive(vertices, triangles, base, base_triangles, levels, max_offset, sweeps=3):
+def _folded(pred, Y, tri):
+    before = np.cross(pred[tri[1]] - pred[tri[0]], pred[tri[2]] - pred[tri[0]])
+    after = np.cross(Y[tri[1]] - Y[tri[0]], Y[tri[2]] - Y[tri[0]])
+    return np.dot(before, after) < 0
+
+
+def normal_mesh_naive(vertices, triangles, base, base_triangles, levels, max_offset, sweeps=3, repair="surface", fold_rounds=8):
     """Level positions of the normal mesh (no boundary displacements: use a closed mesh).
 
     Odd vertices: unlifted Loop prediction, line along the predicted mesh's vertex normal,
     nearest hit (both directions) within ``max_offset`` x coarse edge length on a triangle
-    facing the same way; otherwise, or when a triangle of the new level flips, the vertex is
-    the mean of its neighbours (``sweeps`` Jacobi sweeps). Returns (levels, pierced count).
+    facing the same way; otherwise the vertex is a piercing error. Then, triangle by
+    triangle (in order), a triangle of the new level that flips while none of its new
+    vertices is flagged flags the new vertex that moved farthest from its prediction
+    relative to its edge (back to its prediction), for up to ``fold_rounds`` passes.
+    Flagged vertices become the mean of their neighbours (``sweeps`` Jacobi sweeps) and,
+    with ``repair="surface"``, then their closest surface point if it is within the limit
+    and under them (offset along that triangle's normal, |cos| >= 0.7), unless that flips a
+    triangle. Returns (levels, pierced count).
     """
     v = np.asarray(vertices, float)
     tri = np.asarray(triangles)
@@ -121,21 +133,48 @@ def normal_mesh_naive(vertices, triangles, base, base_triangles, levels, max_off
                 flagged[e] = True
                 continue
             Y[n0 + e] = origins[e] + t[e] * dirs[e]
-        for a, b, c in T1:
-            before = np.cross(pred[b] - pred[a], pred[c] - pred[a])
-            after = np.cross(Y[b] - Y[a], Y[c] - Y[a])
-            if np.dot(before, after) < 0:
-                for i in (a, b, c):
-                    if i >= n0:
-                        flagged[i - n0] = True
+        for _ in range(fold_rounds):
+            new = False
+            for face in T1:
+                odd = [i for i in face if i >= n0]
+                if not _folded(pred, Y, face) or any(flagged[i - n0] for i in odd):
+                    continue
+                scores = []
+                for i in odd:
+                    a, b = edges[i - n0]
+                    length = np.sum((X[b] - X[a]) ** 2)
+                    moved = np.sum((Y[i] - pred[i]) ** 2)
+                    scores.append(moved / length if length > 0 else np.inf)
+                culprit = odd[int(np.argmax(scores))]
+                flagged[culprit - n0] = True
+                new = True
+            for e in np.flatnonzero(flagged):
+                Y[n0 + e] = pred[n0 + e]
+            if not new:
+                break
         bad = [n0 + e for e in np.flatnonzero(flagged)]
         ring = _rings(T1, len(Y))
-        for i in bad:
-            Y[i] = pred[i]
         for _ in range(sweeps):
             new = {i: np.mean([Y[j] for j in ring[i]], axis=0) for i in bad}
             for i in bad:
                 Y[i] = new[i]
+        if repair == "surface" and bad:
+            average = {i: Y[i].copy() for i in bad}
+            k, d, q = closest_points(v, tri, np.array([Y[i] for i in bad]))
+            placed = []
+            for j, i in enumerate(bad):
+                a, b, c = v[tri[k[j]]]
+                n = np.cross(b - a, c - a)
+                off = Y[i] - q[j]
+                length = np.linalg.norm(off)
+                cos = abs(np.dot(off, n)) / max(length * np.linalg.norm(n), np.finfo(float).tiny)
+                if d[j] <= limit[i - n0] and (cos >= 0.7 or length <= 1e-9 * limit[i - n0]):
+                    Y[i] = q[j]
+                    placed.append(i)
+            folded_odd = {i for face in T1 if _folded(pred, Y, face) for i in face if i >= n0}
+            for i in placed:
+                if i in folded_odd:
+                    Y[i] = average[i]
         pierced += len(bad)
         X, T = Y, T1
         out.append(X)

@@ -61,16 +61,32 @@ def _bumpy_sphere():
     return v, np.asarray(m.faces), v[ids], base_tri
 
 
-@pytest.mark.parametrize("max_offset", [1.0, 0.1])
-def test_agrees_with_naive_construction(max_offset):
+def _inside_out_patch(v, f, radius=0.35):
+    """The sphere's triangles within ``radius`` of one point listed clockwise (seen from outside)."""
+    centre = np.array([0.6, 0.6, 0.5]) / np.linalg.norm([0.6, 0.6, 0.5])
+    g = f.copy()
+    near = np.linalg.norm(v[f].mean(axis=1) - centre, axis=1) < radius
+    g[near] = g[near][:, [0, 2, 1]]
+    return g
+
+
+@pytest.mark.parametrize("repair", ["surface", "average"])
+@pytest.mark.parametrize("max_offset, patch", [(1.0, False), (0.1, False), (1.0, True)], ids=["clean", "tight-limit", "inside-out-patch"])
+def test_agrees_with_naive_construction(max_offset, patch, repair):
     v, f, base, base_tri = _bumpy_sphere()
-    want, pierced = normal_mesh_naive(v, f, base, base_tri, 3, max_offset)
+    if patch:
+        f = _inside_out_patch(v, f)
+    want, pierced = normal_mesh_naive(v, f, base, base_tri, 3, max_offset, repair=repair)
     h = make_hierarchy(base_tri, len(base), 3)
-    nm = build_normal_mesh(v, Surface.of(f, len(v)), base, np.full(len(base), -1), h, max_offset=max_offset)
+    nm = build_normal_mesh(v, Surface.of(f, len(v)), base, np.full(len(base), -1), h, max_offset=max_offset, repair=repair)
     for a, b in zip(nm.positions, want):
         np.testing.assert_allclose(a, b, atol=1e-12)
     assert nm.n_pierced == pierced
-    assert (pierced > 0) == (max_offset < 0.5)  # the tight limit exercises the repair path
+    assert (pierced > 0) == (max_offset < 0.5 or patch)  # the tight limit and the patch exercise the repair path
+    placed = sum(int(((k == KIND_REPAIRED) & (a >= 0)).sum()) for k, a in zip(nm.kind, nm.anchor))
+    # hits on the inside-out patch are repaired onto the surface (measured: 7 of 7); a neighbour
+    # average farther from the surface than the ray limit stays off it
+    assert (placed > 0) == (patch and repair == "surface")
 
 
 def _distance_to_boundary(points, vertices, surface, loops=None):
@@ -198,3 +214,93 @@ def test_feature_point_ids_and_barycentric_points_give_the_same_base(face):
     bary = (tri[owner] == lm.vertex_ids[:, None]).astype(float)
     as_bary = Landmarks(triangle_ids=owner, barycentric=bary, names=lm.names)
     np.testing.assert_allclose(as_bary.positions(face["vertices"], tri), face["points"], atol=1e-12)
+
+
+def test_repaired_vertices_land_on_the_surface_neutral_and_frames():
+    """repair="surface" (default): a piercing error's neighbour average moves to its closest
+    surface point (on the neutral) or to the material point of its neutral place (in frames),
+    so the finer levels above it start from the surface. ICT, no base triangle removed."""
+    import faceretarget as fr
+
+    case = fr.cases.ict(n_frames=6)
+    r = fr.get("normalmesh", max_piercing=1.0).fit(case.source, case.target)
+    h = case.target.neutral.height
+    for nm, mesh in ((r.target_normal_mesh_, case.target.neutral), (r.source_normal_mesh_, case.source.performance.reference)):
+        n0 = [len(p) for p in nm.positions[:-1]]
+        placed = [np.flatnonzero((k == KIND_REPAIRED) & (a >= 0)) + o for k, a, o in zip(nm.kind, nm.anchor, n0)]
+        repaired = sum(int((k == KIND_REPAIRED).sum()) for k in nm.kind)
+        assert repaired > 10 and sum(len(p) for p in placed) > 0.5 * repaired  # measured 80%
+        for level, ids in enumerate(placed):
+            d = np.abs(closest_points(np.asarray(mesh.vertices), mesh.triangles, nm.positions[level + 1][ids]).distance)
+            assert d.max() <= 1e-9 * h
+    # in an animation frame: a vertex that pierces wrongly sits on the frame's surface
+    frames = np.asarray(case.source.performance.vertices)
+    decomposer = FrameDecomposer(r.source_surface_, r.source_normal_mesh_, r.hierarchy_, max_offset=1.0, neutral_vertices=r.source_neutral_)
+    hm = np.asarray(case.truth.head_motion)
+    on_surface, total = 0, 0
+    for f in range(len(frames)):
+        local = (frames[f] - hm[f, :3, 3]) @ hm[f, :3, :3]
+        _, _, levels = decomposer(local, r.source_feature_points_.positions(local, case.source.performance.triangles), keep_positions=True)
+        for level, flags in enumerate(decomposer.flagged):
+            bad = np.flatnonzero(flags == KIND_REPAIRED) + len(levels[level])
+            d = np.abs(closest_points(local, case.source.performance.triangles, levels[level + 1][bad]).distance)
+            on_surface += int((d <= 1e-9 * h).sum())
+            total += len(bad)
+    assert total > 0 and on_surface > 0.5 * total, (on_surface, total)
+
+
+def _octahedron_level():
+    """Level 1 over an octahedron: the step, repair rings, prediction and normals."""
+    from faceretarget.plugins.normalmesh.normal_mesh import _predict
+
+    base = np.vstack([np.eye(3), -np.eye(3)])[[0, 1, 2, 3, 4, 5]]
+    tri = np.array([[0, 1, 2], [1, 3, 2], [3, 4, 2], [4, 0, 2], [1, 0, 5], [3, 1, 5], [4, 3, 5], [0, 4, 5]])
+    h = make_hierarchy(tri, 6, 1)
+    pred, normals = _predict(h.steps[0], base)
+    return h.steps[0], h.rings[0], pred, normals
+
+
+def test_a_fold_counts_only_its_culprit():
+    """A new vertex thrown sideways across its neighbours folds several triangles: it alone is
+    the piercing error (before: every new vertex of a folded triangle), and the repair puts it
+    back between its neighbours."""
+    from faceretarget.plugins.normalmesh.normal_mesh import _finish
+
+    step, ring, pred, normals = _octahedron_level()
+    n0 = step.n_coarse
+    Y = pred + 0.02 * normals  # every new vertex a little off its prediction, along its normal
+    bad = 3
+    a, b = step.edges[bad]
+    Y[n0 + bad] = pred[n0 + bad] + 1.5 * (pred[b] - pred[a])  # far past one end of its edge
+    flagged = np.zeros(step.n_odd, dtype=bool)
+    _finish(step, ring, pred, normals, Y, flagged)
+    assert np.flatnonzero(flagged).tolist() == [bad]
+    others = np.delete(np.arange(step.n_odd), bad)
+    np.testing.assert_allclose(Y[n0 + others], pred[n0 + others] + 0.02 * normals[n0 + others])
+    assert np.linalg.norm(Y[n0 + bad] - pred[n0 + bad]) < 0.5 * np.linalg.norm(pred[b] - pred[a])
+
+
+def test_a_surface_placement_that_folds_is_undone():
+    """repair="surface": a placement that folds a triangle over leaves the neighbour average."""
+    from faceretarget.plugins.normalmesh.normal_mesh import _finish
+
+    step, ring, pred, normals = _octahedron_level()
+    n0 = step.n_coarse
+    bad = 3
+    a, b = step.edges[bad]
+    far = pred[n0 + bad] + 1.5 * (pred[b] - pred[a])
+    near = pred[n0 + bad] + 0.01 * normals[n0 + bad]
+
+    def place(e, points, where):
+        return np.repeat(where[None], len(e), axis=0), np.ones(len(e), bool), np.zeros(len(e), np.int64), np.tile([1.0, 0, 0], (len(e), 1))
+
+    results = {}
+    for label, where in (("folds", far), ("fits", near)):
+        Y = pred.copy()
+        flagged = np.zeros(step.n_odd, dtype=bool)
+        flagged[bad] = True
+        _, _, anchor, _ = _finish(step, ring, pred, normals, Y, flagged, lambda e, p, w=where: place(e, p, w))
+        results[label] = (Y[n0 + bad].copy(), anchor[bad])
+    np.testing.assert_allclose(results["fits"][0], near)
+    assert results["fits"][1] == 0
+    assert np.linalg.norm(results["folds"][0] - far) > 0.5 and results["folds"][1] == -1
