@@ -31,7 +31,7 @@ from naive.layers import frame_objective, make_problem, slsqp_frame  # noqa: E40
 
 from faceretarget.plugins.layers import compose  # noqa: E402
 from faceretarget.plugins.layers.retargeter import LayersRetargeter  # noqa: E402
-from faceretarget.plugins.layers.solver import observe  # noqa: E402
+from faceretarget.plugins.layers.solver import fit_block, observe  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -76,13 +76,16 @@ def main(argv=None) -> None:
 
     # the same work step by step, for the breakdown (CPU time of this process)
     t0 = time.process_time()
-    obs = observe(r.actor_, r.lip_, markers, tracks, None, keep_xhat=True)
+    detected, _ = r._detect_head_motion(markers)
     t1 = time.process_time()
-    params, _ = r._extract(obs)
+    obs_f, params_f, _ = fit_block(r.actor_, r.lip_, markers, tracks, None if detected else "none", **r._settings())
     t2 = time.process_time()
-    beta = compose.region_coefficients(params.weights, params.coefficients, r.actor_.layer_of)
-    compose.world_vertices(r.character_, beta, obs.head_motion)
+    beta = compose.region_coefficients(params_f.weights, params_f.coefficients, r.actor_.layer_of)
+    compose.world_vertices(r.character_, beta, obs_f.head_motion)
     t3 = time.process_time()
+    # the solver check below: one plain solve of Eq. 7 on the paper's alignment
+    obs = observe(r.actor_, r.lip_, markers, tracks, None, keep_xhat=True)
+    params, _ = r._extract(obs)
     fps = args.frames / total_s
     load = os.getloadavg()[0]
     print(f"fit {fit_s * 1e3:.0f} ms; kernel load/compile {warm_s:.2f} s; machine load average {load:.1f} on {os.cpu_count()} cores")
@@ -91,8 +94,8 @@ def main(argv=None) -> None:
     print(f"best: {total_s:.3f} s wall for {args.frames} frames = {fps:,.0f} frames/s; "
           f"CPU time {cpu_s:.3f} s = {args.frames / cpu_s:,.0f} frames/s of one core")
     print("step by step, CPU time "
-          f"(align+project {1e3 * (t1 - t0) / args.frames:.3f} ms, solve {1e3 * (t2 - t1) / args.frames:.3f} ms, "
-          f"character {1e3 * (t3 - t2) / args.frames:.3f} ms per frame; {params.iterations.mean():.2f} LM steps a frame)")
+          f"(head-motion test {1e3 * (t1 - t0) / args.frames:.3f} ms, alignment + solve {1e3 * (t2 - t1) / args.frames:.3f} ms, "
+          f"character {1e3 * (t3 - t2) / args.frames:.3f} ms per frame; {params_f.iterations.mean():.2f} LM steps a frame)")
     print(f"peak traced memory during retarget: {peak / 2**20:.0f} MiB (the output alone is "
           f"{vertices.nbytes / 2**20:.0f} MiB); process max RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
 
@@ -101,6 +104,7 @@ def main(argv=None) -> None:
     basis, masks = actor.basis_t.T, actor.coord_masks
     gamma = params.gamma
     c_d = (1 - gamma) / obs.n_valid
+    additive = r.composition == "additive"
     n = max(1, min(args.slsqp_frames, args.frames - 1))
     spent, worst = 0.0, -np.inf
     for t in range(1, n + 1):
@@ -108,10 +112,10 @@ def main(argv=None) -> None:
         valid = ~obs.missing[t]
         t0 = time.process_time()
         _, _, ref = slsqp_frame(obs.xhat[t], valid, basis, masks, actor.layer_of, c_d[t], gamma[t], r.smoothing,
-                                lip.mouth, lip.speech, lip.closed, w_prev, a_prev, w_prev, a_prev)
+                                lip.mouth, lip.speech, lip.closed, w_prev, a_prev, w_prev, a_prev, additive)
         spent += time.process_time() - t0
         ours = frame_objective(obs.xhat[t], valid, basis, masks, actor.layer_of, params.weights[t], params.coefficients[t],
-                               c_d[t], gamma[t], r.smoothing, lip.mouth, lip.speech, lip.closed, w_prev, a_prev)
+                               c_d[t], gamma[t], r.smoothing, lip.mouth, lip.speech, lip.closed, w_prev, a_prev, additive)
         worst = max(worst, (ours - ref) / max(ref, 1e-300))
     per_frame = spent / n
     print(f"SLSQP reference (extraction only): {per_frame:.2f} s CPU a frame ({n} frames) -> {1 / per_frame:.2f} frames/s; "

@@ -16,7 +16,6 @@ KNOWN: dict[tuple[str, str], str] = {
     ("coating", "check_declared_needs"): "needs landmarks on both faces when topologies differ, undeclared",
     ("deformation_transfer", "check_unit_invariance"): "6.2e-4 of face height at source x0.01; 1.3e-3 for a rigid move",
     ("deformation_transfer", "check_declared_needs"): "needs landmarks on both faces when topologies differ, undeclared",
-    ("displacement", "check_unit_invariance"): "the example plugin applies the source's head translation in source units",
 }
 
 

@@ -188,11 +188,12 @@ def active_set_qp(G, c, lo, hi, group, sums, x, max_iter, tol):
             for a in range(nf):
                 i = free[a]
                 if z[a] < lo[i]:
-                    t = (x[i] - lo[i]) / (x[i] - z[a])
+                    # (a free variable rounded onto or past its bound cannot move: step 0)
+                    t = (x[i] - lo[i]) / (x[i] - z[a]) if x[i] > z[a] else 0.0
                     if t < step:
                         step, blocking = t, a
                 elif z[a] > hi[i]:
-                    t = (hi[i] - x[i]) / (z[a] - x[i])
+                    t = (hi[i] - x[i]) / (z[a] - x[i]) if z[a] > x[i] else 0.0
                     if t < step:
                         step, blocking = t, a
             if blocking >= 0:

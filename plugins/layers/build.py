@@ -21,6 +21,8 @@ from faceretarget.model import BlendshapeRig, LayeredRig, MarkerSequence, Source
 
 __all__ = ["actor_layers_from_frames", "layered_rig_from_blendshapes", "default_masks", "REGION_NAMES", "SHAPE_REGIONS"]
 
+#: Rounds of rigidity-weighted Procrustes when aligning hand-picked frames (after a plain fit).
+ALIGN_ROUNDS = 3
 #: Default regions, in the order of the paper's masks (upper face, eyes, lower face).
 REGION_NAMES = ("upper_face", "eyes", "mouth")
 #: ARKit name prefixes -> region (index into REGION_NAMES) for :func:`default_masks`.
@@ -50,9 +52,13 @@ def actor_layers_from_frames(markers, frames: Mapping[str, object], masks=None, 
         Known 3D head motion (neutral -> world), removed exactly from the chosen frames
         (default: ``Source.head_motion`` when ``markers`` is a Source that has it).
     align : bool
-        Without known head motion, remove it from each chosen frame by rigid Procrustes
-        onto the reference (similarity for 2D tracks), so the poses are expression only.
-        (Expression biases that fit a little, as it does during retargeting.)
+        Without known head motion, remove it from each chosen frame by Procrustes onto the
+        reference (similarity for 2D tracks), so the poses are expression only. The fit is
+        weighted by rigidity (points the chosen expressions barely move count most),
+        re-estimated from the aligned poses (``ALIGN_ROUNDS``): plain Procrustes would take
+        part of each expression for head motion and bake a small rotation into the pose
+        (measured on the ICT example: up to 3-5 degrees, which the retargeting then
+        reports as head motion).
     """
     if isinstance(markers, Source):
         if head_motion is None:
@@ -73,7 +79,7 @@ def actor_layers_from_frames(markers, frames: Mapping[str, object], masks=None, 
         raise ShapeError(f"actor_layers_from_frames: reference must be finite ({n_points}, {dim}), got {ref.shape}")
     if not isinstance(frames, Mapping) or not frames:
         raise InputError("actor_layers_from_frames: frames must map each layer name to its frame indices")
-    layers, pose_names = {}, {}
+    layers, pose_names, chosen_frames = {}, {}, {}
     for layer, chosen in frames.items():
         names, ids = (list(chosen.keys()), list(chosen.values())) if isinstance(chosen, Mapping) else (None, list(np.atleast_1d(chosen)))
         if not ids:
@@ -99,14 +105,42 @@ def actor_layers_from_frames(markers, frames: Mapping[str, object], masks=None, 
             rot, trans = motion[idx, :3, :3], motion[idx, :3, 3]
             poses = np.einsum("fji,fpj->fpi", rot, poses - trans[:, None, :])
         elif align:
-            rot, trans, scale = fit_rigid(ref, poses, scale=(dim == 2))
-            poses = np.einsum("fji,fpj->fpi", rot, poses - trans[:, None, :]) / scale[:, None, None]
+            chosen_frames[str(layer)] = poses
         layers[str(layer)] = poses
         if names is not None:
             pose_names[str(layer)] = [str(n) for n in names]
+    if chosen_frames:
+        layers.update(_align_poses(ref, chosen_frames, dim))
     if masks is None:
         masks = np.ones((1, n_points))
     return LayeredRig(layers, masks, pose_names=pose_names or None, region_names=region_names)
+
+
+def _align_poses(ref: np.ndarray, frames: dict, dim: int, rounds: int = ALIGN_ROUNDS) -> dict:
+    """The chosen frames (layer -> (K, N, D)) without their head motion, all layers together.
+
+    Plain Procrustes onto the neutral takes part of each expression for head motion (a jaw
+    opening tilts the head). We weight it by rigidity instead, as the retargeter does:
+    ``1 / (eps^2 + m_p^2)`` with ``m_p`` the RMS displacement of point p over the chosen
+    poses once aligned (``eps = config.HEAD_MOTION_RIGIDITY`` face sizes), re-estimated over
+    ``rounds`` rounds from the plain fit. 2D tracks: a similarity.
+    """
+    from faceretarget import config
+
+    names = list(frames)
+    stack = np.concatenate([frames[n] for n in names], axis=0)
+    size = float(np.sqrt(np.mean(np.sum((ref - ref.mean(axis=0)) ** 2, axis=-1))))
+    weights = None
+    for _ in range(rounds + 1):
+        rot, trans, scale = fit_rigid(ref, stack, weights, scale=(dim == 2))
+        aligned = np.einsum("fji,fpj->fpi", rot, stack - trans[:, None, :]) / scale[:, None, None]
+        motion2 = np.mean(np.sum((aligned - ref[None]) ** 2, axis=-1), axis=0)
+        weights = 1.0 / ((config.HEAD_MOTION_RIGIDITY * size) ** 2 + motion2)
+    out, start = {}, 0
+    for n in names:
+        out[n] = aligned[start:start + len(frames[n])]
+        start += len(frames[n])
+    return out
 
 
 def _recipe_tables(recipes):

@@ -28,13 +28,16 @@ def region_coefficients(weights: np.ndarray, coefficients: np.ndarray, layer_of:
     return weights[:, :, layer_of] * coefficients[:, None, :]
 
 
-def world_vertices(character: CharacterModel, beta: np.ndarray, head_motion: np.ndarray | None = None) -> np.ndarray:
+def world_vertices(character: CharacterModel, beta: np.ndarray, head_motion: np.ndarray | None = None,
+                   extra: np.ndarray | None = None) -> np.ndarray:
     """Eq. 5: ``(F, V, 3)`` character vertices for ``beta (F, m, K)`` and head motion ``(F, 4, 4)``.
 
-    Without ``head_motion`` the local (neutral-frame) vertices. Frames go in chunks: one
-    BLAS product per region into a scratch buffer, then one numba pass
+    Without ``head_motion`` the local (neutral-frame) vertices. ``extra (F, M)``: weights
+    of the character's residual block (its blendshape deltas), when it has one. Frames go
+    in chunks: one BLAS product per region into a scratch buffer, then one numba pass
     (``_kernels.assemble``) that adds each vertex's region products to the neutral and
-    applies the rigid motion, writing the output once.
+    applies the rigid motion, writing the output once. A single frame (streaming) only
+    reads the rows of each block whose coefficient is not zero.
     """
     from ._kernels import assemble
 
@@ -42,14 +45,28 @@ def world_vertices(character: CharacterModel, beta: np.ndarray, head_motion: np.
     out = np.empty((n_frames, character.n_vertices, 3))
     motion = np.tile(np.eye(4), (n_frames, 1, 1)) if head_motion is None else np.ascontiguousarray(head_motion, dtype=np.float64)
     offsets = character.offsets
+    n_layer = beta.shape[1]
     scratch = np.empty(min(CHUNK, n_frames) * int(offsets[-1]))
     for start in range(0, n_frames, CHUNK):
         stop = min(start + CHUNK, n_frames)
         n = stop - start
         for l, (ids, block) in enumerate(character.regions):
-            if ids.size:
-                dest = scratch[n * offsets[l]: n * offsets[l + 1]].reshape(n, block.shape[1])
-                np.matmul(np.ascontiguousarray(beta[start:stop, l, :]), block, out=dest)
+            if not ids.size:
+                continue
+            dest = scratch[n * offsets[l]: n * offsets[l + 1]].reshape(n, block.shape[1])
+            if l < n_layer:
+                coef = beta[start:stop, l, :]
+            elif extra is not None:
+                coef = extra[start:stop]
+            else:
+                dest[:] = 0.0
+                continue
+            if n == 1:
+                nz = np.flatnonzero(coef[0])
+                if nz.size < 0.7 * coef.shape[1]:
+                    np.matmul(coef[:, nz], block[nz], out=dest)
+                    continue
+            np.matmul(np.ascontiguousarray(coef), block, out=dest)
         assemble(scratch, offsets, n, character.neutral, character.vertex_ptr, character.entry_region, character.entry_col,
                  motion[start:stop], out[start:stop])
     return out
@@ -80,9 +97,13 @@ def build_projection(character: CharacterModel, rig) -> ProjectionModel:
     return ProjectionModel(gram, maps, offset, lower, upper)
 
 
-def project(model: ProjectionModel, beta: np.ndarray, x0=None) -> np.ndarray:
-    """Blendshape weights ``(F, M)`` closest to the layered output for ``beta (F, m, K)``."""
+def project(model: ProjectionModel, beta: np.ndarray, x0=None, extra: np.ndarray | None = None) -> np.ndarray:
+    """Blendshape weights ``(F, M)`` closest to the layered output for ``beta (F, m, K)``
+    (plus the residual block driven by ``extra (F, M_r)``, when the character has one)."""
     from faceretarget.geometry.nnls import bounded_lsq_gram
 
-    rhs = model.offset + sum(beta[:, l, :] @ mp for l, mp in enumerate(model.maps))
+    n_layer = beta.shape[1]
+    rhs = model.offset + sum(beta[:, l, :] @ mp for l, mp in enumerate(model.maps[:n_layer]))
+    if extra is not None and len(model.maps) > n_layer:
+        rhs = rhs + extra @ model.maps[n_layer]
     return bounded_lsq_gram(model.gram, rhs, model.lower, model.upper, x0=x0)

@@ -14,7 +14,9 @@ reading the prose supports)::
   absolute poses; where masks sum to less, points fall back to the neutral.
 - ``M_l`` is the diagonal of region mask l (values in [0, 1], one value per point,
   repeated over its coordinates); ``w_jl >= 0`` with ``sum_j w_jl = 1`` for each region
-  l (Sec. 3.2: "sum to 1 across j"); ``alpha_j`` on the simplex (Sec. 3.1).
+  l (Sec. 3.2: "sum to 1 across j"; ``composition="convex"``) or, by default, each
+  ``w_jl`` in [0, 1] (the layers add); ``alpha_j`` on the simplex (Sec. 3.1). The data
+  determine only the products ``w_jl alpha_jk`` (``Animation.extras["weighted_coefficients"]``).
 - 3D markers and 2D tracks are stacked in one vector ``x_A`` of ``D_A = 3 P1 + 2 P2``
   coordinates; their bases come from ``Source.actor_layers`` and
   ``Source.actor_layers_2d`` (same layer names, pose counts and region count).
@@ -27,14 +29,15 @@ sigma = .02, lambda = .2 in unstated units).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from faceretarget import config
 from faceretarget.errors import DegenerateGeometryError, InputError, TopologyMismatchError
 from faceretarget.model import LayeredRig
 
-__all__ = ["ActorModel", "CharacterModel", "build_actor", "build_character", "match_layers"]
+__all__ = ["ActorModel", "CharacterModel", "RigidProjection", "build_actor", "build_character", "match_layers"]
 
 #: Mask products below this fraction of the largest are treated as zero (region pairs
 #: that do not overlap skip their Gram block).
@@ -82,6 +85,7 @@ class ActorModel:
     rigid_weights2d: np.ndarray | None
     names3d: tuple
     names2d: tuple
+    rigid_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n_layers(self) -> int:
@@ -108,12 +112,74 @@ class ActorModel:
         """(J + 1,) start of each layer in the stacked pose axis."""
         return np.concatenate([[0], np.cumsum(np.bincount(self.layer_of, minlength=self.n_layers))])
 
+    def rigid_projection(self, motion3d: bool, similarity2d: bool) -> "RigidProjection | None":
+        """The alignment's small motions, for the projected data term of the alignment passes.
+
+        ``motion3d``: the 3D head motion is estimated (6 rigid parameters);
+        ``similarity2d``: the 2D tracks are aligned (4 similarity parameters). None when
+        neither. Cached per combination.
+        """
+        similarity2d = bool(similarity2d and self.n2)
+        key = (bool(motion3d), similarity2d)
+        if not any(key):
+            return None
+        if key not in self.rigid_cache:
+            self.rigid_cache[key] = _rigid_projection(self, *key)
+        return self.rigid_cache[key]
+
     def pose_index(self, layer: str, pose) -> int:
         """Stacked index of ``pose`` (name or position) in ``layer``."""
         j = self.layer_names.index(layer)
         names = self.pose_names[layer]
         k = names.index(pose) if isinstance(pose, str) else int(pose)
         return int(self.offsets[j] + k)
+
+
+@dataclass
+class RigidProjection:
+    """Small-motion Jacobian of the aligned data and its reduced forms (see ``_kernels``).
+
+    jac : (C, r) derivative of ``x_hat`` (normalised units) with respect to the r motion
+        parameters (3D: rotation about the markers' centroid and translation; 2D: rotation,
+        scale, translation), zero rows elsewhere; jac_t : (r, C) its transpose (contiguous)
+    jtj : (r, r); uraw : (r, m, K) ``jac^T M_l b_a``
+    """
+
+    jac: np.ndarray
+    jac_t: np.ndarray
+    jtj: np.ndarray
+    uraw: np.ndarray
+
+
+def _rigid_projection(actor: "ActorModel", motion3d: bool, similarity2d: bool) -> RigidProjection:
+    n_coords = actor.basis_t.shape[0]
+    cols = []
+    if motion3d:
+        p = actor.reference3d - actor.reference3d.mean(axis=0)
+        block = np.zeros((actor.n3, 3, 6))
+        # d(local point)/d(rotation w) = [p]x (local p' = p - w x p), d/d(translation) = -I
+        block[:, 0, 1], block[:, 0, 2] = -p[:, 2], p[:, 1]
+        block[:, 1, 0], block[:, 1, 2] = p[:, 2], -p[:, 0]
+        block[:, 2, 0], block[:, 2, 1] = -p[:, 1], p[:, 0]
+        block[:, :, 3:] = -np.eye(3)
+        jac = np.zeros((n_coords, 6))
+        jac[: 3 * actor.n3] = block.reshape(3 * actor.n3, 6) / actor.scale3d
+        cols.append(jac)
+    if similarity2d:
+        p = actor.reference2d - actor.reference2d.mean(axis=0)
+        block = np.zeros((actor.n2, 2, 4))
+        block[:, 0, 0], block[:, 1, 0] = p[:, 1], -p[:, 0]  # rotation
+        block[:, :, 1] = -p  # scale
+        block[:, :, 2:] = -np.eye(2)  # translation
+        jac = np.zeros((n_coords, 4))
+        jac[3 * actor.n3:] = block.reshape(2 * actor.n2, 4) / actor.scale2d
+        cols.append(jac)
+    jac = np.ascontiguousarray(np.concatenate(cols, axis=1))
+    m, K = actor.n_regions, actor.n_poses
+    jtj = jac.T @ jac
+    uraw = (jac.T @ actor.projector_t.T).reshape(-1, m, K)
+    return RigidProjection(jac=jac, jac_t=np.ascontiguousarray(jac.T), jtj=np.ascontiguousarray(jtj),
+                           uraw=np.ascontiguousarray(uraw))
 
 
 @dataclass
@@ -127,6 +193,8 @@ class CharacterModel:
     offsets : (m + 1,) cumulative widths (3 S_l) of the region products ``beta_l @ block_l``
     vertex_ptr : (V + 1,), entry_region, entry_col : (E,) CSR map vertex -> (region, column
         of the x of its 3-vector in that region's product); no entry outside every region.
+    n_layer_regions : m; a further block after the m region blocks is the residual's
+        (the character's blendshape deltas, driven by the residual weights)
     """
 
     neutral: np.ndarray
@@ -137,6 +205,7 @@ class CharacterModel:
     vertex_ptr: np.ndarray
     entry_region: np.ndarray
     entry_col: np.ndarray
+    n_layer_regions: int = -1
 
     @property
     def n_vertices(self) -> int:
@@ -188,12 +257,15 @@ def _part(poses: list[np.ndarray], reference: np.ndarray, what: str):
             f"{what}: every pose equals the neutral reference, so the layers carry no expression; "
             "build the bases from expressive frames (actor_layers_from_frames)"
         )
-    motion = np.sqrt(np.sum(disp**2, axis=-1)).max(axis=0)  # (P,) largest displacement of each point
-    tau = float(np.median(motion))
-    if tau <= 0.0:
-        tau = float(motion.mean())
-    rigid = 1.0 / (1.0 + (motion / tau) ** 2) if tau > 0 else np.ones_like(motion)
-    return disp, scale, rigid
+    # rigidity weights 1 / (eps^2 + m^2), m = RMS displacement of the point over the poses,
+    # eps = config.HEAD_MOTION_RIGIDITY face sizes (as faceretarget.geometry.head_motion does)
+    motion2 = np.mean(np.sum(disp**2, axis=-1), axis=0)
+    size = float(np.sqrt(np.mean(np.sum((reference - reference.mean(axis=0)) ** 2, axis=-1))))
+    eps2 = (config.HEAD_MOTION_RIGIDITY * size) ** 2
+    if not eps2 > 0:
+        eps2 = float(motion2.mean()) or 1.0
+    rigid = 1.0 / (eps2 + motion2)
+    return disp, scale, rigid / rigid.mean()
 
 
 def build_actor(layers3d: LayeredRig, reference3d, layers2d: LayeredRig | None = None, reference2d=None,
@@ -253,8 +325,12 @@ def build_actor(layers3d: LayeredRig, reference3d, layers2d: LayeredRig | None =
     )
 
 
-def build_character(layers: LayeredRig, neutral, actor_layers: LayeredRig) -> CharacterModel:
-    """The character's masked displacement blocks, in the actor's layer/pose order."""
+def build_character(layers: LayeredRig, neutral, actor_layers: LayeredRig, extra=None) -> CharacterModel:
+    """The character's masked displacement blocks, in the actor's layer/pose order.
+
+    ``extra (M, V, 3)``: further displacements (the residual's blendshape deltas), one
+    more block over the vertices they move.
+    """
     base = np.asarray(neutral, dtype=np.float64)
     if layers.dim != 3 or layers.n_points != base.shape[0]:
         raise TopologyMismatchError(
@@ -273,6 +349,13 @@ def build_character(layers: LayeredRig, neutral, actor_layers: LayeredRig) -> Ch
         vertex_of.append(ids)
         region_of.append(np.full(ids.size, l))
         columns.append(3 * np.arange(ids.size))
+    if extra is not None:
+        extra = np.asarray(extra, dtype=np.float64)
+        ids = np.flatnonzero(np.abs(extra).max(axis=(0, 2)) > 0)
+        regions.append((ids, np.ascontiguousarray(extra[:, ids, :].reshape(extra.shape[0], -1))))
+        vertex_of.append(ids)
+        region_of.append(np.full(ids.size, masks.shape[0]))
+        columns.append(3 * np.arange(ids.size))
     vertex_of, region_of, columns = np.concatenate(vertex_of), np.concatenate(region_of), np.concatenate(columns)
     order = np.argsort(vertex_of, kind="stable")
     ptr = np.zeros(base.shape[0] + 1, dtype=np.int64)
@@ -286,4 +369,4 @@ def build_character(layers: LayeredRig, neutral, actor_layers: LayeredRig) -> Ch
     return CharacterModel(neutral=base, regions=regions, block_data=block_data, block_offsets=block_offsets,
                           offsets=np.concatenate([[0], np.cumsum(widths)]).astype(np.int64),
                           vertex_ptr=np.cumsum(ptr), entry_region=region_of[order].astype(np.int64),
-                          entry_col=columns[order].astype(np.int64))
+                          entry_col=columns[order].astype(np.int64), n_layer_regions=int(masks.shape[0]))

@@ -2,10 +2,13 @@
 
 fit: assemble the actor's bases (``Source.actor_layers`` over the markers, plus
 ``Source.actor_layers_2d`` over 2D tracks when given), the character's
-(``TargetRig.layers``), and the lip-closure bias. retarget: per frame head motion by
-Procrustes, layer weights and simplex coefficients by the biased, smoothed bilinear
-problem (Eq. 7), then the character by the same composition (Eq. 5). See ``model.py``,
-``solver.py`` and ``compose.py`` for the equations as read from the paper.
+(``TargetRig.layers``), the lip-closure bias and, when the character has blendshapes and
+landmarks paired with the markers, the residual transfer (``residual.py``). retarget: a
+whole-shot test of whether there is head motion at all, the alignment (Procrustes, then
+model-based), layer weights and simplex coefficients by the biased, smoothed bilinear
+problem (Eq. 7), then the character by the same composition (Eq. 5) plus the residual.
+See ``model.py``, ``solver.py``, ``compose.py`` and ``docs/methods/layers.md`` for the
+equations as read from the paper and where (and why) the defaults depart from it.
 """
 from __future__ import annotations
 
@@ -14,13 +17,15 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from faceretarget._validate import check_bool, check_choice, check_number, check_param, short_repr
-from faceretarget.errors import CapabilityError, ConfigError, InputError, ShapeError, TopologyMismatchError
+from faceretarget.errors import (CapabilityError, ConfigError, FaceRetargetError, InputError, ShapeError,
+                                 TopologyMismatchError)
 from faceretarget.model import Animation, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
 
 from . import compose
 from .model import build_actor, build_character
-from .solver import extract, observe, resolve_lip_bias
+from .residual import RESIDUAL_MODES, build_residual, solve_residual
+from .solver import extract, fit_block, observe, reconstruct, resolve_lip_bias
 
 __all__ = ["LayersRetargeter"]
 
@@ -29,6 +34,9 @@ __all__ = ["LayersRetargeter"]
 MAX_SMOOTHING = 1e6
 MAX_LIP_SIGMA = 1e6
 MAX_ITER = 10_000
+MAX_REFINEMENT = 20
+COMPOSITIONS = ("additive", "convex")
+HEAD_MOTION = ("auto", "procrustes", "none")
 
 
 def _number(value, name: str, **limits):
@@ -78,13 +86,56 @@ def _flag(value, name: str) -> bool:
     return check_param(check_bool, value, name)
 
 
+#: The head-motion significance test looks at about this many frames spread over the shot.
+GATE_FRAMES = 200
+#: A size ratio within this fraction of a power of ten is a change of units (m, cm, mm).
+UNIT_TOLERANCE = 0.25
+
+
+def _motion_map(residual, actor_reference, character_neutral):
+    """(q (3, 3), k) turning the actor's head motion into the character's, or None; and a note.
+
+    The paper (sec. 5) applies the actor's rotation and translation to the character as
+    they are, which assumes one frame and one unit. We keep that when the character is
+    about the actor's size and posed alike, and otherwise convert: ``k`` scales the
+    translation (the power of ten nearest the size ratio when within 25% of it: a change
+    of units, metres vs centimetres; else the ratio itself: a character of another size)
+    and ``q`` turns the rotation into the character's frame when the faces are posed more
+    than 10 degrees apart. The size ratio and the posing come from the similarity fit of
+    the landmarks paired with the markers (the residual's). Without paired landmarks only a
+    change of units is corrected: the power of ten nearest the ratio of the RMS radii of
+    the character's neutral and the markers.
+    """
+    ref = np.asarray(actor_reference, dtype=np.float64)
+    q = np.eye(3)
+    if residual is not None:
+        ratio = residual.scale
+        q = residual.transfer / residual.scale
+        source = "landmark similarity"
+    else:
+        neutral = np.asarray(character_neutral, dtype=np.float64)
+        size_a = float(np.sqrt(np.mean(np.sum((ref - ref.mean(axis=0)) ** 2, axis=1))))
+        size_c = float(np.sqrt(np.mean(np.sum((neutral - neutral.mean(axis=0)) ** 2, axis=1))))
+        if not (size_a > 0 and size_c > 0 and np.isfinite(size_c / size_a)):
+            return None, "as the actor's"
+        ratio = size_c / size_a
+        source = "size ratio"
+    power = 10.0 ** np.round(np.log10(ratio))
+    # the landmark fit measures the size ratio; the radii only the units (the markers
+    # cover less than the character's mesh, so their ratio is not a size ratio)
+    k = power if (residual is None or abs(ratio / power - 1.0) < UNIT_TOLERANCE) else ratio
+    if k == 1.0 and np.allclose(q, np.eye(3)):
+        return None, f"as the actor's ({source} {ratio:.4g}: same units)"
+    return (q, float(k)), f"translation x {k:.6g} ({source} {ratio:.4g}){', rotation into the character frame' if not np.allclose(q, np.eye(3)) else ''}"
+
+
 class LayersRetargeter(Retargeter):
     """Deconstruct the actor into emotion/speech/blink layers and rebuild the character in parallel."""
 
     name = "layers"
     capabilities = Capabilities(
         sources=("markers", "mesh"),
-        needs=("layers", "actor_layers"),
+        needs=("layers", "actor_layers", "source_landmarks"),
         outputs="vertices",
         stream=True,
         edit=False,
@@ -92,17 +143,20 @@ class LayersRetargeter(Retargeter):
     )
     summary = "Layered simplicial bases (emotion, speech, blink) with region mask weights, transferred parameter-parallel"
     parameter_docs = {
-        "smoothing": "lambda of Eq. 7: pull of each frame's weights and coefficients towards the previous frame's",
+        "smoothing": "lambda of Eq. 7: pull of each frame's weights and coefficients (and residual weights) towards the previous frame's",
         "lip_sigma": "sigma of the lip-closure bias, as a fraction of the widest lip opening among the speech poses (0: bias off)",
         "gamma_max": "cap on the bias factor gamma < 1, so the data term never vanishes on closed lips",
         "lip_markers": "(upper, lower) lip marker or 2D-track names, or 3D marker indices; default: by name ('lip' + upper/lower) or geometry",
         "speech_layer": "name of the layer holding the visemes (the bias target)",
         "closed_viseme": "closed-lips pose of the speech layer (name or index); default: its first pose",
         "mouth_region": "region the bias acts on (name or index); default: the region covering the lip markers",
-        "head_motion": "'auto' (Source.head_motion if given, else Procrustes) or 'procrustes' (always estimate)",
+        "composition": "'additive' (each layer weight w_jl in [0, 1]: the layers add) or 'convex' (the paper: sum_j w_jl = 1 per region)",
+        "head_motion": "'auto' (Source.head_motion if given, else estimated when a whole-shot significance test finds head motion, else none), 'procrustes' (always estimate) or 'none' (the source has no head motion)",
+        "head_motion_refinement": "model-based alignment rounds (solve with the data taken modulo the alignment's small motions, then align each frame to the model's reconstruction); 0 = the paper's alignment to the mean",
         "rigid_points": "'stable' (weight the rigid fit to points the layers barely move) or 'all' (plain Procrustes)",
+        "residual": "'auto' (carry what the layers do not span through TargetRig.blendshapes at its landmarks, when it has both), 'blendshapes' (require it) or 'none' (the paper: layers only)",
         "project_blendshapes": "also project every frame onto TargetRig.blendshapes by bounded least squares (output weights)",
-        "max_iter": "maximum alternations (weights step + coefficients step) per frame",
+        "max_iter": "maximum Levenberg-Marquardt steps per frame",
         "tol": "relative decrease of the objective below which a frame has converged",
     }
 
@@ -110,14 +164,17 @@ class LayersRetargeter(Retargeter):
         self,
         *,
         smoothing: float = 0.02,
-        lip_sigma: float = 0.1,
+        lip_sigma: float = 0.02,
         gamma_max: float = 0.9,
         lip_markers=None,
         speech_layer: str = "speech",
         closed_viseme=None,
         mouth_region=None,
+        composition: str = "additive",
         head_motion: str = "auto",
+        head_motion_refinement: int = 1,
         rigid_points: str = "stable",
+        residual: str = "auto",
         project_blendshapes: bool = False,
         max_iter: int = 100,
         tol: float = 1e-8,
@@ -129,8 +186,11 @@ class LayersRetargeter(Retargeter):
         self.speech_layer = speech_layer
         self.closed_viseme = closed_viseme
         self.mouth_region = mouth_region
+        self.composition = composition
         self.head_motion = head_motion
+        self.head_motion_refinement = head_motion_refinement
         self.rigid_points = rigid_points
+        self.residual = residual
         self.project_blendshapes = project_blendshapes
         self.max_iter = max_iter
         self.tol = tol
@@ -149,8 +209,12 @@ class LayersRetargeter(Retargeter):
             speech_layer=speech,
             closed_viseme=_name_or_index(self.closed_viseme, "closed_viseme", "pose of the speech layer"),
             mouth_region=_name_or_index(self.mouth_region, "mouth_region", "region"),
-            head_motion=_choice(self.head_motion, "head_motion", ("auto", "procrustes")),
+            composition=_choice(self.composition, "composition", COMPOSITIONS),
+            head_motion=_choice(self.head_motion, "head_motion", HEAD_MOTION),
+            head_motion_refinement=_number(self.head_motion_refinement, "head_motion_refinement", integer=True, low=0,
+                                           high=MAX_REFINEMENT),
             rigid_points=_choice(self.rigid_points, "rigid_points", ("stable", "all")),
+            residual=_choice(self.residual, "residual", RESIDUAL_MODES),
             project_blendshapes=_flag(self.project_blendshapes, "project_blendshapes"),
             max_iter=_number(self.max_iter, "max_iter", integer=True, low=1, high=MAX_ITER),
             tol=_number(self.tol, "tol", low=0),
@@ -180,7 +244,16 @@ class LayersRetargeter(Retargeter):
             ref2d = np.asarray(source.tracks2d.reference, dtype=np.float64)
             names2d = source.tracks2d.names
         actor = build_actor(layers3d, ref3d, layers2d, ref2d, names3d, names2d or ())
-        character = build_character(target.layers, target.neutral.vertices, layers3d)
+        residual, why = None, "off (residual='none')"
+        if params["residual"] != "none":
+            residual, why = build_residual(ref3d, names3d, target.neutral, target.landmarks, target.blendshapes)
+            if residual is None:
+                if params["residual"] == "blendshapes":
+                    raise CapabilityError(f"layers: residual='blendshapes' needs a TargetRig with blendshapes and landmarks "
+                                          f"paired with the source's markers; {why}")
+                why = f"off: {why}"
+        character = build_character(target.layers, target.neutral.vertices, layers3d,
+                                    extra=None if residual is None else target.blendshapes.deltas)
         speech = params["speech_layer"]
         poses3 = np.asarray(layers3d.layers[speech], float) if speech in layers3d.layers else None
         poses2 = np.asarray(layers2d.layers[speech], float) if (layers2d is not None and speech in layers2d.layers) else None
@@ -193,6 +266,10 @@ class LayersRetargeter(Retargeter):
         self.actor_ = actor
         self.character_ = character
         self.lip_ = lip
+        self.residual_ = residual
+        self.motion_map_, self.motion_note_ = _motion_map(residual, ref3d, target.neutral.vertices)
+        self.residual_note_ = why or (f"blendshapes: {residual.n_shapes} shapes through {len(residual.marker_ids)} landmarks, "
+                                      f"scale {residual.scale:.6g}")
         self.projection_ = compose.build_projection(character, target.blendshapes) if params["project_blendshapes"] else None
         self.rig_ = target.blendshapes if params["project_blendshapes"] else None
         self.triangles_ = np.asarray(target.neutral.triangles)
@@ -200,23 +277,60 @@ class LayersRetargeter(Retargeter):
         self.source_landmarks_ = source.landmarks if source.kind == "mesh" else None
         self.source_triangles_ = np.asarray(source.performance.triangles) if source.kind == "mesh" else None
         self.source_vertex_count_ = source.performance.n_vertices if source.kind == "mesh" else None
+        # streaming cannot see a whole shot: it follows the significance test on the fit source
+        self.stream_head_motion_ = True
+        if params["head_motion"] == "auto" and source.head_motion is None and source.n_frames:
+            self.stream_head_motion_ = self._detect_head_motion(source.marker_positions())[0]
 
     # -- retarget --------------------------------------------------------------------
+    def _settings(self) -> dict:
+        """The retarget-time parameters, checked again (set_params may change them after fit)."""
+        return dict(
+            rigid_points=_choice(self.rigid_points, "rigid_points", ("stable", "all")),
+            smoothing=_number(self.smoothing, "smoothing", low=0, high=MAX_SMOOTHING),
+            gamma_max=self._gamma_max(),
+            max_iter=_number(self.max_iter, "max_iter", integer=True, low=1, high=MAX_ITER),
+            tol=_number(self.tol, "tol", low=0),
+            additive=_choice(self.composition, "composition", COMPOSITIONS) == "additive",
+            passes=1 + _number(self.head_motion_refinement, "head_motion_refinement", integer=True, low=0,
+                               high=MAX_REFINEMENT),
+        )
+
+    def _solve(self, markers, tracks, head_motion, states=None, frame_offset=0, settings=None):
+        """(observations, extraction, residual weights or None, states) of a block of frames.
+
+        ``states``: (per-pass layer states, residual state) of the frame before the block.
+        See ``solver.fit_block`` and ``residual.solve_residual``.
+        """
+        settings = self._settings() if settings is None else settings
+        layer_states, residual_state = (None, None) if states is None else states
+        residual = getattr(self, "residual_", None)
+        obs, params, layer_states = fit_block(self.actor_, self.lip_, markers, tracks, head_motion, states=layer_states,
+                                              frame_offset=frame_offset, keep_local=residual is not None,
+                                              **settings)
+        weights = None
+        if residual is not None:
+            recon, _ = reconstruct(self.actor_, params)
+            weights, residual_state = solve_residual(residual, obs.local3 - recon, settings["smoothing"], residual_state)
+        return obs, params, weights, (layer_states, residual_state)
+
     def _observe(self, markers, tracks, head_motion, frame_offset=0):
+        """Pass 0 only: alignment to the neutral (the paper's Eq. 6)."""
         rigid_points = _choice(self.rigid_points, "rigid_points", ("stable", "all"))
         return observe(self.actor_, self.lip_, markers, tracks, head_motion, rigid_points=rigid_points,
                        frame_offset=frame_offset)
 
-    def _extract(self, obs, state=None):
-        # read at retarget time (as before), checked again in case set_params changed them after fit
-        return extract(self.actor_, self.lip_, obs,
-                       smoothing=_number(self.smoothing, "smoothing", low=0, high=MAX_SMOOTHING),
-                       gamma_max=self._gamma_max(),
-                       max_iter=_number(self.max_iter, "max_iter", integer=True, low=1, high=MAX_ITER),
-                       tol=_number(self.tol, "tol", low=0), state=state)
+    def _extract(self, obs, state=None, start=None, rigid=None):
+        """One solve of Eq. 7 over the observed block (``rigid``: data modulo the alignment's motions)."""
+        st = self._settings()
+        return extract(self.actor_, self.lip_, obs, smoothing=st["smoothing"], gamma_max=st["gamma_max"],
+                       max_iter=st["max_iter"], tol=st["tol"], state=state, additive=st["additive"], start=start,
+                       rigid=rigid)
 
     def _inputs(self, source: Source):
-        """(markers, tracks, known head motion) of a source, checked against the fitted model."""
+        """(markers, tracks, head motion, note) of a source; head motion: known (F, 4, 4), None
+        (estimate) or "none" (identity: head_motion='none', or 'auto' and the whole-shot
+        significance test finds no head motion)."""
         if not isinstance(source, Source):
             raise ShapeError(f"layers: expected a faceretarget.Source, got {type(source).__name__}")
         markers = source.marker_positions()
@@ -229,21 +343,61 @@ class LayersRetargeter(Retargeter):
             if source.tracks2d is None:
                 raise CapabilityError(f"layers: the model was fitted with {self.actor_.n2} 2D tracks; this source has no tracks2d")
             tracks = source.tracks2d.positions
-        head_motion = _choice(self.head_motion, "head_motion", ("auto", "procrustes"))
-        known = source.head_motion if head_motion == "auto" else None
-        return markers, tracks, known
+        mode = _choice(self.head_motion, "head_motion", HEAD_MOTION)
+        if mode == "none":
+            return markers, tracks, "none", "none (head_motion='none')"
+        if mode == "auto" and source.head_motion is not None:
+            return markers, tracks, source.head_motion, "known (Source.head_motion)"
+        if mode == "auto":
+            detected, evidence = self._detect_head_motion(markers)
+            note = f"{'estimated' if detected else 'none'} (significance test: evidence {evidence:.3g})"
+            return markers, tracks, (None if detected else "none"), note
+        return markers, tracks, None, "estimated (head_motion='procrustes')"
+
+    def _character_motion(self, motion: np.ndarray) -> np.ndarray:
+        """The actor's head motion ``(F, 4, 4)`` as the character's (units and frame; see ``_motion_map``)."""
+        if self.motion_map_ is None:
+            return motion
+        q, k = self.motion_map_
+        out = np.array(motion, dtype=np.float64)
+        out[:, :3, :3] = q @ motion[:, :3, :3] @ q.T
+        out[:, :3, 3] = k * motion[:, :3, 3] @ q.T
+        return out
+
+    def _detect_head_motion(self, markers) -> tuple[bool, float]:
+        """Whether the markers hold significant rigid head motion beyond what the actor's
+        poses explain (``faceretarget.geometry.head_motion``, whole-shot significance test)."""
+        from faceretarget.geometry.head_motion import estimate_head_motion
+
+        actor = self.actor_
+        basis = actor.basis_t[: 3 * actor.n3] * actor.scale3d  # (3 N3, K): every pose's displacement
+        # the neutral poses (zero displacement) and repeated poses add nothing to the span
+        norms = np.linalg.norm(basis, axis=0)
+        keep = norms > 1e-9 * max(float(norms.max()), np.finfo(float).tiny)
+        basis = np.unique(basis[:, keep], axis=1)
+        x = np.asarray(markers, dtype=np.float64)
+        if x.shape[0] == 0:
+            return False, 0.0
+        # the evidence is a sum over frames: ~GATE_FRAMES frames spread over the shot tell as much
+        x = x[:: max(1, -(-x.shape[0] // GATE_FRAMES))]
+        try:
+            _, info = estimate_head_motion(actor.reference3d, x, basis=basis, return_info=True)
+        except (FaceRetargetError, np.linalg.LinAlgError):
+            # the test cannot be made (too few markers, a degenerate basis): estimate per frame
+            return True, float("nan")
+        return bool(info.detected), float(info.evidence)
 
     def _retarget(self, source: Source) -> Animation:
-        obs = self._observe(*self._inputs(source))
-        params, _ = self._extract(obs)
+        markers, tracks, known, note = self._inputs(source)
+        obs, params, residual, _ = self._solve(markers, tracks, known)
         beta = compose.region_coefficients(params.weights, params.coefficients, self.actor_.layer_of)
-        extras = self._extras(params)
-        common = dict(head_motion=obs.head_motion, fps=source.fps, extras=extras,
-                      provenance={"diagnostics": self._diagnostics(params)})
+        extras = self._extras(params, obs, residual)
+        common = dict(head_motion=self._character_motion(obs.head_motion), fps=source.fps, extras=extras,
+                      provenance={"diagnostics": self._diagnostics(params, note)})
         if self.projection_ is not None:
-            weights = compose.project(self.projection_, beta)
+            weights = compose.project(self.projection_, beta, extra=residual)
             return Animation(weights=weights, rig=self.rig_, **common)
-        vertices = compose.world_vertices(self.character_, beta, obs.head_motion)
+        vertices = compose.world_vertices(self.character_, beta, common["head_motion"], extra=residual)
         return Animation(vertices=vertices, triangles=self.triangles_, **common)
 
     def deconstruct(self, source: Source) -> dict:
@@ -256,34 +410,38 @@ class LayersRetargeter(Retargeter):
         ``rms_error (F,)`` (RMS distance to the observed markers, marker units).
         """
         self._check_fitted()
-        markers, tracks, known = self._inputs(source)
-        obs = self._observe(markers, tracks, known)
-        params, _ = self._extract(obs)
-        actor = self.actor_
-        beta = compose.region_coefficients(params.weights, params.coefficients, actor.layer_of)
-        flat = beta.reshape(beta.shape[0], -1) @ actor.projector_t  # (F, C): Eq. 4 inside the brackets, normalised
-        local = flat[:, : 3 * actor.n3].reshape(-1, actor.n3, 3) * actor.scale3d + actor.reference3d
+        markers, tracks, known, _ = self._inputs(source)
+        obs, params, residual, _ = self._solve(markers, tracks, known)
+        local, _ = reconstruct(self.actor_, params)  # Eq. 4 inside the brackets
         rot, trans = obs.head_motion[:, :3, :3], obs.head_motion[:, :3, 3]
         world = np.einsum("fij,fpj->fpi", rot, local) + trans[:, None, :]
         dist2 = np.sum((world - np.asarray(markers, dtype=np.float64)) ** 2, axis=-1)
-        out = self._extras(params)
+        out = self._extras(params, obs, residual)
         out.update(head_motion=obs.head_motion, reconstruction=world,
                    rms_error=np.sqrt(np.nanmean(dist2, axis=1)))
         return out
 
-    def _extras(self, params) -> dict:
+    def _extras(self, params, obs=None, residual=None) -> dict:
         actor = self.actor_
         offsets = actor.offsets
-        return {
+        beta = compose.region_coefficients(params.weights, params.coefficients, actor.layer_of)
+        out = {
             "layer_weights": params.weights,
             "layer_names": actor.layer_names,
             "region_names": actor.region_names,
             "coefficients": {n: params.coefficients[:, offsets[j]:offsets[j + 1]] for j, n in enumerate(actor.layer_names)},
+            "weighted_coefficients": {n: beta[:, :, offsets[j]:offsets[j + 1]] for j, n in enumerate(actor.layer_names)},
             "lip_gamma": params.gamma,
             "objective": params.objective,
         }
+        if obs is not None and obs.alignment2d is not None:
+            out["alignment_2d"] = obs.alignment2d
+        if residual is not None:
+            out["residual_weights"] = residual
+            out["residual_names"] = self.residual_.names
+        return out
 
-    def _diagnostics(self, params) -> dict:
+    def _diagnostics(self, params, head_motion_note: str = "") -> dict:
         lip = self.lip_
         return {
             "lip_markers": list(lip.names) if lip.enabled else None,
@@ -291,6 +449,9 @@ class LayersRetargeter(Retargeter):
             "mouth_region": self.actor_.region_names[lip.mouth] if lip.enabled else None,
             "mean_iterations": float(np.mean(params.iterations)),
             "max_iterations": int(np.max(params.iterations)),
+            "residual": self.residual_note_,
+            "head_motion": head_motion_note,
+            "head_motion_units": self.motion_note_,
         }
 
     # -- streaming -------------------------------------------------------------------
@@ -301,24 +462,38 @@ class LayersRetargeter(Retargeter):
         when fitted on a mesh source (sampled at its landmarks), a pair ``(markers,
         tracks2d (N2, 2))``, or a dict with ``"markers"``, optional ``"tracks2d"`` and
         ``"head_motion" (4, 4)``. The result equals :meth:`retarget` on the same frames
-        (up to rounding) when the batch source carries no known head motion.
+        (up to rounding) when the batch source carries no known head motion. A stream cannot
+        run the whole-shot head-motion test (``head_motion="auto"``): frames without a known
+        head motion follow the test made at ``fit`` on the fit source (estimated per frame,
+        or none).
         """
         self._check_fitted()
         return self._stream(iter(frames))
 
     def _stream(self, frames: Iterator) -> Iterator[np.ndarray]:
-        state = None
+        states = None
+        settings = self._settings()
+        mode = _choice(self.head_motion, "head_motion", HEAD_MOTION)
         for index, item in enumerate(frames):
             markers, tracks, head = self._parse_frame(item, index)
-            obs = self._observe(markers[None], None if tracks is None else tracks[None], None if head is None else head[None], index)
-            params, state = self._extract(obs, state)
+            if mode == "none":
+                known = "none"
+            elif mode == "auto" and head is not None:
+                known = head[None]
+            elif mode == "auto" and not self.stream_head_motion_:
+                known = "none"  # the fit source's significance test found none
+            else:
+                known = None
+            obs, params, residual, states = self._solve(markers[None], None if tracks is None else tracks[None], known,
+                                                        states, index, settings)
             beta = compose.region_coefficients(params.weights, params.coefficients, self.actor_.layer_of)
+            motion = self._character_motion(obs.head_motion)
             if self.projection_ is not None:
-                local = self.rig_.evaluate(compose.project(self.projection_, beta))
-                rot, trans = obs.head_motion[0, :3, :3], obs.head_motion[0, :3, 3]
+                local = self.rig_.evaluate(compose.project(self.projection_, beta, extra=residual))
+                rot, trans = motion[0, :3, :3], motion[0, :3, 3]
                 yield local[0] @ rot.T + trans
             else:
-                yield compose.world_vertices(self.character_, beta, obs.head_motion)[0]
+                yield compose.world_vertices(self.character_, beta, motion, extra=residual)[0]
 
     def _parse_frame(self, item, index: int):
         tracks = head = None

@@ -38,30 +38,37 @@ def test_defaults_with_estimated_head_motion_stay_close():
     assert _rel_error(anim, problem) < 0.01
 
 
+@pytest.mark.parametrize("composition", ["additive", "convex"])
 @pytest.mark.parametrize("kwargs", [{}, {"n_tracks": 12}, {"noise": 0.02}])
-def test_constraints_hold_on_every_frame(kwargs):
-    problem = make_problem(2, **kwargs)
-    anim = LayersRetargeter().fit(problem["source"], problem["target"]).retarget(problem["source"])
+def test_constraints_hold_on_every_frame(kwargs, composition):
+    problem = make_problem(2, composition=composition, **kwargs)
+    anim = LayersRetargeter(composition=composition).fit(problem["source"], problem["target"]).retarget(problem["source"])
     w = anim.extras["layer_weights"]
     assert (w >= 0).all()
-    np.testing.assert_allclose(w.sum(axis=2), 1.0, rtol=0, atol=1e-13)
+    if composition == "convex":  # the paper: each region's layer weights sum to 1
+        np.testing.assert_allclose(w.sum(axis=2), 1.0, rtol=0, atol=1e-13)
+    else:  # additive: each weight in [0, 1] on its own
+        assert w.max() <= 1.0 and w.sum(axis=2).max() > 1.2
     for coeffs in anim.extras["coefficients"].values():
         assert (coeffs >= 0).all()
         np.testing.assert_allclose(coeffs.sum(axis=1), 1.0, rtol=0, atol=1e-13)
+    # the identifiable products w_jl * alpha_jk are in the outputs
+    for j, (layer, coeffs) in enumerate(anim.extras["coefficients"].items()):
+        np.testing.assert_array_equal(anim.extras["weighted_coefficients"][layer], w[:, :, j, None] * coeffs[:, None, :])
 
 
-def _frame_problems(problem, retargeter, source):
-    """Per frame: x_hat, the weights of Eq. 7 and the bias indices, as the naive reference wants them."""
-    actor, lip = retargeter.actor_, retargeter.lip_
-    markers, tracks, known = retargeter._inputs(source)
-    obs = observe(actor, lip, markers, tracks, known, rigid_points=retargeter.rigid_points, keep_xhat=True)
-    params, _ = retargeter._extract(obs)
-    return actor, lip, obs, params
+@pytest.mark.parametrize("case, composition, projected", [
+    ("plain", "additive", False), ("missing", "additive", False), ("tracks", "additive", False),
+    ("plain", "convex", False), ("missing", "convex", False), ("tracks", "convex", False),
+    ("plain", "additive", True), ("missing", "additive", True), ("tracks", "additive", True),
+])
+def test_objective_at_or_below_slsqp_reference(case, composition, projected):
+    """Each frame, from the same previous state: our objective <= SLSQP's (scipy, full coordinates).
 
-
-@pytest.mark.parametrize("case", ["plain", "missing", "tracks"])
-def test_objective_at_or_below_slsqp_reference(case):
-    """Each frame, from the same previous state: our objective <= SLSQP's (scipy, full coordinates)."""
+    ``projected``: the solve of an estimated alignment, whose data term is measured modulo
+    the alignment's small motions (3D rigid, 2D similarity): the reference projects the
+    residual off those motions in the full coordinates.
+    """
     kwargs = {"n_tracks": 10} if case == "tracks" else {}
     problem = make_problem(3, n_markers=30, sizes=(4, 3, 2), n_frames=6, noise=0.02, **kwargs)
     source = problem["source"]
@@ -71,21 +78,27 @@ def test_objective_at_or_below_slsqp_reference(case):
         pos[4, [1, 20]] = np.nan  # a lip marker too: no bias on that frame
         source = fr.Source(fr.MarkerSequence(pos, names=source.performance.names, reference=source.performance.reference),
                            actor_layers=source.actor_layers)
-    r = LayersRetargeter(smoothing=0.05, lip_sigma=0.5, tol=1e-12).fit(source, problem["target"])
-    actor, lip, obs, params = _frame_problems(problem, r, source)
+    r = LayersRetargeter(smoothing=0.05, lip_sigma=0.5, tol=1e-12, composition=composition).fit(source, problem["target"])
+    actor, lip = r.actor_, r.lip_
+    markers, tracks, _, _ = r._inputs(source)
+    rigid = actor.rigid_projection(True, actor.n2 > 0) if projected else None
+    obs = observe(actor, lip, markers, tracks, None, rigid_points=r.rigid_points, keep_xhat=True, rigid=rigid)
+    params, _ = r._extract(obs, rigid=rigid)
     basis, masks = actor.basis_t.T, actor.coord_masks
     gamma = params.gamma
     assert gamma.max() > 0.05  # the bias is active on some frames
+    additive = composition == "additive"
     c_d = (1 - gamma) / obs.n_valid
-    w_prev, a_prev = uniform_state(actor)
+    w_prev, a_prev = uniform_state(actor, additive)
+    jac = None if rigid is None else rigid.jac
     for t in range(obs.g.shape[0]):
         c_s = r.smoothing if t else 0.0
         valid = ~obs.missing[t]
         ours = frame_objective(obs.xhat[t], valid, basis, masks, actor.layer_of, params.weights[t], params.coefficients[t],
-                               c_d[t], gamma[t], c_s, lip.mouth, lip.speech, lip.closed, w_prev, a_prev)
+                               c_d[t], gamma[t], c_s, lip.mouth, lip.speech, lip.closed, w_prev, a_prev, additive, jac)
         np.testing.assert_allclose(params.objective[t], ours, rtol=1e-8, atol=1e-14)  # reduced form == full form
         _, _, ref = slsqp_frame(obs.xhat[t], valid, basis, masks, actor.layer_of, c_d[t], gamma[t], c_s,
-                                lip.mouth, lip.speech, lip.closed, w_prev, a_prev, w_prev, a_prev)
+                                lip.mouth, lip.speech, lip.closed, w_prev, a_prev, w_prev, a_prev, additive, jac)
         assert ours <= ref * (1 + 1e-6) + 1e-12, f"frame {t}: {ours} > SLSQP {ref}"
         w_prev, a_prev = params.weights[t], params.coefficients[t]
 

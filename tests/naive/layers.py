@@ -21,14 +21,25 @@ def layered_output(basis, masks, layer_of, W, alpha):
     return out
 
 
-def frame_objective(xhat, valid, basis, masks, layer_of, W, alpha, c_d, c_b, c_s, mouth, speech, closed, W_prev, a_prev):
-    """E of one frame: c_d |x_hat - f|^2 (observed coordinates) + c_b bias + c_s smoothing."""
+def frame_objective(xhat, valid, basis, masks, layer_of, W, alpha, c_d, c_b, c_s, mouth, speech, closed, W_prev, a_prev,
+                    additive=False, rigid_jac=None):
+    """E of one frame: c_d |x_hat - f|^2 (observed coordinates) + c_b bias + c_s smoothing.
+
+    ``additive``: the bias pulls the speech coefficients only (the weights are left to the data).
+    ``rigid_jac (C, r)``: measure the data modulo the alignment's small motions, i.e.
+    ``|P r|^2`` with ``P`` the orthogonal projector off the columns of ``rigid_jac``
+    restricted to the observed coordinates (an alignment pass).
+    """
     r = (xhat - layered_output(basis, masks, layer_of, W, alpha))[valid]
+    if rigid_jac is not None:
+        j = np.asarray(rigid_jac)[valid]
+        r = r - j @ np.linalg.lstsq(j, r, rcond=None)[0]
     e = c_d * float(r @ r)
     if c_b > 0 and mouth >= 0:
         target = np.zeros(W.shape[1])
         target[speech] = 1.0
-        e += c_b * float(np.sum((W[mouth] - target) ** 2))
+        if not additive:  # additive: the bias picks the viseme only, the weights are left to the data
+            e += c_b * float(np.sum((W[mouth] - target) ** 2))
         sel = layer_of == speech
         a_t = np.zeros(alpha.shape[0])
         a_t[closed] = 1.0
@@ -38,8 +49,13 @@ def frame_objective(xhat, valid, basis, masks, layer_of, W, alpha, c_d, c_b, c_s
     return e
 
 
-def slsqp_frame(xhat, valid, basis, masks, layer_of, c_d, c_b, c_s, mouth, speech, closed, W_prev, a_prev, W0, a0):
-    """One frame by SLSQP from (W0, a0); returns (W, alpha, E)."""
+def slsqp_frame(xhat, valid, basis, masks, layer_of, c_d, c_b, c_s, mouth, speech, closed, W_prev, a_prev, W0, a0,
+                additive=False, rigid_jac=None):
+    """One frame by SLSQP from (W0, a0); returns (W, alpha, E).
+
+    ``additive``: each W[l, j] in [0, 1] (no sum over the layers); ``rigid_jac``: see
+    :func:`frame_objective`.
+    """
     m, J = W0.shape
     K = a0.shape[0]
 
@@ -48,30 +64,33 @@ def slsqp_frame(xhat, valid, basis, masks, layer_of, c_d, c_b, c_s, mouth, speec
 
     def fun(z):
         W, a = unpack(z)
-        return frame_objective(xhat, valid, basis, masks, layer_of, W, a, c_d, c_b, c_s, mouth, speech, closed, W_prev, a_prev)
+        return frame_objective(xhat, valid, basis, masks, layer_of, W, a, c_d, c_b, c_s, mouth, speech, closed, W_prev, a_prev,
+                               additive, rigid_jac)
 
     cons = [{"type": "eq", "fun": (lambda z, j=j: z[:K][layer_of == j].sum() - 1.0)} for j in range(J)]
-    cons += [{"type": "eq", "fun": (lambda z, l=l: z[K:].reshape(m, J)[l].sum() - 1.0)} for l in range(m)]
+    if not additive:
+        cons += [{"type": "eq", "fun": (lambda z, l=l: z[K:].reshape(m, J)[l].sum() - 1.0)} for l in range(m)]
     z0 = np.concatenate([a0, W0.ravel()])
-    res = minimize(fun, z0, method="SLSQP", bounds=[(0.0, None)] * z0.size, constraints=cons,
+    bounds = [(0.0, None)] * K + [(0.0, 1.0 if additive else None)] * (m * J)
+    res = minimize(fun, z0, method="SLSQP", bounds=bounds, constraints=cons,
                    options={"ftol": 1e-10, "maxiter": 500})
     z = np.clip(res.x, 0.0, None)
     W, a = unpack(z)
     # back onto the constraint set (SLSQP satisfies it only to its tolerance)
-    W = W / W.sum(axis=1, keepdims=True)
+    W = np.clip(W, 0.0, 1.0) if additive else W / W.sum(axis=1, keepdims=True)
     for j in range(J):
         a[layer_of == j] /= a[layer_of == j].sum()
     return W, a, fun(np.concatenate([a, W.ravel()]))
 
 
-def slsqp_sequence(xhat, valid, basis, masks, layer_of, c_d, c_b, c_s, mouth, speech, closed, W0, a0):
+def slsqp_sequence(xhat, valid, basis, masks, layer_of, c_d, c_b, c_s, mouth, speech, closed, W0, a0, additive=False):
     """Frames in order, each warm-started from (and smoothed towards) the previous result."""
     W_prev, a_prev = W0.copy(), a0.copy()
     out_w, out_a, out_e = [], [], []
     for t in range(xhat.shape[0]):
         cs = c_s[t] if t > 0 else 0.0
         W, a, e = slsqp_frame(xhat[t], valid[t], basis, masks, layer_of, c_d[t], c_b[t], cs, mouth, speech, closed,
-                              W_prev, a_prev, W_prev, a_prev)
+                              W_prev, a_prev, W_prev, a_prev, additive)
         out_w.append(W)
         out_a.append(a)
         out_e.append(e)
@@ -159,7 +178,7 @@ def _rotations(rng, n_frames, degrees):
 
 def make_problem(seed=0, *, n_markers=80, n_tracks=0, sizes=(6, 5, 3), layer_names=None, n_regions=3, n_vertices=600,
                  n_frames=40, soft=True, head_motion=True, noise=0.0, fields_seed=123, with_truth=True,
-                 weights=None, coefficients=None):
+                 weights=None, coefficients=None, composition="convex"):
     """A parallel actor/character pair with known per-frame parameters.
 
     Returns a dict: ``source`` (Source of markers, optional 2D tracks), ``target`` (TargetRig with
@@ -167,6 +186,8 @@ def make_problem(seed=0, *, n_markers=80, n_tracks=0, sizes=(6, 5, 3), layer_nam
     (F, V, 3) the character driven by the known parameters and head motion (Eq. 5),
     ``actor_local`` (F, N, 3) the noiseless actor markers without head motion, the (u, v)
     parameters, masks and poses of both sides. Marker 0 / 1 are the upper / lower lip centres.
+    ``composition``: "convex" (each region's layer weights sum to 1, the paper) or "additive"
+    (each in [0, 1]).
     """
     import faceretarget as fr
 
@@ -186,6 +207,8 @@ def make_problem(seed=0, *, n_markers=80, n_tracks=0, sizes=(6, 5, 3), layer_nam
     masks_a, masks_c = _masks(uv_a, n_regions, soft), _masks(uv_c, n_regions, soft)
     layer_of = np.repeat(np.arange(len(sizes)), sizes)
     W = np.stack([_simplex_path(rng, n_frames, len(sizes), sharp=1.0) for _ in range(n_regions)], axis=1)
+    if composition == "additive":  # every layer weight in [0, 1] on its own (the layers add)
+        W = np.clip(W * len(sizes), 0.0, 1.0)
     A = np.concatenate([_simplex_path(rng, n_frames, k) for k in sizes], axis=1)
     if weights is not None:
         W = np.asarray(weights, dtype=float)

@@ -3,7 +3,8 @@
 1. Fit an RBF warp (phi(r) = r with a linear polynomial) from the source's neutral
    landmarks to the target's; its Jacobian at each landmark rescales and reorients the
    source displacements to the target's proportions.
-2. Per frame: remove the rigid head motion (Procrustes on the landmarks), take each
+2. Per frame: remove the rigid head motion (``faceretarget.geometry.head_motion``: weighted
+   to the stillest landmarks, identity unless significant), take each
    landmark's displacement from the neutral, map it through the local Jacobian, and
    interpolate the displacements over every target vertex with a second RBF centred on
    the target landmarks; add to the target neutral; re-apply the head motion.
@@ -18,6 +19,7 @@ import numpy as np
 import faceretarget as fr
 from faceretarget.errors import DegenerateGeometryError, InputError, ShapeError
 from faceretarget.geometry import procrustes
+from faceretarget.geometry.head_motion import estimate_head_motion
 from faceretarget.geometry.rbf import fit_rbf
 
 
@@ -53,6 +55,10 @@ class DisplacementRetargeter(fr.Retargeter):
         self.interpolation_ = _interpolation_matrix(tgt, np.asarray(target.neutral.vertices))
         self.target_neutral_ = np.array(target.neutral.vertices)
         self.triangles_ = np.array(target.neutral.triangles)
+        # head translations travel in world distance, converted between length units: the
+        # power of ten nearest the faces' size ratio (metres -> centimetres: 100)
+        ratio = _size(tgt) / _size(src)
+        self.unit_ratio_ = float(10.0 ** np.round(np.log10(ratio)))
 
     def _retarget(self, source):
         markers = np.asarray(source.marker_positions(), dtype=np.float64)
@@ -63,8 +69,8 @@ class DisplacementRetargeter(fr.Retargeter):
             if source.head_motion is not None:
                 motion = np.asarray(source.head_motion)
             else:
-                rot, trans, _ = procrustes.fit_rigid(self.source_reference_, markers)
-                motion = procrustes.to_matrix(rot, trans)
+                # rigidity-weighted and kept only where significant: no invented head motion
+                motion = estimate_head_motion(self.source_reference_, markers)
             markers = procrustes.remove(motion, markers)
         disp = markers - self.source_reference_  # (F, N, 3); NaN where missing
         disp = np.einsum("nij,fnj->fni", self.jacobians_, disp)
@@ -72,6 +78,8 @@ class DisplacementRetargeter(fr.Retargeter):
         disp = np.where(missing[..., None], 0.0, disp)  # a missing marker contributes no displacement
         vertices = self.target_neutral_ + np.einsum("vn,fnd->fvd", self.interpolation_, disp)
         if motion is not None:
+            motion = motion.copy()
+            motion[:, :3, 3] *= self.unit_ratio_  # in the target's unit
             vertices = procrustes.apply(motion, vertices)
         return fr.Animation(vertices=vertices, head_motion=motion, triangles=self.triangles_, fps=source.fps)
 
@@ -83,6 +91,11 @@ def _flag(value, name: str) -> bool:
         return bool(value)
     text = repr(value)
     raise InputError(f"displacement: parameter {name} must be True or False, got {text if len(text) <= 60 else text[:57] + '...'}")
+
+
+def _size(points: np.ndarray) -> float:
+    """RMS distance of ``points (N, 3)`` from their centroid."""
+    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
 
 
 def _jacobians(warp, points: np.ndarray, step: float | None = None) -> np.ndarray:
