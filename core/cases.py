@@ -1183,6 +1183,13 @@ def _cross_rig_pair(source_identity: tuple, target_identity: tuple, seed: int):
     return src, tgt, meta
 
 
+def _identity_key(coeffs, default, what: str, case: str) -> tuple:
+    """Identity coefficients as a hashable key for the cached rig pairs (validated when given)."""
+    if coeffs is not None:
+        _ict_identity(_load_ict_fixture(), coeffs, default, what, case)
+    return tuple(float(c) for c in np.asarray(default if coeffs is None else coeffs, dtype=np.float64))
+
+
 def cross_rig(
     seed: int = 0,
     n_frames: int = 300,
@@ -1262,17 +1269,8 @@ def cross_rig(
     if source_kind not in ("mesh", "markers"):
         raise UnknownNameError(f"cross_rig: source_kind must be 'mesh' or 'markers', got {source_kind!r}")
     fps = as_fps(fps)
-    data = None
-
-    def key(coeffs, default, what) -> tuple:
-        nonlocal data
-        if coeffs is not None:
-            data = data if data is not None else _load_ict_fixture()
-            _ict_identity(data, coeffs, default, what, "cross_rig")  # validates
-        return tuple(float(c) for c in np.asarray(default if coeffs is None else coeffs, dtype=np.float64))
-
-    src, tgt, pair_meta = _cross_rig_pair(key(source_identity, ICT_SOURCE_IDENTITY, "source_identity"),
-                                          key(target_identity, ICT_TARGET_IDENTITY, "target_identity"), int(seed))
+    src, tgt, pair_meta = _cross_rig_pair(_identity_key(source_identity, ICT_SOURCE_IDENTITY, "source_identity", "cross_rig"),
+                                          _identity_key(target_identity, ICT_TARGET_IDENTITY, "target_identity", "cross_rig"), int(seed))
     weights = _performance_weights(np.random.default_rng([int(seed), 3]), int(n_frames), fps, src.rig.names)
     s_vertices = src.rig.neutral.vertices
     return _assemble(
@@ -1399,17 +1397,8 @@ def cross_topology(
     """
     _check_counts(n_frames=n_frames)
     fps = as_fps(fps)
-    data = None
-
-    def key(coeffs, default, what) -> tuple:
-        nonlocal data
-        if coeffs is not None:
-            data = data if data is not None else _load_ict_fixture()
-            _ict_identity(data, coeffs, default, what, "cross_topology")  # validates
-        return tuple(float(c) for c in np.asarray(default if coeffs is None else coeffs, dtype=np.float64))
-
-    src, tgt, pair_meta = _cross_topology_pair(key(source_identity, ICT_SOURCE_IDENTITY, "source_identity"),
-                                               key(target_identity, ICT_TARGET_IDENTITY, "target_identity"))
+    src, tgt, pair_meta = _cross_topology_pair(_identity_key(source_identity, ICT_SOURCE_IDENTITY, "source_identity", "cross_topology"),
+                                               _identity_key(target_identity, ICT_TARGET_IDENTITY, "target_identity", "cross_topology"))
     names = src.rig.names
     weights = _performance_weights(np.random.default_rng([int(seed), 5]), int(n_frames), fps, names)
     weights[:, [names.index(n) for n in _CLOSED_EYE_SHAPES]] = 0.0

@@ -76,19 +76,24 @@ def _ridge_matrix(ridge, m):
     return ridge * np.eye(m) if np.ndim(ridge) == 0 else np.asarray(ridge, float)
 
 
-def solve_rows(basis, deltas, known, known_weights, **energy):
-    """Minimize the energy with known frames fixed: assemble rows, eliminate, normal equations + spsolve."""
+def _eliminate_known(basis, deltas, known, known_weights, **energy):
+    """The energy's rows with the known frames moved to the right-hand side: ``x`` (F*M,)
+    with the known values set, the ``fixed`` mask, the rows of the unknowns and their rhs."""
     a, rhs = energy_rows(basis, deltas, **energy)
     n_frames, m = len(deltas), np.asarray(basis).shape[1]
     known = np.asarray(known, bool)
     fixed = np.repeat(known, m)
     x = np.zeros(n_frames * m)
     x[fixed] = np.asarray(known_weights, float)[known].ravel()
+    return x, fixed, a[:, ~fixed], rhs - a[:, fixed] @ x[fixed]
+
+
+def solve_rows(basis, deltas, known, known_weights, **energy):
+    """Minimize the energy with known frames fixed: assemble rows, eliminate, normal equations + spsolve."""
+    x, fixed, au, r = _eliminate_known(basis, deltas, known, known_weights, **energy)
     if (~fixed).any():
-        au = a[:, ~fixed]
-        r = rhs - a[:, fixed] @ x[fixed]
         x[~fixed] = spla.spsolve((au.T @ au).tocsc(), au.T @ r)
-    return x.reshape(n_frames, m)
+    return x.reshape(len(deltas), -1)
 
 
 def kronecker_system(basis, deltas, known, known_weights, *, prior_matrix, prior_vector, beta=0.0, ridge=0.0):
@@ -188,14 +193,9 @@ def solve_rows_bounded(basis, deltas, known, known_weights, lower, upper, l1=0.0
     assembled rows. The linear term is moved into the right-hand side: with ``A`` of full column
     rank, ``||A x - b||^2 + c^T x = ||A x - (b + d)||^2 + const`` for ``d = -A (A^T A)^-1 c / 2``.
     """
-    a, rhs = energy_rows(basis, deltas, **energy)
+    x, fixed, au, r = _eliminate_known(basis, deltas, known, known_weights, **energy)
+    au = au.toarray()
     n_frames, m = len(deltas), np.asarray(basis).shape[1]
-    known = np.asarray(known, bool)
-    fixed = np.repeat(known, m)
-    x = np.zeros(n_frames * m)
-    x[fixed] = np.asarray(known_weights, float)[known].ravel()
-    au = a[:, ~fixed].toarray()
-    r = rhs - a[:, fixed] @ x[fixed]
     if l1:
         c = np.full(au.shape[1], 2.0 * l1)
         r = r - 0.5 * au @ np.linalg.solve(au.T @ au, c)
