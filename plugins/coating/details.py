@@ -4,8 +4,11 @@
    ``radius`` to a curve drawn along a wrinkle.
 2. **Active range**: the frames around ``t_k`` whose region coating magnitude
    ``sum_{v in P} |D'_t,v|`` stays above ``threshold`` (0.23) times the key frame's
-   (our reading of the garbled ratio in sec. 5.2).
-3. **Key-frame edit** of the fine-scale motion ``D'_{t_k}``: scale (enhance / diminish),
+   (our reading of the garbled ratio in sec. 5.2), found by scanning outward from the key
+   frame. ``D'_t`` here is the wrinkle layer alone (the coating against the Taubin-
+   smoothed source frame, :meth:`~.track.CoatingTrack.wrinkles`), not the basis-fit
+   residual of eq. 7 that the transfer also carries.
+3. **Key-frame edit** of the wrinkles ``D'_{t_k}``: scale (enhance / diminish),
    remove (scale 0), copy-paste the region's details through a similarity transform
    (closest transformed source vertex of every destination vertex; the detail vector
    is rotated from the source vertex's frame through the transform into the
@@ -44,7 +47,7 @@ from faceretarget.geometry.procrustes import apply as apply_transform
 from .alignment import to_local
 from .track import DetailLayer
 
-__all__ = ["DetailEdit", "select_region", "active_range", "propagate", "apply_detail_edit", "LAMBDA_RESHAPE"]
+__all__ = ["DetailEdit", "select_region", "active_range", "scan_active_range", "propagate", "apply_detail_edit", "LAMBDA_RESHAPE"]
 
 #: Weight of the Laplacian term when reshaping a wrinkle to a drawn curve (paper: 0.2).
 LAMBDA_RESHAPE = 0.2
@@ -137,6 +140,34 @@ def active_range(magnitude: np.ndarray, key: int, threshold: float) -> tuple[int
     while stop < m.size - 1 and above[stop + 1]:
         stop += 1
     return start, stop
+
+
+def scan_active_range(magnitude_of, key: int, n_frames: int, threshold: float, chunk: int) -> tuple[int, int]:
+    """:func:`active_range` evaluated lazily: ``magnitude_of(frame ids) -> (n,)`` is asked for
+    blocks of ``chunk`` frames outward from ``key`` until the magnitude falls to the threshold
+    on both sides (the wrinkles cost a smoothing a frame, so only the range and one block
+    beyond are computed)."""
+    step = max(1, int(chunk))
+    known = {key: float(magnitude_of(np.array([key]))[0])}
+    ref = known[key]
+    if ref <= 0:
+        return key, key
+    ends = []
+    for direction in (-1, 1):
+        t = key
+        while True:
+            nxt = t + direction
+            if not 0 <= nxt < n_frames:
+                break
+            if nxt not in known:
+                block = np.arange(nxt, nxt + direction * step, direction)
+                block = block[(block >= 0) & (block < n_frames)]
+                known.update(zip(block.tolist(), np.asarray(magnitude_of(np.sort(block)), dtype=np.float64)[np.argsort(np.argsort(block))].tolist()))
+            if not known[nxt] > threshold * ref:
+                break
+            t = nxt
+        ends.append(t)
+    return ends[0], ends[1]
 
 
 def _rings(adj: sp.csr_matrix, seed: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -327,7 +358,7 @@ def apply_detail_edit(retargeter, track, animation, spec: DetailEdit):
     points_k = model.target.reconstruct(smooth_k, model.target.reference_coating[None] + model.detail_scale * track.fine_motion([key]), frames_k[None])[0]
 
     def local_curve(c, what):
-        return to_local(motion_k, _polyline(c, what)[None])[0]
+        return track.placement.to_model(to_local(motion_k, _polyline(c, what)[None])[0])
 
     curve = None if spec.curve is None else local_curve(spec.curve, "curve")
     vertices = None if spec.vertices is None else track.target_vertex[np.asarray(spec.vertices, dtype=np.int64).ravel()]
@@ -337,8 +368,7 @@ def apply_detail_edit(retargeter, track, animation, spec: DetailEdit):
 
     threshold = retargeter.detail_threshold if spec.threshold is None else float(spec.threshold)
     if spec.window is None:
-        magnitude = np.linalg.norm(track.fine_motion(slice(None), region), axis=-1).sum(axis=1)
-        ts, te = active_range(magnitude, key, threshold)
+        ts, te = scan_active_range(lambda frames: np.linalg.norm(track.wrinkles(frames, region), axis=-1).sum(axis=1), key, n_frames, threshold, track.chunk)
     else:
         try:
             ts, te = (int(x) for x in spec.window)
@@ -347,7 +377,7 @@ def apply_detail_edit(retargeter, track, animation, spec: DetailEdit):
         if not 0 <= ts <= key <= te < n_frames:
             raise IndexRangeError(f"coating detail edit: window {spec.window} must contain the key frame {key} and lie in 0..{n_frames - 1}")
 
-    details_k = track.fine_motion([key])[0]  # (V, 3) current D'_tk
+    details_k = track.wrinkles([key])[0]  # (V, 3) current wrinkles D'_tk (no basis-fit residual)
     edge_len = float(np.mean(np.linalg.norm(points_k[tri[:, [1, 2, 0]]] - points_k[tri], axis=-1)))
     target = details_k.copy()
     edited = region
@@ -363,7 +393,7 @@ def apply_detail_edit(retargeter, track, animation, spec: DetailEdit):
         if m.shape != (4, 4) or not np.isfinite(m).all():
             raise ShapeError(f"coating detail edit: transform must be a finite 4x4 matrix, got shape {m.shape}")
         head = motion_k[0]
-        local_m = np.linalg.inv(head) @ m @ head
+        local_m = track.placement.model_transform(np.linalg.inv(head) @ m @ head)
         lin = local_m[:3, :3]
         scale = float(np.cbrt(abs(np.linalg.det(lin))))
         if scale <= 0:

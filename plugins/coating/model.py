@@ -6,14 +6,20 @@ reference) pair and the source bases; per-frame work is done in chunks of frames
 :meth:`CoatingModel.synthesize` (weights + fine-scale motion -> target frame), so a
 sequence of any length is processed with memory bounded by the chunk size.
 
-Per frame (local coordinates, head motion removed)::
+Per frame (local coordinates in the target's frame and units, head motion removed)::
 
-    S~_t = smooth(S_t)                      Taubin (sec. 3)
-    c_t  = F(S~_t)^T M_S (S_t - S~_t)       coating (eq. 1)
-    D_t  = c_t - c_0                        fine-scale motion (eq. 3)
-    w_t  = NNLS(S~_t; b_1..b_K)             weights (eq. 6)
+    w_t  = NNLS(G S_t; b_1..b_K)            weights of the Taubin-smoothed frame (eq. 6)
+    B_t  = sum_i w_ti b_i                   the frame's smooth mesh as the bases see it
+    D_t  = F(B_t)^T M_S (S_t - G S_t) - c_0     fine-scale motion: the wrinkles (eq. 1, 3)
+    E_t  = F(B_t)^T M_S (G S_t - B_t)       residual of eq. 7 (what the bases miss)
     T~_t = sum_i w_ti b'_i                  target smooth frame (eq. 8)
-    T_t  = T~_t + M_T^-1 F(T~_t) (c'_0 + D_t)   (eq. 5 with eq. 16)
+    T_t  = T~_t + M_T^-1 F(T~_t) (c'_0 + D_t + E_t)   (eq. 5 with eq. 16)
+
+The transfer needs only the sum ``D_t + E_t = F(B_t)^T M_S (S_t - B_t) - c_0``, which
+costs no smoothing of the frame (:meth:`CoatingModel.decompose`); the two layers are
+separated (one Taubin smoothing a frame, :meth:`CoatingModel.wrinkles`) only where a
+detail edit reads the wrinkles, so detail edits and their active ranges act on ``D_t``
+and the basis-fit residual ``E_t`` is carried unchanged.
 
 Eq. 16 rotates the source coating difference by the rotation ``R_v`` between the source
 and target local frames; with coatings stored in local coordinates that rotation is
@@ -27,13 +33,21 @@ import numpy as np
 from faceretarget.geometry.deformation_gradients import DeformationTransfer
 from functools import cached_property
 
+from faceretarget.geometry.local_frames import frame_neighbors
 from faceretarget.geometry.mesh_ops import face_areas, unique_edges, vertex_adjacency
 
-from .alignment import frame_chunks, to_local
+from .alignment import frame_chunks
 from .bases import BasisSpace, blend, select_bases, selection_vertices
 from .multiscale import MultiScale
 
-__all__ = ["CoatingModel", "size_ratio"]
+__all__ = ["CoatingModel", "size_ratio", "face_size", "line_proportion", "LINE_PROPORTION_SCALE", "canonical_axes"]
+
+#: Feature-line weight: ``sigma_eff = sigma * exp(-(d / LINE_PROPORTION_SCALE)^2)`` with ``d``
+#: the RMS log-ratio of the target's to the source's feature-line lengths, relative to the
+#: face-size ratio (:func:`line_proportion`). 0.1: lines within ~5% of the source's
+#: proportions keep most of the weight (synthetic human 0.75, ICT 0.91), lines 40-70%
+#: larger (the stylized target's eyes and mouth) none.
+LINE_PROPORTION_SCALE = 0.1
 
 
 def size_ratio(source: np.ndarray, target: np.ndarray, triangles: np.ndarray) -> float:
@@ -41,27 +55,85 @@ def size_ratio(source: np.ndarray, target: np.ndarray, triangles: np.ndarray) ->
     return float(np.sqrt(face_areas(target, triangles).sum() / face_areas(source, triangles).sum()))
 
 
+def face_size(vertices: np.ndarray, triangles: np.ndarray) -> float:
+    """Square root of the surface area: a size that does not depend on the mesh's orientation
+    (0.97-1.2 times the y-extent of the synthetic and ICT faces)."""
+    return float(np.sqrt(face_areas(vertices, triangles).sum()))
+
+
+def line_proportion(source: np.ndarray, target: np.ndarray, triangles: np.ndarray, source_lines: dict, target_lines: dict) -> float:
+    """RMS over the lines of ``log(L_target / (L_source * r))``: how much the target's feature
+    lines differ in proportion from the source's (``L`` the chain lengths, ``r`` the face-size
+    ratio :func:`size_ratio`); 0 without lines."""
+    r = size_ratio(source, target, triangles)
+    logs = []
+    for name, chain in target_lines.items():
+        if name not in source_lines:
+            continue
+        t_chain, s_chain = np.asarray(chain), np.asarray(source_lines[name])
+        if t_chain.size < 2 or s_chain.size < 2:
+            continue
+        lt = np.linalg.norm(np.diff(target[t_chain], axis=0), axis=1).sum()
+        ls = np.linalg.norm(np.diff(source[s_chain], axis=0), axis=1).sum()
+        if lt > 0 and ls > 0:
+            logs.append(np.log(lt / (ls * r)))
+    return float(np.sqrt(np.mean(np.square(logs)))) if logs else 0.0
+
+
+def canonical_axes(points: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation (columns: axes) fixed to the shape of ``points (V, 3)``, so that
+    ``(points - mean) @ axes`` does not depend on how the mesh was rotated.
+
+    Principal axes; the two most skewed get the sign of their third moment (a face's
+    height and depth axes: chin/forehead, nose), the third completes a right-handed frame
+    and comes first (the left-right axis of a symmetric face, which the sign test cannot
+    orient), then the remaining two by decreasing spread.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    x = p - p.mean(axis=0)
+    _, vecs = np.linalg.eigh(x.T @ x)
+    vecs = vecs[:, ::-1]  # decreasing spread
+    proj = x @ vecs
+    spread = np.mean(proj**2, axis=0)
+    skew = np.mean(proj**3, axis=0) / np.maximum(spread, 1e-24 * max(float(spread.sum()), 1e-300)) ** 1.5
+    first = int(np.argmin(np.abs(skew)))
+    rest = [i for i in range(3) if i != first]
+    axes = [vecs[:, i] * (1.0 if skew[i] >= 0 else -1.0) for i in rest]
+    lead = np.cross(axes[0], axes[1])
+    return np.stack([lead, axes[0], axes[1]], axis=1)
+
+
 class CoatingModel:
     """Coating transfer between a source and a target of one topology.
 
     Parameters
     ----------
-    source_reference, target_reference : (V, 3)
+    source_reference, target_reference : (V, 3), the source already in the target's frame
+        and units (:class:`~.alignment.Placement`)
     triangles : (T, 3)
     source_lines, target_lines : {name: vertex chain}
     stable : (V,) weights of the stable vertices (translation gauge)
-    iterations, laplacian, screening, sigma : see the retargeter
+    iterations, laplacian, screening, sigma : see the retargeter (``sigma`` is scaled by the
+        lines' proportions, :data:`LINE_PROPORTION_SCALE`; the weight used is ``self.sigma``)
     detail_scale : float or "auto" (the target/source size ratio, :func:`size_ratio`)
     """
 
     def __init__(self, source_reference, target_reference, triangles, *, source_lines, target_lines, stable, iterations, laplacian, screening, sigma, detail_scale):
         self.triangles = np.asarray(triangles, dtype=np.int64)
-        self.source = MultiScale(source_reference, triangles, iterations=iterations, laplacian=laplacian, screening=screening)
-        self.target = MultiScale(target_reference, triangles, iterations=iterations, laplacian=laplacian, screening=screening, neighbors=self.source.neighbors)
+        src = np.asarray(source_reference, dtype=np.float64)
+        tgt = np.asarray(target_reference, dtype=np.float64)
+        # tangent neighbours chosen in the target's own principal axes: the frames, and so
+        # the result, do not depend on how either mesh is oriented in space
+        canonical = (src - tgt.mean(axis=0)) @ canonical_axes(tgt)
+        neighbors = frame_neighbors(canonical, self.triangles)
+        self.source = MultiScale(src, triangles, iterations=iterations, laplacian=laplacian, screening=screening, neighbors=neighbors)
+        self.target = MultiScale(tgt, triangles, iterations=iterations, laplacian=laplacian, screening=screening, neighbors=neighbors)
         self.source_lines = {k: np.asarray(v) for k, v in source_lines.items()}
         self.target_lines = {k: np.asarray(v) for k, v in target_lines.items()}
         self.stable = np.asarray(stable, dtype=np.float64)
-        self.transfer = DeformationTransfer(self.target.smooth_reference, triangles, feature_lines=self.target_lines or None, sigma=sigma, gauge_weights=self.stable)
+        self.line_proportion = line_proportion(src, tgt, self.triangles, self.source_lines, self.target_lines)
+        self.sigma = float(sigma) * float(np.exp(-((self.line_proportion / LINE_PROPORTION_SCALE) ** 2)))
+        self.transfer = DeformationTransfer(self.target.smooth_reference, triangles, feature_lines=self.target_lines or None, sigma=max(self.sigma, 1e-300), gauge_weights=self.stable)
         self.ratio = size_ratio(self.source.smooth_reference, self.target.smooth_reference, triangles)
         self.detail_scale = self.ratio if detail_scale == "auto" else float(detail_scale)
         self.source_center = self.source.smooth_reference.mean(axis=0)
@@ -87,14 +159,16 @@ class CoatingModel:
         return vertex_adjacency(self.triangles, self.n_vertices)
 
     # -- fitting -------------------------------------------------------------------------
-    def fit_bases(self, vertices, motion_of, *, epsilon: float, max_bases: int, height: float, chunk: int, max_frames: int) -> None:
+    def fit_bases(self, vertices, local_of, *, epsilon: float, max_bases: int, chunk: int, max_frames: int) -> None:
         """Select source bases among the frames ``vertices (F, V, 3)`` and transfer them (sec. 4.1-4.2).
 
-        ``motion_of(frame_ids, frames) -> (n, 4, 4)`` gives the head motion to remove.
-        Candidates are at most ``max_frames`` evenly spaced frames (all of them for shorter
-        sequences): neighbouring frames of a 30-60 fps capture are near duplicates, and
-        every candidate must be smoothed. Only candidate frames are read.
+        ``local_of(frame_ids, frames) -> (n, V, 3)`` removes the head motion and brings the
+        frames into the target's frame. Candidates are at most ``max_frames`` evenly spaced
+        frames (all of them for shorter sequences): neighbouring frames of a 30-60 fps
+        capture are near duplicates, and every candidate must be smoothed. Only candidate
+        frames are read. The stopping error is relative to :func:`face_size` of the source.
         """
+        height = face_size(self.source.reference, self.triangles)
         ids = selection_vertices(self.n_vertices)
         n_frames = vertices.shape[0]
         candidates = np.unique(np.linspace(0, n_frames - 1, min(n_frames, int(max_frames))).round().astype(np.int64))
@@ -102,7 +176,7 @@ class CoatingModel:
         for sl in frame_chunks(candidates.size, chunk):
             picked = candidates[sl]
             frames = np.asarray(vertices[picked])
-            smooth = self.source.smooth(to_local(motion_of(picked, frames), frames))
+            smooth = self.source.smooth(local_of(picked, frames))
             samples[sl] = (smooth[:, ids] - self.source_center).reshape(smooth.shape[0], -1)
         reference = (self.source.smooth_reference[ids] - self.source_center).ravel()
         chosen, history = select_bases(samples, reference, epsilon=epsilon, max_bases=max_bases, height=height)
@@ -113,7 +187,7 @@ class CoatingModel:
         if frames:
             picked = np.asarray(frames)
             raw = np.asarray(vertices[np.sort(picked)])[np.argsort(np.argsort(picked))]
-            bases.append(self.source.smooth(to_local(motion_of(picked, raw), raw)))
+            bases.append(self.source.smooth(local_of(picked, raw)))
         self.set_source_bases(np.concatenate(bases))
 
     def set_source_bases(self, bases: np.ndarray) -> None:
@@ -144,6 +218,19 @@ class CoatingModel:
         smooth = (weights @ self._source_flat).reshape(local.shape) + self.source_center
         coating = self.source.coating(local, smooth)
         return weights, coating - self.source.reference_coating
+
+    def source_smooth(self, weights: np.ndarray) -> np.ndarray:
+        """The source frames' smooth meshes as the bases see them, ``B_t`` -> ``(C, V, 3)``."""
+        w = np.asarray(weights, dtype=np.float64)
+        return (w @ self._source_flat).reshape(w.shape[0], self.n_vertices, 3) + self.source_center
+
+    def wrinkles(self, local: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """The fine layer ``D_t = F(B_t)^T M (S_t - G S_t) - c_0`` of source frames ``local (C, V, 3)``
+        with weights ``(C, K)``: the coating against the Taubin-smoothed frame (eq. 1, 3), in the
+        frames of ``B_t`` like :meth:`decompose` (which returns ``D_t + E_t``). One smoothing a frame."""
+        smooth = self.source_smooth(weights)
+        frames = self.source.frames(smooth)
+        return self.source.coating(local, self.source.smooth(local), frames) - self.source.reference_coating
 
     def smooth_target(self, weights: np.ndarray, bases: np.ndarray | None = None) -> np.ndarray:
         """Target smooth frames ``T~_t`` (eq. 8) -> ``(C, V, 3)``."""

@@ -1,10 +1,13 @@
 """The ``coating`` retargeter (Xu et al. 2014) and the ``deformation_transfer`` baseline.
 
 Both take a dense mesh performance, remove its rigid head motion (the known
-``Source.head_motion`` or a Procrustes estimate on stable vertices), transfer the local
-deformation onto the target in the source's topology (the target is resampled first if
-its topology differs) and re-apply the head motion. Frames are processed in chunks of
-``chunk_frames``; :meth:`CoatingRetargeter.iter_retarget` and
+``Source.head_motion``, or a Procrustes estimate on stable vertices kept only when it is
+significant), bring the local frames into the target's frame and units (a similarity
+whose scale is a power of ten, see :mod:`.alignment`), transfer the local deformation
+onto the target in the source's topology (the target is resampled first if its topology
+differs) and re-apply the head motion (translation in the target's units). The result
+therefore does not depend on the units or the placement of either mesh. Frames are
+processed in chunks of ``chunk_frames``; :meth:`CoatingRetargeter.iter_retarget` and
 :meth:`CoatingRetargeter.retarget_to` stream sequences too long for memory.
 """
 from __future__ import annotations
@@ -21,8 +24,8 @@ from faceretarget.geometry.deformation_gradients import DeformationTransfer, che
 from faceretarget.model import Animation, MeshSequence, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
 
-from .alignment import RigidFit, frame_chunks, stable_vertices, to_local, to_world
-from .topology import common_topology, describe
+from .alignment import Placement, estimate_motion, frame_chunks, stable_vertices, to_world
+from .topology import OutputMap, common_topology, describe, same_topology
 
 __all__ = ["CoatingRetargeter", "DeformationTransferRetargeter"]
 
@@ -35,10 +38,32 @@ MAX_WEIGHT = 1e8
 SCREENING_RANGE = (1e-4, 1e6)
 MAX_DETAIL_SCALE = 1e3
 LAPLACIANS = ("uniform", "cotangent")
+#: Longest default edit window (seconds either side of the edited frames).
+MAX_EDIT_WINDOW = 1e6
 
 
 class _MeshTransfer(Retargeter):
     """Shared plumbing: parameter checks, topology, head motion, chunked output."""
+
+    @classmethod
+    def why_not(cls, source: Source, target: TargetRig | None) -> str | None:
+        """None if ``fit(source, target)`` can run, else what is missing.
+
+        Besides the declared needs: a target whose triangles differ from the source's is
+        resampled in the source's topology, which needs landmarks on both.
+        """
+        reason = super().why_not(source, target)
+        if reason or target is None or not isinstance(source.performance, MeshSequence):
+            return reason
+        src_mesh, tgt_mesh = source.performance.reference, target.neutral
+        if not same_topology(src_mesh, tgt_mesh) and (source.landmarks is None or target.landmarks is None):
+            lacking = " and ".join(x for x, has in (("the Source", source.landmarks is not None), ("the TargetRig", target.landmarks is not None)) if not has)
+            return (
+                f"{cls.name}: the target mesh ({tgt_mesh.n_vertices} vertices) has a different topology from the source "
+                f"({src_mesh.n_vertices} vertices); resampling it needs landmarks on both (corresponding points, same order), "
+                f"and {lacking} has none: pass Source(..., landmarks=...) and TargetRig(..., landmarks=...)"
+            )
+        return None
 
     def _check_shared(self) -> None:
         """The parameters both methods have: ``stable_fraction`` in (0, 1], ``chunk_frames`` >= 1."""
@@ -57,6 +82,8 @@ class _MeshTransfer(Retargeter):
         self.source_triangles_ = np.asarray(perf.triangles)
         self.source_reference_ = ref
         self.stable_ = stable
+        self.placement_ = Placement(ref, topo.target_reference)
+        self.output_ = OutputMap(self.placement_, topo.back)
         return topo, stable
 
     def _check_source(self, source: Source) -> None:
@@ -69,23 +96,25 @@ class _MeshTransfer(Retargeter):
                 f"was fitted on {self.source_reference_.shape[0]} / {self.source_triangles_.shape[0]}; fit on a source of this topology"
             )
 
-    def _motion_of(self, source: Source):
-        """``motion_of(frame_ids, frames) -> (n, 4, 4)``: the known head motion, or a Procrustes
-        fit on the stable vertices."""
+    def _source_motion(self, source: Source) -> tuple[np.ndarray, dict]:
+        """Head motion ``(F, 4, 4)`` of the source (source world) and how it was found: the
+        known one, or the stable-vertex Procrustes fit, kept only when significant (exactly
+        the identity otherwise; one pass over the stable vertices of every frame)."""
+        self._check_source(source)
         if source.head_motion is not None:
-            known = np.asarray(source.head_motion, dtype=np.float64)
-            return lambda ids, frames: known[ids]
-        fit = RigidFit(self.source_reference_, self.stable_)
-        return lambda ids, frames: fit(frames)
+            return np.asarray(source.head_motion, dtype=np.float64), {"head_motion": "given"}
+        window = max(1, int(round(float(source.fps or 30.0))))
+        motion, evidence = estimate_motion(self.source_reference_, source.performance.vertices, self.stable_, chunk=int(self.chunk_frames), window=window)
+        detected = not np.array_equal(motion, np.broadcast_to(np.eye(4), motion.shape))
+        return motion, {"head_motion": "estimated" if detected else "none detected", "head_motion_evidence": evidence}
 
-    def _local_chunks(self, source: Source):
-        """One pass over the source: ``(slice, head motion (n, 4, 4), local frames (n, V, 3))``."""
+    def _local_chunks(self, source: Source, motion: np.ndarray):
+        """One pass over the source: ``(slice, target head motion (n, 4, 4), local frames in the
+        target's frame (n, V, 3))``; ``motion`` from :meth:`_source_motion`."""
         perf = source.performance
-        motion_of = self._motion_of(source)
+        target_motion = self.placement_.target_motion(motion)
         for sl in frame_chunks(perf.n_frames, int(self.chunk_frames)):
-            frames = np.asarray(perf.vertices[sl])
-            motion = motion_of(np.arange(sl.start, sl.stop), frames)
-            yield sl, motion, to_local(motion, frames)
+            yield sl, target_motion[sl], self.placement_.local(motion[sl], np.asarray(perf.vertices[sl]))
 
     def iter_retarget(self, source: Source) -> Iterator[tuple[slice, np.ndarray]]:
         """Retarget chunk by chunk: yields ``(frames slice, target vertices (n, V_t, 3))``.
@@ -121,19 +150,20 @@ class CoatingRetargeter(_MeshTransfer):
     )
     parameter_docs: ClassVar[dict[str, str]] = {
         "iterations": "Taubin lambda|mu smoothing iterations giving the smooth mesh (paper: about 40)",
-        "epsilon": "basis selection stops when the RMS reconstruction error of the smooth frames is below epsilon x face height (eq. 7)",
+        "epsilon": "basis selection stops when the RMS reconstruction error of the smooth frames is below epsilon x face size (square root of the source's area, about its height; eq. 7)",
         "max_bases": "upper bound on the number of blendshape bases selected from the source frames",
         "max_selection_frames": "basis candidates are at most this many evenly spaced source frames (all frames of shorter sequences)",
-        "sigma": "weight of the feature-line term in the basis deformation transfer (eq. 9; paper: 100)",
+        "sigma": "weight of the feature-line term in the basis deformation transfer (eq. 9; paper: 100), scaled by exp(-(d/0.1)^2), d the RMS log-ratio of the target's to the source's line lengths relative to the face-size ratio",
         "laplacian": "'uniform' or 'cotangent' Laplacian of the coating's Poisson system",
         "screening": "Poisson screening a / mean(diag L) making L + a I invertible and detail reconstruction local",
-        "detail_scale": "factor on the transferred fine-scale motion: 1 keeps the source's coating magnitude (paper); 'auto' scales by the target/source size ratio",
+        "detail_scale": "factor on the transferred fine-scale motion: 1 keeps the source's coating magnitude in the target's units (paper); 'auto' scales by the target/source size ratio",
         "stable_fraction": "fraction of least-moving vertices used to estimate head motion and fix the translation gauge",
         "chunk_frames": "frames processed together (memory is bounded by the chunk, not the sequence)",
         "cache_details": "keep the source's fine-scale motion (float32, F x V x 3) with an in-memory result so detail edits need no recomputation",
         "lambda_b": "edit: weight of the basis deformation-transfer term E_b (eq. 12)",
         "lambda_w": "edit: weight of the weight-velocity term E_w (eq. 13)",
         "lambda_c": "edit: weight of the user constraints E_c, per squared mean edge length (eq. 14-15)",
+        "edit_window": "edit: default temporal window, in seconds either side of the edited frames; weights change only inside it and are anchored at its ends",
         "detail_threshold": "detail edit: active frames are those whose region coating magnitude exceeds this fraction of the key frame's (paper: 0.23)",
         "lambda_key": "detail edit: weight of the key-frame term E_c (eq. 19; paper: 1)",
         "lambda_gradient": "detail edit: weight of the temporal + spatial gradient term E_t (eq. 20; paper: 0.1)",
@@ -157,6 +187,7 @@ class CoatingRetargeter(_MeshTransfer):
         lambda_b: float = 1.0,
         lambda_w: float = 1.0,
         lambda_c: float = 1000.0,
+        edit_window: float = 1.0,
         detail_threshold: float = 0.23,
         lambda_key: float = 1.0,
         lambda_gradient: float = 0.1,
@@ -176,12 +207,29 @@ class CoatingRetargeter(_MeshTransfer):
         self.lambda_b = lambda_b
         self.lambda_w = lambda_w
         self.lambda_c = lambda_c
+        self.edit_window = edit_window
         self.detail_threshold = detail_threshold
         self.lambda_key = lambda_key
         self.lambda_gradient = lambda_gradient
         self.lambda_boundary = lambda_boundary
 
     # -- fit -------------------------------------------------------------------------------
+    @classmethod
+    def why_not(cls, source: Source, target: TargetRig | None) -> str | None:
+        """None if ``fit(source, target)`` can run, else what is missing: the declared needs,
+        landmarks on both sides for a target of another topology, and a source feature line
+        of the same name for every target line."""
+        reason = super().why_not(source, target)
+        if reason or target is None:
+            return reason
+        missing = sorted(set(target.feature_lines) - set(source.feature_lines))
+        if missing:
+            return (
+                f"coating: target feature line(s) {missing} have no source line of the same name (source has {sorted(source.feature_lines)}); "
+                "name the lines alike on both sides (e.g. eye_L, eye_R, mouth_inner)"
+            )
+        return None
+
     def _check_params(self) -> None:
         """Every constructor parameter (the edit weights too, so a bad one fails at fit, not at
         the first edit): a :class:`ConfigError` naming it, its valid range and the value."""
@@ -196,6 +244,7 @@ class CoatingRetargeter(_MeshTransfer):
         check_param(check_number, self.detail_scale, "coating.detail_scale", low=0, open_low=True, high=MAX_DETAIL_SCALE, choices=("auto",))
         check_param(check_bool, self.cache_details, "coating.cache_details")
         self._edit_weights(self.lambda_b, self.lambda_w, self.lambda_c)
+        check_param(check_number, self.edit_window, "coating.edit_window", low=0, high=MAX_EDIT_WINDOW)
         check_param(check_number, self.detail_threshold, "coating.detail_threshold", low=0, high=1)
         check_param(check_number, self.lambda_key, "coating.lambda_key", low=0, open_low=True, high=MAX_WEIGHT)
         check_param(check_number, self.lambda_gradient, "coating.lambda_gradient", low=0, open_low=True, high=MAX_WEIGHT)
@@ -213,19 +262,13 @@ class CoatingRetargeter(_MeshTransfer):
         from .model import CoatingModel
 
         self._check_params()
-        missing = sorted(set(target.feature_lines) - set(source.feature_lines))
-        if missing:
-            raise TopologyMismatchError(
-                f"coating: target feature line(s) {missing} have no source line of the same name (source has {sorted(source.feature_lines)}); "
-                "name the lines alike on both sides (e.g. eye_L, eye_R, mouth_inner)"
-            )
         start = time.perf_counter()
         topo, stable = self._prepare(source, target)
         prepare = time.perf_counter() - start
         start = time.perf_counter()
         model = CoatingModel(
-            self.source_reference_,
-            topo.target_reference,
+            self.placement_(self.source_reference_),
+            self.placement_.to_model(topo.target_reference),
             self.source_triangles_,
             source_lines=dict(source.feature_lines),
             target_lines=topo.target_lines,
@@ -239,52 +282,62 @@ class CoatingRetargeter(_MeshTransfer):
         setup = time.perf_counter() - start
         start = time.perf_counter()
         perf = source.performance
+        motion, info = self._source_motion(source)
+        placement = self.placement_
         model.fit_bases(
             perf.vertices,
-            self._motion_of(source),
+            lambda ids, frames: placement.local(motion[ids], frames),
             epsilon=float(self.epsilon),
             max_bases=int(self.max_bases),
-            height=max(perf.reference.height, perf.reference.scale * 1e-3),
             chunk=int(self.chunk_frames),
             max_frames=int(self.max_selection_frames),
         )
         self.model_ = model
         self.n_bases_ = len(model.source_bases)
         self.basis_frames_ = list(model.basis_frames)
+        self.fit_head_motion_ = info
         self.timings_ = {"stable_pass_s": prepare, "setup_s": setup, "bases_s": time.perf_counter() - start}
 
     # -- retarget --------------------------------------------------------------------------
-    def _diagnostics(self) -> dict:
+    def _diagnostics(self, motion_info: dict) -> dict:
         return {
             "n_bases": self.n_bases_,
             "basis_frames": self.basis_frames_,
             "selection_rms": list(self.model_.selection_rms),
+            "sigma": self.model_.sigma,
+            "line_proportion": self.model_.line_proportion,
+            "unit_scale": self.placement_.unit,
+            **motion_info,
             "same_topology": self.topology_.same,
             "correspondence": describe(self.topology_.report),
             "fit_timings_s": dict(self.timings_),
         }
 
-    def _chunks(self, source: Source):
+    def _chunks(self, source: Source, source_motion: np.ndarray | None = None):
         self._check_fitted()
         self._check_source(source)
         model = self.model_
-        for sl, motion, local in self._local_chunks(source):
+        if source_motion is None:
+            source_motion = self._source_motion(source)[0]
+        for sl, motion, local in self._local_chunks(source, source_motion):
             weights, details = model.decompose(local)
-            out = to_world(motion, self.topology_.back(model.synthesize(weights, details)))
+            out = to_world(motion, self.output_(model.synthesize(weights, details)))
             yield sl, motion, out, weights, details
 
-    def _track(self, source, motion, weights, details):
+    def _track(self, source, source_motion, motion, weights, details):
         from .track import CoatingTrack
 
         return CoatingTrack(
             model=self.model_,
             performance=source.performance,
+            source_motion=source_motion,
+            placement=self.placement_,
             motion=motion,
             source_weights=weights,
             weights=weights.copy(),
             bases=self.model_.target_bases,
             details=details,
-            back=self.topology_.back,
+            back=self.output_,
             target_vertex=self.topology_.target_vertex,
             chunk=int(self.chunk_frames),
         )
@@ -296,14 +349,15 @@ class CoatingRetargeter(_MeshTransfer):
         motion = np.empty((n_frames, 4, 4))
         weights = np.empty((n_frames, self.n_bases_))
         details = np.empty((n_frames, self.model_.n_vertices, 3), dtype=np.float32) if self.cache_details else None
-        for sl, m, frames, w, d in self._chunks(source):
+        source_motion, info = self._source_motion(source)
+        for sl, m, frames, w, d in self._chunks(source, source_motion):
             out[sl] = frames
             motion[sl] = m
             weights[sl] = w
             if details is not None:
                 details[sl] = d
-        track = self._track(source, motion, weights, details)
-        return self._animation(out, source, motion, self._diagnostics(), {"coating": track, "weights": weights})
+        track = self._track(source, source_motion, motion, weights, details)
+        return self._animation(out, source, motion, self._diagnostics(info), {"coating": track, "weights": weights})
 
     def retarget_to(self, source: Source, path) -> Animation:
         """Retarget into a ``.npy`` file written chunk by chunk (float32, ``(F, V_t, 3)``).
@@ -328,7 +382,8 @@ class CoatingRetargeter(_MeshTransfer):
         out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=(source.n_frames, self.target_.neutral.n_vertices, 3))
         motion = np.empty((source.n_frames, 4, 4))
         weights = np.empty((source.n_frames, self.n_bases_))
-        for sl, m, frames, w, _d in self._chunks(source):
+        source_motion, info = self._source_motion(source)
+        for sl, m, frames, w, _d in self._chunks(source, source_motion):
             out[sl] = frames
             motion[sl] = m
             weights[sl] = w
@@ -337,8 +392,8 @@ class CoatingRetargeter(_MeshTransfer):
         tmp.replace(path)
         seconds = time.perf_counter() - start
         vertices = np.load(path, mmap_mode="r")
-        track = self._track(source, motion, weights, None)
-        diagnostics = self._diagnostics()
+        track = self._track(source, source_motion, motion, weights, None)
+        diagnostics = self._diagnostics(info)
         diagnostics["written_to"] = str(path)
         return self._stamp(self._animation(vertices, source, motion, diagnostics, {"coating": track, "weights": weights}), seconds, source)
 
@@ -370,7 +425,8 @@ class CoatingRetargeter(_MeshTransfer):
             Keep these vertices where they are at ``frame`` (use with the others for local
             control).
         window : ``(first, last)`` frames, optional
-            Temporal window in which weights may change (default: the whole sequence).
+            Temporal window in which weights may change; their change is zero just outside
+            it (default: ``edit_window`` seconds either side of the edited frames).
         mode : "both" | "bases" | "weights"
             Update the blendshape bases (the edit reaches every similar expression in the
             sequence, fig. 4b), the weights (only frames in the window change, fig. 4d),
@@ -443,26 +499,31 @@ class DeformationTransferRetargeter(_MeshTransfer):
         self._check_shared()
         topo, stable = self._prepare(source, target)
         start = time.perf_counter()
-        self.transfer_ = DeformationTransfer(topo.target_reference, self.source_triangles_, gauge_weights=stable)
+        self.transfer_ = DeformationTransfer(self.placement_.to_model(topo.target_reference), self.source_triangles_, gauge_weights=stable)
         self.transfer_.factor.solve(np.zeros(self.transfer_.free.size))  # factorize now (one-time setup)
-        self.inverse_ = reference_inverse(self.source_reference_, self.source_triangles_)
-        self.ratio_ = size_ratio(self.source_reference_, topo.target_reference, self.source_triangles_)
+        self.aligned_reference_ = self.placement_(self.source_reference_)
+        self.inverse_ = reference_inverse(self.aligned_reference_, self.source_triangles_)
+        self.ratio_ = size_ratio(self.aligned_reference_, topo.target_reference, self.source_triangles_)
         self.timings_ = {"setup_s": time.perf_counter() - start}
 
-    def _chunks(self, source: Source):
+    def _chunks(self, source: Source, source_motion: np.ndarray | None = None):
         self._check_fitted()
         self._check_source(source)
-        ref = self.source_reference_
-        for sl, motion, local in self._local_chunks(source):
+        ref = self.aligned_reference_
+        if source_motion is None:
+            source_motion = self._source_motion(source)[0]
+        for sl, motion, local in self._local_chunks(source, source_motion):
             means = self.transfer_.component_means(local - ref) * self.ratio_
             columns = gradient_columns(self.inverse_, local, self.source_triangles_)
             out = self.transfer_.solve_rhs(self.transfer_.rhs_columns(columns), means)
-            yield sl, motion, to_world(motion, self.topology_.back(out))
+            yield sl, motion, to_world(motion, self.output_(out))
 
     def _retarget(self, source: Source) -> Animation:
         out = np.empty((source.n_frames, self.target_.neutral.n_vertices, 3))
         motion = np.empty((source.n_frames, 4, 4))
-        for sl, m, frames in self._chunks(source):
+        source_motion, info = self._source_motion(source)
+        for sl, m, frames in self._chunks(source, source_motion):
             out[sl] = frames
             motion[sl] = m
-        return self._animation(out, source, motion, {"same_topology": self.topology_.same, "fit_timings_s": dict(self.timings_)})
+        diagnostics = {"same_topology": self.topology_.same, "unit_scale": self.placement_.unit, **info, "fit_timings_s": dict(self.timings_)}
+        return self._animation(out, source, motion, diagnostics)

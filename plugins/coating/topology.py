@@ -17,7 +17,7 @@ import numpy as np
 from faceretarget.errors import CapabilityError
 from faceretarget.model import Mesh, Source, TargetRig
 
-__all__ = ["CommonTopology", "BackMap", "common_topology", "same_topology"]
+__all__ = ["CommonTopology", "BackMap", "OutputMap", "common_topology", "same_topology"]
 
 
 def same_topology(a: Mesh, b: Mesh) -> bool:
@@ -96,6 +96,17 @@ class BackMap:
 
     def __call__(self, frames: np.ndarray) -> np.ndarray:
         return self.rest + self.correspondence.apply(np.asarray(frames, dtype=np.float64) - self.resampled)
+
+
+class OutputMap:
+    """The transfer's coordinates -> the target's own vertices: ``back(placement.to_target(frames))``."""
+
+    def __init__(self, placement, back):
+        self.placement = placement
+        self.back = back
+
+    def __call__(self, frames: np.ndarray) -> np.ndarray:
+        return self.back(self.placement.to_target(frames))
 
 
 def describe(report: dict[str, Any]) -> dict[str, Any]:

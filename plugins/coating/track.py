@@ -2,9 +2,14 @@
 
 A :class:`CoatingTrack` holds what edits change (target bases, target weights, fine
 detail layers) and what they read (source weights, head motion, the source's
-fine-scale motion ``D_t``, cached in float32 when the result was computed in memory,
-otherwise recomputed from the source frames on demand). It never changes after
+transferred detail ``D_t + E_t``, cached in float32 when the result was computed in
+memory, otherwise recomputed from the source frames on demand). It never changes after
 construction: an edit builds a new track with :meth:`CoatingTrack.replace`.
+
+Detail edits read the *wrinkles* ``D_t`` alone (:meth:`CoatingTrack.wrinkles`, the
+coating against the Taubin-smoothed source frame, computed for the frames asked); the
+synthesis uses the whole transferred detail (:meth:`CoatingTrack.fine_motion`), in which
+the basis-fit residual ``E_t`` of eq. 7 is carried unchanged by detail edits.
 """
 from __future__ import annotations
 
@@ -12,7 +17,7 @@ from dataclasses import dataclass, field, replace as dc_replace
 
 import numpy as np
 
-from .alignment import frame_chunks, to_local, to_world
+from .alignment import frame_chunks, to_world
 
 __all__ = ["DetailLayer", "CoatingTrack"]
 
@@ -31,7 +36,9 @@ class DetailLayer:
 class CoatingTrack:
     model: object
     performance: object
-    motion: np.ndarray
+    source_motion: np.ndarray  # (F, 4, 4) head motion of the source frames (source world)
+    placement: object  # :class:`~.alignment.Placement`: source local frames -> target frame
+    motion: np.ndarray  # (F, 4, 4) head motion applied to the output (target world)
     source_weights: np.ndarray
     weights: np.ndarray
     bases: np.ndarray
@@ -53,8 +60,23 @@ class CoatingTrack:
             return np.arange(self.n_frames)[frames]
         return np.asarray(frames, dtype=np.int64).ravel()
 
+    def _source_frames(self, idx: np.ndarray, compute) -> np.ndarray:
+        """``compute(local source frames (n, V, 3), frame ids) -> (n, ...)`` over ``idx``, chunk by
+        chunk, the frames read in increasing order."""
+        out = None
+        order = np.argsort(idx)
+        for sl in frame_chunks(idx.size, self.chunk):
+            sel = idx[order[sl]]
+            local = self.placement.local(self.source_motion[sel], np.asarray(self.performance.vertices[sel]))
+            block = compute(local, sel)
+            if out is None:
+                out = np.empty((idx.size,) + block.shape[1:])
+            out[order[sl]] = block
+        return out
+
     def fine_motion(self, frames, vertices=None) -> np.ndarray:
-        """Target fine-scale motion ``D'_t`` (local coordinates) of ``frames`` -> ``(n, V, 3)``.
+        """Target fine-scale motion ``D'_t + E_t`` (local coordinates) of ``frames`` -> ``(n, V, 3)``:
+        the transferred detail with the detail edits' layers, as synthesized.
 
         ``vertices`` (ids of the common topology) restricts the result to ``(n, P, 3)``.
         """
@@ -62,13 +84,25 @@ class CoatingTrack:
         cols = np.arange(self.model.n_vertices) if vertices is None else np.asarray(vertices, dtype=np.int64)
         if self.details is not None:
             out = np.asarray(self.details[np.ix_(idx, cols)] if vertices is not None else self.details[idx], dtype=np.float64)
+        elif idx.size:
+            out = self._source_frames(idx, lambda local, sel: self.model.decompose(local)[1][:, cols])
         else:
-            out = np.empty((idx.size, cols.size, 3))
-            order = np.argsort(idx)
-            for sl in frame_chunks(idx.size, self.chunk):
-                sel = idx[order[sl]]
-                local = to_local(self.motion[sel], np.asarray(self.performance.vertices[sel]))
-                out[order[sl]] = self.model.decompose(local)[1][:, cols]
+            out = np.empty((0, cols.size, 3))
+        return self._with_layers(out, idx, cols)
+
+    def wrinkles(self, frames, vertices=None) -> np.ndarray:
+        """The wrinkle layer ``D'_t`` (local coordinates) of ``frames`` -> ``(n, V, 3)`` (or ``(n, P, 3)``
+        for ``vertices``): the source's coating against its Taubin-smoothed frames, with the
+        detail edits' layers; without the basis-fit residual ``E_t``. One smoothing a frame."""
+        idx = self._index(frames)
+        cols = np.arange(self.model.n_vertices) if vertices is None else np.asarray(vertices, dtype=np.int64)
+        if idx.size:
+            out = self._source_frames(idx, lambda local, sel: self.model.wrinkles(local, self.source_weights[sel])[:, cols])
+        else:
+            out = np.empty((0, cols.size, 3))
+        return self._with_layers(out, idx, cols)
+
+    def _with_layers(self, out: np.ndarray, idx: np.ndarray, cols: np.ndarray) -> np.ndarray:
         position = np.full(self.model.n_vertices, -1, dtype=np.int64)
         position[cols] = np.arange(cols.size)
         for layer in self.layers:

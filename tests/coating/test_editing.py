@@ -2,8 +2,10 @@
 import numpy as np
 import pytest
 from naive.coating import bases_edit as naive_bases_edit
+from naive.coating import coating as naive_coating
 from naive.coating import grid_mesh
 from naive.coating import propagate as naive_propagate
+from naive.coating import weights_edit as naive_weights_edit
 from scipy.optimize import nnls
 
 import faceretarget as fr
@@ -11,7 +13,7 @@ from faceretarget.errors import ConfigError, IndexRangeError, InputError, NonFin
 from faceretarget.geometry.deformation_gradients import DeformationTransfer
 from faceretarget.plugins.coating import DetailEdit
 from faceretarget.plugins.coating.details import active_range, propagate, select_region
-from faceretarget.plugins.coating.editing import Constraint, Influence, solve_bases, solve_weights
+from faceretarget.plugins.coating.editing import Constraint, Influence, _knot_change, solve_bases, solve_weights
 from faceretarget.plugins.coating.retargeter import CoatingRetargeter
 
 HALF = 25
@@ -166,6 +168,85 @@ def test_weights_step_matches_the_full_temporal_problem():
     np.testing.assert_array_equal(got[: window[0]], weights[: window[0]])
 
 
+def test_weights_step_is_the_bounded_problem_with_anchors_and_metric():
+    """Every window frame's weights >= 0 (zeros active: sparse weights), the velocity measured in
+    a metric, the change anchored just outside the window (virtual frames at the sequence
+    ends): the knot solve with knots added where the interpolant would cross zero equals the
+    assembled bounded problem."""
+    rng = np.random.default_rng(3)
+    n_frames, k = 14, 4
+    active = 0
+    for trial in range(12):
+        bases = rng.normal(size=(k, 6, 3))
+        center = rng.normal(size=3)
+        weights = rng.uniform(0.0, 1.0, size=(n_frames, k)) * (rng.uniform(size=(n_frames, k)) > 0.4)
+        m = rng.normal(size=(k, k))
+        metric = m @ m.T + 0.1 * np.eye(k)
+        cons = [Constraint(f, np.array([int(rng.integers(0, 6))]), np.array([1.0]), rng.normal(size=3)) for f in (3 + trial % 5, 9)]
+        window = [(0, n_frames - 1), (2, 11), (0, 9), (3, n_frames - 1)][trial % 4]
+        got, _ = solve_weights(bases, center, weights, cons, window, 0.7, 1.0, metric)
+        want = naive_weights_edit(bases, center, weights, cons, window, 0.7, 1.0, metric)
+        np.testing.assert_allclose(got[window[0] : window[1] + 1], want, atol=1e-8)
+        np.testing.assert_array_equal(np.delete(got, np.arange(window[0], window[1] + 1), axis=0), np.delete(weights, np.arange(window[0], window[1] + 1), axis=0))
+        # would the change linear between the edited frames alone have crossed zero?
+        knots = sorted({c.frame for c in cons if window[0] <= c.frame <= window[1]})
+        step = _knot_change(bases, center, weights, cons, knots, window, 0.7, 1.0, metric)
+        xs = [window[0] - 1] + knots + [window[1] + 1]
+        ys = np.concatenate([np.zeros((1, k)), step, np.zeros((1, k))])
+        frames = np.arange(window[0], window[1] + 1)
+        plain = weights[frames] + np.stack([np.interp(frames, xs, ys[:, i]) for i in range(k)], axis=1)
+        active += int(plain.min() < -1e-9)
+    assert active >= 3  # bounds that the plain interpolation would cross were met
+
+
+@pytest.fixture(scope="module")
+def long():
+    """Four seconds at 30 fps: an edit at 2 s, frames more than 1 s away are far."""
+    case = fr.cases.synthetic(seed=0, resolution=900, n_frames=120)
+    r = CoatingRetargeter().fit(case.source, case.target)
+    return case, r, r.retarget(case.source)
+
+
+@pytest.mark.parametrize("mode", ["weights", "both"])
+def test_default_edits_leave_far_frames_alone(long, mode):
+    """The default window is edit_window (1 s) either side of the edit and the weight change is
+    anchored at its ends: far frames keep their weights; in "both" they move only by the basis
+    change the weights could not avoid (before: whole-sequence windows, no anchors, 17 cm on
+    ICT for a 0.3 cm edit)."""
+    case, r, anim = long
+    names = list(case.target.landmarks.names)
+    v = int(case.target.landmarks.vertex_ids[names.index("mouth_corner_L")])
+    t, size = 60, 0.015 * case.target.neutral.height
+    far = np.abs(np.arange(anim.n_frames) - t) > 30
+    for axis in np.eye(3):
+        goal = anim.vertices[t, v] + size * axis
+        out = r.edit(anim, points=[(t, v, goal)], mode=mode)
+        assert out.provenance["diagnostics"]["last_edit"]["window"] == [30, 90]
+        move = np.linalg.norm(out.vertices - anim.vertices, axis=-1).max(axis=1)
+        assert (out.extras["weights"] >= 0).all()
+        if mode == "weights":
+            np.testing.assert_array_equal(out.vertices[far], anim.vertices[far])
+            np.testing.assert_array_equal(out.extras["weights"][far], anim.extras["weights"][far])
+            assert move[t] > 0.3 * size
+        else:
+            assert np.linalg.norm(out.vertices[t, v] - goal) < 0.05 * size
+            assert move[far].max() < 0.7 * size and np.median(move[far]) < 0.15 * size, (move[far].max() / size, np.median(move[far]) / size)
+
+
+def test_weights_edit_over_the_whole_sequence_fades_from_the_edit(long):
+    """An explicit whole-sequence window: the change, anchored past both ends, is largest at the
+    edited frame and fades away from it (weight velocities measured in the bases' metric; in
+    the plain weight metric frames far away moved by up to 30 times the edit)."""
+    case, r, anim = long
+    names = list(case.target.landmarks.names)
+    size = 0.015 * case.target.neutral.height
+    for name, t in (("brow_L_2", 60), ("chin", 30), ("lip_upper_1", 90)):
+        v = int(case.target.landmarks.vertex_ids[names.index(name)])
+        out = r.edit(anim, points=[(t, v, anim.vertices[t, v] + size * np.array([1.0, 0.0, 0.0]))], mode="weights", window=(0, anim.n_frames - 1))
+        move = np.linalg.norm(out.vertices - anim.vertices, axis=-1).max(axis=1)
+        assert move.max() <= move[t] * (1 + 1e-9) and move[0] < 0.1 * move[t] and move[-1] < 0.1 * move[t], (name, move.max() / size, move[t] / size)
+
+
 def test_propagation_matches_the_assembled_system():
     rng = np.random.default_rng(2)
     change = rng.normal(size=(5, 3))
@@ -200,54 +281,134 @@ def test_active_range_and_region_selection():
     np.testing.assert_array_equal(ids, [0, 1, 2, 3])
 
 
-def _furrow_setup(setup):
-    case, r, anim, _ = setup
+@pytest.fixture(scope="module")
+def wrinkled():
+    """Forehead furrows active (brow raise up to 0.61 around frame 39 of 90), no head motion;
+    the key frame is pinned (lambda_key 1e4: the paper's 1 damps fine wrinkles on coarse meshes)."""
+    case = fr.cases.synthetic(seed=0, resolution=1500, n_frames=90, head_motion=False)
+    r = CoatingRetargeter(lambda_key=1e4).fit(case.source, case.target)
+    anim = r.retarget(case.source)
     uv = case.meta["target_uv"]
-    region = np.flatnonzero((np.abs(uv[:, 0]) < 0.35) & (uv[:, 1] > 0.65) & (uv[:, 1] < 0.95))
+    region = np.flatnonzero((np.abs(uv[:, 0]) < 0.25) & (uv[:, 1] > 0.68) & (uv[:, 1] < 0.9))
     track = anim.extras["coating"]
-    magnitude = np.linalg.norm(track.fine_motion(slice(None), region), axis=-1).sum(axis=1)
-    return region, int(np.argmax(magnitude)), track
+    key = int(np.argmax(np.linalg.norm(track.wrinkles(slice(None), region), axis=-1).sum(axis=1)))
+    return case, r, anim, region, key
 
 
-def test_detail_scale_remove_and_window(setup):
-    case, r, anim, _ = setup
-    region, key, track = _furrow_setup(setup)
-    r.set_params(lambda_key=1e4)  # pin the key frame (the paper's 1 damps fine wrinkles on coarse meshes)
-    try:
-        out = r.edit(anim, detail=DetailEdit(frame=key, vertices=region, operation="scale", factor=2.0, blend=0))
-    finally:
-        r.set_params(lambda_key=1.0)
-    diag = out.provenance["diagnostics"]["last_edit"]
-    ts, te = diag["window"]
-    assert ts <= key <= te
-    new = out.extras["coating"].fine_motion([key], region)[0]
-    old = track.fine_motion([key], region)[0]
-    np.testing.assert_allclose(new, 2.0 * old, atol=1e-3 * np.abs(old).max())
-    outside = np.r_[0:ts, te + 1 : FRAMES]
+def _world_wrinkles(track, t, ids):
+    """The wrinkle vectors of vertices ``ids`` at frame ``t`` in the transfer's coordinates."""
+    model = track.model
+    frames = model.target.frames(model.smooth_target(track.weights[t : t + 1], track.bases))[0]
+    return np.einsum("pij,pj->pi", frames[ids], track.wrinkles([t], ids)[0])
+
+
+def _corr(a, b):
+    return float(np.sum(a * b) / np.linalg.norm(a) / np.linalg.norm(b))
+
+
+def test_wrinkle_layer_is_the_coating_against_the_smoothed_frame(wrinkled):
+    """D_t = F(B_t)^T M (S_t - G S_t) - c_0 (eq. 1, 3): no basis-fit residual (eq. 7) in it; the
+    transferred detail is D_t + E_t, E_t = F(B_t)^T M (G S_t - B_t)."""
+    case, r, anim, region, key = wrinkled
+    track = anim.extras["coating"]
+    model = track.model
+    src = model.source
+    for t in (key, 75):
+        local = track.placement.local(track.source_motion[t : t + 1], case.source.performance.vertices[t : t + 1])
+        blend = model.source_smooth(track.source_weights[t : t + 1])[0]
+        smooth = src.smooth(local)[0]
+        poisson = src.poisson.toarray()
+        want = naive_coating(local[0], blend, model.triangles, poisson, src.neighbors) - naive_coating(smooth, blend, model.triangles, poisson, src.neighbors) - src.reference_coating
+        got = track.wrinkles([t])[0]
+        np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
+        residual = naive_coating(smooth, blend, model.triangles, poisson, src.neighbors)
+        np.testing.assert_allclose(track.fine_motion([t])[0] - got, residual, atol=1e-5 * np.abs(want).max())  # float32 cache
+        assert np.linalg.norm(residual) > 0.05 * np.linalg.norm(got)  # the residual is there, and not in D_t
+
+
+def test_detail_scale_acts_on_the_wrinkles_only(wrinkled):
+    case, r, anim, region, key = wrinkled
+    track = anim.extras["coating"]
+    out = r.edit(anim, detail=DetailEdit(frame=key, vertices=region, operation="scale", factor=2.0, blend=0))
+    new = out.extras["coating"]
+    ts, te = out.provenance["diagnostics"]["last_edit"]["window"]
+    assert ts < key < te
+    old_w = track.wrinkles([key], region)[0]
+    np.testing.assert_allclose(new.wrinkles([key], region)[0], 2.0 * old_w, atol=2e-3 * np.abs(old_w).max())
+    # what changed is the wrinkle layer: the transferred detail moved by D_t, not by D_t + E_t
+    change = new.fine_motion([key], region)[0] - track.fine_motion([key], region)[0]
+    np.testing.assert_allclose(change, old_w, atol=2e-3 * np.abs(old_w).max())
+    # the basis-fit residual E_t is untouched in every frame
+    frames = np.arange(anim.n_frames)
+    before = track.fine_motion(frames, region) - track.wrinkles(frames, region)
+    after = new.fine_motion(frames, region) - new.wrinkles(frames, region)
+    np.testing.assert_allclose(after, before, atol=1e-9 * np.abs(old_w).max())
+    outside = np.r_[0:ts, te + 1 : anim.n_frames]
     np.testing.assert_array_equal(out.vertices[outside], anim.vertices[outside])
+
+
+def test_active_range_follows_the_wrinkles(wrinkled):
+    """The detail's active range (threshold 0.23 of the key frame's region magnitude) is where
+    the furrows' shape (brow raise) is on: the wrinkle layer follows its weight."""
+    case, r, anim, region, key = wrinkled
+    out = r.edit(anim, detail={"frame": key, "vertices": region, "operation": "remove"})
+    ts, te = out.provenance["diagnostics"]["last_edit"]["window"]
+    brow = case.meta["weights"][:, list(case.meta["weight_names"]).index("browInnerUp")]
+    on = np.flatnonzero(brow > r.detail_threshold * brow[key])
+    assert abs(ts - on.min()) <= 1 and abs(te - on.max()) <= 1, (ts, te, on.min(), on.max())
+    before = np.linalg.norm(anim.extras["coating"].wrinkles([key], region))
+    assert np.linalg.norm(out.extras["coating"].wrinkles([key], region)) < 0.05 * before
     # with the paper's weights the key frame keeps most of a removal
-    gone = r.edit(anim, detail={"frame": key, "vertices": region, "operation": "remove"})
-    left = np.linalg.norm(gone.extras["coating"].fine_motion([key], region)) / np.linalg.norm(old)
-    assert left < 0.7
-    assert np.abs(gone.vertices[key] - anim.vertices[key]).max() > 0
+    r.set_params(lambda_key=1.0)
+    try:
+        gone = r.edit(anim, detail={"frame": key, "vertices": region, "operation": "remove"})
+    finally:
+        r.set_params(lambda_key=1e4)
+    assert np.linalg.norm(gone.extras["coating"].wrinkles([key], region)) < 0.7 * before
 
 
-def test_detail_paste_and_reshape(setup):
-    case, r, anim, _ = setup
-    region, key, track = _furrow_setup(setup)
+def test_detail_paste_carries_the_moved_wrinkles(wrinkled):
+    """Paste the furrows 2 cm lower (the brows, no furrows there): each destination vertex's
+    wrinkle is the moved source region's nearest one (coating transfer, frame to frame)."""
+    from scipy.spatial import cKDTree
+
+    case, r, anim, region, key = wrinkled
+    track = anim.extras["coating"]
     shift = np.eye(4)
-    shift[1, 3] = -2.0  # two centimetres down, in world coordinates at the key frame
-    out = r.edit(anim, detail=DetailEdit(frame=key, vertices=region, operation="paste", transform=shift))
-    diag = out.provenance["diagnostics"]["last_edit"]
-    assert diag["edited_vertices"] > 0 and diag["operation"] == "paste"
-    assert np.abs(out.vertices[key] - anim.vertices[key]).max() > 0
+    shift[1, 3] = -2.0
+    out = r.edit(anim, detail=DetailEdit(frame=key, vertices=region, operation="paste", transform=shift, blend=0))
+    assert out.provenance["diagnostics"]["last_edit"]["operation"] == "paste"
     pts = anim.vertices[key]
+    moved = pts[region] + [0.0, -2.0, 0.0]
+    dst = np.unique(cKDTree(pts).query(moved)[1])
+    want = _world_wrinkles(track, key, region)[cKDTree(moved).query(pts[dst])[1]]
+    assert dst.size > 20
+    assert _corr(_world_wrinkles(out.extras["coating"], key, dst), want) > 0.8
+    assert _corr(_world_wrinkles(track, key, dst), want) < 0.3  # they were not there before
+
+
+def test_detail_reshape_moves_the_wrinkle(wrinkled):
+    """Reshape a furrow to a curve half a wavelength higher: the region's wrinkles are the old
+    ones moved up (and so nearly the opposite of what was there)."""
+    from scipy.spatial import cKDTree
+
+    case, r, anim, region, key = wrinkled
+    track = anim.extras["coating"]
     uv = case.meta["target_uv"]
+    pts = anim.vertices[key]
     line = np.argsort(np.abs(uv[:, 1] - 0.72) + 10 * (np.abs(uv[:, 0]) > 0.2))[:6]
-    line = line[np.argsort(uv[line, 0])]
-    curve = pts[line]
-    out = r.edit(anim, detail=DetailEdit(frame=key, curve=curve, radius=0.8, operation="reshape", target_curve=curve + [0.0, 0.4, 0.0]))
+    curve = pts[line[np.argsort(uv[line, 0])]]
+    up = np.array([0.0, 0.5, 0.0])
+    out = r.edit(anim, detail=DetailEdit(frame=key, curve=curve, radius=1.2, operation="reshape", target_curve=curve + up, blend=0))
     assert out.provenance["diagnostics"]["last_edit"]["region_vertices"] > 0
+    from faceretarget.plugins.coating.details import _distance_to_polyline
+
+    inner = np.flatnonzero(_distance_to_polyline(pts, curve) <= 0.7)
+    new = _world_wrinkles(out.extras["coating"], key, inner)
+    moved = _world_wrinkles(track, key, cKDTree(pts).query(pts[inner] - up)[1])
+    here = _world_wrinkles(track, key, inner)
+    assert _corr(new, moved) > 0.6
+    assert _corr(new, here) < 0.0
 
 
 def test_edit_errors(setup):

@@ -190,3 +190,37 @@ def grid_mesh(n=8, seed=0, jitter=0.2):
     a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
     tri = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
     return np.stack([x, y, z], axis=1), tri
+
+
+def weights_edit(bases, center, weights, constraints, window, mu, lambda_w, metric):
+    """The weight step of a large-scale edit assembled in full: every window frame's weights
+    unknown and bounded below by 0, velocity terms (in ``metric``) between consecutive frames
+    including the zero change just outside both window ends (virtual frames past a sequence
+    end), point constraints at their frames; solved by scipy's NNLS. Returns the window's
+    new weights ``(w1 - w0 + 1, K)``."""
+    from scipy.optimize import nnls
+
+    k = weights.shape[1]
+    w0, w1 = window
+    frames = np.arange(w0, w1 + 1)
+    n = frames.size * k
+    root = np.linalg.cholesky(metric).T  # metric = root^T root
+    rows, rhs = [], []
+    for t in range(w0 - 1, w1 + 1):  # velocity change between t and t + 1
+        block = np.zeros((k, n))
+        target = np.zeros(k)
+        for s, sign in ((t + 1, 1.0), (t, -1.0)):
+            if w0 <= s <= w1:
+                block[:, (s - w0) * k : (s - w0 + 1) * k] += sign * root
+                target += sign * (root @ weights[s])
+        rows.append(np.sqrt(lambda_w) * block)
+        rhs.append(np.sqrt(lambda_w) * target)
+    for c in constraints:
+        if not w0 <= c.frame <= w1:
+            continue
+        a = np.einsum("v,kvd->kd", c.coeffs, bases[:, c.vertices] - center)  # (K, 3)
+        block = np.zeros((3, n))
+        block[:, (c.frame - w0) * k : (c.frame - w0 + 1) * k] = a.T
+        rows.append(np.sqrt(mu) * block)
+        rhs.append(np.sqrt(mu) * (c.value - center * c.coeffs.sum()))
+    return nnls(np.vstack(rows), np.concatenate(rhs), maxiter=50 * n)[0].reshape(frames.size, k)
