@@ -30,8 +30,6 @@ import faceretarget as fr
 from faceretarget import recipes
 from faceretarget.plugins.layers import actor_layers_from_frames, default_masks, layered_rig_from_blendshapes
 
-DEFAULT_ICT = Path("/work/shared/data/ict-facekit/ict_face.npz")
-
 
 def range_of_motion(rig: fr.BlendshapeRig, landmarks: fr.Landmarks, hold: int = 6, seed: int = 1):
     """The actor holds every recipe pose for ``hold`` frames, moving the head; returns the
@@ -58,7 +56,7 @@ def range_of_motion(rig: fr.BlendshapeRig, landmarks: fr.Landmarks, hold: int = 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--ict", type=Path, default=DEFAULT_ICT, help="ICT-FaceKit export (neutral, expression deltas/names)")
+    parser.add_argument("--ict", type=Path, default=None, help="an ICT-FaceKit rig export (neutral, expression deltas/names); default: the committed fixture")
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: a temporary one)")
     args = parser.parse_args(argv)
@@ -80,7 +78,7 @@ def main(argv=None) -> int:
     print(f"actor: {markers}, layers {actor_layers}")
 
     # 3. the character: the ICT generic face, layers from its ARKit blendshapes
-    if args.ict.exists():
+    if args.ict is not None:
         char_rig = fr.load(args.ict, kind="rig")
         where = str(args.ict)
     else:  # the committed fixture of the same data (fewer expressions)
