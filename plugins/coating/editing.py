@@ -51,6 +51,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from faceretarget.errors import ConfigError, IndexRangeError, InputError, NonFiniteError, ShapeError
 
@@ -66,6 +67,8 @@ _REL_STOP = 0.05
 #: miss (relative to the requested move) at which they stop.
 _MAX_OUTER = 3
 _OUTER_TOL = 0.01
+#: Rounds of adding knots where the interpolated weights would cross zero (:func:`solve_weights`).
+MAX_KNOT_ROUNDS = 64
 
 
 @dataclass(frozen=True)
@@ -268,10 +271,13 @@ def solve_weights(bases, center, weights, constraints, window, mu, lambda_w, met
 
     Without bounds the optimal change is linear in time between the edited frames (knots)
     and the anchors, so only the knots' weights are unknown (NNLS on them). Where the
-    interpolated weights would cross zero, the exact bounded solution bends: the frame of
-    the deepest crossing on each offending segment becomes a knot (its weights NNLS-bound
-    too) and the knots are solved again, until every frame's weights are non-negative (at
-    worst every frame is a knot: the full problem). Clipping the interpolant at zero
+    interpolated weights would cross zero, the exact bounded solution bends: on each
+    offending segment, the first crossing seen from either end and the deepest one become
+    knots (their weights NNLS-bound too) and the knots are solved again, until every frame's weights are
+    non-negative (at worst every frame is a knot: the full problem; in practice a basis
+    that must fade out does so at its first zero, a few knots). After ``MAX_KNOT_ROUNDS``
+    rounds the remaining crossings are removed by shrinking the change at those frames
+    (never by clipping single weights). Clipping the interpolant at zero
     instead breaks the balance of the weights: a knot that trades some bases for others (a
     small change of the face there) becomes, where the traded-away bases are already zero,
     the addition of the others alone (measured on ICT: far frames scaled by 1.7, 13 cm).
@@ -288,7 +294,7 @@ def solve_weights(bases, center, weights, constraints, window, mu, lambda_w, met
     frames = np.arange(w0, w1 + 1)
     knots = list(edited)
     scale = max(float(np.abs(w[w0 : w1 + 1]).max()), 1.0)
-    for _ in range(w1 - w0 + 2):
+    for _ in range(MAX_KNOT_ROUNDS):
         delta_knots = _knot_change(bases, center, w, constraints, knots, (w0, w1), mu, lambda_w, g)
         xs_a = np.asarray([w0 - 1] + knots + [w1 + 1], dtype=np.float64)
         ys_a = np.concatenate([np.zeros((1, k)), delta_knots, np.zeros((1, k))])
@@ -298,13 +304,19 @@ def solve_weights(bases, center, weights, constraints, window, mu, lambda_w, met
         if not bad.any():
             break
         segment = np.searchsorted(xs_a, frames)  # frames between xs[s-1] and xs[s]
-        extra = []
+        extra = set()
         for seg in np.unique(segment[bad]):
             inside = np.flatnonzero(bad & (segment == seg))
-            extra.append(int(frames[inside[np.argmin(low[inside])]]))
-        knots = sorted(set(knots) | set(extra))
+            extra.update(int(frames[i]) for i in (inside[0], inside[-1], inside[np.argmin(low[inside])]))
+        knots = sorted(set(knots) | extra)
+    new = w[w0 : w1 + 1] + delta
+    if (new < -1e-12 * scale).any():  # still crossing: shrink the change where it would (the face change only shrinks)
+        neg = delta < 0
+        room = np.where(neg, w[w0 : w1 + 1] / np.where(neg, -delta, 1.0), np.inf).min(axis=1)
+        delta = delta * np.clip(room, 0.0, 1.0)[:, None]
+        new = w[w0 : w1 + 1] + delta
     out = w.copy()
-    out[w0 : w1 + 1] = np.maximum(w[w0 : w1 + 1] + delta, 0.0)
+    out[w0 : w1 + 1] = np.maximum(new, 0.0)
     padded = np.concatenate([np.zeros((1, k)), delta, np.zeros((1, k))])
     velocity = np.diff(padded, axis=0)
     return out, float(lambda_w * np.einsum("tk,kl,tl->", velocity, g, velocity))
@@ -316,30 +328,64 @@ def _knot_change(bases, center, weights, constraints, knots, window, mu, lambda_
     w0, w1 = window
     k = weights.shape[1]
     n = len(knots)
-    lap = np.zeros((n, n))
-    for j in range(n - 1):
-        gap = 1.0 / (knots[j + 1] - knots[j])
-        lap[j, j] += gap
-        lap[j + 1, j + 1] += gap
-        lap[j, j + 1] -= gap
-        lap[j + 1, j] -= gap
-    # anchors: zero change just outside both window ends
-    lap[0, 0] += 1.0 / (knots[0] - (w0 - 1))
-    lap[-1, -1] += 1.0 / ((w1 + 1) - knots[-1])
-    gram = lambda_w * np.kron(lap, metric)
-    rhs = gram @ weights[knots].ravel()
+    x = np.asarray(knots, dtype=np.float64)
+    gap = 1.0 / np.diff(np.concatenate([[w0 - 1.0], x, [w1 + 1.0]]))  # anchors: zero change past both ends
+    lap = sp.diags([gap[:-1] + gap[1:], -gap[1:-1], -gap[1:-1]], [0, -1, 1], shape=(n, n), format="csr")
+    gram = (lambda_w * sp.kron(lap, sp.csr_matrix(metric))).tolil() if n > 1 else None
+    dense = lambda_w * np.kron(lap.toarray(), metric) if gram is None else None
+    target = weights[knots].ravel()
+    rhs = (lambda_w * sp.kron(lap, sp.csr_matrix(metric))) @ target
     index = {t: j for j, t in enumerate(knots)}
+    blocks = {}
     for c in constraints:
         if c.frame not in index:
             continue
         j = index[c.frame]
         a = np.einsum("v,kvd->kd", c.coeffs, bases[:, c.vertices] - center)  # (K, 3)
         const = center * c.coeffs.sum()
-        blk = slice(j * k, (j + 1) * k)
-        gram[blk, blk] += mu * a @ a.T
-        rhs[blk] += mu * a @ (c.value - const)
-    y = nnls_rows(gram, rhs[None])[0].reshape(n, k)
+        blocks[j] = blocks.get(j, 0.0) + mu * a @ a.T
+        rhs[j * k : (j + 1) * k] += mu * a @ (c.value - const)
+    if gram is None:
+        for j, blk in blocks.items():
+            dense[j * k : (j + 1) * k, j * k : (j + 1) * k] += blk
+        y = nnls_rows(dense, rhs[None])[0].reshape(n, k)
+    else:
+        for j, blk in blocks.items():
+            gram[j * k : (j + 1) * k, j * k : (j + 1) * k] = gram[j * k : (j + 1) * k, j * k : (j + 1) * k].toarray() + blk
+        y = _nnls_sparse(gram.tocsc(), rhs, np.maximum(target, 0.0)).reshape(n, k)
     return y - weights[knots]
+
+
+def _nnls_sparse(hessian, rhs, start, max_iter: int = 100) -> np.ndarray:
+    """``argmin 1/2 x^T H x - rhs . x`` s.t. ``x >= 0`` for a sparse SPD ``H`` (here block-tridiagonal
+    over the knots): a primal-dual active-set method (Hintermueller, Ito & Kunisch 2002), each
+    step one sparse solve on the free variables. Falls back to the dense active-set NNLS if the
+    active set does not settle."""
+    from scipy.sparse.linalg import splu
+
+    n = rhs.size
+    x = np.asarray(start, dtype=np.float64).copy()
+    grad = hessian @ x - rhs
+    c = float(np.mean(hessian.diagonal())) or 1.0
+    active = (grad - c * x > 0) & (x <= 0)
+    seen = set()
+    for _ in range(max_iter):
+        free = np.flatnonzero(~active)
+        x = np.zeros(n)
+        if free.size:
+            x[free] = splu(hessian[free][:, free].tocsc()).solve(rhs[free])
+        grad = hessian @ x - rhs
+        grad[free] = 0.0
+        new_active = grad - c * x > 0
+        tol = 1e-12 * max(float(np.abs(rhs).max()), 1e-300)
+        if np.array_equal(new_active, active) and (x >= -tol).all() and (grad >= -tol).all():
+            return np.maximum(x, 0.0)
+        key = new_active.tobytes()
+        if key in seen:
+            break
+        seen.add(key)
+        active = new_active
+    return nnls_rows(hessian.toarray(), rhs[None])[0]
 
 
 def _constraint_energy(bases, center, weights, constraints, mu):
