@@ -136,17 +136,19 @@ def tridiagonal_modes(r, lam, known, yk, y, scratch):
 
 
 @nb.njit(cache=True)
-def admm_box(r0, lam, known, yk, phi, phi_t, rho, relax, lo, hi, l1, z, u, w, max_iter, eps_abs, eps_rel, dual_unit, ex, y, scratch):
+def admm_box(r0, lam, known, yk, phi, phi_t, rho, scale, relax, lo, hi, l1, z, u, w, max_iter, eps_abs, eps_rel, dual_unit, ex, y, scratch):
     """ADMM for movement matching with box bounds and an L1 term on the weights.
 
-    Minimizes ``1/2 w^T H w - r^T w + l1 |w|_1`` subject to ``lo <= w <= hi`` over the unknown
+    Minimizes ``1/2 w^T H w - r^T w + sum_j l1_j |w_j|`` subject to ``lo <= w <= hi`` over the unknown
     frames, where ``H = L kron G + I kron K`` is the movement-matching normal matrix. Split
-    ``w = z``: the w-step solves ``(H + rho I) w = r + rho (z - u)``, which keeps the Kronecker
-    structure (``phi``/``lam`` are the generalized eigenpairs of ``(K + rho I, G + K + rho I)``),
-    so it is one tridiagonal sweep per mode; the z-step is the prox of the box + L1 term,
-    ``clip(soft(v, l1 / rho), lo, hi)``, element by element (Boyd et al. 2011, sec. 5-6, with
+    ``w = z`` with the penalty ``rho/2 ||D^1/2 (w - z + u)||^2`` (``D = diag(scale)``): the w-step
+    solves ``(H + rho I kron D) w = r + rho D (z - u)``, which keeps the Kronecker structure
+    (``phi``/``lam`` are the generalized eigenpairs of ``(K + rho D, G + K + rho D)``), so it is one
+    tridiagonal sweep per mode; the z-step is the prox of the box + L1 term,
+    ``clip(soft(v, l1_j / (rho d_j)), lo_j, hi_j)``, element by element (Boyd et al. 2011, sec. 5-6, with
     over-relaxation ``relax``).
 
+    scale, l1, lo, hi : (m,) the penalty's diagonal ``D``, per-shape L1 weights and bounds.
     r0 : (F, m) modal right-hand side ``Phi^T r`` of the unknown frames; known frames keep
     ``yk`` (modal) and their ``z`` rows. ``z``, ``u`` (scaled dual) and ``w`` are updated in place;
     ``ex``, ``y``, ``scratch`` are (F, m) work arrays. The dual residual has the units of the
@@ -169,7 +171,7 @@ def admm_box(r0, lam, known, yk, phi, phi_t, rho, relax, lo, hi, l1, z, u, w, ma
                     ex[t, j] = 0.0
             else:
                 for j in range(m):
-                    ex[t, j] = rho * (z[t, j] - u[t, j])
+                    ex[t, j] = rho * scale[j] * (z[t, j] - u[t, j])
         np.dot(ex, phi, y)  # BLAS: 2-3x the plain loops for these (F, m) x (m, m) products
         for t in range(n_frames):
             for j in range(m):
@@ -177,11 +179,11 @@ def admm_box(r0, lam, known, yk, phi, phi_t, rho, relax, lo, hi, l1, z, u, w, ma
         tridiagonal_modes(y, lam, known, yk, y, scratch)
         np.dot(y, phi_t, w)
         p2 = d2 = wn = zn = un = 0.0
-        thresh = l1 / rho
         for t in range(n_frames):
             if known[t]:
                 continue
             for j in range(m):
+                thresh = l1[j] / (rho * scale[j])
                 wr = relax * w[t, j] + (1.0 - relax) * z[t, j]
                 v = wr + u[t, j]
                 if thresh > 0.0:
@@ -196,10 +198,10 @@ def admm_box(r0, lam, known, yk, phi, phi_t, rho, relax, lo, hi, l1, z, u, w, ma
                 diff = w[t, j] - zn_
                 p2 += diff * diff
                 dz = zn_ - z[t, j]
-                d2 += dz * dz
+                d2 += scale[j] * scale[j] * dz * dz
                 wn += w[t, j] * w[t, j]
                 zn += zn_ * zn_
-                un += u[t, j] * u[t, j]
+                un += scale[j] * scale[j] * u[t, j] * u[t, j]
                 z[t, j] = zn_
         primal = np.sqrt(p2)
         dual = rho * np.sqrt(d2)

@@ -313,8 +313,9 @@ class SpacetimeRetargeter(Retargeter):
             alpha *= self.n_points_ / self.n_markers_
             prior = self.prior_
             system = System(self.basis_, alpha * prior.matrix, alpha * prior.vector, beta, self.marker_weights_, alpha=alpha)
-            # L1 weight relative to the position term: an isolated shape is shrunk by about `sparsity`
-            system.l1 = params["sparsity"] * beta * float(np.mean(np.diag(system.gram)))
+            # per-shape L1 weight relative to the shape's own position term: an isolated shape
+            # held still is shrunk by `sparsity` (whatever its size)
+            system.l1 = params["sparsity"] * beta * np.diag(system.gram).copy()
             self.systems_[fps] = system
         return self.systems_[fps]
 
@@ -624,7 +625,7 @@ class SpacetimeRetargeter(Retargeter):
 
     def _solve_movement(self, system, deltas, known, values, frame_weights, stats=None) -> np.ndarray:
         """Movement matching, bounded (ADMM) when the retargeter has bounds or an L1 term."""
-        if self.bounds_ is None and system.l1 == 0.0:
+        if self.bounds_ is None and not np.any(system.l1):
             return solve_movement(system, deltas, known, values, frame_weights)
         m = system.n_shapes
         lo, hi = self.bounds_ if self.bounds_ is not None else (np.full(m, -np.inf), np.full(m, np.inf))

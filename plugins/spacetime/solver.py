@@ -70,7 +70,7 @@ class System:
     _modal: tuple | None = field(default=None, init=False, repr=False)
     _marker_grams: np.ndarray | None = field(default=None, init=False, repr=False)
     _shifted: dict = field(default_factory=dict, init=False, repr=False)
-    l1: float = field(default=0.0, init=False)  # L1 weight of the bounded solve (normal-equation units)
+    l1: float | np.ndarray = field(default=0.0, init=False)  # L1 weight(s) of the bounded solve (normal-equation units)
 
     def __post_init__(self):
         b = np.ascontiguousarray(self.basis, dtype=np.float64)
@@ -127,12 +127,23 @@ class System:
             self._marker_grams = np.ascontiguousarray(np.einsum("nki,nkj->nij", blocks, blocks))
         return self._marker_grams
 
+    @property
+    def admm_scale(self) -> np.ndarray:
+        """(M,) diagonal ``D`` of the ADMM penalty ``rho/2 ||D^1/2 (w - z + u)||^2``: the diagonal
+        of ``G + K`` over its mean, so that shapes of very different sizes (a jaw and an eyelid
+        differ ~3,000x in ``G``) converge together (diagonal scaling, Boyd et al. 2011 sec. 3.4.1)."""
+        k = self.position_matrix + self.sobolev_matrix
+        d = np.diag(self.gram + k).copy()
+        d /= max(float(d.mean()), 1e-300)
+        return np.maximum(d, 1e-6)
+
     def shifted_modal(self, rho: float):
-        """``(Phi, Phi^T, lam, (G + K + rho I) Phi)`` for the generalized eigenproblem
-        ``(K + rho I) phi = lam (G + K + rho I) phi`` (the w-step of the bounded solve), cached."""
+        """``(Phi, Phi^T, lam, (G + K + rho D) Phi)`` for the generalized eigenproblem
+        ``(K + rho D) phi = lam (G + K + rho D) phi`` (the w-step of the bounded solve, ``D`` =
+        :attr:`admm_scale`), cached."""
         cache = self._shifted
         if rho not in cache:
-            k = self.position_matrix + self.sobolev_matrix + rho * np.eye(self.n_shapes)
+            k = self.position_matrix + self.sobolev_matrix + rho * np.diag(self.admm_scale)
             mass = self.gram + k
             try:
                 lam, phi = scipy.linalg.eigh(k, mass)
@@ -222,7 +233,7 @@ def solve_movement_bounded(
     known_weights: np.ndarray,
     lower: np.ndarray,
     upper: np.ndarray,
-    l1: float = 0.0,
+    l1: float | np.ndarray = 0.0,
     frame_weights: np.ndarray | None = None,
     stats: BoundedStats | None = None,
 ) -> np.ndarray:
@@ -235,6 +246,7 @@ def solve_movement_bounded(
     iteration is that of the unconstrained solve without its data projection. When the
     unconstrained solution already satisfies the bounds and ``l1 == 0`` it is returned as is.
 
+    l1 : float or (M,) per-shape weights.
     lower, upper : (M,) float (``-inf`` / ``inf`` allowed); known frames keep
     ``known_weights`` even outside the bounds (a user's explicit choice).
     Returns (F, M) float64; the unknown frames satisfy the bounds exactly.
@@ -245,6 +257,7 @@ def solve_movement_bounded(
     m = system.n_shapes
     lo = np.ascontiguousarray(np.broadcast_to(np.asarray(lower, dtype=np.float64), (m,)))
     hi = np.ascontiguousarray(np.broadcast_to(np.asarray(upper, dtype=np.float64), (m,)))
+    l1 = np.ascontiguousarray(np.broadcast_to(np.asarray(l1, dtype=np.float64), (m,)))
     stats = BoundedStats() if stats is None else stats
     missing = np.isnan(s[:, 0::3])
     structured = not missing.any() and frame_weights is None
@@ -256,15 +269,15 @@ def solve_movement_bounded(
     start[known] = wk[known]
     free = ~known
     inside = np.all((start[free] >= lo) & (start[free] <= hi))
-    if inside and l1 == 0.0:
+    if inside and not l1.any():
         stats.iterations, stats.converged = 0, True
         return start
     z = np.where(free[:, None], np.clip(start, lo, hi), wk)
     u = np.zeros_like(z)
     if structured:
-        _admm_structured(system, r_w, known, wk, lo, hi, float(l1), z, u, stats)
+        _admm_structured(system, r_w, known, wk, lo, hi, l1, z, u, stats)
     else:
-        _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, float(l1), z, u, stats)
+        _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, l1, z, u, stats)
     z[known] = wk[known]
     return z
 
@@ -325,6 +338,7 @@ def _admm_structured(system, r_w, known, wk, lo, hi, l1, z, u, stats) -> None:
     n_frames, m = z.shape
     unit = _unit(system)
     rho = ADMM_RHO_SCALE * unit
+    scale = system.admm_scale
     work = np.empty((4, n_frames, m))
     done = 0
     while True:
@@ -333,7 +347,7 @@ def _admm_structured(system, r_w, known, wk, lo, hi, l1, z, u, stats) -> None:
         yk = wk @ mass_phi
         chunk = min(ADMM_CHUNK, ADMM_MAX_ITER - done)
         it, primal, dual, eps_p, eps_d = admm_box(
-            r0, lam, known, yk, phi, phi_t, rho, ADMM_RELAX, lo, hi, l1, z, u, work[0], chunk,
+            r0, lam, known, yk, phi, phi_t, rho, scale, ADMM_RELAX, lo, hi, l1, z, u, work[0], chunk,
             ADMM_EPS_ABS, ADMM_EPS_REL, unit, work[1], work[2], work[3],
         )
         done += abs(it)
@@ -354,25 +368,26 @@ def _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, l1, z, u
     unit = _unit(system)
     rho = ADMM_RHO_SCALE * unit
     m = system.n_shapes
-    shifted = dataclasses.replace(system, prior_matrix=system.prior_matrix + rho * np.eye(m))
+    scale = system.admm_scale
+    shifted = dataclasses.replace(system, prior_matrix=system.prior_matrix + rho * np.diag(scale))
     done = 0
     free = ~known
     while done < ADMM_MAX_ITER:
-        vector = system.prior_vector[None, :] + rho * (z - u)
+        vector = system.prior_vector[None, :] + rho * scale * (z - u)
         w = _solve_general(shifted, s, missing, known, wk, frame_weights, prior_vector=vector)
         done += 1
         wr = ADMM_RELAX * w + (1.0 - ADMM_RELAX) * z
         v = wr + u
-        if l1 > 0.0:
-            v = np.sign(v) * np.maximum(np.abs(v) - l1 / rho, 0.0)
+        if l1.any():
+            v = np.sign(v) * np.maximum(np.abs(v) - l1 / (rho * scale), 0.0)
         znew = np.clip(v, lo, hi)
         u[free] += (wr - znew)[free]
         primal = float(np.linalg.norm((w - znew)[free]))
-        dual = rho * float(np.linalg.norm((znew - z)[free]))
+        dual = rho * float(np.linalg.norm((scale * (znew - z))[free]))
         z[free] = znew[free]
         root = np.sqrt(max(free.sum() * m, 1))
         eps_p = ADMM_EPS_ABS * root + ADMM_EPS_REL * max(np.linalg.norm(w[free]), np.linalg.norm(z[free]))
-        eps_d = ADMM_EPS_ABS * root * unit + ADMM_EPS_REL * rho * np.linalg.norm(u[free])
+        eps_d = ADMM_EPS_ABS * root * unit + ADMM_EPS_REL * rho * np.linalg.norm((scale * u)[free])
         stats.iterations, stats.rho, stats.primal, stats.dual = done, rho, primal, dual
         if primal <= eps_p and dual <= eps_d:
             stats.converged = True
@@ -382,7 +397,7 @@ def _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, l1, z, u
             if new != rho:
                 u *= rho / new
                 rho = new
-                shifted = dataclasses.replace(system, prior_matrix=system.prior_matrix + rho * np.eye(m))
+                shifted = dataclasses.replace(system, prior_matrix=system.prior_matrix + rho * np.diag(scale))
     stats.converged = False
 
 

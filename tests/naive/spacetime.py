@@ -189,17 +189,17 @@ def procrustes_rotation(reference, points):
 
 def solve_rows_bounded(basis, deltas, known, known_weights, lower, upper, l1=0.0, **energy):
     """:func:`solve_rows` with ``lower <= w <= upper`` on the unknown frames and ``2 * l1 * sum(w)``
-    added to the energy (the L1 norm, valid for ``lower >= 0``), by BVLS (``lsq_linear``) on the
+    added to the energy (the L1 norm, valid for ``lower >= 0``; ``l1`` a scalar or (M,)), by BVLS (``lsq_linear``) on the
     assembled rows. The linear term is moved into the right-hand side: with ``A`` of full column
     rank, ``||A x - b||^2 + c^T x = ||A x - (b + d)||^2 + const`` for ``d = -A (A^T A)^-1 c / 2``.
     """
     x, fixed, au, r = _eliminate_known(basis, deltas, known, known_weights, **energy)
     au = au.toarray()
     n_frames, m = len(deltas), np.asarray(basis).shape[1]
-    if l1:
-        c = np.full(au.shape[1], 2.0 * l1)
-        r = r - 0.5 * au @ np.linalg.solve(au.T @ au, c)
     n_free = int((~fixed).sum())
+    if np.any(l1):  # a scalar or one weight per shape
+        c = np.tile(np.broadcast_to(2.0 * np.asarray(l1, dtype=np.float64), (m,)), n_free // m)
+        r = r - 0.5 * au @ np.linalg.solve(au.T @ au, c)
     lo = np.tile(np.broadcast_to(lower, (m,)), n_free // m)
     hi = np.tile(np.broadcast_to(upper, (m,)), n_free // m)
     x[~fixed] = scipy.optimize.lsq_linear(au, r, bounds=(lo, hi), method="bvls", tol=1e-14).x

@@ -7,10 +7,12 @@ from faceretarget.plugins.spacetime.prior import fit_prior
 from naive import spacetime as naive
 
 
-def random_problem(seed=0, n_frames=30, n_markers=7, n_shapes=5, alpha=0.3, beta=0.0, marker_weights=None, center="neutral"):
-    """Random basis, smooth deltas, a PCA prior from the shapes and a System."""
+def random_problem(seed=0, n_frames=30, n_markers=7, n_shapes=5, alpha=0.3, beta=0.0, marker_weights=None, center="neutral", column_scale=None):
+    """Random basis (columns times ``column_scale``), smooth deltas, a PCA prior from the shapes and a System."""
     rng = np.random.default_rng(seed)
     basis = rng.normal(size=(3 * n_markers, n_shapes))
+    if column_scale is not None:
+        basis = basis * np.asarray(column_scale, dtype=np.float64)
     t = np.arange(n_frames)[:, None]
     deltas = (np.sin(t / 5.0 + rng.uniform(0, 6, 3 * n_markers)) + 0.1 * rng.normal(size=(n_frames, 3 * n_markers)))
     deltas = deltas.reshape(n_frames, n_markers, 3)
