@@ -190,6 +190,22 @@ def test_animation_lazy_vertices_with_head_motion_and_provenance():
         fr.Animation(weights=[[1.0, 2.0]], rig=rig)
 
 
+def test_head_motion_rotates_each_frame_like_a_point_by_point_loop():
+    from scipy.spatial.transform import Rotation
+
+    from faceretarget.model import apply_head_motion
+
+    rng = np.random.default_rng(3)
+    motion = np.tile(np.eye(4), (4, 1, 1))
+    motion[:, :3, :3] = Rotation.random(4, random_state=1).as_matrix()
+    motion[:, :3, 3] = rng.normal(size=(4, 3))
+    points = rng.normal(size=(4, 6, 3))
+    want = np.array([[m[:3, :3] @ p + m[:3, 3] for p in frame] for m, frame in zip(motion, points)])
+    np.testing.assert_allclose(apply_head_motion(motion, points), want, atol=1e-12)
+    identity = np.tile(np.eye(4), (4, 1, 1))
+    np.testing.assert_array_equal(apply_head_motion(identity, points), points)
+
+
 def test_inputs_never_mutated():
     v, t = quad()
     v_before, t_before = v.copy(), t.copy()
