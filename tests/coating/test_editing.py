@@ -367,9 +367,9 @@ def test_active_range_follows_the_wrinkles(wrinkled):
     assert np.linalg.norm(gone.extras["coating"].wrinkles([key], region)) < 0.7 * before
 
 
-def test_detail_paste_carries_the_moved_wrinkles(wrinkled):
-    """Paste the furrows 2 cm lower (the brows, no furrows there): each destination vertex's
-    wrinkle is the moved source region's nearest one (coating transfer, frame to frame)."""
+def _paste_correlations(wrinkled):
+    """Paste the furrows 2 cm lower (the brows, no furrows there): correlation of each destination
+    vertex's wrinkle with the moved source region's nearest one, after and before the edit."""
     from scipy.spatial import cKDTree
 
     case, r, anim, region, key = wrinkled
@@ -383,14 +383,39 @@ def test_detail_paste_carries_the_moved_wrinkles(wrinkled):
     dst = np.unique(cKDTree(pts).query(moved)[1])
     want = _world_wrinkles(track, key, region)[cKDTree(moved).query(pts[dst])[1]]
     assert dst.size > 20
-    assert _corr(_world_wrinkles(out.extras["coating"], key, dst), want) > 0.8
-    assert _corr(_world_wrinkles(track, key, dst), want) < 0.3  # they were not there before
+    return _corr(_world_wrinkles(out.extras["coating"], key, dst), want), _corr(_world_wrinkles(track, key, dst), want)
 
 
-def test_detail_reshape_moves_the_wrinkle(wrinkled):
-    """Reshape a furrow to a curve half a wavelength higher: the region's wrinkles are the old
-    ones moved up (and so nearly the opposite of what was there)."""
+def test_detail_paste_carries_the_moved_wrinkles(wrinkled):
+    """Each destination vertex's wrinkle is the moved source region's nearest one (coating
+    transfer, frame to frame); they were not there before."""
+    after, before = _paste_correlations(wrinkled)
+    assert after > 0.8
+    assert before < 0.3
+
+
+def test_a_no_op_paste_fails_the_paste_check(wrinkled, monkeypatch):
+    """Mutant kept as a test: a paste that copies nothing (each destination keeps its own
+    detail) leaves the destination uncorrelated with the moved wrinkles."""
+    from faceretarget.plugins.coating import details
+
+    real = details._copy_details
+
+    def keep(frames_key, details_key, src_ids, src_points, dst_points_all, rotation, spacing):
+        dst, _ = real(frames_key, details_key, src_ids, src_points, dst_points_all, rotation, spacing)
+        return dst, details_key[dst]
+
+    monkeypatch.setattr(details, "_copy_details", keep)
+    after, _ = _paste_correlations(wrinkled)
+    assert after < 0.3
+
+
+def _reshape_correlations(wrinkled):
+    """Reshape a furrow to a curve half a wavelength higher: correlation of the region's new
+    wrinkles with the old ones moved up, and with what was there."""
     from scipy.spatial import cKDTree
+
+    from faceretarget.plugins.coating.details import _distance_to_polyline
 
     case, r, anim, region, key = wrinkled
     track = anim.extras["coating"]
@@ -401,14 +426,42 @@ def test_detail_reshape_moves_the_wrinkle(wrinkled):
     up = np.array([0.0, 0.5, 0.0])
     out = r.edit(anim, detail=DetailEdit(frame=key, curve=curve, radius=1.2, operation="reshape", target_curve=curve + up, blend=0))
     assert out.provenance["diagnostics"]["last_edit"]["region_vertices"] > 0
-    from faceretarget.plugins.coating.details import _distance_to_polyline
-
     inner = np.flatnonzero(_distance_to_polyline(pts, curve) <= 0.7)
     new = _world_wrinkles(out.extras["coating"], key, inner)
     moved = _world_wrinkles(track, key, cKDTree(pts).query(pts[inner] - up)[1])
     here = _world_wrinkles(track, key, inner)
-    assert _corr(new, moved) > 0.6
-    assert _corr(new, here) < 0.0
+    return _corr(new, moved), _corr(new, here)
+
+
+def test_detail_reshape_moves_the_wrinkle(wrinkled):
+    """The region's wrinkles are the old ones moved up (and so nearly the opposite of what was there)."""
+    moved, here = _reshape_correlations(wrinkled)
+    assert moved > 0.6
+    assert here < 0.0
+
+
+def test_a_no_op_reshape_fails_the_reshape_check(wrinkled, monkeypatch):
+    """Mutant kept as a test: a reshape whose deformation (eq. 17) leaves the region in place
+    re-pastes the wrinkles where they were."""
+    from faceretarget.plugins.coating import details
+
+    monkeypatch.setattr(details, "_reshape", lambda points, adj, region, curve, target_curve: points[region])
+    moved, here = _reshape_correlations(wrinkled)
+    assert here > 0.5 and moved < 0.3
+
+
+def test_the_edit_fixture_edits_active_wrinkles(wrinkled):
+    """The detail edits above act on wrinkles that are on: the furrows' shape (brow raise) is
+    well above zero at the key frame, and the region's wrinkle layer is much larger there than
+    where the shape is off."""
+    case, r, anim, region, key = wrinkled
+    brow = case.meta["weights"][:, list(case.meta["weight_names"]).index("browInnerUp")]
+    assert brow[key] > 0.3
+    off = int(np.argmin(brow))
+    assert brow[off] < 0.05 * brow[key]
+    track = anim.extras["coating"]
+    size = np.linalg.norm(track.wrinkles([key, off], region), axis=-1).sum(axis=1)
+    assert size[0] > 5.0 * size[1]
 
 
 def test_edit_errors(setup):

@@ -338,6 +338,20 @@ def test_feature_lines_follow_the_source_lines_and_do_not_hurt_a_stylized_target
     assert _rms(r.retarget(stylized.source).vertices, stylized.truth.vertices, height) <= _rms(dt.vertices, stylized.truth.vertices, height)
 
 
+def test_removing_the_feature_line_term_fails_the_line_check(monkeypatch):
+    """Mutant kept as a test: the basis transfer without its feature-line term (eq. 9-11) at the
+    full weight leaves the target lines as far from the source's deformation as sigma ~ 0 does."""
+    from faceretarget.plugins.coating import model as coating_model
+
+    human = fr.cases.synthetic(seed=1, resolution=RES, n_frames=FRAMES)
+    off = _line_residual(CoatingRetargeter(sigma=1e-9).fit(human.source, human.target))
+    real = coating_model.DeformationTransfer
+    monkeypatch.setattr(coating_model, "DeformationTransfer", lambda *a, feature_lines=None, **k: real(*a, feature_lines=None, **k))
+    mutant = CoatingRetargeter().fit(human.source, human.target)
+    assert mutant.model_.sigma > 50
+    assert _line_residual(mutant) > 0.9 * off
+
+
 def test_target_details_are_applied_in_each_frames_own_local_frames(cases):
     """Eq. 5 with eq. 16: the coating of an output frame against its smooth mesh, read in that
     mesh's own frames, is exactly ``c'_0 + D_t`` (not in the reference's frames)."""
@@ -354,10 +368,9 @@ def test_target_details_are_applied_in_each_frames_own_local_frames(cases):
     np.testing.assert_allclose(model.target.coating(out, smooth), model.target.reference_coating[None] + details, atol=1e-9 * np.abs(details).max())
 
 
-def test_details_are_invariant_to_the_large_scale_deformation():
-    """Sec. 3 with eq. 16: the fine-scale motion is read in each frame's own local frames, so a
-    wrinkle keeps its coating when the surface under it folds and turns (here by 35-70
-    degrees); read in the reference's frames it would turn with the surface."""
+def _fold_change():
+    """A wrinkle on a flat sheet, and the same sheet folded (turned by 35-70 degrees): change of
+    the wrinkle's fine-scale motion between the two, relative to its size."""
     from faceretarget.plugins.coating.model import CoatingModel
 
     n = 24
@@ -383,4 +396,27 @@ def test_details_are_invariant_to_the_large_scale_deformation():
     inside = (x**2 + y**2) < 0.3
     on_flat = (details[1] - details[0])[inside]
     on_fold = (details[3] - details[2])[inside]
-    assert np.linalg.norm(on_fold - on_flat) < 0.25 * np.linalg.norm(on_flat)  # reference frames: 0.6
+    return float(np.linalg.norm(on_fold - on_flat) / np.linalg.norm(on_flat))
+
+
+def test_details_are_invariant_to_the_large_scale_deformation():
+    """Sec. 3 with eq. 16: the fine-scale motion is read in each frame's own local frames, so a
+    wrinkle keeps its coating when the surface under it folds and turns."""
+    assert _fold_change() < 0.25
+
+
+def test_reference_frames_instead_of_eq16_frames_fail_the_invariance(monkeypatch):
+    """Mutant kept as a test: coatings read and applied in the reference's frames (not each
+    frame's own, eq. 16) turn with the surface (measured 0.6)."""
+    from faceretarget.plugins.coating.multiscale import MultiScale
+
+    coating, reconstruct = MultiScale.coating, MultiScale.reconstruct
+
+    def reference(self, n):
+        return np.repeat(self.frames(self.smooth_reference[None]), n, axis=0)
+
+    monkeypatch.setattr(MultiScale, "coating", lambda self, points, smooth, frames=None: coating(
+        self, points, smooth, reference(self, np.shape(smooth)[0]) if frames is None and hasattr(self, "neighbors") else frames))
+    monkeypatch.setattr(MultiScale, "reconstruct", lambda self, smooth, c, frames=None: reconstruct(
+        self, smooth, c, reference(self, np.shape(smooth)[0]) if frames is None else frames))
+    assert _fold_change() > 0.4

@@ -172,6 +172,12 @@ def test_detail_reproductions(dense, name, method, ablation):
     rows = {(row["case"], row["retargeter"]): row for row in res.table}
     assert sorted(rows) == sorted((case, m) for case, _ in SMALL_DETAIL_CASES for m in (method, ablation, "deformation_transfer"))
     assert all(row["wrinkle fine-scale motion (% face height)"] > presets.DETAIL_MIN_WRINKLE for row in res.table)
+    # the wrinkles' own contribution, apart from the fine-scale error of the large-scale motion
+    for row in res.table:
+        assert row["detail error without wrinkles (% face height)"] > 0 and row["wrinkle transfer error (% face height)"] >= 0
+    if name == "xu_fig6":  # coating's detail layer is what carries the wrinkles
+        for case, _ in SMALL_DETAIL_CASES:
+            assert rows[(case, ablation)]["wrinkle gain"] < 0.5 < rows[(case, method)]["wrinkle gain"]
     assert "wrinkle" in res.claim and "deformation transfer" in res.claim
     parts = []
     for case, _ in SMALL_DETAIL_CASES:

@@ -1,0 +1,151 @@
+"""Fidelity of the dense retargeters (``coating``, ``normalmesh``) against per-frame
+``deformation_transfer`` on real-like data (issue 14's figures).
+
+    python benchmarks/bench_dense_fidelity.py [--frames 60] [--detail-resolution 1500] [--skip cross,units,detail,piercing]
+
+Prints tables (no pass/fail, no timing), each with the figure it is compared against:
+
+- **cross-topology** (``cases.cross_topology()``): the source resting at its neutral must give
+  the target's neutral (RMS < 0.01% of the face height); RMS error of the performance
+  (coating and normalmesh below deformation transfer's).
+- **units**: the cross-topology pair with the source or the target scaled by 0.01, 100 and
+  1000; the result, in the target's units, must equal the unscaled run to 1e-6 relative.
+- **detail**: ``detail_error`` / ``detail_correlation`` on the wrinkled synthetic cases (the
+  presets' :data:`~faceretarget.evaluation.presets.DETAIL_CASES`), with the ratio to
+  deformation transfer (goal <= 0.7) and the same measurement on the wrinkle-free twin (what
+  the metric sees that is not wrinkles).
+- **piercing**: ``normalmesh``'s piercing-error share on ICT (goal < 0.5% of the normal-mesh
+  vertices) and its coverage.
+"""
+from __future__ import annotations
+
+import argparse
+import warnings
+
+import numpy as np
+
+import faceretarget as fr
+from faceretarget.evaluation.metrics import METRICS
+from faceretarget.evaluation.presets import DETAIL_CASES
+from faceretarget.evaluation.harness import resolve_case
+from faceretarget.testing import _Affine, _moved_source, _moved_target, _static_source
+
+METHODS = ("deformation_transfer", "coating", "normalmesh")
+SCALES = (0.01, 100.0, 1000.0)
+
+
+def rms_percent(a, b, height) -> float:
+    d = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
+    return float(100.0 * np.sqrt(np.mean(np.sum(d * d, axis=-1))) / height)
+
+
+def run(method, source, target, **params):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return fr.get(method, **params).fit(source, target).retarget(source)
+
+
+def table(rows, header):
+    widths = [max(len(str(h)), *(len(str(r[i])) for r in rows)) for i, h in enumerate(header)]
+    print("  ".join(str(h).ljust(w) for h, w in zip(header, widths)))
+    for r in rows:
+        print("  ".join(str(c).ljust(w) for c, w in zip(r, widths)))
+    print()
+
+
+def cross_topology(frames: int) -> None:
+    case = fr.cases.cross_topology(n_frames=frames)
+    target, height = case.target, float(case.target.neutral.height)
+    still = _static_source(case.source)
+    neutral = np.repeat(np.asarray(target.neutral.vertices)[None], still.n_frames, axis=0)
+    rows, rms = [], {}
+    for m in METHODS:
+        rest = rms_percent(run(m, still, target).vertices, neutral, height)
+        rms[m] = rms_percent(run(m, case.source, target).vertices, case.truth.vertices, height)
+        rows.append((m, f"{rest:.5f}", "yes" if rest < 0.01 else "NO", f"{rms[m]:.4f}", f"{rms[m] / rms['deformation_transfer']:.2f}"))
+    print(f"cross-topology ({case.source.performance.reference.n_vertices} -> {target.neutral.n_vertices} vertices, {frames} frames)")
+    table(rows, ("method", "neutral-in error (% H)", "< 0.01%", "RMS error (% H)", "RMS / DT"))
+
+
+def units(frames: int) -> None:
+    case = fr.cases.cross_topology(n_frames=frames)
+    source, target = case.source, case.target
+    height = float(target.neutral.height)
+    centre = np.asarray(target.neutral.vertices).mean(axis=0)
+    rows = []
+    for m in METHODS:
+        base = np.asarray(run(m, source, target).vertices, dtype=np.float64)
+        worst = []
+        for s in SCALES:
+            got = run(m, _moved_source(source, _Affine(s)), target).vertices
+            worst.append((f"source x{s:g}", rms_percent(got, base, height) / 100.0))
+            move = _Affine(s, None, centre * (1.0 - s))
+            got = move.inverse_points(run(m, source, _moved_target(target, move)).vertices)
+            worst.append((f"target x{s:g}", rms_percent(got, base, height) / 100.0))
+        label, err = max(worst, key=lambda x: x[1])
+        rows.append((m, f"{err:.2e}", label, "yes" if err <= 1e-6 else "NO"))
+    print("unit-scaled runs (cross-topology pair; largest RMS difference / face height over x0.01, x100, x1000 of either side)")
+    table(rows, ("method", "largest difference", "at", "<= 1e-6"))
+
+
+def detail(resolution: int | None) -> None:
+    rows = []
+    for label, spec in DETAIL_CASES:
+        if resolution is not None:
+            spec = spec.replace("resolution=1500", f"resolution={resolution}")
+        case = resolve_case(spec)
+        twin = resolve_case(spec + "&wrinkles=False")
+        got = {}
+        for m in METHODS:
+            a, b = run(m, case.source, case.target), run(m, twin.source, twin.target)
+            got[m] = (
+                METRICS["vertex_error_rms"].compute(a, case, {}),
+                METRICS["detail_error"].compute(a, case, {}),
+                METRICS["detail_correlation"].compute(a, case, {}),
+                METRICS["detail_error"].compute(b, twin, {}),
+            )
+        dt = got["deformation_transfer"]
+        for m, (rms, de, corr, de_twin) in got.items():
+            rows.append((label, m, f"{rms:.4f}", f"{de:.5f}", f"{de / dt[1]:.2f}", f"{corr:.3f}", f"{de_twin:.5f}", f"{de_twin / dt[3]:.2f}"))
+    print(f"detail (wrinkled synthetic cases{'' if resolution is None else f', resolution {resolution}'}; goal: detail_error ratio to DT <= 0.7)")
+    table(rows, ("case", "method", "RMS (% H)", "detail_error (% H)", "ratio to DT", "detail corr.", "wrinkle-free twin", "twin ratio"))
+
+
+def piercing(frames: int) -> None:
+    case = fr.cases.ict(n_frames=frames)
+    rows = []
+    for levels in ("auto", 4):
+        r = fr.get("normalmesh", levels=levels)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            r.fit(case.source, case.target)
+            anim = r.retarget(case.source)
+        p = anim.provenance["diagnostics"]["piercing_errors"]
+        cov = anim.provenance["diagnostics"]["coverage"]
+        rms = rms_percent(anim.vertices, case.truth.vertices, float(case.target.neutral.height))
+        per_frame = float(p["source_share_per_frame"])
+        rows.append((levels, r.levels_, p["normal_mesh_vertices"], f"{100 * p['target_share']:.3f}", f"{100 * per_frame:.3f}",
+                     f"{100 * cov['covered']:.1f}", f"{rms:.4f}"))
+    print("normalmesh piercing errors on ICT (goal < 0.5% of the normal-mesh vertices)")
+    table(rows, ("levels", "used", "normal-mesh vertices", "target share (%)", "source mean per frame (%)", "covered (%)", "RMS (% H)"))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--detail-resolution", type=int, default=None, help="resolution of the detail cases (default: the presets')")
+    ap.add_argument("--skip", default="", help="comma-separated parts to skip: cross, units, detail, piercing")
+    args = ap.parse_args()
+    skip = set(filter(None, args.skip.split(",")))
+    if "cross" not in skip:
+        cross_topology(args.frames)
+    if "units" not in skip:
+        units(min(args.frames, 20))
+    if "detail" not in skip:
+        detail(args.detail_resolution)
+    if "piercing" not in skip:
+        piercing(args.frames)
+
+
+if __name__ == "__main__":
+    main()
