@@ -15,6 +15,10 @@ from typing import Any
 
 __version__ = "0.1.0"
 
+from . import _numba_cache  # noqa: E402
+
+_numba_cache.install()  # concurrent processes sharing numba's cache never fail a call (numba is not imported here)
+
 from .errors import CapabilityError, FaceRetargetError, NotFittedError, UnknownNameError  # noqa: E402
 from .hookspecs import Metric, Reader, Writer, hookimpl, hookspec  # noqa: E402
 from .model import (  # noqa: E402

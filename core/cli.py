@@ -22,6 +22,7 @@ from importlib import import_module
 from . import __version__
 from .errors import FaceRetargetError, InputError, PluginError
 
+EXIT_FAILED = 1  # the command ran to its end, but some of its runs or jobs failed (see --keep-going)
 EXIT_ERROR = 2
 EXIT_INTERNAL = 3
 
@@ -32,31 +33,70 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 0
+    code, message = _dispatch(args)
+    _warn_skipped_plugins(args)
+    if message:
+        print(message, file=sys.stderr)
+    return code
+
+
+def _dispatch(args) -> tuple[int, str]:
+    """Run the sub-command: ``(exit status, error line or "")``."""
     try:
-        return int(args.handler(args) or 0)
+        return int(args.handler(args) or 0), ""
     except KeyboardInterrupt:
-        print("faceretarget: interrupted", file=sys.stderr)
-        return 130
+        return 130, "faceretarget: interrupted"
     except FaceRetargetError as exc:
         if args.debug:
             raise
-        print(f"faceretarget: error: {_one_line(exc)}", file=sys.stderr)
-        return EXIT_ERROR
+        return EXIT_ERROR, f"faceretarget: error: {_one_line(exc)}"
     except BrokenPipeError:
-        return 0
+        return 0, ""
     except OSError as exc:  # the file system said no (disk full, permissions): not our bug
         if args.debug:
             raise
-        print(f"faceretarget: error: {_one_line(exc)}", file=sys.stderr)
-        return EXIT_ERROR
+        return EXIT_ERROR, f"faceretarget: error: {_one_line(exc)}"
     except Exception as exc:  # an unexpected failure: still one line unless --debug
         if args.debug:
             raise
+        return EXIT_INTERNAL, (
+            f"faceretarget: internal error: {type(exc).__name__}: {_one_line(exc)} (run with --debug for the traceback)"
+        )
+    except BaseException as exc:  # SystemExit (or another BaseException) from code run in this process: never a success
+        if args.debug:
+            raise
+        return EXIT_ERROR, (
+            f"faceretarget: error: the command was ended by {type(exc).__name__}({_exit_arg(exc)}) raised in "
+            f"{_origin(exc)} before it finished; nothing more was done (run with --debug for the traceback)"
+        )
+
+
+def _exit_arg(exc: BaseException) -> str:
+    return ", ".join(repr(a) for a in exc.args)
+
+
+def _origin(exc: BaseException) -> str:
+    """``file:line`` of the innermost frame of ``exc``'s traceback (where it was raised)."""
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    if tb is None:
+        return "an unknown place"
+    return f"{tb.tb_frame.f_code.co_filename}:{tb.tb_lineno}"
+
+
+def _warn_skipped_plugins(args) -> None:
+    """One warning line per third-party plugin that failed to load and was skipped (``list``
+    shows them in its own output), if this command loaded the plugins at all."""
+    if getattr(args, "command", None) == "list":
+        return
+    module = sys.modules.get("faceretarget.registry")
+    loaded = getattr(module, "_REGISTRY", None) if module is not None else None
+    for info in getattr(loaded, "failures", None) or []:
         print(
-            f"faceretarget: internal error: {type(exc).__name__}: {_one_line(exc)} (run with --debug for the traceback)",
+            f"faceretarget: warning: plugin {info.name!r} ({info.origin}) was skipped: {_one_line(Exception(info.error or ''))}",
             file=sys.stderr,
         )
-        return EXIT_INTERNAL
 
 
 def _one_line(exc: BaseException) -> str:
@@ -254,18 +294,28 @@ def _plugin_call(who, stage: str, call, *args):
     plugin (or an invalid output of any) is reported with the plugin's name and distribution."""
     name, plugin = who
     where = f"{name} (plugin {plugin.name!r}, distribution {plugin.origin})"
-    if plugin.builtin and stage != "output":
-        return call(*args)
+    ours = plugin.builtin and stage != "output"  # a built-in's errors are shown as they are
     try:
         return call(*args)
     except FaceRetargetError as exc:
+        if ours:
+            raise
         try:
             renamed = type(exc)(f"{where}, {stage}: {exc}")
         except Exception:  # an exception class with another signature: keep it as it is
             raise exc from None
         raise renamed from exc
     except Exception as exc:
+        if ours:
+            raise
         raise PluginError(f"{where} failed in {stage}: {type(exc).__name__}: {_one_line(exc)}") from exc
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:  # sys.exit(0) in a plugin is not a success: nothing was written
+        raise PluginError(
+            f"{where} ended the program in {stage} with {type(exc).__name__}({_exit_arg(exc)}) instead of returning "
+            "or raising an error; nothing was written (report this to the plugin's author)"
+        ) from exc
 
 
 def parse_params(pairs: list[str]) -> dict:

@@ -104,13 +104,15 @@ def memory_budget() -> int:
     scale = {"K": 1024, "M": 1024**2, "G": 1024**3, "T": 1024**4}
     unit = raw[-1].upper()
     try:
-        if unit in scale:
-            return int(float(raw[:-1]) * scale[unit])
-        return int(float(raw))
+        value = float(raw[:-1]) * scale[unit] if unit in scale else float(raw)
     except ValueError:
+        value = float("nan")
+    if not (1 <= value < 2**63):  # negative, zero, below one byte, NaN, infinite or absurd
         raise ConfigError(
-            f"{ENV_MEMORY_BUDGET}={raw!r} is not a size; use bytes or a number with K, M or G (e.g. 2G)"
-        ) from None
+            f"{ENV_MEMORY_BUDGET}={raw!r} is not a positive size; use bytes or a number with K, M, G or T "
+            f"(e.g. 2G), or unset it for the default of {DEFAULT_MEMORY_BUDGET // 1024**3}G"
+        )
+    return int(value)
 
 
 def env_flag(name: str) -> bool:

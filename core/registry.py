@@ -23,6 +23,7 @@ import importlib.metadata as md
 import inspect
 import sys
 import tomllib
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any
@@ -30,9 +31,9 @@ from typing import Any
 import pluggy
 
 from . import config
-from ._deadline import DeadlineExpired, deadline
+from ._deadline import DeadlineExpired, deadline, grace_for, watchdog_process
 from .errors import ConfigError, DuplicatePluginError, PluginError, PluginLoadError, PluginTimeoutError, UnknownNameError
-from .hookspecs import PROJECT, FaceRetargetSpec, Metric, Reader, Writer
+from .hookspecs import DATA_KINDS, PROJECT, FaceRetargetSpec, Metric, Reader, Writer
 from .retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS, Capabilities, Retargeter
 
 __all__ = ["Registry", "PluginInfo", "RetargeterInfo", "registry", "reload", "read_catalogue"]
@@ -185,35 +186,42 @@ class Registry:
         if not config.env_flag(config.ENV_DISABLE_PLUGINS):
             allow = {a.strip() for a in _env(config.ENV_PLUGIN_ALLOWLIST).split(",") if a.strip()}
             limit = config.seconds_setting(config.ENV_IMPORT_TIMEOUT, config.DEFAULT_IMPORT_TIMEOUT)
-            for ep in external:
-                info = PluginInfo(ep.name, _dist_name(ep) or "unknown", _dist_version(ep), builtin=False)
-                if allow and ep.name not in allow and info.distribution not in allow:
-                    continue
-                try:
-                    with deadline(limit):
-                        module = ep.load()
-                except DeadlineExpired:
-                    self._fail(info, _too_slow(info, limit, "importing"), fatal=False)
-                    continue
-                except BaseException as exc:  # a plugin may even call sys.exit on import
-                    if isinstance(exc, KeyboardInterrupt):
-                        raise
-                    info.error = f"failed to import {ep.value!r}: {type(exc).__name__}: {exc}"
-                    self.failures.append(info)
-                    continue
-                before = self._snapshot()
-                try:
-                    with deadline(limit):
-                        self._register(module, info, fatal=False)
-                except DeadlineExpired:  # roll back whatever it had registered
-                    self._restore(before)
-                    if self.pm.is_registered(module):
-                        self.pm.unregister(module)
-                    self._fail(info, _too_slow(info, limit, "calling its registration hooks"), fatal=False)
+            with watchdog_process() if (limit and external) else nullcontext():
+                self._load_external(external, allow, limit)
         for name, module in extra or []:
             self._register(module, PluginInfo(name, "local", "-", builtin=False), fatal=False)
         self._check_catalogue()
         return self
+
+    def _load_external(self, external: list, allow: set, limit: float | None) -> None:
+        """Import and register third-party entry points, each under :func:`deadline`: one
+        that overruns ``limit`` is skipped, one that cannot even be interrupted ends the
+        program with a message naming it (:mod:`faceretarget._deadline`, layers 3-4)."""
+        for ep in external:
+            info = PluginInfo(ep.name, _dist_name(ep) or "unknown", _dist_version(ep), builtin=False)
+            if allow and ep.name not in allow and info.distribution not in allow:
+                continue
+            try:
+                with deadline(limit, hard=_stuck(info, limit, "importing")):
+                    module = ep.load()
+            except DeadlineExpired:
+                self._fail(info, _too_slow(info, limit, "importing"), fatal=False)
+                continue
+            except BaseException as exc:  # a plugin may even call sys.exit on import
+                if isinstance(exc, KeyboardInterrupt):
+                    raise
+                info.error = f"failed to import {ep.value!r}: {type(exc).__name__}: {exc}"
+                self.failures.append(info)
+                continue
+            before = self._snapshot()
+            try:
+                with deadline(limit, hard=_stuck(info, limit, "calling its registration hooks")):
+                    self._register(module, info, fatal=False)
+            except DeadlineExpired:  # roll back whatever it had registered
+                self._restore(before)
+                if self.pm.is_registered(module):
+                    self.pm.unregister(module)
+                self._fail(info, _too_slow(info, limit, "calling its registration hooks"), fatal=False)
 
     def _snapshot(self) -> tuple:
         return (dict(self.retargeters), dict(self.aliases), len(self.readers), len(self.writers), dict(self.metrics), len(self.plugins), len(self.failures))
@@ -244,8 +252,12 @@ class Registry:
                 self.pm.unregister(module)
                 self._fail(info, f"hook {hook} raised {type(exc).__name__}: {exc}", fatal)
                 return
-            items = [item for result in results for item in (result or [])]
-            staged[hook] = items
+            try:  # a hook returns a list (or None); anything else is the plugin's bug, not ours
+                staged[hook] = _hook_items(results, hook, info)
+            except PluginError as exc:
+                self.pm.unregister(module)
+                self._fail(info, str(exc), fatal, exc)
+                return
         try:
             entries = [self._validate_retargeter(cls, info) for cls in staged["faceretarget_retargeters"]]
             readers = [self._validate_record(r, Reader, "faceretarget_readers", info) for r in staged["faceretarget_readers"]]
@@ -255,6 +267,13 @@ class Registry:
         except PluginError as exc:
             self.pm.unregister(module)
             self._fail(info, str(exc), fatal, exc)
+            return
+        except (KeyboardInterrupt, DeadlineExpired):
+            raise
+        except BaseException as exc:  # a class attribute of the plugin's that raises or has the wrong type
+            self.pm.unregister(module)
+            error = PluginLoadError(f"plugin {info.name!r} ({info.origin}): what its hooks returned is invalid: {type(exc).__name__}: {exc}")
+            self._fail(info, str(error), fatal, error)
             return
         for entry in entries:
             self.retargeters[entry.name] = entry
@@ -299,10 +318,27 @@ class Registry:
 
     @staticmethod
     def _validate_record(record: Any, kind: type, hook: str, info: PluginInfo):
+        where = f"plugin {info.name!r} ({info.origin}), hook {hook}"
         if not isinstance(record, kind):
-            raise PluginLoadError(f"plugin {info.name!r} ({info.origin}), hook {hook}: returned {record!r}, not a faceretarget.{kind.__name__}")
-        if not callable(getattr(record, "read", None) or getattr(record, "write", None) or getattr(record, "compute", None)):
-            raise PluginLoadError(f"plugin {info.name!r} ({info.origin}), hook {hook}: {record.name!r} has no callable")
+            raise PluginLoadError(f"{where}: returned {record!r}, not a faceretarget.{kind.__name__}")
+        if not isinstance(record.name, str) or not record.name.strip():
+            raise PluginLoadError(f"{where}: a {kind.__name__} needs a non-empty string name, got {record.name!r}")
+        call = {Reader: "read", Writer: "write", Metric: "compute"}[kind]
+        if not callable(getattr(record, call, None)):
+            raise PluginLoadError(f"{where}: {record.name!r} has no callable {call}")
+        if not isinstance(record.description, str):
+            raise PluginLoadError(f"{where}: {record.name!r}: description must be a string, got {record.description!r}")
+        if kind is Metric:
+            if record.better not in ("lower", "higher", "none") or not isinstance(record.unit, str):
+                raise PluginLoadError(f"{where}: metric {record.name!r}: better must be \"lower\", \"higher\" or \"none\" and unit a string")
+            if record.why_not is not None and not callable(record.why_not):
+                raise PluginLoadError(f"{where}: metric {record.name!r}: why_not must be callable or None")
+        else:
+            if record.kind not in DATA_KINDS:
+                raise PluginLoadError(f"{where}: {record.name!r}: kind must be one of {', '.join(DATA_KINDS)}, got {record.kind!r}")
+            exts = record.extensions
+            if not isinstance(exts, (tuple, list)) or not exts or not all(isinstance(e, str) and e for e in exts):
+                raise PluginLoadError(f"{where}: {record.name!r}: extensions must be a non-empty tuple of strings like (\".obj\",), got {exts!r}")
         return record
 
     def _check_duplicates(self, entries: list[RetargeterInfo], metrics: list[Metric], info: PluginInfo) -> None:
@@ -370,10 +406,40 @@ def reload() -> Registry:
     return registry()
 
 
+def _hook_items(results: Any, hook: str, info: PluginInfo) -> list:
+    """The items of one plugin's ``hook`` results (pluggy gives one result per implementation,
+    None ones left out): each must be a list or tuple, else :class:`PluginLoadError` naming
+    the plugin and the hook."""
+    items: list = []
+    for result in results if isinstance(results, list) else [results]:
+        if result is None:
+            continue
+        if not isinstance(result, (list, tuple)):
+            shown = repr(result)
+            shown = shown if len(shown) <= 80 else shown[:77] + "..."
+            raise PluginLoadError(
+                f"plugin {info.name!r} ({info.origin}), hook {hook}: returned {shown} ({type(result).__name__}), "
+                f"expected a list; the plugin was skipped (fix the hook, or leave the plugin out with "
+                f"{config.ENV_PLUGIN_ALLOWLIST} or {config.ENV_DISABLE_PLUGINS}=1)"
+            )
+        items.extend(result)
+    return items
+
+
 def _too_slow(info: PluginInfo, seconds: float, doing: str) -> str:
     return (
         f"{PluginTimeoutError.__name__}: plugin {info.name!r} ({info.origin}) took longer than {seconds:g} s {doing}; "
         f"it was skipped (raise {config.ENV_IMPORT_TIMEOUT} to allow more time)"
+    )
+
+
+def _stuck(info: PluginInfo, seconds: float, doing: str) -> str:
+    others = f"{config.ENV_PLUGIN_ALLOWLIST}=<the plugins you need>"
+    return (
+        f"faceretarget: error: {PluginTimeoutError.__name__}: plugin {info.name!r} ({info.origin}) was still {doing} "
+        f"{seconds + grace_for(seconds):g} s after it started and could not be interrupted (it ignores the time limit's "
+        f"signals); the program was stopped. Leave the plugin out ({others}, or {config.ENV_DISABLE_PLUGINS}=1), "
+        f"uninstall {info.distribution}, or raise {config.ENV_IMPORT_TIMEOUT}"
     )
 
 

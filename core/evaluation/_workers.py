@@ -5,9 +5,9 @@
 once per worker). Up to ``workers`` processes each take a group and run its tasks one by
 one; a worker moving on to another plugin's tasks is replaced first, so a failure is
 always charged to the plugin that caused it. A task that does not finish within its
-``timeout`` has its worker killed (SIGKILL to the worker's whole process group: a plugin
-stuck in compiled code, or one that started helper processes, cannot be stopped any
-other way) and the rest of its group goes on in a fresh worker. A worker that dies
+``timeout`` has its worker killed with everything it started (a plugin stuck in compiled
+code, or one that started helper processes, cannot be stopped any other way) and the
+rest of its group goes on in a fresh worker. A worker that dies
 (segfault, out of memory, ``os._exit``) is reported the same way. Every task ends in
 exactly one :class:`Outcome`.
 
@@ -15,8 +15,13 @@ A worker is a fresh interpreter (``python -c``) prepared the way ``multiprocessi
 spawn prepares its children (``sys.path``, working directory, the main module as
 ``__mp_main__``), talking to the supervisor over a private socket pair; unlike a
 ``multiprocessing`` child it can also be started inside a daemonic process (a Dask
-worker). It leads its own process group and dies with its supervisor (Linux:
-``PR_SET_PDEATHSIG``; elsewhere a thread polls). Messages are pickled, as in
+worker). Each worker is started by a *shepherd* (:mod:`._shepherd`, standard library
+only, no plugin code): on Linux a child subreaper, so a helper a plugin starts with
+``start_new_session=True`` or a double-forked daemon stays in its process tree; when the
+worker ends (killed on SIGTERM from the supervisor, or it exits or dies) the shepherd
+stops and kills every descendant, then exits the way the worker did. Elsewhere only the
+worker's own session is killed. The worker dies with its shepherd and the shepherd with
+its supervisor (Linux: ``PR_SET_PDEATHSIG``; elsewhere they poll). Messages are pickled, as in
 ``multiprocessing``: only between a supervisor and the workers it started, never from files.
 """
 from __future__ import annotations
@@ -48,6 +53,12 @@ _POLL_SECONDS = 2.0
 
 #: Exit status of a worker whose connection broke or could not be read.
 _BROKEN_CONNECTION = 75
+
+#: The script that starts each worker and kills all its descendants when it ends.
+_SHEPHERD = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_shepherd.py")
+
+#: Seconds a shepherd gets to kill its worker's process tree before it is killed itself.
+_SHEPHERD_GRACE = 10.0
 
 
 @dataclass(frozen=True)
@@ -154,10 +165,9 @@ def _serve(conn: Connection) -> None:
 
 
 def _main() -> None:
-    """Entry of a worker: ``python -c ... FD PARENT_PID``; the first message prepares it."""
+    """Entry of a worker: ``python -c ... FD PARENT_PID`` (the parent is its shepherd, which
+    started it in a session of its own); the first message prepares it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the supervisor's to handle
-    if hasattr(os, "setsid"):
-        os.setsid()  # own process group: a kill reaches helper processes a plugin starts
     _die_with(int(sys.argv[2]))
     conn = Connection(int(sys.argv[1]))
     spawn.prepare(conn.recv())  # sys.path, cwd, the main module (classes defined in scripts)
@@ -186,9 +196,12 @@ class _Worker:
         self._writer: threading.Thread | None = None
         ours, theirs = socket.socketpair()
         code = "from faceretarget.evaluation._workers import _main; _main()"
-        argv = [sys.executable, "-c", code, str(theirs.fileno()), str(os.getpid())]
+        fd = theirs.fileno()
+        # the shepherd starts the worker (appending its own pid, the worker's parent) and
+        # kills every descendant of it when it ends; -I: it needs the standard library only
+        argv = [sys.executable, "-I", _SHEPHERD, str(os.getpid()), f"--fd={fd}", sys.executable, "-c", code, str(fd)]
         try:
-            self.popen = subprocess.Popen(argv, pass_fds=(theirs.fileno(),))
+            self.popen = subprocess.Popen(argv, pass_fds=(fd,))
         finally:
             theirs.close()
         self.pid = self.popen.pid
@@ -259,19 +272,27 @@ class _Worker:
         return f"its worker process exited with code {code}"
 
     def kill(self) -> None:
-        """SIGKILL the worker's process group (it is still unreaped, so the id is its own),
-        reap it, and close the connection."""
+        """Stop the worker and everything it started, reap its shepherd, close the connection.
+
+        SIGTERM asks the shepherd (still unreaped, so the id is its own) to kill the worker's
+        whole process tree; one that does not exit within ``_SHEPHERD_GRACE`` seconds is
+        killed (the worker then dies with it: ``PR_SET_PDEATHSIG``, or its parent watch)."""
         if self.popen.returncode is None:
-            for send in (getattr(os, "killpg", None), os.kill):
-                if send is not None:
-                    try:
-                        send(self.pid, signal.SIGKILL)
-                    except OSError:
-                        pass
             try:
-                self.popen.wait(10)
-            except subprocess.TimeoutExpired:
+                os.kill(self.pid, signal.SIGTERM)
+            except OSError:
                 pass
+            try:
+                self.popen.wait(_SHEPHERD_GRACE)
+            except subprocess.TimeoutExpired:
+                try:
+                    os.kill(self.pid, signal.SIGKILL)
+                except OSError:
+                    pass
+                try:
+                    self.popen.wait(10)
+                except subprocess.TimeoutExpired:
+                    pass
         try:  # wake a writer blocked on a full socket, so it ends before the fd is closed
             with socket.socket(fileno=os.dup(self.conn.fileno())) as sock:
                 sock.shutdown(socket.SHUT_RDWR)

@@ -45,14 +45,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from ..errors import ConfigError, OutputError, UnknownNameError
+from ..errors import ConfigError, UnknownNameError
 
 __all__ = ["Job", "JobResult", "BatchSummary", "load_manifest", "run_batch", "run_job", "CASE_PREFIX"]
 
 #: Prefix of a shot / character given as a built-in case (``case:synthetic-human?n_frames=40``).
 CASE_PREFIX = "case:"
 _JOB_KEYS = {"shot", "character", "landmarks", "method", "params", "out", "name", "timeout"}
-_TMP_MARK = ".frbatch-"
 
 
 @dataclass
@@ -71,6 +70,7 @@ class Job:
     writer_name: str = ""
     origin: str = ""  # "plugin <entry point> (<distribution> <version>)", for error messages
     timeout: float | None = None  # seconds; None: the run_batch default
+    replace: bool = False  # replace an existing output (run_batch(redo=True)); never an input
 
 
 @dataclass
@@ -139,12 +139,21 @@ def load_manifest(path, *, registry=None) -> list[Job]:
     from ..registry import registry as _registry
     from .harness import parse_case_spec
 
+    from ..errors import FileFormatError
+    from ..io._atomic import note_input
+    from ..io._common import check_regular, open_regular
+
     registry = registry or _registry()
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeError) as exc:
+        check_regular(path)  # a FIFO or device is refused, never read
+        with open_regular(path) as fh:
+            text = fh.read(16 * 2**20 + 1).decode("utf-8")
+    except (OSError, UnicodeError, FileFormatError) as exc:
         raise ConfigError(f"cannot read manifest {path}: {exc}") from None
+    if len(text) > 16 * 2**20:
+        raise ConfigError(f"manifest {path}: larger than 16 MiB; split it into several manifests")
+    note_input(path)  # nothing this process writes may replace it
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -213,7 +222,7 @@ def load_manifest(path, *, registry=None) -> list[Job]:
                 timeout=timeout,
             )
         )
-    inputs = {str(Path(v).resolve()): j.name for j in jobs for v in (j.shot, j.character, j.landmarks) if v and not str(v).startswith(CASE_PREFIX)}
+    inputs = {str(Path(v).resolve()): j.name for j in jobs for v in job_inputs(j)}
     for j in jobs:
         if str(Path(j.out).resolve()) in inputs:
             raise ConfigError(
@@ -225,6 +234,33 @@ def load_manifest(path, *, registry=None) -> list[Job]:
         dup = sorted({n for n in names if names.count(n) > 1})
         raise ConfigError(f"manifest {path}: job names must be unique; repeated: {dup}")
     return jobs
+
+
+def job_inputs(job: Job) -> list[str]:
+    """The files ``job`` reads: its shot, character and landmarks, and the files their
+    readers open on their own (the same-stem mesh a point cache takes its triangles from)."""
+    from ..io.sequences import POINTS_ONLY, sibling_topology
+
+    out = []
+    for value in (job.shot, job.character, job.landmarks):
+        if not value or str(value).startswith(CASE_PREFIX):
+            continue
+        out.append(str(value))
+        if Path(value).suffix.lower() in POINTS_ONLY:
+            sibling = sibling_topology(value)
+            if sibling is not None:
+                out.append(str(sibling))
+    return out
+
+
+def run_inputs(jobs: list[Job], manifest=None) -> list[str]:
+    """Every file a batch run reads (the manifest, each job's inputs) or writes (each
+    job's output): what a summary or any other file of the run must never replace."""
+    found = [str(manifest)] if manifest is not None else []
+    for job in jobs:
+        found.extend(job_inputs(job))
+        found.append(job.out)
+    return found
 
 
 # ---------------------------------------------------------------------------------------
@@ -254,28 +290,29 @@ def _load_target(spec: str, landmarks: str | None):
     return io.load_target(spec, landmarks=landmarks)
 
 
-def _remove_stale_temporaries(out: Path) -> None:
-    for leftover in out.parent.glob(f".{out.name}{_TMP_MARK}*"):
-        try:
-            leftover.unlink()
-        except OSError:
-            pass
+def write_animation(animation, out: Path, writer: Callable, *, force: bool = True, inputs=()) -> Path:
+    """Write through ``writer`` into a temporary beside ``out`` (faceretarget's one naming
+    scheme, :func:`faceretarget.io._atomic.temp_path`), then replace ``out``.
 
+    The destination check is the one every writer uses: never a file read as an input
+    by this process (including files a reader opened on its own, such as a sibling
+    topology) or listed in ``inputs``; an existing ``out`` only with ``force``.
+    Leftovers of killed writers of ``out`` are removed first.
+    """
+    from ..io._atomic import atomic_path
 
-def write_animation(animation, out: Path, writer: Callable) -> Path:
-    """Write through ``writer`` into a temporary file beside ``out``, then ``os.replace``."""
+    out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_temporaries(out)
-    tmp = out.with_name(f".{out.name}{_TMP_MARK}{os.getpid()}-{secrets.token_hex(4)}{out.suffix}")
-    try:
+    with atomic_path(out, inputs=inputs, force=force) as tmp:
         writer(animation, tmp)
-        if not tmp.exists():
-            raise OutputError(f"the writer for {out.suffix} did not create {tmp.name}")
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return out
+
+
+def remove_leftovers(out) -> list[Path]:
+    """Temporaries of killed writers of ``out`` removed (see :mod:`faceretarget.io._atomic`)."""
+    from ..io._atomic import remove_leftovers as remove
+
+    return remove(Path(out))
 
 
 def _registered_writer(name: str) -> Callable:
@@ -320,9 +357,9 @@ def run_job(job: Job) -> JobResult:
         animation = retargeter.fit(source, target).retarget(source)
         truth_less = type("_Case", (), {"source": source, "target": target, "truth": None})()
         validate_output(animation, truth_less, job.method)
-        write_animation(animation, out, job.writer or _registered_writer(job.writer_name))
+        write_animation(animation, out, job.writer or _registered_writer(job.writer_name), force=job.replace, inputs=job_inputs(job))
         return JobResult(job.name, "done", job.out, time.perf_counter() - start, method=job.method)
-    except Exception as exc:  # reported per job; the batch goes on
+    except (Exception, SystemExit) as exc:  # reported per job (sys.exit in a plugin too); the batch goes on
         message = " ".join(str(exc).split()) or type(exc).__name__
         return JobResult(job.name, "failed", job.out, time.perf_counter() - start, f"{_who(job)}: {type(exc).__name__}: {message}", job.method)
 
@@ -336,7 +373,7 @@ def _job_timeout(job: Job, default: float | None) -> float | None:
 
 def _failed_run(job: Job, outcome) -> JobResult:
     """The result of a job whose worker failed it (time limit, crash, task not movable)."""
-    _remove_stale_temporaries(Path(job.out))
+    remove_leftovers(job.out)
     error = outcome.error()
     return JobResult(job.name, "failed", job.out, outcome.seconds, f"{_who(job)}: {type(error).__name__}: {error}; no partial output is left", job.method)
 
@@ -459,9 +496,14 @@ def run_batch(
     workers = int(workers or os.cpu_count() or 1)
     if workers < 1:
         raise ConfigError(f"workers must be >= 1, got {workers}")
+    from dataclasses import replace as _with
+
     summary = BatchSummary()
     pending = []
     for job in jobs:
+        remove_leftovers(job.out)  # what killed runs left, also for outputs skipped below
+        if redo:
+            job = _with(job, replace=True)
         if not redo and Path(job.out).exists():
             summary.results.append(JobResult(job.name, "skipped", job.out, method=job.method))
         else:
@@ -480,11 +522,12 @@ def run_batch(
     return summary
 
 
-def write_summary(summary: BatchSummary, path) -> Path:
-    """The summary as JSON (atomically)."""
-    from .harness import atomic_write_text
+def write_summary(summary: BatchSummary, path, *, force: bool = False, inputs=()) -> Path:
+    """The summary as JSON (atomically); never over a file of the run (``inputs``: see
+    :func:`run_inputs`), an existing file only with ``force``."""
+    from ..io._atomic import write_bytes
 
-    return atomic_write_text(path, json.dumps(summary.as_dict(), indent=1) + "\n")
+    return write_bytes(path, (json.dumps(summary.as_dict(), indent=1) + "\n").encode("utf-8"), inputs=inputs, force=force)
 
 
 def format_summary(summary: BatchSummary) -> str:

@@ -55,6 +55,32 @@ def _add_timeout_argument(parser: argparse.ArgumentParser, what: str) -> None:
     )
 
 
+def _add_keep_going_argument(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument(
+        "--keep-going", action="store_true",
+        help=f"exit 0 even when some {what} failed (default: exit 1 after the summary when any failed)",
+    )
+
+
+def _failed_exit(n_failed: int, total: int, what: str, keep_going: bool) -> int:
+    """Exit status of a command whose ``n_failed`` of ``total`` runs or jobs failed: 1 with a
+    summary line on stderr unless ``--keep-going`` (then 0, with the same line as a note)."""
+    if not n_failed:
+        return 0
+    note = f"faceretarget: {n_failed} of {total} {what} failed (listed above)"
+    if keep_going:
+        print(f"{note}; exit status 0 because of --keep-going", file=sys.stderr)
+        return 0
+    print(f"{note}; exit status 1 (--keep-going exits 0 in that case)", file=sys.stderr)
+    return 1
+
+
+def _failed_runs(result) -> int:
+    from .harness import ERROR
+
+    return sum(run.status == ERROR for run in result.runs)
+
+
 def _timeout(value: float | None) -> float | None:
     """``--timeout`` as given, else ``FACERETARGET_TIMEOUT``, else the default; None = no limit."""
     from .. import config
@@ -111,15 +137,39 @@ def add_compare_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--csv", type=Path, metavar="FILE", help="write the tidy table as CSV")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the tidy table, ranking and runs as JSON")
     parser.add_argument("--jobs", type=int, default=1, metavar="N", help="run the methods in N worker processes (default 1)")
+    parser.add_argument("--force", action="store_true", help="replace existing --csv/--json files and report files in --out (never an input)")
     _add_timeout_argument(parser, "one run (fit + retarget of one method on one case)")
+    _add_keep_going_argument(parser, "runs")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def check_outputs(paths, *, force: bool, inputs=()) -> None:
+    """The one destination check of :mod:`faceretarget.io._atomic` for every file a command
+    will write, before any slow work: never an input (``inputs``, or a file read by this
+    process), never an existing file without ``--force``, never two outputs on one file."""
+    import os
+
+    from ..io._atomic import check_destination
+
+    seen: dict[str, str] = {}
+    for p in paths:
+        real = os.path.realpath(p)
+        if real in seen:
+            raise OutputError(f"{p}: given for two outputs ({seen[real]} and {p}); give each output its own file")
+        seen[real] = str(p)
+        check_destination(p, inputs=inputs, force=force)
 
 
 def run_compare(args) -> int:
     from .harness import compare
     from .presets import run_presets
-    from .report import write_report
+    from .report import REPORT_FILES, check_report_folder, write_report
 
+    outputs = [p for p in (args.csv, args.json) if p]
+    if args.out:
+        check_report_folder(args.out)
+        outputs += [args.out / name for name in REPORT_FILES] if args.out.is_dir() else []
+    check_outputs(outputs, force=args.force)  # before the comparison runs
     result = compare(
         args.cases or None,
         methods=args.methods,
@@ -133,13 +183,13 @@ def run_compare(args) -> int:
         run_presets(result, names=args.presets or None)
     _print_ranking(result)
     if args.csv:
-        print(f"wrote {result.to_csv(args.csv)}")
+        print(f"wrote {result.to_csv(args.csv, force=args.force)}")
     if args.json:
-        print(f"wrote {result.to_json(args.json)}")
+        print(f"wrote {result.to_json(args.json, force=args.force)}")
     if args.out:
-        paths = write_report(result, args.out)
+        paths = write_report(result, args.out, force=args.force)
         print(f"report: {paths['html']}")
-    return 0
+    return _failed_exit(_failed_runs(result), len(result.runs), "runs", args.keep_going)
 
 
 # ---------------------------------------------------------------------------------------
@@ -153,6 +203,7 @@ def add_demo_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-glb", action="store_true", help="do not write a GLB per method")
     parser.add_argument("--jobs", type=int, metavar="N", help="methods run in parallel worker processes (default: 2, at most the CPU count)")
     _add_timeout_argument(parser, "one run (fit + retarget of one method on one case)")
+    _add_keep_going_argument(parser, "runs")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -201,7 +252,7 @@ def run_demo(args) -> int:
     if glb_note:
         print(glb_note)
     print(f"done in {time.perf_counter() - start:.1f} s")
-    return 0
+    return _failed_exit(_failed_runs(result), len(result.runs), "runs", args.keep_going)
 
 
 def _write_glbs(result, folder: Path, reg, write_animation, writer_for) -> str:
@@ -232,9 +283,11 @@ def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scheduler", metavar="ADDRESS", help="address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --dask)")
     parser.add_argument("--workers", type=int, metavar="N", help="parallel jobs / local Dask workers (default: CPU count)")
     parser.add_argument("--redo", action="store_true", help="run jobs whose output already exists (default: skip them)")
-    parser.add_argument("--summary", type=Path, metavar="FILE", help="write the per-job results as JSON")
+    parser.add_argument("--summary", type=Path, metavar="FILE", help="write the per-job results as JSON (never over a file of the run)")
+    parser.add_argument("--force", action="store_true", help="replace an existing --summary file (job outputs are replaced only with --redo)")
     _add_timeout_argument(parser, "one job, unless its manifest entry sets timeout")
     parser.add_argument("--check", action="store_true", help="only check the manifest and list the jobs")
+    _add_keep_going_argument(parser, "jobs")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -242,6 +295,9 @@ def run_batch(args) -> int:
     from . import batch
 
     jobs = batch.load_manifest(args.manifest)
+    run_files = batch.run_inputs(jobs, args.manifest)
+    if args.summary:
+        check_outputs([args.summary], force=args.force, inputs=run_files)  # before any job runs
     if args.check:
         for job in jobs:
             state = "exists" if Path(job.out).exists() else "to do"
@@ -255,5 +311,5 @@ def run_batch(args) -> int:
     )
     print(batch.format_summary(summary))
     if args.summary:
-        print(f"wrote {batch.write_summary(summary, args.summary)}")
-    return 1 if summary.failed else 0
+        print(f"wrote {batch.write_summary(summary, args.summary, force=args.force, inputs=run_files)}")
+    return _failed_exit(len(summary.failed), len(summary.results), "jobs", args.keep_going)

@@ -307,14 +307,15 @@ class ComparisonResult:
         return float(np.mean(vals)) if vals else None
 
     # -- export ------------------------------------------------------------------------
-    def to_csv(self, path) -> Path:
-        """Write the tidy table as CSV (atomically); returns the path."""
+    def to_csv(self, path, *, force: bool = False, inputs=()) -> Path:
+        """Write the tidy table as CSV (atomically; an existing file only with ``force``,
+        never an input); returns the path."""
         buf = io.StringIO()
         writer = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
         writer.writeheader()
         for row in self.rows:
             writer.writerow({k: ("" if row[k] is None else _fmt_csv(row[k])) for k in COLUMNS})
-        return atomic_write_text(path, buf.getvalue())
+        return atomic_write_text(path, buf.getvalue(), force=force, inputs=inputs)
 
     def as_dict(self) -> dict:
         return {
@@ -328,9 +329,10 @@ class ComparisonResult:
             "presets": [p.as_dict() for p in self.presets],
         }
 
-    def to_json(self, path) -> Path:
-        """Write rows, ranking, runs (with errors), metric definitions and presets as JSON."""
-        return atomic_write_text(path, json.dumps(_jsonable(self.as_dict()), indent=1, allow_nan=False) + "\n")
+    def to_json(self, path, *, force: bool = False, inputs=()) -> Path:
+        """Write rows, ranking, runs (with errors), metric definitions and presets as JSON
+        (atomically; an existing file only with ``force``, never an input)."""
+        return atomic_write_text(path, json.dumps(_jsonable(self.as_dict()), indent=1, allow_nan=False) + "\n", force=force, inputs=inputs)
 
     def __repr__(self) -> str:
         counts = {s: sum(r.status == s for r in self.runs) for s in (OK, NOT_APPLICABLE, ERROR)}
@@ -359,15 +361,16 @@ def _json_number(value):
     return value
 
 
-def atomic_write_bytes(path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (``faceretarget.io``'s temp file + fsync + rename)."""
+def atomic_write_bytes(path, data: bytes, *, force: bool = False, inputs=()) -> Path:
+    """Write ``data`` to ``path`` atomically (``faceretarget.io``'s temp file + fsync + rename),
+    with its destination check: never an input, an existing file only with ``force``."""
     from ..io._atomic import write_bytes
 
-    return write_bytes(path, data, force=True)
+    return write_bytes(path, data, force=force, inputs=inputs)
 
 
-def atomic_write_text(path, text: str) -> Path:
-    return atomic_write_bytes(path, text.encode("utf-8"))
+def atomic_write_text(path, text: str, *, force: bool = False, inputs=()) -> Path:
+    return atomic_write_bytes(path, text.encode("utf-8"), force=force, inputs=inputs)
 
 
 # ---------------------------------------------------------------------------------------
@@ -420,7 +423,7 @@ def _run_one(case, cname: str, method: _Method, params: dict) -> Run:
     run = Run(cname, method.name, OK, plugin=method.plugin, distribution=method.distribution, version=method.version)
     try:
         reason = method.cls.why_not(case.source, case.target)
-    except Exception as exc:  # a plugin's own applicability check may be broken too
+    except (Exception, SystemExit) as exc:  # a plugin's own applicability check may be broken too
         return _failed(run, exc, method, "why_not")
     if reason:
         run.status, run.reason = NOT_APPLICABLE, reason
@@ -449,6 +452,8 @@ def _run_one(case, cname: str, method: _Method, params: dict) -> Run:
     except CapabilityError as exc:
         run.status, run.reason = NOT_APPLICABLE, " ".join(str(exc).split())
     except Exception as exc:  # a failing plugin must not stop the others
+        _failed(run, exc, method, stage)
+    except (SystemExit, GeneratorExit) as exc:  # sys.exit in a plugin run in this process: a failure, not the end
         _failed(run, exc, method, stage)
     finally:
         if started_tracing:

@@ -568,21 +568,38 @@ def render_html(result: ComparisonResult, *, title: str = "faceretarget comparis
 """
 
 
-def write_report(result: ComparisonResult, folder, *, title: str = "faceretarget comparison", max_bytes: int = MAX_BYTES, max_frames: int = MAX_FRAMES, max_vertices: int = MAX_VERTICES) -> dict[str, Path]:
-    """Write ``report.html``, ``results.csv`` and ``results.json`` into ``folder``.
+#: the files :func:`write_report` writes into its folder
+REPORT_FILES = ("report.html", "results.csv", "results.json")
 
-    The folder is created if missing (its parent must exist); each file is written
-    atomically. Returns ``{"html": path, "csv": path, "json": path}``.
-    """
+
+def check_report_folder(folder) -> Path:
+    """Refuse a report folder that is a file or whose parent does not exist."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise OutputError(f"report folder {folder} exists and is not a folder; choose another path")
     if not folder.parent.is_dir():
         raise OutputError(f"cannot create report folder {folder}: {folder.parent} does not exist")
+    return folder
+
+
+def write_report(result: ComparisonResult, folder, *, title: str = "faceretarget comparison", max_bytes: int = MAX_BYTES, max_frames: int = MAX_FRAMES, max_vertices: int = MAX_VERTICES, force: bool = False, inputs=()) -> dict[str, Path]:
+    """Write ``report.html``, ``results.csv`` and ``results.json`` into ``folder``.
+
+    The folder is created if missing (its parent must exist); each file is written
+    atomically, never over an input (``inputs``, or a file read by this process) and
+    over an existing file only with ``force`` (all three are checked before any is
+    written). Returns ``{"html": path, "csv": path, "json": path}``.
+    """
+    from ..io._atomic import check_destination
+
+    folder = check_report_folder(folder)
+    if folder.is_dir():
+        for name in REPORT_FILES:
+            check_destination(folder / name, inputs=inputs, force=force)
     folder.mkdir(exist_ok=True)
     page = render_html(result, title=title, max_bytes=max_bytes, max_frames=max_frames, max_vertices=max_vertices)
     return {
-        "html": atomic_write_text(folder / "report.html", page),
-        "csv": result.to_csv(folder / "results.csv"),
-        "json": result.to_json(folder / "results.json"),
+        "html": atomic_write_text(folder / "report.html", page, force=force, inputs=inputs),
+        "csv": result.to_csv(folder / "results.csv", force=force, inputs=inputs),
+        "json": result.to_json(folder / "results.json", force=force, inputs=inputs),
     }

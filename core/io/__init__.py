@@ -173,10 +173,10 @@ def _sniff(path: Path, ext: str) -> str | None:
 
         return npz_kind(path)
     if ext == ".csv":
-        from .markers import csv_rows, is_marker_header
+        from .markers import csv_header, is_marker_header
 
         try:
-            header, _ = csv_rows(path)
+            header = csv_header(path)  # the first row only
         except Exception:
             return None
         return "markers" if is_marker_header(header) else "weights"
@@ -225,9 +225,10 @@ def load(path, kind: str | None = None, *, format: str | None = None, **options)
     when no kind is asked. Options go to the reader (e.g. ``topology=``, ``fps=``).
     Errors are :class:`~faceretarget.errors.FileFormatError` naming the file.
     """
+    from ._common import check_regular
+
     p = Path(path)
-    if not p.exists():
-        raise FileFormatError(f"{p}: no such file or folder")
+    check_regular(p, folder_ok=True)  # a FIFO or device is refused before anything opens it
     if kind is None and format is None and _ext(p) == ".npz":
         from .bundle import BUNDLE_TYPES, npz_kind
 
@@ -351,7 +352,7 @@ def read_landmarks(spec, *, key: str | None = None):
     A :class:`~faceretarget.model.Landmarks` or a list of ids is returned as Landmarks.
     """
     from ..model import Landmarks
-    from ._common import bad, guarded_reader, read_npz, read_text
+    from ._common import TEXT_TOKEN_FACTOR, bad, guarded_reader, read_npz, read_text
 
     if isinstance(spec, Landmarks):
         return spec
@@ -371,7 +372,7 @@ def read_landmarks(spec, *, key: str | None = None):
                 raise bad(path, f"has no array {k!r}; arrays: {sorted(arrays)[:20]}")
             names = arrays.get(f"{k}_names")
             return Landmarks(arrays[k].astype("int64") if arrays[k].dtype.kind in "iu" else arrays[k], names=None if names is None else names.tolist())
-        raw = read_text(path)
+        raw = read_text(path, factor=TEXT_TOKEN_FACTOR)
         if suffix == ".json":
             try:
                 data = json.loads(raw)
@@ -412,7 +413,7 @@ def read_landmarks(spec, *, key: str | None = None):
 
 def read_feature_lines(spec) -> dict:
     """Feature lines ``{name: [vertex ids...]}`` from a JSON file (or a dict, returned as is)."""
-    from ._common import bad, guarded_reader, read_text
+    from ._common import TEXT_TOKEN_FACTOR, bad, guarded_reader, read_text
 
     if not isinstance(spec, (str, Path)):
         return dict(spec)
@@ -420,7 +421,7 @@ def read_feature_lines(spec) -> dict:
     @guarded_reader
     def read(path: Path) -> dict:
         try:
-            data = json.loads(read_text(path))
+            data = json.loads(read_text(path, factor=TEXT_TOKEN_FACTOR))
         except ValueError as exc:
             raise bad(path, f"not valid JSON ({exc})") from None
         if not isinstance(data, dict) or not all(isinstance(v, list) for v in data.values()):

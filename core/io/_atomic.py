@@ -17,26 +17,44 @@ Writing is refused (:class:`~faceretarget.errors.OutputError`) when the destinat
   ``force`` does not lift this;
 - already exists and ``force`` is false.
 
-Temporary files are named ``.NAME.PID.TOKEN.frtmp`` (old folders moved aside
-``.frold``); leftovers of killed writers (whose process no longer runs) are removed (or
-restored) on the next write to the same destination.
+Temporary files have one naming scheme, ``.NAME.PID.TOKEN.frtmp`` followed by the
+destination's suffix (:func:`temp_path`; old folders moved aside ``.NAME.PID.TOKEN.frold``),
+and are locked (``flock``) while written. Leftovers of killed writers (no process of
+that pid runs, or nobody holds the lock) are found by :func:`leftovers` and removed (or
+restored) by :func:`remove_leftovers`, which every write runs for its destination first
+(the batch runner also for outputs it skips).
 """
 from __future__ import annotations
 
 import errno
 import os
+import re
 import secrets
 import shutil
+import stat
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Iterable, Iterator
 
 from ..errors import OutputError
 
-__all__ = ["note_input", "clear_inputs", "is_input", "check_destination", "atomic_file", "atomic_dir", "write_bytes"]
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not on Windows
+    fcntl = None
+
+__all__ = [
+    "note_input", "clear_inputs", "is_input", "recorded_inputs", "check_destination", "atomic_file", "atomic_dir", "atomic_path", "write_bytes",
+    "temp_path", "temp_owner", "leftovers", "remove_leftovers",
+]
 
 _TMP_SUFFIX = ".frtmp"
 _BACKUP_SUFFIX = ".frold"
+
+#: names of the temporaries this process is writing right now (never cleaned up)
+_ACTIVE: set[str] = set()
+#: temporaries made by :func:`reserve_temp`: writers write into them directly
+_DIRECT: dict[str, Path] = {}
 
 #: realpath -> (st_dev, st_ino) of every path read as an input in this process
 _INPUTS: dict[str, tuple[int, int] | None] = {}
@@ -58,6 +76,11 @@ def note_input(path) -> None:
         for child in p.iterdir():
             if child.is_file():
                 _INPUTS[os.path.realpath(child)] = _identity(child)
+
+
+def recorded_inputs() -> list[str]:
+    """The paths recorded as inputs of this process (by :func:`note_input`), resolved."""
+    return list(_INPUTS)
 
 
 def clear_inputs() -> None:
@@ -106,11 +129,67 @@ def check_destination(path, *, inputs: Iterable = (), force: bool = False, folde
     return p
 
 
-def _tmp_name(dest: Path) -> Path:
-    return dest.parent / f".{dest.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_SUFFIX}"
+def temp_path(dest) -> Path:
+    """The temporary name for ``dest`` (the one naming scheme of faceretarget):
+    ``.NAME.PID.TOKEN.frtmp`` + ``dest``'s suffix, in ``dest``'s folder. The suffix is kept
+    so a writer that dispatches on the extension (a plugin's) can be given the temporary
+    path; :func:`leftovers` recognises every such name."""
+    dest = Path(dest)
+    return dest.parent / f".{dest.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_SUFFIX}{dest.suffix}"
+
+
+#: ``.NAME.PID.TOKEN.frtmp[.EXT]`` / ``.NAME.PID.TOKEN.frold``
+_TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.(?P<token>[0-9a-f]{8})(?P<tag>\.frtmp|\.frold)(?P<ext>\.[^.]*)?$")
+#: the batch runner's former scheme ``.NAME.frbatch-PID-TOKEN.EXT`` (still cleaned up)
+_LEGACY_NAME = re.compile(r"^\.(?P<name>.+?)\.frbatch-(?P<pid>\d+)-(?P<token>[0-9a-f]+)(?P<ext>\.[^.]*)?$")
+
+
+def temp_owner(name: str) -> tuple[str, list[int], str] | None:
+    """``(destination name, writer pids, tag)`` of a temporary file name, or None.
+
+    Nested temporaries (a writer's temporary of a temporary, as older versions made in
+    batch runs) are unwrapped to the final destination; ``tag`` is ``.frtmp`` or
+    ``.frold`` of the outermost name."""
+    pids: list[int] = []
+    tag = None
+    for _ in range(8):
+        m = _TEMP_NAME.match(name) or _LEGACY_NAME.match(name)
+        if m is None:
+            break
+        pids.append(int(m.group("pid")))
+        if tag is None:
+            tag = m.groupdict().get("tag") or _TMP_SUFFIX
+        name = m.group("name")
+    if not pids:
+        return None
+    return name, pids, tag
+
+
+def _locked(path: Path) -> bool:
+    """Whether a live writer holds the lock on temporary ``path`` (never blocks, never
+    follows a symlink, never opens anything but a regular file or folder)."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return False
+    if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
+        return False
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0))
+    except OSError:
+        return True  # cannot tell: leave it
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return True
+    finally:
+        os.close(fd)  # closing releases our probe lock
+    return False
 
 
 def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -120,31 +199,56 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def _remove_stale(dest: Path) -> None:
-    """Clean up after killed writers of ``dest`` (their process is gone): delete their
-    temporaries, and put back an old folder moved aside if ``dest`` went missing."""
-    prefix = f".{dest.name}."
+def _stale(entry: Path, pids: list[int], tag: str) -> bool:
+    """A temporary whose writer is gone: every process in its name has ended, or (our
+    own scheme, the pid since reused) no process holds its lock."""
+    if entry.name in _ACTIVE:
+        return False
+    if not any(_pid_alive(p) for p in pids):
+        return True
+    own_scheme = _TEMP_NAME.match(entry.name) is not None and len(pids) == 1 and tag == _TMP_SUFFIX
+    return own_scheme and pids[0] != os.getpid() and fcntl is not None and not _locked(entry)
+
+
+def leftovers(folder, dest_name: str | None = None) -> list[Path]:
+    """Temporaries in ``folder`` left by writers that are gone (of ``dest_name`` only, if
+    given): every name of the scheme of :func:`temp_path`, the old folders moved aside
+    (``.frold``) and the batch runner's former ``.frbatch-`` names, nested ones included."""
     try:
-        entries = list(dest.parent.iterdir())
+        entries = list(Path(folder).iterdir())
     except OSError:
-        return
+        return []
+    found = []
     for entry in entries:
-        name = entry.name
-        suffix = next((s for s in (_TMP_SUFFIX, _BACKUP_SUFFIX) if name.endswith(s)), None)
-        if suffix is None or not name.startswith(prefix):
+        owner = temp_owner(entry.name)
+        if owner is None or (dest_name is not None and owner[0] != dest_name):
             continue
-        middle = name[len(prefix) : -len(suffix)].split(".")
-        if len(middle) != 2 or not middle[0].isdigit() or _pid_alive(int(middle[0])):
-            continue
+        if _stale(entry, owner[1], owner[2]):
+            found.append(entry)
+    return found
+
+
+def remove_leftovers(dest) -> list[Path]:
+    """Clean up after killed writers of ``dest``: delete their temporaries, and put back an
+    old folder moved aside if ``dest`` went missing. Returns what was removed or restored."""
+    dest = Path(dest)
+    done = []
+    for entry in leftovers(dest.parent, dest.name):
+        owner = temp_owner(entry.name)
         try:
-            if suffix == _BACKUP_SUFFIX and not dest.exists():
+            if owner and owner[2] == _BACKUP_SUFFIX and not os.path.lexists(dest):
                 os.replace(entry, dest)
             elif entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry)
             else:
                 entry.unlink()
+            done.append(entry)
         except OSError:
             pass
+    return done
+
+
+_remove_stale = remove_leftovers  # former name
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -160,21 +264,68 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def _create_locked(dest: Path, *, folder: bool) -> tuple[Path, int]:
+    """Create ``dest``'s temporary (a file, or a folder) and lock it for as long as the
+    returned descriptor stays open, so :func:`leftovers` never takes it for a leftover."""
+    tmp = temp_path(dest)
+    try:
+        if folder:
+            tmp.mkdir()
+            fd = os.open(tmp, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0))
+        else:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
+    except OSError as exc:
+        what = "folder" if folder else "file"
+        raise OutputError(f"{dest}: cannot create a {what} in {dest.parent} ({exc.strerror or exc}); check the folder's permissions") from None
+    if fcntl is not None:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            pass  # a file system without locks: the pid in the name still protects it
+    _ACTIVE.add(tmp.name)
+    return tmp, fd
+
+
+def _release(tmp: Path, fd: int) -> None:
+    _ACTIVE.discard(tmp.name)
+    try:
+        os.close(fd)
+    except OSError:
+        pass
+
+
+def _discard(tmp: Path) -> None:
+    try:
+        if tmp.is_dir() and not tmp.is_symlink():
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            os.unlink(tmp)
+    except OSError:
+        pass
+
+
 @contextmanager
 def atomic_file(path, *, inputs: Iterable = (), force: bool = False, text: bool = False) -> Iterator[IO]:
     """Open a temporary file that replaces ``path`` when the ``with`` block succeeds.
 
     On an exception inside the block the temporary file is removed and ``path`` is
-    untouched. ``text=True`` opens it in UTF-8 text mode with ``\\n`` newlines.
+    untouched. ``text=True`` opens it in UTF-8 text mode with ``\\n`` newlines. When
+    ``path`` is itself a temporary handed out by :func:`atomic_path`, it is written
+    directly (its owner replaces the destination).
     """
+    direct = _DIRECT.get(os.path.abspath(path))
+    if direct is not None:
+        with _direct_file(Path(path), direct, inputs, text) as handle:
+            yield handle
+        return
     dest = check_destination(path, inputs=inputs, force=force)
-    _remove_stale(dest)
-    tmp = _tmp_name(dest)
+    remove_leftovers(dest)
+    tmp, lock = _create_locked(dest, folder=False)
     try:
-        handle = open(tmp, "x", encoding="utf-8", newline="\n") if text else open(tmp, "xb")
-    except OSError as exc:
-        raise OutputError(f"{dest}: cannot create a file in {dest.parent} ({exc.strerror or exc})") from None
-    try:
+        try:
+            handle = open(tmp, "w", encoding="utf-8", newline="\n") if text else open(tmp, "wb")
+        except OSError as exc:
+            raise OutputError(f"{dest}: cannot create a file in {dest.parent} ({exc.strerror or exc})") from None
         with _typed_os_errors(dest):
             with handle:
                 yield handle
@@ -184,11 +335,54 @@ def atomic_file(path, *, inputs: Iterable = (), force: bool = False, text: bool 
             check_destination(dest, inputs=inputs, force=True)
             os.replace(tmp, dest)
     except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
+        _discard(tmp)
         raise
+    finally:
+        _release(tmp, lock)
+    _fsync_dir(dest.parent)
+
+
+@contextmanager
+def _direct_file(tmp: Path, dest: Path, inputs: Iterable, text: bool) -> Iterator[IO]:
+    if is_input(dest, inputs):
+        raise OutputError(f"{dest}: refusing to write over an input file; choose another output path")
+    with _typed_os_errors(dest):
+        with (open(tmp, "w", encoding="utf-8", newline="\n") if text else open(tmp, "wb")) as handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+
+
+@contextmanager
+def atomic_path(path, *, inputs: Iterable = (), force: bool = False) -> Iterator[Path]:
+    """A temporary path beside file ``path`` for a writer that takes a path (a registered
+    writer, maybe a plugin's): what the block writes there replaces ``path`` when the
+    block succeeds, after the destination is checked again (inputs read meanwhile, for
+    example a topology taken from a sibling file, are refused). faceretarget's own writers
+    given the temporary write into it directly. The temporary keeps ``path``'s suffix."""
+    dest = check_destination(path, inputs=inputs, force=force)
+    remove_leftovers(dest)
+    tmp, lock = _create_locked(dest, folder=False)
+    key = os.path.abspath(tmp)
+    _DIRECT[key] = dest
+    try:
+        with _typed_os_errors(dest):
+            yield tmp
+            if not tmp.is_file() or tmp.is_symlink() or tmp.stat().st_size == 0:
+                raise OutputError(f"{dest}: the writer wrote nothing (or not a regular file) at {tmp.name}; nothing was replaced")
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+            check_destination(dest, inputs=inputs, force=True)
+            os.replace(tmp, dest)
+    except BaseException:
+        _discard(tmp)
+        raise
+    finally:
+        _DIRECT.pop(key, None)
+        _release(tmp, lock)
     _fsync_dir(dest.parent)
 
 
@@ -216,12 +410,8 @@ def atomic_dir(path, *, inputs: Iterable = (), force: bool = False, allowed_suff
                 f"{dest}: the existing folder holds other content ({', '.join(sorted(foreign)[:5])}); "
                 "choose a new or empty output folder"
             )
-    _remove_stale(dest)
-    tmp = _tmp_name(dest)
-    try:
-        tmp.mkdir()
-    except OSError as exc:
-        raise OutputError(f"{dest}: cannot create a folder in {dest.parent} ({exc.strerror or exc})") from None
+    remove_leftovers(dest)
+    tmp, lock = _create_locked(dest, folder=True)
     try:
         with _typed_os_errors(dest):
             yield tmp
@@ -231,6 +421,8 @@ def atomic_dir(path, *, inputs: Iterable = (), force: bool = False, allowed_suff
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        _release(tmp, lock)
     _fsync_dir(dest.parent)
 
 
@@ -248,7 +440,7 @@ def _replace_dir(tmp: Path, dest: Path) -> None:
         return
     # no atomic exchange on this system: move the old folder aside under a name the next
     # write recognises and restores if we die before the new folder is in place
-    backup = dest.parent / f".{dest.name}.{os.getpid()}.{secrets.token_hex(4)}{_BACKUP_SUFFIX}"
+    backup = dest.parent / f".{dest.name}.{os.getpid()}.{secrets.token_hex(4)}{_BACKUP_SUFFIX}"  # temp_path's scheme
     os.replace(dest, backup)
     os.replace(tmp, dest)
     shutil.rmtree(backup, ignore_errors=True)

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import re
+import stat
 import warnings
 import zipfile
 from pathlib import Path
@@ -19,6 +21,8 @@ from ._atomic import note_input
 __all__ = [
     "bad",
     "check_budget",
+    "check_regular",
+    "open_regular",
     "guarded_reader",
     "read_bytes",
     "read_text",
@@ -34,8 +38,13 @@ __all__ = [
 
 _SIZE_UNITS = ("B", "KiB", "MiB", "GiB", "TiB")
 
-#: text formats: how many bytes of memory reading one byte of text may cost (lines, floats)
+#: text formats read whole (JSON, small sidecars): bytes of memory one byte of text may cost
 TEXT_MEMORY_FACTOR = 4
+#: text formats split into Python lines and tokens (OFF, ASCII PLY/STL, TRC, landmark
+#: lists): measured peak per byte of the smallest lines ("0 0 0"), tests/io/test_text_memory.py
+TEXT_TOKEN_FACTOR = 64
+#: bytes held per chunk by the streaming text readers (OBJ, CSV)
+CHUNK_BYTES = 1 << 18
 
 
 def bad(path, what: str) -> FileFormatError:
@@ -89,8 +98,7 @@ def guarded_reader(fn: Callable) -> Callable:
     @functools.wraps(fn)
     def read(path, **options):
         p = Path(path)
-        if not p.exists():
-            raise FileFormatError(f"{p}: no such file or folder")
+        check_regular(p, folder_ok=True)
         note_input(p)
         try:
             with warnings.catch_warnings():
@@ -115,18 +123,84 @@ def guarded_reader(fn: Callable) -> Callable:
     return read
 
 
-def read_bytes(path: Path, what: str = "reading the file") -> bytes:
-    """The whole file, after checking its size against the memory budget."""
-    size = path.stat().st_size
-    check_budget(path, size, what)
-    return path.read_bytes()
+_KINDS = (
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+)
 
 
-def read_text(path: Path, *, allow_empty: bool = False) -> str:
-    """The file as text (UTF-8, BOM stripped, Latin-1 fallback); binary data is refused."""
-    size = path.stat().st_size
-    check_budget(path, size * TEXT_MEMORY_FACTOR, "parsing this text file")
-    data = path.read_bytes()
+def _not_regular(path, st: os.stat_result) -> FileFormatError:
+    what = next((name for test, name in _KINDS if test(st.st_mode)), "not a regular file")
+    via = " (through a symbolic link)" if os.path.islink(path) else ""
+    return FileFormatError(
+        f"{path}: is {what}{via}, not a regular file; faceretarget reads only regular files "
+        "(a pipe or device could hang or never end): save the data to a file and pass that"
+    )
+
+
+def check_regular(path, *, folder_ok: bool = False) -> os.stat_result:
+    """Refuse (FileFormatError) a path that is missing or not a regular file (a FIFO, a
+    device such as /dev/zero, a socket; links are followed) without opening it, so it can
+    never hang or read forever. Folders pass when ``folder_ok``."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise FileFormatError(f"{path}: no such file or folder") from None
+    except OSError as exc:
+        raise FileFormatError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if stat.S_ISREG(st.st_mode) or (folder_ok and stat.S_ISDIR(st.st_mode)):
+        return st
+    if stat.S_ISDIR(st.st_mode):
+        raise FileFormatError(f"{path}: is a folder; expected a file")
+    raise _not_regular(path, st)
+
+
+def open_regular(path):
+    """``path`` opened for binary reading, refused unless it is a regular file.
+
+    The file is opened non-blocking (a FIFO swapped in after a check cannot hang the
+    open) and checked on the open descriptor, so nothing but a regular file is ever read.
+    """
+    check_regular(path)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise FileFormatError(f"{path}: cannot be opened ({exc.strerror or exc})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise _not_regular(path, st)
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_bytes(path: Path, what: str = "reading the file", *, factor: float = 1.0) -> bytes:
+    """The whole file, after checking its size (times ``factor``, the parse's cost per
+    byte) against the memory budget. Never reads more than the size checked: a file
+    that grows while read (or reports a false size) is refused."""
+    with open_regular(path) as fh:
+        size = os.fstat(fh.fileno()).st_size
+        check_budget(path, size * factor, what)
+        data = fh.read(size + 1)
+    if len(data) > size:
+        raise ResourceLimitError(f"{path}: the file grew while it was read (more than its {size} bytes); read it once it is complete")
+    return data
+
+
+def read_text(path: Path, *, allow_empty: bool = False, factor: float = TEXT_MEMORY_FACTOR) -> str:
+    """The file as text (UTF-8, BOM stripped, Latin-1 fallback); binary data is refused.
+
+    ``factor``: what parsing the text costs in memory per byte of file (checked against
+    the budget before reading); parsers that split the text into lines or tokens pass
+    :data:`TEXT_TOKEN_FACTOR`."""
+    data = read_bytes(path, "parsing this text file", factor=factor)
     if not data.strip() and not allow_empty:
         raise bad(path, "the file is empty")
     if b"\x00" in data:
@@ -135,6 +209,27 @@ def read_text(path: Path, *, allow_empty: bool = False) -> str:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError:
         return data.decode("latin-1")
+
+
+def iter_chunks(fh, size: int = 1 << 20):
+    """Binary chunks of an open file, each ending at a line end (the last one at the end
+    of the file): text readers parse a file chunk by chunk, holding one chunk at a time."""
+    rest = b""
+    while True:
+        block = fh.read(size)
+        if not block:
+            if rest:
+                yield rest
+            return
+        block = rest + block
+        cut = block.rfind(b"\n")
+        if cut < 0:
+            rest = block
+            if len(rest) > 64 * size:
+                check_budget(getattr(fh, "name", "the file"), len(rest), "one line of this text file")
+            continue
+        rest = block[cut + 1 :]
+        yield block[: cut + 1]
 
 
 _NAT = re.compile(r"(\d+)")
@@ -205,7 +300,7 @@ def read_npz(path: Path) -> dict[str, np.ndarray]:
 
     Raises FileFormatError for anything that is not a zip of plain ``.npy`` members.
     """
-    if path.stat().st_size == 0:
+    if check_regular(path).st_size == 0:
         raise bad(path, "the file is empty")
     try:
         zf = zipfile.ZipFile(path)
@@ -250,7 +345,7 @@ def read_npz(path: Path) -> dict[str, np.ndarray]:
 
 def load_npy(path: Path, *, mmap: bool = True) -> np.ndarray:
     """An ``.npy`` array (memory-mapped when possible), size-checked, never unpickled."""
-    with open(path, "rb") as fh:
+    with open_regular(path) as fh:
         shape, dtype, _ = npy_header(fh, path)
         offset = fh.tell()
     nbytes = array_nbytes(shape, dtype)

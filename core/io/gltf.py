@@ -39,7 +39,7 @@ import numpy as np
 from ..errors import InputError, OutputError
 from ..model import Animation, BlendshapeRig, Mesh, MeshSequence
 from ._atomic import note_input, write_bytes
-from ._common import bad, check_budget, fps_from_times, guarded_reader, join_arrays, read_bytes, split_arrays, to_float32
+from ._common import bad, check_budget, check_regular, fps_from_times, guarded_reader, join_arrays, open_regular, read_bytes, split_arrays, to_float32
 
 __all__ = [
     "read_gltf_mesh",
@@ -377,6 +377,15 @@ def _parse_glb(data: bytes, path: Path) -> tuple[bytes, bytes | None]:
     return json_chunk, bin_chunk
 
 
+def json_cost(raw: bytes) -> float:
+    """Bytes of memory parsing JSON text ``raw`` may take: its text (strings such as
+    base64 buffers stay one object) plus at most 128 bytes per value (the Python objects
+    of numbers, lists and dicts; measured: a list of one-digit numbers costs about 36
+    bytes per value)."""
+    values = raw.count(b",") + raw.count(b":") + raw.count(b"[") + raw.count(b"{") + 1
+    return 2.0 * len(raw) + 128.0 * values
+
+
 def _parse_json(raw: bytes | str, path: Path) -> dict:
     try:
         doc = json.loads(raw)
@@ -400,10 +409,10 @@ def _load(path: Path) -> _Doc:
         raise bad(path, "the file is empty")
     if _is_glb(path, data):
         raw_json, bin_chunk = _parse_glb(data, path)
-        gltf = _parse_json(raw_json, path)
     else:
-        gltf = _parse_json(data, path)
-        bin_chunk = None
+        raw_json, bin_chunk = data, None
+    check_budget(path, len(data) + json_cost(raw_json), "parsing the glTF JSON")
+    gltf = _parse_json(raw_json, path)
     buffers_json = gltf.get("buffers", [])
     if not isinstance(buffers_json, list):
         raise bad(path, "'buffers' must be a list")
@@ -446,16 +455,16 @@ def _read_uri(path: Path, uri: Any, i: int) -> bytes:
     target = (root / rel).resolve()
     if os.path.isabs(rel) or "://" in rel or not str(target).startswith(str(root) + os.sep):
         raise bad(path, f"buffers[{i}].uri {uri!r:.60} points outside the glTF file's folder; only files beside it are read")
-    if not target.is_file():
+    if not os.path.lexists(target):
         raise bad(path, f"buffers[{i}]: the buffer file {rel!r} does not exist")
+    check_regular(target)  # a FIFO or a link to a device is refused, never read
     note_input(target)
-    check_budget(path, target.stat().st_size, f"buffers[{i}] ({rel})")
-    return target.read_bytes()
+    return read_bytes(target, f"buffers[{i}] of {path.name} ({rel})")
 
 
 def _read_json_only(path: Path) -> dict:
     """The glTF JSON without loading buffers (to decide what the file holds)."""
-    with open(path, "rb") as fh:
+    with open_regular(path) as fh:
         head = fh.read(20)
         if _is_glb(path, head):
             if len(head) < 20 or head[:4] != GLB_MAGIC:
@@ -465,9 +474,11 @@ def _read_json_only(path: Path) -> dict:
             raw = fh.read(chunk_len)
             if len(raw) != chunk_len:
                 raise bad(path, "truncated JSON chunk")
+            check_budget(path, json_cost(raw), "parsing the glTF JSON")
             return _parse_json(raw, path)
-    check_budget(path, path.stat().st_size, "the glTF JSON")
-    return _parse_json(path.read_bytes(), path)
+    raw = read_bytes(path, "the glTF JSON")
+    check_budget(path, json_cost(raw), "parsing the glTF JSON")
+    return _parse_json(raw, path)
 
 
 def gltf_kind(path) -> str | None:
@@ -635,6 +646,20 @@ def _tree(doc: _Doc, info: dict, key: str) -> dict:
     return join_arrays(tree, fetch)
 
 
+#: highest frame rate accepted from a file or option (above it the value is a corruption)
+MAX_FPS = 1e6
+
+
+def _checked_fps(doc: _Doc, fps, what: str) -> float:
+    """A frame rate from the file (or ``fps=``): a finite number in (0, MAX_FPS]."""
+    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)):
+        raise doc.fail(f"{what} {fps!r:.40} is not a number")
+    value = float(fps)
+    if not math.isfinite(value) or not 0 < value <= MAX_FPS:
+        raise doc.fail(f"{what} {value:g} is not a frame rate (expected a number of frames per second in (0, {MAX_FPS:g}]); pass fps= (--fps) to override it")
+    return value
+
+
 def _animation_from(doc: _Doc, mesh_option, fps_option) -> Animation:
     info = doc.ours()
     exact = info.get("arrays", {}) if isinstance(info.get("arrays"), dict) else {}
@@ -645,6 +670,8 @@ def _animation_from(doc: _Doc, mesh_option, fps_option) -> Animation:
         frames = doc.get(info, "frame_meshes", list, f"asset.extras.{_EXTRAS_KEY}")
         if not frames:
             raise doc.fail("a frame animation with no frames")
+        if fps is not None:
+            fps = _checked_fps(doc, fps, "the frame rate" if fps_option is None else "fps=")
         first_v, first_t, _, _ = doc.mesh(frames[0])
         check_budget(doc.path, len(frames) * first_v.size * 8.0, f"{len(frames)} frames of {first_v.shape[0]} vertices")
         vertices = np.empty((len(frames),) + first_v.shape)
@@ -677,8 +704,21 @@ def _animation_from(doc: _Doc, mesh_option, fps_option) -> Animation:
     if fps is None:  # the keys' own rate when they are evenly spaced, else resample at the default
         estimate = fps_from_times(times, DEFAULT_FPS)
         fps = estimate if uniform_at(estimate) else DEFAULT_FPS
+    fps = _checked_fps(doc, fps, "the frame rate" if fps_option is None else "fps=")
     uniform = uniform_at(fps)
-    grid = times if uniform else times[0] + np.arange(int(math.floor((times[-1] - times[0]) * fps + 1e-6)) + 1) / fps
+    if uniform:
+        grid = times
+    else:
+        # the sampling grid comes from the file's key times and frame rate: size it (and
+        # everything sampled on it) against the budget before allocating anything
+        span = float(times[-1] - times[0])
+        n_grid = math.floor(span * fps + 1e-6) + 1
+        n_head = 16 if ("translation" in channels or "rotation" in channels) else 0
+        check_budget(
+            doc.path, float(n_grid) * 8.0 * (2 + rig.n_shapes + n_head),
+            f"sampling the animation at {fps:g} fps over {span:g} s ({float(n_grid):.4g} frames of {rig.n_shapes} weights)",
+        )
+        grid = times[0] + np.arange(int(n_grid)) / fps
     weights = keys if uniform else _sample_keys(times, keys, grid, ch.interpolation == "STEP")
     if "weights" in exact:
         exact_w = doc.raw_view(exact["weights"], "weights")
@@ -707,6 +747,9 @@ def read_gltf_animation(path: Path, *, mesh=None, fps=None, **options) -> Animat
 def read_gltf_sequence(path: Path, *, mesh=None, fps=None, **options) -> MeshSequence:
     """The animation of a glTF file as a :class:`MeshSequence` (world vertices per frame)."""
     anim = _animation_from(_load(path), mesh, fps)
+    if anim.is_blendshape_based:  # the per-frame vertices are computed here: size them first
+        check_budget(path, float(anim.n_frames) * anim.rig.neutral.n_vertices * 3 * 8.0 * 2,
+                     f"{anim.n_frames} frames of {anim.rig.neutral.n_vertices} vertices")
     return MeshSequence(anim.vertices, anim.triangles, fps=anim.fps, name=path.stem)
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import InputError
 from ..model import MarkerSequence
 from ._atomic import atomic_file, write_bytes
-from ._common import bad, check_budget, fmt_float, fps_from_times, guarded_reader, parse_float, read_text, to_float32
+from ._common import CHUNK_BYTES, TEXT_TOKEN_FACTOR, bad, check_budget, fmt_float, fps_from_times, guarded_reader, iter_chunks, open_regular, parse_float, read_text, to_float32
 
 __all__ = ["read_c3d", "read_trc", "read_marker_csv", "write_c3d", "write_trc", "write_marker_csv", "csv_rows", "is_marker_header", "META_COLUMNS"]
 
@@ -64,11 +64,45 @@ def _cell(text: str, path, row: int, column: str) -> float:
     return value
 
 
+def _delimiter(first_line: str) -> str:
+    return max(",;\t", key=first_line.count)
+
+
+def _header_of(path: Path, fh) -> tuple[list[str], str, int]:
+    """(header cells, delimiter, byte offset of the data) from the first non-blank line."""
+    offset = 0
+    for chunk in iter_chunks(fh, CHUNK_BYTES):
+        if b"\x00" in chunk:
+            raise bad(path, "holds binary data (NUL bytes), not text")
+        for line in chunk.splitlines(keepends=True):
+            offset += len(line)
+            text = _decode_line(line, offset == len(line)).strip("\r\n")
+            delimiter = _delimiter(text)
+            cells = next(csv.reader([text], delimiter=delimiter), [])
+            if any(c.strip() for c in cells):
+                return [h.strip() for h in cells], delimiter, offset
+    raise bad(path, "the file is empty")
+
+
+def _decode_line(line: bytes, first: bool) -> str:
+    try:
+        return line.decode("utf-8-sig" if first else "utf-8")
+    except UnicodeDecodeError:
+        return line.decode("latin-1")
+
+
+def csv_header(path: Path) -> list[str]:
+    """The header row of a CSV file, reading nothing after it (to tell what it holds)."""
+    with open_regular(path) as fh:
+        return _header_of(path, fh)[0]
+
+
 def csv_rows(path: Path) -> tuple[list[str], list[list[str]]]:
-    """Header and data rows of a CSV file (comma, semicolon or tab separated)."""
-    text = read_text(path)
-    sample = text[:4096]
-    delimiter = max(",;\t", key=sample.split("\n", 1)[0].count)
+    """Header and data rows of a (small) CSV file as text (comma, semicolon or tab separated).
+
+    The readers stream large files with :func:`csv_table` instead."""
+    text = read_text(path, factor=TEXT_TOKEN_FACTOR)
+    delimiter = _delimiter(text[:4096].split("\n", 1)[0])
     rows = [r for r in csv.reader(io.StringIO(text), delimiter=delimiter) if any(c.strip() for c in r)]
     if not rows:
         raise bad(path, "the file is empty")
@@ -76,6 +110,96 @@ def csv_rows(path: Path) -> tuple[list[str], list[list[str]]]:
     if len(header) < 2 and len(rows) > 1:
         raise bad(path, "expected a header row with several columns")
     return header, rows[1:]
+
+
+_EMPTY_CELL = re.compile(rb"(?<=,)[ \t]*(?=,)")
+
+
+def _data_lines(chunk: bytes, delimiter: bytes) -> list[bytes]:
+    """The data rows of a chunk (rows holding only blanks and delimiters are skipped)."""
+    blank = b" \t\r" + delimiter
+    return [ln.rstrip(b"\r") for ln in chunk.split(b"\n") if ln.strip(blank)]
+
+
+def _fast_block(lines: list[bytes], delimiter: bytes, width: int) -> np.ndarray | None:
+    """The cells of ``lines`` as a (rows, width) float array (empty cell = NaN), parsed in C;
+    None when the chunk needs the row-by-row parser (quotes, wrong cell counts, words ...)."""
+    body = b"\n".join(lines)
+    if b'"' in body:
+        return None
+    if delimiter != b",":
+        if b"," in body:
+            return None
+        body = body.replace(delimiter, b",")
+    body = _EMPTY_CELL.sub(b"nan", b"," + body.replace(b"\n", b",\n,") + b",")
+    try:
+        values = np.fromstring(body[1:-1].replace(b",\n,", b","), sep=",")
+    except ValueError:  # newer numpy: a word among the numbers
+        return None
+    if values.size != len(lines) * width or np.isinf(values).any():
+        return None
+    return values.reshape(len(lines), width)
+
+
+def _slow_block(path, lines: list[bytes], delimiter: str, header: list[str], row0: int, text_cols: tuple[int, ...]):
+    """The row-by-row parser of :func:`csv_table` for one chunk; errors name the row and column."""
+    block = np.empty((len(lines), len(header)))
+    texts = {c: [] for c in text_cols}
+    reader = csv.reader((_decode_line(ln, False) for ln in lines), delimiter=delimiter)
+    for r, row in enumerate(reader):
+        if len(row) != len(header):
+            raise bad(path, f"row {row0 + r} has {len(row)} cells but the header has {len(header)}")
+        for c, cell in enumerate(row):
+            if c in texts:
+                texts[c].append(cell.strip())
+                block[r, c] = np.nan
+                continue
+            t = cell.strip()
+            block[r, c] = np.nan if t.lower() in _MISSING else parse_float(t, path, f"row {row0 + r}, column {header[c]!r}")
+    return block, texts
+
+
+def csv_table(path: Path, pick, *, text_cols=lambda header: ()):
+    """Stream a CSV file into arrays: ``(header, numeric, texts)``.
+
+    ``pick(header)`` returns the column ids wanted as numbers; ``numeric`` is their
+    ``(rows, len(ids))`` float array (an empty or ``nan`` cell is NaN, ``inf`` stays inf
+    for the caller to report); ``texts`` maps each id of ``text_cols(header)`` to its cells.
+    The file is read twice in chunks (count, then parse into arrays of exactly that size,
+    the size checked against the budget first); chunks without quotes or words are parsed
+    in C (numpy), others row by row, so the peak is the result plus one chunk's work.
+    """
+    with open_regular(path) as fh:
+        header, delimiter, start = _header_of(path, fh)
+        if len(header) < 2:
+            raise bad(path, "expected a header row with several columns")
+        wanted = list(pick(header))
+        texts_wanted = tuple(text_cols(header))
+        dsep = delimiter.encode()
+        fh.seek(start)
+        n_rows = 0
+        for chunk in iter_chunks(fh, CHUNK_BYTES):
+            if b"\x00" in chunk:
+                raise bad(path, "holds binary data (NUL bytes), not text")
+            n_rows += len(_data_lines(chunk, dsep))
+        width = len(header)
+        check_budget(path, n_rows * (len(wanted) * 8.0 + len(texts_wanted) * 64.0) + CHUNK_BYTES * TEXT_TOKEN_FACTOR,
+                     f"{n_rows} rows of {len(wanted)} numbers")
+        numeric = np.empty((n_rows, len(wanted)))
+        texts = {c: [] for c in texts_wanted}
+        fh.seek(start)
+        r = 0
+        for chunk in iter_chunks(fh, CHUNK_BYTES):
+            lines = _data_lines(chunk, dsep)
+            block = None if texts_wanted else _fast_block(lines, dsep, width)
+            if block is None:
+                block, found = _slow_block(path, lines, delimiter, header, r + 2, texts_wanted)
+                for c, cells in found.items():
+                    texts[c].extend(cells)
+            numeric[r : r + len(lines)] = block[:, wanted]
+            r += len(lines)
+            del block, lines
+    return header, numeric[:r], texts
 
 
 def _marker_columns(header: list[str]) -> tuple[list[str], list[list[int]], list[int]] | None:
@@ -112,36 +236,39 @@ def is_marker_header(header: list[str]) -> bool:
     return _marker_columns(header) is not None
 
 
-def _time_column(header: list[str], rows: list[list[str]], path) -> np.ndarray | None:
-    for i, col in enumerate(header):
-        if col.lower() in ("time", "timestamp"):
-            try:
-                return np.array([float(r[i]) for r in rows])
-            except (ValueError, IndexError):
-                raise bad(path, f"column {col!r} must hold times in seconds") from None
-    return None
-
-
 @guarded_reader
 def read_marker_csv(path: Path, *, fps=None, reference=None, **options) -> MarkerSequence:
     """Markers from a CSV with ``NAME_x, NAME_y, NAME_z`` columns (empty cell = missing)."""
-    header, rows = csv_rows(path)
-    found = _marker_columns(header)
-    if found is None:
-        raise bad(path, "the header is not a marker layout: expected NAME_x, NAME_y, NAME_z columns (plus optional frame, time)")
-    names, columns, _ = found
-    if not rows:
+    found = {}
+
+    def pick(header):
+        cols = _marker_columns(header)
+        if cols is None:
+            raise bad(path, "the header is not a marker layout: expected NAME_x, NAME_y, NAME_z columns (plus optional frame, time)")
+        found["names"], found["columns"] = cols[0], cols[1]
+        found["time"] = next((i for i, col in enumerate(header) if col.lower() in ("time", "timestamp")), None)
+        ids = [c for cs in cols[1] for c in cs]
+        return ids + ([found["time"]] if found["time"] is not None else [])
+
+    header, table, _ = csv_table(path, pick)
+    names, columns = found["names"], found["columns"]
+    if table.shape[0] == 0:
         raise bad(path, "holds a header but no frames")
     dim = len(columns[0])
-    check_budget(path, len(rows) * len(names) * dim * 8.0, f"{len(rows)} frames of {len(names)} markers")
-    positions = np.empty((len(rows), len(names), dim))
-    for r, row in enumerate(rows):
-        if len(row) != len(header):
-            raise bad(path, f"row {r + 2} has {len(row)} cells but the header has {len(header)}")
-        for n, cols in enumerate(columns):
-            positions[r, n] = [_cell(row[c], path, r + 2, header[c]) for c in cols]
+    n_data = len(names) * dim
+    if np.isinf(table).any():
+        r, c = (int(x) for x in np.argwhere(np.isinf(table))[0])
+        col = header[[i for cs in columns for i in cs][c]] if c < n_data else header[found["time"]]
+        raise bad(path, f"row {r + 2}, column {col!r}: infinite value (write missing samples as empty cells)")
+    if found["time"] is not None:
+        times = table[:, n_data]
+        if np.isnan(times).any():
+            raise bad(path, f"column {header[found['time']]!r} must hold times in seconds")
+        positions = table[:, :n_data].reshape(-1, len(names), dim)  # a copy only when there is a time column
+    else:
+        times = None
+        positions = table.reshape(-1, len(names), dim)
     if fps is None:
-        times = _time_column(header, rows, path)
         fps = fps_from_times(times, _DEFAULT_FPS) if times is not None else _DEFAULT_FPS
     return _markers(path, positions, names, fps, reference)
 
@@ -174,7 +301,7 @@ def write_marker_csv(markers: MarkerSequence, path, *, force: bool = False, inpu
 @guarded_reader
 def read_trc(path: Path, *, fps=None, reference=None, **options) -> MarkerSequence:
     """Markers from a TRC file (``DataRate`` gives the fps; empty cells are missing samples)."""
-    lines = read_text(path).splitlines()
+    lines = read_text(path, factor=TEXT_TOKEN_FACTOR).splitlines()
     if not lines or not lines[0].startswith("PathFileType"):
         raise bad(path, "missing the 'PathFileType' first line; not a TRC file")
     if len(lines) < 5:
@@ -246,7 +373,7 @@ def read_c3d(path: Path, *, fps=None, reference=None, **options) -> MarkerSequen
     size = path.stat().st_size
     if size < 512:
         raise bad(path, f"too short for a C3D file ({size} bytes; the header block alone is 512)")
-    with open(path, "rb") as fh:
+    with open_regular(path) as fh:
         reader = c3d.Reader(fh)
         n_frames = int(reader.last_frame) - int(reader.first_frame) + 1
         n_points = int(reader.point_used)

@@ -12,6 +12,7 @@ numbered in order of first use.
 """
 from __future__ import annotations
 
+import os
 import re
 import struct
 from pathlib import Path
@@ -20,7 +21,7 @@ import numpy as np
 
 from ..model import Mesh
 from ._atomic import write_bytes
-from ._common import TEXT_MEMORY_FACTOR, bad, check_budget, fmt_float, guarded_reader, parse_int, read_bytes, read_text, to_float32
+from ._common import CHUNK_BYTES, TEXT_TOKEN_FACTOR, bad, check_budget, fmt_float, guarded_reader, iter_chunks, open_regular, parse_int, read_bytes, read_text, to_float32
 
 __all__ = [
     "mesh_arrays",
@@ -77,8 +78,9 @@ class _SlowPath(Exception):
 _SLASH_TAIL = re.compile(r"/\S*")
 
 
-def _parse_obj_fast(lines: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Vertices (V, 3), flat polygon ids (0-based) and polygon sizes, vectorized.
+def _parse_obj_fast(lines: list[str], v0: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices (V, 3), flat polygon ids (0-based) and polygon sizes, vectorized, of a run
+    of lines after ``v0`` vertices (relative indices count back from there).
 
     Raises _SlowPath for anything needing a precise diagnosis (bad numbers, unknown
     statements, degenerate faces, relative indices out of range ...).
@@ -89,12 +91,17 @@ def _parse_obj_fast(lines: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarra
         raise _SlowPath
     v_body = [ln[2:] for ln, p in zip(lines, prefix) if p == "v "]
     f_body = [ln[2:] for ln, p in zip(lines, prefix) if p == "f "]
-    if not v_body or not f_body:
-        raise _SlowPath
+    del lines
     try:
-        vertices = np.fromstring(" ".join(v_body), sep=" ")  # text mode: C parsing, not deprecated
-        if vertices.size != 3 * len(v_body):
-            vertices = np.loadtxt(v_body, usecols=(0, 1, 2), dtype=np.float64, ndmin=2, comments=None)
+        if v_body:
+            vertices = np.fromstring(" ".join(v_body), sep=" ")  # text mode: C parsing, not deprecated
+            if vertices.size != 3 * len(v_body):
+                vertices = np.loadtxt(v_body, usecols=(0, 1, 2), dtype=np.float64, ndmin=2, comments=None)
+        else:
+            vertices = np.zeros((0, 3))
+        del v_body
+        if not f_body:
+            return vertices.reshape(-1, 3), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
         # polygons separated by a 0, which OBJ never uses as an index
         ids = np.fromstring(_SLASH_TAIL.sub("", " 0 ".join(f_body)), sep=" ", dtype=np.int64)
     except (ValueError, IndexError, OverflowError):
@@ -109,7 +116,7 @@ def _parse_obj_fast(lines: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarra
         raise _SlowPath
     if np.any(ids < 0):
         # relative indices count back from the vertices defined before the face's line
-        v_before = np.cumsum([p == "v " for p in prefix])
+        v_before = v0 + np.cumsum([p == "v " for p in prefix])
         f_lines = np.asarray([i for i, p in enumerate(prefix) if p == "f "])
         before_per_id = np.repeat(v_before[f_lines], sizes)
         ids = np.where(ids < 0, before_per_id + ids, ids - 1)
@@ -117,8 +124,6 @@ def _parse_obj_fast(lines: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarra
             raise _SlowPath
     else:
         ids = ids - 1
-    if ids.max() >= vertices.shape[0]:
-        raise _SlowPath  # reported with its line and 1-based index
     offsets = np.concatenate(([0], np.cumsum(sizes)[:-1]))
     nxt = np.arange(ids.size) + 1
     nxt[np.cumsum(sizes) - 1] = offsets  # each corner's successor, wrapping around its polygon
@@ -149,17 +154,25 @@ def _polygons_to_triangles(ids: np.ndarray, sizes: np.ndarray) -> np.ndarray:
 
 def obj_arrays(text: str, path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices ``(V, 3)`` and fan-triangulated triangles ``(T, 3)`` of OBJ ``text``."""
+    vertices, triangles, n_faces = _obj_chunk(text, path, 0, 0)
+    return _obj_checked(path, vertices, triangles, n_faces)
+
+
+def _obj_chunk(text: str, path, line0: int, v0: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """(vertices, triangles with file-wide 0-based ids, polygon count) of whole OBJ lines
+    that follow ``line0`` lines and ``v0`` vertices of the file."""
     if "\\\n" in text:
         text = text.replace("\\\r\n", " ").replace("\\\n", " ")
     lines = text.splitlines()
     if text[:1] in (" ", "\t") or "\n " in text or "\n\t" in text:
         lines = [ln.strip() for ln in lines]
     try:
-        vertices, ids, sizes = _parse_obj_fast(lines)
+        vertices, ids, sizes = _parse_obj_fast(lines, v0)
     except _SlowPath:
-        vertices, polygons = parse_obj(text, path)
-        return _checked_arrays(path, vertices, fan_triangulate(polygons), len(polygons))
-    return _checked_arrays(path, vertices, _polygons_to_triangles(ids, sizes), sizes.size)
+        del lines
+        vertices, polygons = _parse_obj_lines(text, path, line0, v0)
+        return vertices, fan_triangulate(polygons), len(polygons)
+    return vertices, _polygons_to_triangles(ids, sizes), sizes.size
 
 
 def _checked_arrays(path, vertices: np.ndarray, triangles: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
@@ -179,11 +192,21 @@ def _checked_arrays(path, vertices: np.ndarray, triangles: np.ndarray, n_faces: 
 
 def parse_obj(text: str, path) -> tuple[np.ndarray, list[list[int]]]:
     """Vertices ``(V, 3)`` and polygons (0-based) of OBJ ``text``, line by line; errors name the line."""
+    vertices, polygons = _parse_obj_lines(text, path, 0, 0)
+    for poly_id, poly in enumerate(polygons):
+        if max(poly) >= len(vertices):
+            raise bad(path, f"face {poly_id + 1} uses vertex {max(poly) + 1} but the file has {len(vertices)} vertices")
+    return vertices, polygons
+
+
+def _parse_obj_lines(text: str, path, line0: int, v0: int) -> tuple[np.ndarray, list[list[int]]]:
+    """:func:`parse_obj` of lines that follow ``line0`` lines and ``v0`` vertices (no
+    check of indices against the vertex count: later lines may add vertices)."""
     if "\\\n" in text:
         text = text.replace("\\\r\n", " ").replace("\\\n", " ")
     vertex_rows: list[list[str]] = []
     polygons: list[list[int]] = []
-    for lineno, raw in enumerate(text.splitlines(), 1):
+    for lineno, raw in enumerate(text.splitlines(), line0 + 1):
         line = raw.strip()
         if not line or line[0] == "#":
             continue
@@ -196,7 +219,7 @@ def parse_obj(text: str, path) -> tuple[np.ndarray, list[list[int]]]:
         elif key == "f":
             if len(parts) < 4:
                 raise bad(path, f"line {lineno}: a face needs at least 3 vertices, got {line[:60]!r}")
-            n_now = len(vertex_rows)
+            n_now = v0 + len(vertex_rows)
             poly = []
             for token in parts[1:]:
                 head = token.split("/", 1)[0]
@@ -221,20 +244,90 @@ def parse_obj(text: str, path) -> tuple[np.ndarray, list[list[int]]]:
     try:
         vertices = np.array(vertex_rows, dtype=np.float64).reshape(-1, 3)
     except ValueError:
-        for lineno, row in enumerate(vertex_rows, 1):
+        for k, row in enumerate(vertex_rows, v0 + 1):
             try:
                 [float(x) for x in row]
             except ValueError:
-                raise bad(path, f"vertex {lineno}: coordinates {' '.join(row)[:60]!r} are not numbers") from None
+                raise bad(path, f"vertex {k}: coordinates {' '.join(row)[:60]!r} are not numbers") from None
         raise
-    for poly_id, poly in enumerate(polygons):
-        if max(poly) >= len(vertex_rows):
-            raise bad(path, f"face {poly_id + 1} uses vertex {max(poly) + 1} but the file has {len(vertex_rows)} vertices")
     return vertices, polygons
 
 
+_V_LINE = re.compile(rb"^[ \t]*v[ \t]", re.M)
+_F_LINE = re.compile(rb"^[ \t]*f[ \t]", re.M)
+
+
+def _count_lines(chunk: bytes, key: bytes, pattern: re.Pattern) -> int:
+    """Lines of ``chunk`` starting with statement ``key`` (b"v" or b"f")."""
+    if chunk[:1] in (b" ", b"\t") or b"\n " in chunk or b"\n\t" in chunk:
+        return len(pattern.findall(chunk))
+    return chunk.count(b"\n" + key + b" ") + chunk.count(b"\n" + key + b"\t") + (chunk[:2] in (key + b" ", key + b"\t"))
+
+
+def _decode(chunk: bytes, first: bool) -> str:
+    try:
+        return chunk.decode("utf-8-sig" if first else "utf-8")
+    except UnicodeDecodeError:
+        return chunk.decode("latin-1")
+
+
+def _obj_chunks(fh):
+    """Whole-line chunks of an OBJ file (a line continued with a backslash stays whole)."""
+    pending = b""
+    for chunk in iter_chunks(fh, CHUNK_BYTES):
+        chunk = pending + chunk
+        if chunk.endswith((b"\\\n", b"\\\r\n")):
+            pending = chunk
+            continue
+        pending = b""
+        yield chunk
+    if pending:
+        yield pending
+
+
 def _obj_file_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    return obj_arrays(read_text(path), path)
+    """Vertices and triangles of an OBJ file, streamed: a first pass counts the vertex and
+    face lines (the sizes are checked against the budget), a second parses chunk by chunk
+    into arrays of exactly that size, so the peak is the result plus one chunk's work."""
+    n_v = n_f = 0
+    blank = True
+    with open_regular(path) as fh:
+        for chunk in _obj_chunks(fh):
+            if b"\x00" in chunk:
+                raise bad(path, "holds binary data (NUL bytes), not text")
+            blank = blank and not chunk.strip()
+            n_v += _count_lines(chunk, b"v", _V_LINE)
+            n_f += _count_lines(chunk, b"f", _F_LINE)
+        if blank:
+            raise bad(path, "the file is empty")
+        check_budget(path, (n_v + n_f) * 24.0 + CHUNK_BYTES * TEXT_TOKEN_FACTOR, f"{n_v} vertices and {n_f} faces")
+        vertices = np.empty((n_v, 3))
+        triangles = np.empty((n_f, 3), dtype=np.int64)
+        iv = it = n_faces = line0 = 0
+        fh.seek(0)
+        for k, chunk in enumerate(_obj_chunks(fh)):
+            verts, tris, faces = _obj_chunk(_decode(chunk, k == 0), path, line0, iv)
+            line0 += chunk.count(b"\n")
+            n_faces += faces
+            if iv + len(verts) > len(vertices):  # counted differently (cannot happen for plain lines)
+                vertices = np.concatenate([vertices[:iv], verts])
+            else:
+                vertices[iv : iv + len(verts)] = verts
+            if it + len(tris) > len(triangles):  # polygons with more than 3 corners
+                check_budget(path, (len(triangles) + len(tris)) * 24.0 * 2 + len(vertices) * 24.0, f"{n_v} vertices and {it + len(tris)} triangles")
+                triangles = np.concatenate([triangles[:it], tris])
+            else:
+                triangles[it : it + len(tris)] = tris
+            iv += len(verts)
+            it += len(tris)
+            del verts, tris
+    return _obj_checked(path, vertices[:iv], triangles[:it], n_faces)
+
+
+def _obj_checked(path, vertices: np.ndarray, triangles: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    if triangles.size and vertices.shape[0] and triangles.max() >= vertices.shape[0]:
+        raise bad(path, f"a face uses vertex {int(triangles.max()) + 1} but the file has {vertices.shape[0]} vertices (OBJ indices start at 1)")
+    return _checked_arrays(path, vertices, triangles, n_faces)
 
 
 @guarded_reader
@@ -277,7 +370,7 @@ def read_off(path: Path, **options) -> Mesh:
 
 
 def _off_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    text = read_text(path)
+    text = read_text(path, factor=TEXT_TOKEN_FACTOR)
     lines = [ln.split("#", 1)[0].split() for ln in text.splitlines()]
     lines = [ln for ln in lines if ln]
     if not lines or not re.fullmatch(r"(ST)?C?N?OFF", lines[0][0]):
@@ -489,7 +582,7 @@ def _ply_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
         raise bad(path, "face element needs a 'vertex_indices' list property")
     if fmt == "ascii":
         if el_v["count"] + el_f["count"] > 0:
-            check_budget(path, len(data) * TEXT_MEMORY_FACTOR, "parsing this text file")
+            check_budget(path, len(data) * TEXT_TOKEN_FACTOR, "parsing this text file")
         parsed = _ply_ascii(data[body:].decode("latin-1"), elements, path)
     else:
         order = "<" if fmt == "binary_little_endian" else ">"
@@ -499,7 +592,17 @@ def _ply_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
     except ValueError:
         raise bad(path, "a vertex coordinate is not a number") from None
     faces = parsed["face"][fprop]
+    if isinstance(faces, np.ndarray) and faces.ndim == 2 and faces.shape[1] == 3:
+        tris = faces.astype(np.int64)  # triangles: checked as arrays, never as Python lists
+        repeated = (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])
+        if repeated.any():
+            raise bad(path, f"face {int(np.flatnonzero(repeated)[0])}: degenerate (a vertex repeats)")
+        if tris.size and tris.min() < 0:
+            i = int(np.flatnonzero((tris < 0).any(axis=1))[0])
+            raise bad(path, f"face {i}: negative vertex index {int(tris[i].min())}")
+        return _checked_arrays(path, vertices, tris, len(tris))
     if isinstance(faces, np.ndarray):
+        check_budget(path, faces.size * 64.0, f"{len(faces)} polygons")  # Python lists below
         polygons = faces.astype(np.int64).tolist()
     else:
         try:
@@ -566,10 +669,10 @@ def read_stl(path: Path, **options) -> Mesh:
 
 
 def _stl_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    size = path.stat().st_size
-    if size == 0:
-        raise bad(path, "the file is empty")
-    with open(path, "rb") as fh:
+    with open_regular(path) as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size == 0:
+            raise bad(path, "the file is empty")
         head = fh.read(84)
     binary = False
     if len(head) >= 84:
@@ -587,7 +690,7 @@ def _stl_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
             if len(head) >= 84:
                 raise bad(path, f"binary STL declares {n_tris} triangles ({84 + 50 * n_tris} bytes) but the file has {size} bytes")
             raise bad(path, "not an STL file (too short for binary STL, and no 'solid' header)")
-        text = read_text(path)
+        text = read_text(path, factor=TEXT_TOKEN_FACTOR)
         tokens = text.split()
         idx = [i for i, t in enumerate(tokens) if t == "vertex"]
         if not idx or len(idx) % 3:

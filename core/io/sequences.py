@@ -26,7 +26,7 @@ import numpy as np
 from ..errors import FileFormatError, InputError
 from ..model import Animation, Mesh, MeshSequence
 from ._atomic import atomic_dir, atomic_file, write_file_synced
-from ._common import bad, check_budget, fps_from_times, guarded_reader, load_npy, natural_key, to_float32
+from ._common import bad, check_budget, fps_from_times, guarded_reader, load_npy, natural_key, open_regular, read_text, to_float32
 from .meshes import obj_text
 
 __all__ = [
@@ -41,6 +41,8 @@ __all__ = [
     "resolve_topology",
     "as_sequence",
     "SEQUENCE_SIDECAR",
+    "sibling_topology",
+    "POINTS_ONLY",
 ]
 
 PC2_MAGIC = b"POINTCACHE2\x00"
@@ -75,15 +77,26 @@ def frame_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return mesh.vertices, mesh.triangles
 
 
+#: formats holding only vertex positions: their reader takes the triangles from a sibling
+POINTS_ONLY = (".npy", ".npz", ".pc2", ".mdd")
+
+
+def sibling_topology(path) -> Path | None:
+    """The same-stem mesh file beside points-only ``path`` that its reader takes the
+    triangles from when no ``topology=`` is given (an input read indirectly), or None."""
+    path = Path(path)
+    for ext in mesh_extensions():
+        sibling = path.with_suffix(ext)
+        if sibling != path and sibling.is_file():
+            return sibling
+    return None
+
+
 def resolve_topology(path: Path, topology, n_vertices: int) -> Mesh | np.ndarray:
     """The triangles for a points-only file: ``topology`` or a same-stem mesh beside ``path``."""
     if topology is None:
-        for ext in mesh_extensions():
-            sibling = path.with_suffix(ext)
-            if sibling != path and sibling.is_file():
-                topology = sibling
-                break
-        else:
+        topology = sibling_topology(path)
+        if topology is None:
             raise InputError(
                 f"{path}: this file holds only vertex positions; pass topology= (a mesh file with the same "
                 f"vertex order, e.g. --topology neutral.obj) or put {path.stem}.obj beside it"
@@ -129,7 +142,7 @@ def _sidecar(path: Path, name: str) -> dict:
     if not side.is_file():
         return {}
     try:
-        data = json.loads(side.read_text(encoding="utf-8"))
+        data = json.loads(read_text(side, allow_empty=True))
     except (ValueError, UnicodeDecodeError, OSError) as exc:
         raise bad(side, f"not valid JSON ({exc})") from None
     if not isinstance(data, dict):
@@ -216,7 +229,7 @@ def write_npy(obj, path, *, force: bool = False, inputs=(), **options) -> None:
 def _header(path: Path, size: int, need: int, what: str) -> bytes:
     if size < need:
         raise bad(path, f"too short for a {what} header ({size} bytes, need {need})" if size else "the file is empty")
-    with open(path, "rb") as fh:
+    with open_regular(path) as fh:
         return fh.read(need)
 
 

@@ -26,7 +26,7 @@ from ..errors import InputError
 from ..model import WeightSequence
 from ._atomic import write_bytes
 from ._common import bad, check_budget, fmt_float, fps_from_times, guarded_reader, parse_float
-from .markers import csv_rows
+from .markers import csv_table
 
 __all__ = ["read_weights_csv", "write_weights_csv", "LIVE_LINK_EXTRA", "timecode", "parse_timecode"]
 
@@ -69,45 +69,58 @@ def _fps_from_timecodes(codes: list[tuple[int, float]]) -> float:
 @guarded_reader
 def read_weights_csv(path: Path, *, fps=None, **options) -> WeightSequence:
     """Weight curves from a CSV (Live Link Face or ``frame, time, name...`` layouts)."""
-    header, rows = csv_rows(path)
-    lower = [h.lower() for h in header]
     meta = {"timecode", "blendshapecount", "frame", "frame#", "time", "timestamp"}
-    weight_cols = [i for i, h in enumerate(lower) if h not in meta]
-    if not weight_cols:
-        raise bad(path, "no weight columns: every column is Timecode/BlendShapeCount/Frame/Time")
-    if not rows:
+    layout = {}
+
+    def pick(header):
+        lower = [h.lower() for h in header]
+        weight_cols = [i for i, h in enumerate(lower) if h not in meta]
+        if not weight_cols:
+            raise bad(path, "no weight columns: every column is Timecode/BlendShapeCount/Frame/Time")
+        for i in weight_cols:
+            if not header[i]:
+                raise bad(path, f"column {i + 1} has an empty name")
+        count_col = lower.index("blendshapecount") if "blendshapecount" in lower else None
+        time_col = lower.index("time") if "time" in lower else (lower.index("timestamp") if "timestamp" in lower else None)
+        layout.update(lower=lower, weight_cols=weight_cols, count_col=count_col, time_col=time_col)
+        extra = [c for c in (count_col, time_col) if c is not None]
+        return weight_cols + extra
+
+    def text_cols(header):
+        lower = [h.lower() for h in header]
+        return (lower.index("timecode"),) if "timecode" in lower else ()
+
+    header, table, texts = csv_table(path, pick, text_cols=text_cols)
+    lower, weight_cols = layout["lower"], layout["weight_cols"]
+    if table.shape[0] == 0:
         raise bad(path, "holds a header but no frames")
+    n = len(weight_cols)
     names = [header[i] for i in weight_cols]
-    for i in weight_cols:
-        if not header[i]:
-            raise bad(path, f"column {i + 1} has an empty name")
-    check_budget(path, len(rows) * len(weight_cols) * 8.0, f"{len(rows)} frames of {len(weight_cols)} weights")
-    weights = np.empty((len(rows), len(weight_cols)))
-    count_col = lower.index("blendshapecount") if "blendshapecount" in lower else None
-    for r, row in enumerate(rows):
-        line = r + 2
-        if len(row) != len(header):
-            raise bad(path, f"row {line} has {len(row)} cells but the header has {len(header)}")
-        if count_col is not None:
-            declared = row[count_col].strip()
-            after = len(header) - count_col - 1
-            if declared != str(after):
-                raise bad(path, f"row {line}: BlendShapeCount is {declared[:20]!r} but {after} weight columns follow it")
-        for j, c in enumerate(weight_cols):
-            value = parse_float(row[c].strip(), path, f"row {line}, column {header[c]!r}")
-            if not np.isfinite(value):
-                raise bad(path, f"row {line}, column {header[c]!r}: {row[c].strip()} is not a finite weight")
-            weights[r, j] = value
+    weights = table[:, :n]
+    if not np.all(np.isfinite(weights)):
+        r, j = (int(x) for x in np.argwhere(~np.isfinite(weights))[0])
+        raise bad(path, f"row {r + 2}, column {header[weight_cols[j]]!r}: {weights[r, j]} is not a finite weight (an empty cell is not a weight)")
+    k = n
+    if layout["count_col"] is not None:
+        declared = table[:, k]
+        after = len(header) - layout["count_col"] - 1
+        wrong = np.flatnonzero(declared != after)
+        if wrong.size:
+            raise bad(path, f"row {int(wrong[0]) + 2}: BlendShapeCount is '{declared[wrong[0]]:g}' but {after} weight columns follow it")
+        k += 1
     if fps is None:
         fps = _DEFAULT_FPS
-        if "time" in lower or "timestamp" in lower:
-            col = lower.index("time") if "time" in lower else lower.index("timestamp")
-            times = np.array([parse_float(row[col], path, f"row {r + 2}, column {header[col]!r}") for r, row in enumerate(rows)])
+        if layout["time_col"] is not None:
+            times = table[:, k]
+            if not np.all(np.isfinite(times)):
+                raise bad(path, f"column {header[layout['time_col']]!r} must hold times in seconds")
             fps = fps_from_times(times, _DEFAULT_FPS)
         elif "timecode" in lower:
-            col = lower.index("timecode")
-            codes = [parse_timecode(row[col], path, r + 2) for r, row in enumerate(rows)]
+            cells = texts[lower.index("timecode")]
+            codes = [parse_timecode(c, path, r + 2) for r, c in enumerate(cells)]
             fps = _fps_from_timecodes(codes) if len(codes) > 1 or codes[0][1] > 0 else _LIVE_LINK_FPS
+    if weights.base is not None and not weights.flags.c_contiguous and k == n:
+        weights = np.ascontiguousarray(weights)
     return WeightSequence(weights, names, fps=fps)
 
 

@@ -13,7 +13,7 @@ import pytest
 
 import faceretarget as fr
 from faceretarget.errors import OutputError
-from faceretarget.io._atomic import atomic_file, note_input
+from faceretarget.io._atomic import atomic_file, note_input, temp_owner
 
 
 def test_refuses_to_write_over_an_input_even_with_force(tmp_path, mesh):
@@ -108,12 +108,12 @@ def test_sigkill_mid_write_leaves_the_previous_output_intact(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert target.read_bytes() == b"previous"
-    leftovers = [p for p in tmp_path.iterdir() if p.name.endswith(".frtmp")]
+    leftovers = [p for p in tmp_path.iterdir() if temp_owner(p.name)]
     assert len(leftovers) == 1  # the killed writer's temporary, never the destination
     with atomic_file(target, force=True) as fh:
         fh.write(b"next")
     assert target.read_bytes() == b"next"
-    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".frtmp")]
+    assert not [p for p in tmp_path.iterdir() if temp_owner(p.name)]
 
 
 def test_note_input_covers_files_of_a_folder(tmp_path, seq):

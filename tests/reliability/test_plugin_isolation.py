@@ -67,8 +67,10 @@ PLUGINS = {
         "        return anim\nCLS = Nan\n"
     ),
     "bp_type": "class Typ(Base):\n    name = 'bp_type'\n    def _retarget(self, source):\n        return {'vertices': self.neutral_}\nCLS = Typ\n",
+    # sys.exit(0) in fit once made `faceretarget run` exit 0 with no output and no message (issue 15, hole 10)
+    "bp_sysexit": "import sys\nclass SysExit(Base):\n    name = 'bp_sysexit'\n    def _fit(self, source, target):\n        sys.exit(0)\nCLS = SysExit\n",
 }
-BAD = ["bp_fit", "bp_retarget", "bp_vertices", "bp_frames", "bp_nan", "bp_type"]
+BAD = ["bp_fit", "bp_retarget", "bp_vertices", "bp_frames", "bp_nan", "bp_type", "bp_sysexit"]
 #: Plugins that never return or take their process down (only run under a time limit).
 SLOW = {
     "bp_sleep": "import time\nclass Sleep(Base):\n    name = 'bp_sleep'\n    def _retarget(self, source):\n        time.sleep(3600)\nCLS = Sleep\n",
@@ -184,7 +186,9 @@ def test_run_refuses_to_write_a_broken_result(name, reg, bundles, tmp_path, caps
     code = cli.main(["run", name, "--source", str(src), "--target", str(tgt), "--out", str(out)])
     err = capsys.readouterr().err
     assert code == cli.EXIT_ERROR, err
-    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    errors = [line for line in err.strip().splitlines() if not line.startswith("faceretarget: warning: plugin")]
+    assert len(errors) == 1 and "Traceback" not in err, err  # warnings name the plugins that were skipped (bp_import)
+    err = errors[0]
     assert named(err, name), f"the error must name the plugin and its distribution: {err}"
     assert not out.exists(), "nothing may be written for a failed or invalid result"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["source.npz", "target.npz"]
@@ -244,8 +248,10 @@ def test_compare_command_reports_a_slow_plugin(reg, capsys):
     count(AREA)
     spec = "synthetic?resolution=300&n_frames=4"
     code = cli.main(["compare", spec, "--methods", "bp_good", "bp_sleep", "--metrics", "vertex_error_mean", "--timeout", str(LIMIT), "--quiet"])
-    out = capsys.readouterr().out
-    assert code == 0
+    captured = capsys.readouterr()
+    out = captured.out
+    assert code == cli.EXIT_FAILED, "a compare in which a method failed must not exit 0 (issue 15, hole 10)"
+    assert "1 of 2 runs failed" in captured.err and "--keep-going" in captured.err
     line = next(line for line in out.splitlines() if "bp_sleep:" in line)
     assert "error" in line and named(line, "bp_sleep") and "PluginTimeoutError" in line
 
@@ -304,3 +310,178 @@ def test_dask_batch_stops_a_slow_job(reg, bundles, tmp_path):
     pytest.importorskip("distributed")
     results = batch_with_failures(tmp_path, bundles, reg, ["bp_sleep"], executor="dask", workers=2, timeout=LIMIT)
     assert "PluginTimeoutError" in results["out/bp_sleep.npz"].error
+
+
+# ---------------------------------------------------------------------------------------
+# Hooks that return the wrong thing (issue 15, hole 6): one bad hook once made `list`,
+# `formats`, `run` and `batch --check` all exit 3 with an internal TypeError
+# ---------------------------------------------------------------------------------------
+HOOK_PLUGINS = {
+    "hp_int_readers": "@fr.hookimpl\ndef faceretarget_readers():\n    return 42\n",
+    "hp_int_retargeters": "@fr.hookimpl\ndef faceretarget_retargeters():\n    return 42\n",
+    "hp_str_metrics": "@fr.hookimpl\ndef faceretarget_metrics():\n    return 'abc'\n",
+    "hp_bad_reader": (
+        "@fr.hookimpl\ndef faceretarget_readers():\n"
+        "    return [fr.Reader(name='hp', kind='mesh', extensions=42, read=print)]\n"
+    ),
+    "hp_bad_writer": (
+        "@fr.hookimpl\ndef faceretarget_writers():\n"
+        "    return [fr.Writer(name=7, kind='animation', extensions=('.hp',), write=print)]\n"
+    ),
+    "hp_bad_aliases": (
+        "class Aliased(fr.Retargeter):\n    name = 'hp_aliased'\n    aliases = 42\n"
+        "    capabilities = fr.Capabilities(sources=('mesh',))\n"
+        "@fr.hookimpl\ndef faceretarget_retargeters():\n    return [Aliased]\n"
+    ),
+}
+#: plugin -> the hook its error must name
+HOOK_OF = {
+    "hp_int_readers": "faceretarget_readers", "hp_int_retargeters": "faceretarget_retargeters",
+    "hp_str_metrics": "faceretarget_metrics", "hp_bad_reader": "faceretarget_readers",
+    "hp_bad_writer": "faceretarget_writers",
+}
+
+
+@pytest.fixture
+def hook_site(tmp_path, monkeypatch):
+    """A distribution ``hookplugins``: hooks returning 42, a string, invalid records, and
+    one good retargeter (hp_good); loaded by the command itself (no registry cached)."""
+    root = tmp_path / "site"
+    info = root / "hookplugins-2.0.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: hookplugins\nVersion: 2.0\n")
+    modules = {name: "import faceretarget as fr\n" + code for name, code in HOOK_PLUGINS.items()}
+    modules["hp_good"] = textwrap.dedent(plugin_module("bp_good").replace("bp_good", "hp_good"))
+    for name, code in modules.items():
+        (root / f"{name}.py").write_text(code)
+    (info / "entry_points.txt").write_text("[faceretarget]\n" + "".join(f"{n} = {n}\n" for n in modules))
+    monkeypatch.syspath_prepend(str(root))
+    monkeypatch.setenv("PYTHONPATH", str(root))
+    monkeypatch.delenv("FACERETARGET_DISABLE_PLUGINS", raising=False)
+    monkeypatch.setenv("FACERETARGET_PLUGINS", "hookplugins")
+    monkeypatch.setattr(registry_module, "_REGISTRY", None)
+    importlib.invalidate_caches()
+    return root
+
+
+def test_a_hook_returning_the_wrong_type_skips_only_its_plugin(hook_site):
+    loaded = Registry().load()
+    count(AREA, len(HOOK_PLUGINS))
+    failures = {f.name: f for f in loaded.failures}
+    assert set(failures) == set(HOOK_PLUGINS), failures
+    for name, f in failures.items():
+        assert f.distribution == "hookplugins" and name in f.error and "hookplugins 2.0" in f.error, f.error
+        if name in HOOK_OF:
+            assert HOOK_OF[name] in f.error, f"the error must name the hook: {f.error}"
+    assert "returned 42 (int), expected a list" in failures["hp_int_readers"].error
+    assert "hp_good" in loaded.retargeters and "hp_aliased" not in loaded.retargeters
+    assert not any(r.name == "hp" for r, _ in loaded.readers) and not any(w.name == 7 for w, _ in loaded.writers)
+
+
+def warnings_name_each_skipped_plugin(err: str) -> None:
+    lines = [line for line in err.splitlines() if line.startswith("faceretarget: warning: plugin")]
+    for name in HOOK_PLUGINS:
+        assert any(name in line and "hookplugins 2.0" in line and "was skipped" in line for line in lines), err
+    assert "internal error" not in err and "Traceback" not in err
+
+
+def test_list_and_formats_go_on_past_a_bad_hook(hook_site, capsys):
+    count(AREA, 2)
+    assert cli.main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert "hp_good" in out
+    failed = out.split("plugins that failed to load:")[1]
+    assert all(name in failed for name in HOOK_PLUGINS) and "faceretarget_readers: returned 42" in failed
+    assert cli.main(["formats"]) == 0
+    captured = capsys.readouterr()
+    assert "readers:" in captured.out
+    warnings_name_each_skipped_plugin(captured.err)
+
+
+def test_run_and_batch_check_go_on_past_a_bad_hook(hook_site, bundles, tmp_path, capsys):
+    src, tgt = bundles
+    out = tmp_path / "out.npz"
+    count(AREA, 2)
+    code = cli.main(["run", "hp_good", "--source", str(src), "--target", str(tgt), "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 0 and out.exists(), captured.err
+    warnings_name_each_skipped_plugin(captured.err)
+    manifest = tmp_path / "shots.toml"
+    manifest.write_text(f'[[job]]\nshot = "{src.name}"\ncharacter = "{tgt.name}"\nmethod = "hp_good"\nout = "o.npz"\n')
+    assert cli.main(["batch", str(manifest), "--check"]) == 0
+    captured = capsys.readouterr()
+    assert "manifest OK" in captured.out
+    warnings_name_each_skipped_plugin(captured.err)
+
+
+# ---------------------------------------------------------------------------------------
+# Exit codes that tell the truth (issue 15, hole 10)
+# ---------------------------------------------------------------------------------------
+def test_run_exits_non_zero_when_a_plugin_calls_sys_exit_0(site, bundles, tmp_path):
+    """The attack as a user meets it: the real command in its own process."""
+    import os
+    import subprocess
+    import sys
+
+    src, tgt = bundles
+    out = tmp_path / "out.npz"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")]), "FACERETARGET_PLUGINS": DIST}
+    env.pop("FACERETARGET_DISABLE_PLUGINS", None)
+    proc = subprocess.run(
+        [sys.executable, "-m", "faceretarget.cli", "run", "bp_sysexit", "--source", str(src), "--target", str(tgt), "--out", str(out)],
+        env=env, capture_output=True, text=True, timeout=300,
+    )
+    count(AREA)
+    assert proc.returncode == cli.EXIT_ERROR, (proc.returncode, proc.stderr)
+    assert "SystemExit(0)" in proc.stderr and named(proc.stderr, "bp_sysexit") and "fit" in proc.stderr, proc.stderr
+    assert not out.exists()
+
+
+def test_a_plugin_ending_the_program_elsewhere_is_not_a_success(reg, monkeypatch, capsys):
+    """SystemExit raised outside a plugin call (a reader, a constructor): exit 2, with where it came from."""
+
+    def leave(args):
+        raise SystemExit(0)
+
+    monkeypatch.setattr(cli, "cmd_formats", leave)
+    count(AREA)
+    parser_code = cli.main(["formats"])
+    err = capsys.readouterr().err
+    assert parser_code == cli.EXIT_ERROR and "SystemExit(0)" in err and "test_plugin_isolation.py" in err
+
+
+@pytest.mark.parametrize("keep_going", [False, True])
+def test_compare_exits_non_zero_when_a_method_failed(reg, capsys, keep_going):
+    spec = "synthetic?resolution=300&n_frames=4"
+    argv = ["compare", spec, "--methods", "bp_good", "bp_fit", "bp_sysexit", "--metrics", "vertex_error_mean", "--quiet", "--timeout", "0"]
+    count(AREA)
+    code = cli.main(argv + (["--keep-going"] if keep_going else []))
+    captured = capsys.readouterr()
+    assert code == (0 if keep_going else cli.EXIT_FAILED), captured.err
+    assert "2 of 3 runs failed" in captured.err
+    assert named(captured.out, "bp_sysexit") and "SystemExit" in captured.out  # in-process (--timeout 0): still a failure
+
+
+@pytest.mark.parametrize("keep_going", [False, True])
+def test_batch_exits_non_zero_with_a_summary_when_a_job_failed(reg, bundles, tmp_path, capsys, keep_going):
+    manifest = batch_manifest(tmp_path, bundles, ["bp_good", "bp_sysexit"])
+    count(AREA)
+    code = cli.main(["batch", str(manifest), "--workers", "1", "--quiet"] + (["--keep-going"] if keep_going else []))
+    captured = capsys.readouterr()
+    assert code == (0 if keep_going else cli.EXIT_FAILED), captured.err
+    assert "1 of 2 jobs failed" in captured.err
+    assert "FAILED" in captured.out and named(captured.out, "bp_sysexit")
+
+
+@pytest.mark.parametrize("value", ["-1", "0", "-5G", "nan", "inf", "0.5"])
+def test_a_memory_budget_that_is_not_positive_is_refused(value, monkeypatch, bundles, tmp_path, capsys):
+    from faceretarget import config
+    from faceretarget.errors import ConfigError
+
+    monkeypatch.setenv(config.ENV_MEMORY_BUDGET, value)
+    count(AREA)
+    with pytest.raises(ConfigError, match="FACERETARGET_MEMORY_BUDGET.*not a positive size"):
+        config.memory_budget()
+    src, _ = bundles
+    assert cli.main(["convert", str(src), str(tmp_path / "copy.npz")]) == cli.EXIT_ERROR
+    assert "FACERETARGET_MEMORY_BUDGET" in capsys.readouterr().err

@@ -1,0 +1,106 @@
+"""Numba's on-disk cache shared by concurrent processes never fails a call.
+
+Every kernel of faceretarget and its plugins is ``numba.njit(cache=True)``. Two processes
+that compile and save the same kernels at once (two ``faceretarget demo`` runs, the
+workers of ``compare --jobs 2``) can make numba's cache *save* fail after the kernel
+compiled fine: a caller compiled in this process that links a callee loaded from the
+cache another process has just written raises an untyped ``RuntimeError: no compiled
+object yet`` while it is serialised, and a save can meet a file replaced under it
+(``OSError``). The kernel itself is compiled and registered before numba saves it
+(``Dispatcher.compile`` adds the overload first), so the only thing lost is the cache
+entry: :func:`install` makes such a save a no-op (the next process compiles and saves
+again) and a cache entry that cannot be loaded a miss (the kernel is compiled).
+
+:func:`install` (called by ``import faceretarget``) patches numba when it is imported,
+or at once if it already is; it never imports numba itself. Other errors, and any
+error of a kernel's compilation, are raised as before.
+"""
+from __future__ import annotations
+
+import importlib.abc
+import importlib.util
+import sys
+import threading
+
+__all__ = ["install", "installed"]
+
+_TARGET = "numba.core.caching"
+_MARK = "_faceretarget_guarded"
+_LOCK = threading.Lock()
+
+
+def _is_save_race(exc: BaseException) -> bool:
+    return isinstance(exc, OSError) or (isinstance(exc, RuntimeError) and "no compiled object" in str(exc))
+
+
+def _patch(caching) -> None:
+    cache = getattr(caching, "Cache", None)
+    if cache is None or getattr(cache, _MARK, False):
+        return
+    save, load = cache.save_overload, cache.load_overload
+
+    def save_overload(self, sig, data):
+        try:
+            return save(self, sig, data)
+        except (RuntimeError, OSError) as exc:
+            if not _is_save_race(exc):
+                raise
+            return None  # compiled and in use; only this cache entry is not written
+
+    def load_overload(self, sig, target_context):
+        try:
+            return load(self, sig, target_context)
+        except Exception:  # an entry half-replaced by another process, or unreadable: compile instead
+            return None
+
+    save_overload.__doc__, load_overload.__doc__ = save.__doc__, load.__doc__
+    cache.save_overload, cache.load_overload = save_overload, load_overload
+    setattr(cache, _MARK, True)
+
+
+class _Finder(importlib.abc.MetaPathFinder):
+    """Patches ``numba.core.caching`` right after it is first imported."""
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname != _TARGET:
+            return None
+        for finder in sys.meta_path:
+            if finder is self or not hasattr(finder, "find_spec"):
+                continue
+            spec = finder.find_spec(fullname, path, target)
+            if spec is not None:
+                break
+        else:
+            return None
+        loader = spec.loader
+        if loader is None or not hasattr(loader, "exec_module"):
+            return spec
+        original = loader.exec_module
+
+        class Loader(importlib.abc.Loader):
+            def create_module(self, spec):
+                return loader.create_module(spec)
+
+            def exec_module(self, module):
+                original(module)
+                _patch(module)
+
+        spec.loader = Loader()
+        return spec
+
+
+def installed() -> bool:
+    """Whether numba's cache is guarded in this process (False until numba is imported)."""
+    module = sys.modules.get(_TARGET)
+    return bool(module is not None and getattr(getattr(module, "Cache", None), _MARK, False))
+
+
+def install() -> None:
+    """Guard numba's cache now if numba is imported, else as soon as it is (idempotent)."""
+    with _LOCK:
+        module = sys.modules.get(_TARGET)
+        if module is not None:
+            _patch(module)
+            return
+        if not any(isinstance(f, _Finder) for f in sys.meta_path):
+            sys.meta_path.insert(0, _Finder())
