@@ -42,19 +42,20 @@ class Correspondence:
         ``values`` has the vertex axis second to last, ``(..., V, K)``, or is ``(V,)``;
         the result replaces V by P (e.g. a sequence ``(F, V, 3)`` becomes ``(F, P, 3)``).
         """
-        x = np.asarray(values, dtype=np.float64)
-        if x.ndim == 1:
+        x = np.asarray(values)
+        if x.dtype.kind not in "fiu":
+            x = np.asarray(x, dtype=np.float64)
+        squeeze = x.ndim == 1
+        if squeeze:
             x = x[:, None]
-            squeeze = True
-        else:
-            squeeze = False
         if x.shape[-2] != self.n_vertices:
             raise ShapeError(f"Correspondence.apply: values have {x.shape[-2]} vertices, the mesh has {self.n_vertices}")
-        lead = x.shape[:-2]
-        k = x.shape[-1]
-        flat = np.moveaxis(x.reshape((-1,) + x.shape[-2:]), 0, 1).reshape(self.n_vertices, -1)  # (V, B*K)
-        out = self.matrix @ flat
-        out = np.moveaxis(out.reshape(len(self.triangle_ids), -1, k), 1, 0).reshape(lead + (len(self.triangle_ids), k))
+        corners = self.triangles[self.triangle_ids]  # (P, 3)
+        bary = np.asarray(self.barycentric, dtype=np.float64)
+        # gather the three corners (no transposed copy of the whole sequence, no sparse matrix)
+        out = x[..., corners[:, 0], :] * bary[:, 0, None]
+        out += x[..., corners[:, 1], :] * bary[:, 1, None]
+        out += x[..., corners[:, 2], :] * bary[:, 2, None]
         return out[:, 0] if squeeze else out
 
 

@@ -70,6 +70,7 @@ class System:
     _modal: tuple | None = field(default=None, init=False, repr=False)
     _marker_grams: np.ndarray | None = field(default=None, init=False, repr=False)
     _shifted: dict = field(default_factory=dict, init=False, repr=False)
+    _sobolev: np.ndarray | None = field(default=None, init=False, repr=False)
     l1: float | np.ndarray = field(default=0.0, init=False)  # L1 weight(s) of the bounded solve (normal-equation units)
 
     def __post_init__(self):
@@ -101,11 +102,14 @@ class System:
 
     @property
     def sobolev_matrix(self) -> np.ndarray:
-        """beta B^T P B for the constant per-marker weights (M, M)."""
-        if self.beta == 0.0:
-            return np.zeros_like(self.gram)
-        p = np.repeat(self.marker_weights, 3)
-        return self.beta * (self.basis.T * p) @ self.basis
+        """beta B^T P B for the constant per-marker weights (M, M), computed once."""
+        if self._sobolev is None:
+            if self.beta == 0.0:
+                self._sobolev = np.zeros_like(self.gram)
+            else:
+                p = np.repeat(self.marker_weights, 3)
+                self._sobolev = self.beta * (self.basis.T * p) @ self.basis
+        return self._sobolev
 
     def decay_frames(self) -> dict[str, float]:
         """Decay lengths (frames) of the screened Poisson modes, ``sqrt((1 - lam) / lam)``.
