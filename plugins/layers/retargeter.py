@@ -16,6 +16,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from faceretarget._threads import blas_single_threaded, single_threaded_blas
 from faceretarget._validate import check_bool, check_choice, check_number, check_param, short_repr
 from faceretarget.errors import (CapabilityError, ConfigError, FaceRetargetError, InputError, ShapeError,
                                  TopologyMismatchError)
@@ -387,6 +388,7 @@ class LayersRetargeter(Retargeter):
             return True, float("nan")
         return bool(info.detected), float(info.evidence)
 
+    @blas_single_threaded
     def _retarget(self, source: Source) -> Animation:
         markers, tracks, known, note = self._inputs(source)
         obs, params, residual, _ = self._solve(markers, tracks, known)
@@ -484,16 +486,18 @@ class LayersRetargeter(Retargeter):
                 known = "none"  # the fit source's significance test found none
             else:
                 known = None
-            obs, params, residual, states = self._solve(markers[None], None if tracks is None else tracks[None], known,
-                                                        states, index, settings)
-            beta = compose.region_coefficients(params.weights, params.coefficients, self.actor_.layer_of)
-            motion = self._character_motion(obs.head_motion)
-            if self.projection_ is not None:
-                local = self.rig_.evaluate(compose.project(self.projection_, beta, extra=residual))
-                rot, trans = motion[0, :3, :3], motion[0, :3, 3]
-                yield local[0] @ rot.T + trans
-            else:
-                yield compose.world_vertices(self.character_, beta, motion, extra=residual)[0]
+            with single_threaded_blas():
+                obs, params, residual, states = self._solve(markers[None], None if tracks is None else tracks[None], known,
+                                                            states, index, settings)
+                beta = compose.region_coefficients(params.weights, params.coefficients, self.actor_.layer_of)
+                motion = self._character_motion(obs.head_motion)
+                if self.projection_ is not None:
+                    local = self.rig_.evaluate(compose.project(self.projection_, beta, extra=residual))
+                    rot, trans = motion[0, :3, :3], motion[0, :3, 3]
+                    out = local[0] @ rot.T + trans
+                else:
+                    out = compose.world_vertices(self.character_, beta, motion, extra=residual)[0]
+            yield out
 
     def _parse_frame(self, item, index: int):
         tracks = head = None

@@ -29,6 +29,7 @@ from faceretarget.errors import (
     TopologyMismatchError,
     UnknownNameError,
 )
+from faceretarget._threads import blas_single_threaded
 from faceretarget._validate import as_array, check_bool, check_choice, check_number, check_param, short_repr
 from faceretarget import naming
 from faceretarget.model import Animation, Source, TargetRig
@@ -465,6 +466,7 @@ class SpacetimeRetargeter(Retargeter):
     # ------------------------------------------------------------------------------------
     # retarget
     # ------------------------------------------------------------------------------------
+    @blas_single_threaded
     def _retarget(self, source: Source) -> Animation:
         markers, reference = self._source_markers(source)
         n_frames = markers.shape[0]
@@ -640,6 +642,7 @@ class SpacetimeRetargeter(Retargeter):
     # ------------------------------------------------------------------------------------
     # spacetime editing (sec. 6)
     # ------------------------------------------------------------------------------------
+    @blas_single_threaded
     def edit(self, animation: Animation, *, frame=None, weights=None, window=None) -> Animation:
         """Spacetime edit: new weights at ``frame`` become a boundary condition (sec. 6).
 

@@ -37,6 +37,7 @@ import numpy as np
 import scipy.linalg
 
 from faceretarget import config
+from faceretarget._threads import blas_single_threaded
 from faceretarget.errors import DegenerateGeometryError, NumericalError
 
 #: Iteration cap of the per-frame active-set solver, per frame: ACTIVE_SET_ITER_PER_SHAPE * M + 50.
@@ -188,6 +189,7 @@ def flatten_deltas(deltas: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(d.reshape(d.shape[0], -1))
 
 
+@blas_single_threaded
 def solve_movement(system: System, deltas: np.ndarray, known: np.ndarray, known_weights: np.ndarray, frame_weights: np.ndarray | None = None) -> np.ndarray:
     """Movement matching with the prior and Sobolev terms (Eq. 4 + sec. 7.1).
 
@@ -230,6 +232,7 @@ class BoundedStats:
     dual: float = 0.0
 
 
+@blas_single_threaded
 def solve_movement_bounded(
     system: System,
     deltas: np.ndarray,

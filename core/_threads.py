@@ -1,0 +1,52 @@
+"""Threading policy for BLAS/LAPACK.
+
+Per-frame and iterative paths (a spacetime ADMM iteration, a layers frame) make many small
+dense products, ``(F, M) x (M, M)`` or smaller; OpenBLAS's worker threads cost more than
+they save there and, interleaved with numba kernels, make timings 3-20x slower and noisy
+(``benchmarks/bench_spacetime.py`` prints the bounded solve both ways). Those paths run
+inside :func:`single_threaded_blas`; large factorizations elsewhere keep their threads.
+Results are identical: only the number of BLAS threads changes.
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+import threading
+
+__all__ = ["single_threaded_blas"]
+
+_lock = threading.Lock()
+_controller = None
+
+
+def _get_controller():
+    global _controller
+    with _lock:
+        if _controller is None:
+            try:
+                from threadpoolctl import ThreadpoolController
+            except ImportError:  # pragma: no cover - a declared dependency
+                _controller = False
+            else:
+                _controller = ThreadpoolController()
+    return _controller
+
+
+def single_threaded_blas():
+    """Context manager: every loaded BLAS library runs on one thread inside it (about 10 us
+    to enter). The limit is process-wide (threadpoolctl), restored on exit."""
+    controller = _get_controller()
+    if not controller:
+        return contextlib.nullcontext()
+    return controller.limit(limits=1, user_api="blas")
+
+
+def blas_single_threaded(func):
+    """Decorator form of :func:`single_threaded_blas`."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        with single_threaded_blas():
+            return func(*args, **kwargs)
+
+    return wrapper

@@ -1,0 +1,62 @@
+"""The threading policy: per-frame and iterative paths run BLAS on one thread, the rest keep theirs."""
+import numpy as np
+import pytest
+from threadpoolctl import threadpool_info
+
+import faceretarget as fr
+from faceretarget._threads import single_threaded_blas
+from faceretarget.plugins.spacetime import solver
+
+
+def blas_threads():
+    return {i["filepath"]: i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+
+def test_single_threaded_blas_limits_and_restores():
+    before = blas_threads()
+    with single_threaded_blas():
+        assert set(blas_threads().values()) == {1}
+    assert blas_threads() == before
+
+
+def test_spacetime_admm_and_layers_frames_run_on_one_blas_thread(monkeypatch):
+    seen = []
+    real = solver._admm_structured
+
+    def spy(*args, **kwargs):
+        seen.append(set(blas_threads().values()))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(solver, "_admm_structured", spy)
+    case = fr.cases.cross_rig(n_frames=40, source_kind="markers")
+    fr.get("spacetime").fit(case.source, case.target).retarget(case.source)
+    assert seen and all(s == {1} for s in seen)
+
+    from faceretarget.plugins.layers import compose
+
+    seen.clear()
+    real_coeffs = compose.region_coefficients
+
+    def spy_coeffs(*args, **kwargs):
+        seen.append(set(blas_threads().values()))
+        return real_coeffs(*args, **kwargs)
+
+    monkeypatch.setattr(compose, "region_coefficients", spy_coeffs)
+    synthetic = fr.cases.synthetic(n_frames=6)
+    layers = fr.get("layers").fit(synthetic.source, synthetic.target)
+    seen.clear()
+    layers.retarget(synthetic.source)
+    list(layers.stream(np.asarray(synthetic.source.marker_positions())[:3]))
+    assert len(seen) >= 4 and all(s == {1} for s in seen)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_results_do_not_depend_on_the_blas_threads(threads):
+    from threadpoolctl import threadpool_limits
+
+    case = fr.cases.cross_rig(n_frames=60, source_kind="markers")
+    r = fr.get("spacetime").fit(case.source, case.target)
+    want = r.retarget(case.source).weights
+    with threadpool_limits(threads, user_api="blas"):
+        got = fr.get("spacetime").fit(case.source, case.target).retarget(case.source).weights
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
