@@ -106,7 +106,7 @@ FALLBACKS = ("examples", "nearest")
 BACKENDS = ("auto", "embree", "bvh")
 
 PARAMETER_DOCS = {
-    "levels": "normal-mesh levels above the base mesh (paper: 4-5; each level has 4x the triangles); 'auto' = the finest level's edges as long as the source mesh's",
+    "levels": "normal-mesh levels above the base mesh (paper: 4-5; each level has 4x the triangles); 'auto' = the finest level's edges half the target mesh's, within half to once the source mesh's",
     "detail_levels": "levels whose source normal-offset changes are transferred (Eq. 8); -1 = all, 0 = base motion only",
     "rbf_c": "multiquadric c of Eq. 3, in units of the mean distance between a base point's example displacements",
     "rbf_smoothing": "ridge of the per-point RBF solve, times c (0 = exact interpolation of the examples, Eq. 4)",
@@ -235,14 +235,25 @@ class NormalMeshRetargeter(Retargeter):
         order = [s_names.index(n) for n in t_names]
         return np.asarray(source.examples)[order], np.asarray(target.examples), tuple(t_names)
 
-    def _levels(self, base_tri: np.ndarray, src_pts: np.ndarray, src_v: np.ndarray, src_tri: np.ndarray) -> int:
+    def _levels(self, base_tri: np.ndarray, src_pts: np.ndarray, src_v: np.ndarray, src_tri: np.ndarray,
+                tgt_pts: np.ndarray | None = None, tgt_v: np.ndarray | None = None, tgt_tri: np.ndarray | None = None) -> int:
         """``levels``, or with "auto" the fewest halvings of the base mesh's median edge that
-        reach ``LEVEL_EDGE`` times the source mesh's median edge: the finest level samples the
-        surface (and its wrinkles) as densely as the source does (the paper's 69K-vertex faces
-        over 78 dots: 5 levels)."""
+        reach ``LEVEL_EDGE`` times the *sampling edge* ``h = clip(h_t / 2, h_s / 2, h_s)``
+        (``h_s``, ``h_t`` the source and target meshes' median edges, measured on each side
+        against its own base mesh): at least the source's density (the paper's 69K-vertex faces
+        over 78 dots: 5 levels), and half the target's edge where the source has detail at that
+        scale, so that the target's vertices, interpolated from the finest level, lose nothing
+        to it (the finest level is itself a resampling of the source surface; at the source's
+        own spacing the two resamplings took 30-40% of the depth of wrinkles 4-5 edges long).
+        A target at least twice as coarse as the source: ``h = h_s``."""
         if self.levels != "auto":
             return int(self.levels)
-        ratio = bm.median_edge(src_pts, base_tri) / max(bm.median_edge(src_v, src_tri), np.finfo(float).tiny)
+        tiny = np.finfo(float).tiny
+        ratio = bm.median_edge(src_pts, base_tri) / max(bm.median_edge(src_v, src_tri), tiny)
+        if tgt_v is not None:
+            # the target's edge in the source's scale (the two base meshes are the same connectivity)
+            h_t = bm.median_edge(tgt_v, tgt_tri) / max(bm.median_edge(tgt_pts, base_tri), tiny)
+            ratio = max(ratio, 1.0 / max(np.clip(h_t / 2.0, 0.5 / ratio, 1.0 / ratio), tiny))
         return int(np.clip(np.ceil(np.log2(max(ratio / LEVEL_EDGE, 1.0))), 1, MAX_LEVELS))
 
     def _normal_meshes(self, base_tri, levels, src, tgt, src_examples):
@@ -334,7 +345,7 @@ class NormalMeshRetargeter(Retargeter):
             base_tri = bm.as_base_triangles(as_array(self.base_triangles, "normalmesh.base_triangles"), len(src_lm))
         bm.check_base_triangles(base_tri, src_pts, src["normals"], "source", src_lm.names)
         bm.check_base_triangles(base_tri, tgt_pts, tgt["normals"], "target", tgt_lm.names)
-        levels = self._levels(base_tri, src_pts, src_v, src["triangles"])
+        levels = self._levels(base_tri, src_pts, src_v, src["triangles"], tgt_pts, tgt_v, tgt["triangles"])
         hierarchy, src_nm, tgt_nm, base_tri, removed = self._normal_meshes(base_tri, levels, src, tgt, src_ex)
         removed_share = _area(tgt_pts, removed) / max(_area(tgt_pts, removed) + _area(tgt_pts, base_tri), np.finfo(float).tiny)
         if removed_share > REMOVED_WARNING:
