@@ -258,6 +258,13 @@ class Registry:
                 self.pm.unregister(module)
                 self._fail(info, str(exc), fatal, exc)
                 return
+            except (KeyboardInterrupt, DeadlineExpired):
+                raise
+            except BaseException as exc:  # a result whose iteration or repr raises
+                self.pm.unregister(module)
+                error = PluginLoadError(f"plugin {info.name!r} ({info.origin}), hook {hook}: its result cannot be read: {type(exc).__name__}: {exc}")
+                self._fail(info, str(error), fatal, error)
+                return
         try:
             entries = [self._validate_retargeter(cls, info) for cls in staged["faceretarget_retargeters"]]
             readers = [self._validate_record(r, Reader, "faceretarget_readers", info) for r in staged["faceretarget_readers"]]

@@ -190,11 +190,13 @@ def _locked(path: Path) -> bool:
 def _pid_alive(pid: int) -> bool:
     if pid == os.getpid():
         return True
+    if not 0 < pid < 2**31:  # no process has it (os.kill(0) would probe our own group)
+        return False
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except (PermissionError, OSError):
+    except (PermissionError, OSError, OverflowError):
         return True
     return True
 

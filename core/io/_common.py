@@ -38,13 +38,30 @@ __all__ = [
 
 _SIZE_UNITS = ("B", "KiB", "MiB", "GiB", "TiB")
 
-#: text formats read whole (JSON, small sidecars): bytes of memory one byte of text may cost
+#: text formats read whole (small sidecars whose parse is not measured): bytes of memory
+#: one byte of text may cost
 TEXT_MEMORY_FACTOR = 4
-#: text formats split into Python lines and tokens (OFF, ASCII PLY/STL, TRC, landmark
-#: lists): measured peak per byte of the smallest lines ("0 0 0"), tests/io/test_text_memory.py
-TEXT_TOKEN_FACTOR = 64
-#: bytes held per chunk by the streaming text readers (OBJ, CSV)
+#: small text files parsed whole into Python objects (landmark lists and feature lines,
+#: JSON or TXT; the sidecar of a mesh folder): peak per byte of the file, measured by
+#: tests/io/test_text_memory.py on the smallest entries (21x for ids of 4 digits; the
+#: test fails above this factor). Large text formats (OBJ, OFF, ASCII PLY/STL, TRC, CSV)
+#: are streamed instead: their peak is their result plus one chunk's work (CHUNK_FACTOR).
+TEXT_TOKEN_FACTOR = 32
+#: bytes held per chunk by the streaming text readers (OBJ, OFF, ASCII PLY/STL, TRC, CSV)
 CHUNK_BYTES = 1 << 18
+#: the streaming readers' working memory for one chunk (its lines, their tokens, the
+#: parsed block) per byte of two chunks: what they hold beyond their result, measured on
+#: the smallest lines by tests/io/test_text_memory.py (at most 8.3 MiB, 16.6x, for the
+#: weights CSV; the test fails above this factor)
+CHUNK_FACTOR = 24
+
+
+def chunk_work(fh) -> float:
+    """Working memory of a streaming text reader on open file ``fh``, beyond its result
+    (checked against the budget with the result's size): one chunk's work, or less for a
+    file smaller than a chunk (a chunk may carry a partial line: up to two chunks' text)."""
+    size = os.fstat(fh.fileno()).st_size
+    return float(CHUNK_FACTOR * min(size, 2 * CHUNK_BYTES))
 
 
 def bad(path, what: str) -> FileFormatError:
@@ -215,6 +232,10 @@ def iter_chunks(fh, size: int = 1 << 20):
     """Binary chunks of an open file, each ending at a line end (the last one at the end
     of the file): text readers parse a file chunk by chunk, holding one chunk at a time."""
     rest = b""
+    try:  # a small file is read in one block of its own size (not a whole chunk's buffer)
+        size = max(1, min(size, os.fstat(fh.fileno()).st_size + 1))
+    except (OSError, AttributeError, ValueError):
+        pass
     while True:
         block = fh.read(size)
         if not block:
@@ -230,6 +251,75 @@ def iter_chunks(fh, size: int = 1 << 20):
             continue
         rest = block[cut + 1 :]
         yield block[: cut + 1]
+
+
+class TextRows:
+    """The non-blank lines of an open text file, one chunk at a time (bytes, stripped or
+    with ``strip=False`` only the line end removed, ``comment`` and what follows it cut), for readers that stream a file: the rows of one
+    chunk are held at a time. ``lineno`` counts the rows handed out so far."""
+
+    def __init__(self, path, fh, *, comment: bytes | None = None, strip: bool = True):
+        self.path, self.comment, self.strip = path, comment, strip
+        self._chunks = iter_chunks(fh, CHUNK_BYTES)
+        self.work = chunk_work(fh)  #: working memory beyond the result (for the budget)
+        self._rows: list[bytes] = []
+        self._pos = 0
+        self.lineno = 0
+
+    def _fill(self) -> bool:
+        while self._pos >= len(self._rows):
+            chunk = next(self._chunks, None)
+            if chunk is None:
+                self._rows, self._pos = [], 0
+                return False
+            if b"\x00" in chunk:
+                raise bad(self.path, "holds binary data (NUL bytes), not text")
+            lines = chunk.split(b"\n")
+            del chunk
+            if self.comment is not None:
+                lines = [ln.split(self.comment, 1)[0] if self.comment in ln else ln for ln in lines]
+            if self.strip:
+                self._rows = [r for r in (ln.strip() for ln in lines) if r]
+            else:  # only the line end goes (leading empty cells of a tab-separated row stay)
+                self._rows = [ln.rstrip(b"\r") for ln in lines if ln.strip()]
+            self._pos = 0
+        return True
+
+    def take(self, n: int) -> list[bytes]:
+        """Up to ``n`` rows, all from the current chunk (an empty list at the end of the file)."""
+        if n <= 0 or not self._fill():
+            return []
+        out = self._rows[self._pos : self._pos + n]
+        self._pos += len(out)
+        self.lineno += len(out)
+        return out
+
+    def next(self) -> bytes | None:
+        """The next row, or None at the end of the file."""
+        got = self.take(1)
+        return got[0] if got else None
+
+    def rest(self):
+        """The remaining rows, chunk by chunk (lists of rows)."""
+        while True:
+            rows = self.take(1 << 30)
+            if not rows:
+                return
+            yield rows
+
+
+def number_block(rows: list[bytes], columns: int, dtype=np.float64, *, delimiter=None) -> np.ndarray | None:
+    """The first ``columns`` values of each row as a ``(len(rows), columns)`` array, parsed
+    in C (numpy); None when a row has fewer values or one is not a number (the caller's
+    row-by-row parser then says which)."""
+    if not rows:
+        return np.zeros((0, columns), dtype=dtype)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return np.loadtxt(rows, dtype=dtype, usecols=range(columns), ndmin=2, comments=None, delimiter=delimiter)
+    except (ValueError, TypeError, OverflowError, IndexError):
+        return None
 
 
 _NAT = re.compile(r"(\d+)")

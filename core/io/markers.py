@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import InputError
 from ..model import MarkerSequence
 from ._atomic import atomic_file, write_bytes
-from ._common import CHUNK_BYTES, TEXT_TOKEN_FACTOR, bad, check_budget, fmt_float, fps_from_times, guarded_reader, iter_chunks, open_regular, parse_float, read_text, to_float32
+from ._common import CHUNK_BYTES, chunk_work, TEXT_TOKEN_FACTOR, TextRows, bad, check_budget, fmt_float, fps_from_times, guarded_reader, iter_chunks, open_regular, parse_float, read_text, to_float32
 
 __all__ = ["read_c3d", "read_trc", "read_marker_csv", "write_c3d", "write_trc", "write_marker_csv", "csv_rows", "is_marker_header", "META_COLUMNS"]
 
@@ -100,7 +100,8 @@ def csv_header(path: Path) -> list[str]:
 def csv_rows(path: Path) -> tuple[list[str], list[list[str]]]:
     """Header and data rows of a (small) CSV file as text (comma, semicolon or tab separated).
 
-    The readers stream large files with :func:`csv_table` instead."""
+    Not used by the readers (they stream with :func:`csv_table`); its memory is not
+    measured (Python cells cost more than TEXT_TOKEN_FACTOR per byte of tiny cells)."""
     text = read_text(path, factor=TEXT_TOKEN_FACTOR)
     delimiter = _delimiter(text[:4096].split("\n", 1)[0])
     rows = [r for r in csv.reader(io.StringIO(text), delimiter=delimiter) if any(c.strip() for c in r)]
@@ -183,7 +184,7 @@ def csv_table(path: Path, pick, *, text_cols=lambda header: ()):
                 raise bad(path, "holds binary data (NUL bytes), not text")
             n_rows += len(_data_lines(chunk, dsep))
         width = len(header)
-        check_budget(path, n_rows * (len(wanted) * 8.0 + len(texts_wanted) * 64.0) + CHUNK_BYTES * TEXT_TOKEN_FACTOR,
+        check_budget(path, n_rows * (len(wanted) * 8.0 + len(texts_wanted) * 64.0) + chunk_work(fh),
                      f"{n_rows} rows of {len(wanted)} numbers")
         numeric = np.empty((n_rows, len(wanted)))
         texts = {c: [] for c in texts_wanted}
@@ -301,41 +302,67 @@ def write_marker_csv(markers: MarkerSequence, path, *, force: bool = False, inpu
 @guarded_reader
 def read_trc(path: Path, *, fps=None, reference=None, **options) -> MarkerSequence:
     """Markers from a TRC file (``DataRate`` gives the fps; empty cells are missing samples)."""
-    lines = read_text(path, factor=TEXT_TOKEN_FACTOR).splitlines()
-    if not lines or not lines[0].startswith("PathFileType"):
-        raise bad(path, "missing the 'PathFileType' first line; not a TRC file")
-    if len(lines) < 5:
-        raise bad(path, "truncated: a TRC file needs 5 header lines")
-    keys = lines[1].split("\t")
-    values = lines[2].split("\t")
-    if len(keys) != len(values):
-        raise bad(path, "header lines 2 and 3 have different numbers of fields")
-    info = {k.strip(): v.strip() for k, v in zip(keys, values)}
-    for key in ("DataRate", "NumFrames", "NumMarkers"):
-        if key not in info:
-            raise bad(path, f"the header lacks {key}")
-    rate = parse_float(info["DataRate"], path, "DataRate")
-    try:
-        n_frames, n_markers = int(info["NumFrames"]), int(info["NumMarkers"])
-    except ValueError:
-        raise bad(path, "NumFrames and NumMarkers must be whole numbers") from None
-    if n_frames <= 0 or n_markers <= 0:
-        raise bad(path, f"declares {n_frames} frames and {n_markers} markers; both must be positive")
-    check_budget(path, n_frames * n_markers * 3 * 8.0, f"{n_frames} frames of {n_markers} markers")
-    names = [t.strip() for t in lines[3].split("\t")[2:] if t.strip()]
-    if len(names) != n_markers:
-        raise bad(path, f"NumMarkers is {n_markers} but the names line lists {len(names)} markers")
-    data = [ln for ln in lines[5:] if ln.strip()]
-    if len(data) != n_frames:
-        raise bad(path, f"NumFrames is {n_frames} but the file has {len(data)} data rows (truncated or wrong count)")
-    positions = np.full((n_frames, n_markers, 3), np.nan)
-    width = 2 + 3 * n_markers
-    for r, line in enumerate(data):
-        cells = line.split("\t")
-        if len(cells) > width and any(c.strip() for c in cells[width:]):
-            raise bad(path, f"data row {r + 1} has {len(cells)} fields; {width} expected")
-        vals = [_cell(c, path, r + 6, "marker data") for c in cells[2:width]]
-        positions[r] = np.asarray(vals + [np.nan] * (3 * n_markers - len(vals))).reshape(n_markers, 3)
+    with open_regular(path) as fh:
+        header: list[str] = []
+        data_start = 0
+        for chunk in iter_chunks(fh, CHUNK_BYTES):
+            if b"\x00" in chunk:
+                raise bad(path, "holds binary data (NUL bytes), not text")
+            for line in chunk.splitlines(keepends=True):
+                data_start += len(line)
+                header.append(_decode_line(line, not header).rstrip("\r\n"))
+                if len(header) == 5:
+                    break
+            if len(header) == 5:
+                break
+        if not header or not header[0].startswith("PathFileType"):
+            raise bad(path, "missing the 'PathFileType' first line; not a TRC file")
+        if len(header) < 5:
+            raise bad(path, "truncated: a TRC file needs 5 header lines")
+        keys = header[1].split("\t")
+        values = header[2].split("\t")
+        if len(keys) != len(values):
+            raise bad(path, "header lines 2 and 3 have different numbers of fields")
+        info = {k.strip(): v.strip() for k, v in zip(keys, values)}
+        for key in ("DataRate", "NumFrames", "NumMarkers"):
+            if key not in info:
+                raise bad(path, f"the header lacks {key}")
+        rate = parse_float(info["DataRate"], path, "DataRate")
+        try:
+            n_frames, n_markers = int(info["NumFrames"]), int(info["NumMarkers"])
+        except ValueError:
+            raise bad(path, "NumFrames and NumMarkers must be whole numbers") from None
+        if n_frames <= 0 or n_markers <= 0:
+            raise bad(path, f"declares {n_frames} frames and {n_markers} markers; both must be positive")
+        check_budget(path, n_frames * n_markers * 3 * 8.0 + chunk_work(fh), f"{n_frames} frames of {n_markers} markers")
+        names = [t.strip() for t in header[3].split("\t")[2:] if t.strip()]
+        if len(names) != n_markers:
+            raise bad(path, f"NumMarkers is {n_markers} but the names line lists {len(names)} markers")
+        positions = np.full((n_frames, n_markers, 3), np.nan)
+        width = 2 + 3 * n_markers
+        fh.seek(data_start)
+        rows = TextRows(path, fh, strip=False)
+        r = 0
+        while True:
+            block = rows.take(n_frames + 1 - r)
+            if not block:
+                break
+            if r + len(block) > n_frames:
+                raise bad(path, f"NumFrames is {n_frames} but the file has more data rows (wrong count)")
+            fast = _fast_block(block, b"\t", width)
+            if fast is not None:
+                positions[r : r + len(block)] = fast[:, 2:].reshape(-1, n_markers, 3)
+            else:
+                for k, line in enumerate(block):
+                    cells = _decode_line(line, False).split("\t")
+                    if len(cells) > width and any(c.strip() for c in cells[width:]):
+                        raise bad(path, f"data row {r + k + 1} has {len(cells)} fields; {width} expected")
+                    vals = [_cell(c, path, r + k + 6, "marker data") for c in cells[2:width]]
+                    positions[r + k] = np.asarray(vals + [np.nan] * (3 * n_markers - len(vals))).reshape(n_markers, 3)
+            r += len(block)
+            del block, fast
+        if r != n_frames:
+            raise bad(path, f"NumFrames is {n_frames} but the file has {r} data rows (truncated or wrong count)")
     return _markers(path, positions, names, fps if fps is not None else rate, reference)
 
 

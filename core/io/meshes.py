@@ -21,7 +21,7 @@ import numpy as np
 
 from ..model import Mesh
 from ._atomic import write_bytes
-from ._common import CHUNK_BYTES, TEXT_TOKEN_FACTOR, bad, check_budget, fmt_float, guarded_reader, iter_chunks, open_regular, parse_int, read_bytes, read_text, to_float32
+from ._common import CHUNK_BYTES, chunk_work, TextRows, bad, check_budget, fmt_float, guarded_reader, iter_chunks, number_block, open_regular, parse_int, read_bytes, to_float32
 
 __all__ = [
     "mesh_arrays",
@@ -66,6 +66,37 @@ def _clean_polygon(poly: list[int]) -> list[int]:
     return out
 
 
+
+
+#: below this many vertices a sorted triangle packs into one int64 key (V**3 < 2**63)
+_KEY_LIMIT = 1 << 21
+
+
+def _mesh(path, vertices: np.ndarray, triangles: np.ndarray) -> Mesh:
+    """The :class:`Mesh` of arrays a reader has checked (ids in range, no corner repeated
+    within a triangle). The model's duplicate-triangle check sorts a copy of every id
+    (about 6x the triangles at its peak); here each sorted triangle is packed into one
+    int64 key, so reading stays within a small multiple of the result."""
+    n = int(vertices.shape[0])
+    if n < 3:
+        raise bad(path, f"a mesh needs at least 3 vertices, the file has {n}")
+    if triangles.shape[0] == 0:
+        raise bad(path, "holds no faces (a point cloud is not a mesh)")
+    if n >= _KEY_LIMIT:
+        return Mesh(vertices, triangles, name=path.stem)  # the model checks it
+    keys = np.empty(triangles.shape[0], dtype=np.int64)
+    step = 1 << 16
+    for s in range(0, triangles.shape[0], step):
+        b = np.sort(triangles[s : s + step], axis=1)
+        keys[s : s + step] = (b[:, 0] * n + b[:, 1]) * n + b[:, 2]
+    keys.sort()
+    same = keys[1:] == keys[:-1]
+    if same.any():
+        k = int(keys[1:][same][0])
+        dup = [k // (n * n), (k // n) % n, k % n]
+        raise bad(path, f"{int(np.count_nonzero(same))} triangle(s) appear more than once (e.g. vertices {dup}); remove duplicate triangles")
+    del keys, same
+    return Mesh(vertices, triangles, name=path.stem, _trusted=True)
 
 
 # ---------------------------------------------------------------------------------------
@@ -300,7 +331,7 @@ def _obj_file_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
             n_f += _count_lines(chunk, b"f", _F_LINE)
         if blank:
             raise bad(path, "the file is empty")
-        check_budget(path, (n_v + n_f) * 24.0 + CHUNK_BYTES * TEXT_TOKEN_FACTOR, f"{n_v} vertices and {n_f} faces")
+        check_budget(path, (n_v + n_f) * 24.0 + chunk_work(fh), f"{n_v} vertices and {n_f} faces")
         vertices = np.empty((n_v, 3))
         triangles = np.empty((n_f, 3), dtype=np.int64)
         iv = it = n_faces = line0 = 0
@@ -333,7 +364,7 @@ def _obj_checked(path, vertices: np.ndarray, triangles: np.ndarray, n_faces: int
 @guarded_reader
 def read_obj(path: Path, **options) -> Mesh:
     """Read a Wavefront OBJ as a :class:`Mesh` (file vertex order, n-gons fan-triangulated)."""
-    return Mesh(*_obj_file_arrays(path), name=path.stem)
+    return _mesh(path, *_obj_file_arrays(path))
 
 
 def obj_text(vertices: np.ndarray, triangles: np.ndarray, header: str = "") -> str:
@@ -366,47 +397,115 @@ def write_obj(mesh: Mesh, path, *, force: bool = False, inputs=(), **options) ->
 @guarded_reader
 def read_off(path: Path, **options) -> Mesh:
     """Read an OFF file (also COFF/NOFF variants: extra per-vertex values are ignored)."""
-    return Mesh(*_off_arrays(path), name=path.stem)
+    return _mesh(path, *_off_arrays(path))
 
 
 def _off_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    text = read_text(path, factor=TEXT_TOKEN_FACTOR)
-    lines = [ln.split("#", 1)[0].split() for ln in text.splitlines()]
-    lines = [ln for ln in lines if ln]
-    if not lines or not re.fullmatch(r"(ST)?C?N?OFF", lines[0][0]):
-        raise bad(path, "missing the OFF header line (the file must start with 'OFF')")
-    head = lines[0][1:]
-    body = lines[1:]
-    if len(head) < 2:
-        if not body:
-            raise bad(path, "missing the vertex/face counts line")
-        head = body[0]
-        body = body[1:]
-    if len(head) < 2:
-        raise bad(path, "the counts line needs 'n_vertices n_faces [n_edges]'")
-    n_vertices = parse_int(head[0], path, "vertex count")
-    n_faces = parse_int(head[1], path, "face count")
-    check_budget(path, (n_vertices * 3 + n_faces * 4) * 8.0, f"{n_vertices} vertices and {n_faces} faces")
-    if len(body) < n_vertices + n_faces:
-        raise bad(path, f"truncated: declares {n_vertices} vertices and {n_faces} faces but has {len(body)} data lines")
-    rows = body[:n_vertices]
-    if any(len(r) < 3 for r in rows):
-        i = next(i for i, r in enumerate(rows) if len(r) < 3)
-        raise bad(path, f"vertex {i}: needs 3 coordinates")
-    try:
-        vertices = np.array([r[:3] for r in rows], dtype=np.float64).reshape(-1, 3)
-    except ValueError:
-        raise bad(path, "a vertex coordinate is not a number") from None
-    polygons = []
-    for i, row in enumerate(body[n_vertices : n_vertices + n_faces]):
-        k = parse_int(row[0], path, f"face {i}: vertex count")
-        if k < 3 or len(row) < k + 1:
-            raise bad(path, f"face {i}: needs at least 3 vertex ids and as many as it declares ({k})")
-        poly = _clean_polygon([parse_int(x, path, f"face {i}") for x in row[1 : k + 1]])
-        if len(poly) < 3 or len(set(poly)) != len(poly):
-            raise bad(path, f"face {i}: degenerate (a vertex repeats)")
-        polygons.append(poly)
-    return _checked_arrays(path, vertices, fan_triangulate(polygons), len(polygons))
+    """Vertices and triangles of an OFF file, streamed: the counts line is checked against
+    the budget, then the rows are parsed chunk by chunk into arrays of that size."""
+    with open_regular(path) as fh:
+        rows = TextRows(path, fh, comment=b"#")
+        first = rows.next()
+        if first is None:
+            raise bad(path, "the file is empty")
+        parts = first.split()
+        if not re.fullmatch(rb"(ST)?C?N?OFF", parts[0]):
+            raise bad(path, "missing the OFF header line (the file must start with 'OFF')")
+        head = parts[1:]
+        if len(head) < 2:
+            counts = rows.next()
+            if counts is None:
+                raise bad(path, "missing the vertex/face counts line")
+            head = counts.split()
+        if len(head) < 2:
+            raise bad(path, "the counts line needs 'n_vertices n_faces [n_edges]'")
+        n_vertices = parse_int(_text(head[0]), path, "vertex count")
+        n_faces = parse_int(_text(head[1]), path, "face count")
+        check_budget(path, (n_vertices * 3 + n_faces * 3) * 8.0 + chunk_work(fh), f"{n_vertices} vertices and {n_faces} faces")
+        vertices = np.empty((n_vertices, 3))
+        done = 0
+        while done < n_vertices:
+            block = rows.take(n_vertices - done)
+            if not block:
+                break
+            values = number_block(block, 3)
+            if values is None:
+                values = _rows_slow(path, block, done, 3, "vertex", "coordinates")
+            vertices[done : done + len(block)] = values
+            done += len(block)
+            del block, values
+        triangles, polygons = _face_rows(path, rows, n_faces, lambda i, row: _off_face(path, i, row))
+    if done < n_vertices or polygons < n_faces:
+        raise bad(path, f"truncated: declares {n_vertices} vertices and {n_faces} faces but has {done + polygons} data lines")
+    return _checked_arrays(path, vertices, triangles, n_faces)
+
+
+def _text(token: bytes) -> str:
+    return token.decode("latin-1")
+
+
+def _rows_slow(path, rows: list[bytes], row0: int, width: int, what: str, values: str) -> np.ndarray:
+    """``rows`` parsed one by one (the fast path refused them): errors name the row."""
+    out = np.empty((len(rows), width))
+    for k, row in enumerate(rows):
+        tokens = row.split()
+        if len(tokens) < width:
+            raise bad(path, f"{what} {row0 + k}: needs {width} {values}")
+        try:
+            out[k] = [float(t) for t in tokens[:width]]
+        except ValueError:
+            raise bad(path, f"{what} {row0 + k}: a coordinate is not a number") from None
+    return out
+
+
+def _off_face(path, i: int, row: bytes) -> list[int]:
+    tokens = row.split()
+    k = parse_int(_text(tokens[0]), path, f"face {i}: vertex count")
+    if k < 3 or len(tokens) < k + 1:
+        raise bad(path, f"face {i}: needs at least 3 vertex ids and as many as it declares ({k})")
+    poly = _clean_polygon([parse_int(_text(x), path, f"face {i}") for x in tokens[1 : k + 1]])
+    if len(poly) < 3 or len(set(poly)) != len(poly):
+        raise bad(path, f"face {i}: degenerate (a vertex repeats)")
+    return poly
+
+
+def _face_rows(path, rows: TextRows, n_faces: int, slow, fast: bool = True) -> tuple[np.ndarray, int]:
+    """Triangles of ``n_faces`` face rows, streamed: rows ``3 i0 i1 i2`` are parsed in C
+    into the result (when ``fast``), others by ``slow(face id, row)`` (which returns the
+    cleaned polygon) and fan-triangulated. Returns (triangles, faces read)."""
+    triangles = np.empty((n_faces, 3), dtype=np.int64)
+    it = done = 0
+    while done < n_faces:
+        block = rows.take(n_faces - done)
+        if not block:
+            break
+        ids = number_block(block, 4, np.int64) if fast else None
+        if ids is not None and np.all(ids[:, 0] == 3):
+            tris = ids[:, 1:]
+            repeated = (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])
+            if repeated.any():
+                raise bad(path, f"face {done + int(np.flatnonzero(repeated)[0])}: degenerate (a vertex repeats)")
+            if tris.size and tris.min() < 0:
+                i = int(np.flatnonzero((tris < 0).any(axis=1))[0])
+                raise bad(path, f"face {done + i}: negative vertex index {int(tris[i].min())}")
+        else:
+            polygons = []
+            for k, row in enumerate(block):
+                poly = slow(done + k, row)
+                if min(poly) < 0:
+                    raise bad(path, f"face {done + k}: negative vertex index {min(poly)}")
+                polygons.append(poly)
+            tris = fan_triangulate(polygons)
+            del polygons
+        if it + len(tris) > len(triangles):  # polygons with more than 3 corners
+            check_budget(path, (it + len(tris)) * 24.0 * 2 + rows.work, f"{it + len(tris)} triangles")
+            triangles = np.concatenate([triangles[:it], tris])
+        else:
+            triangles[it : it + len(tris)] = tris
+        it += len(tris)
+        done += len(block)
+        del block, ids, tris
+    return triangles[:it], done
 
 
 def write_off(mesh: Mesh, path, *, force: bool = False, inputs=(), **options) -> None:
@@ -528,46 +627,129 @@ def _ply_binary(data: bytes, pos: int, elements: list[dict], order: str, path) -
     return out
 
 
-def _ply_ascii(text: str, elements: list[dict], path) -> dict[str, dict]:
-    lines = iter(text.splitlines())
-    out: dict[str, dict] = {}
-    for el in elements:
-        values: dict[str, list] = {p[0]: [] for p in el["props"]}
-        for row in range(el["count"]):
-            try:
-                tokens = next(lines).split()
-                while not tokens:
-                    tokens = next(lines).split()
-            except StopIteration:
-                raise bad(path, f"truncated: element {el['name']!r} declares {el['count']} rows, found {row}") from None
-            pos = 0
-            for name, ctype, itype in el["props"]:
-                if pos >= len(tokens):
-                    raise bad(path, f"element {el['name']!r} row {row}: too few values")
-                if ctype is None:
-                    values[name].append(tokens[pos])
-                    pos += 1
-                else:
-                    k = parse_int(tokens[pos], path, f"element {el['name']!r} row {row}: list length")
-                    if pos + 1 + k > len(tokens):
-                        raise bad(path, f"element {el['name']!r} row {row}: list declares {k} values, has {len(tokens) - pos - 1}")
-                    values[name].append(tokens[pos + 1 : pos + 1 + k])
-                    pos += 1 + k
-        out[el["name"]] = values
+def _ply_row(path, el: dict, row_id: int, row: bytes) -> dict:
+    """One ASCII PLY row of element ``el``: property name -> token (or list of tokens)."""
+    tokens = row.split()
+    pos = 0
+    out = {}
+    for name, ctype, itype in el["props"]:
+        if pos >= len(tokens):
+            raise bad(path, f"element {el['name']!r} row {row_id}: too few values")
+        if ctype is None:
+            out[name] = tokens[pos]
+            pos += 1
+        else:
+            k = parse_int(_text(tokens[pos]), path, f"element {el['name']!r} row {row_id}: list length")
+            if pos + 1 + k > len(tokens):
+                raise bad(path, f"element {el['name']!r} row {row_id}: list declares {k} values, has {len(tokens) - pos - 1}")
+            out[name] = tokens[pos + 1 : pos + 1 + k]
+            pos += 1 + k
     return out
+
+
+def _ply_ascii(path, rows: TextRows, elements: list[dict], el_v: dict, el_f: dict, fprop: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """(vertices, triangles, faces) of an ASCII PLY body, streamed chunk by chunk."""
+    vertices = triangles = None
+    n_faces = 0
+    for el in elements:
+        count = el["count"]
+        if el is el_f:
+            def face(i, row):
+                values = _ply_row(path, el, i, row)[fprop]
+                try:
+                    poly = [int(t) for t in values]
+                except (TypeError, ValueError):
+                    raise bad(path, "a face vertex index is not a whole number") from None
+                if len(poly) < 3:
+                    raise bad(path, f"face {i}: needs at least 3 vertices, has {len(poly)}")
+                poly = _clean_polygon(poly)
+                if len(poly) < 3 or len(set(poly)) != len(poly):
+                    raise bad(path, f"face {i}: degenerate (a vertex repeats)")
+                return poly
+
+            triangles, n_faces = _face_rows(path, rows, count, face, fast=len(el["props"]) == 1)
+            if n_faces < count:
+                raise bad(path, f"truncated: element {el['name']!r} declares {count} rows, found {n_faces}")
+            continue
+        names = [p[0] for p in el["props"]]
+        simple = all(p[1] is None for p in el["props"])
+        if el is el_v:
+            vertices = np.empty((count, 3))
+            cols = [names.index(c) for c in "xyz"]
+        done = 0
+        while done < count:
+            block = rows.take(count - done)
+            if not block:
+                break
+            if el is el_v:
+                values = number_block(block, len(names)) if simple else None
+                if values is None:
+                    values = np.empty((len(block), 3))
+                    for k, row in enumerate(block):
+                        found = _ply_row(path, el, done + k, row)
+                        try:
+                            values[k] = [float(found[c]) for c in "xyz"]
+                        except (TypeError, ValueError):
+                            raise bad(path, "a vertex coordinate is not a number") from None
+                    vertices[done : done + len(block)] = values
+                else:
+                    vertices[done : done + len(block)] = values[:, cols]
+                del values
+            else:
+                for k, row in enumerate(block):  # other elements: checked, not kept
+                    _ply_row(path, el, done + k, row)
+            done += len(block)
+            del block
+        if done < count:
+            raise bad(path, f"truncated: element {el['name']!r} declares {count} rows, found {done}")
+    return vertices, triangles, n_faces
+
+
+def _ply_head(path, fh) -> bytes:
+    """The bytes of a PLY file up to and including the line ending its header."""
+    head = b""
+    while True:
+        block = fh.read(1 << 16)
+        head += block
+        end = head.find(b"end_header")
+        if end >= 0 and (head.find(b"\n", end) >= 0 or not block):
+            return head
+        if not block or len(head) > 1 << 24:
+            return head  # _ply_header says what is missing
 
 
 @guarded_reader
 def read_ply(path: Path, **options) -> Mesh:
     """Read a PLY file (ASCII or binary, any endianness) as a :class:`Mesh`."""
-    return Mesh(*_ply_arrays(path), name=path.stem)
+    return _mesh(path, *_ply_arrays(path))
 
 
 def _ply_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    with open_regular(path) as fh:
+        head = _ply_head(path, fh)
+        if not head:
+            raise bad(path, "the file is empty")
+        fmt, elements, body = _ply_header(head, path)
+        el_v, el_f, fprop = _ply_layout(path, elements)
+        if fmt == "ascii":  # streamed: the text is never held whole
+            del head
+            check_budget(path, (el_v["count"] * 3 + el_f["count"] * 3) * 8.0 + chunk_work(fh), f"{el_v['count']} vertices and {el_f['count']} faces")
+            fh.seek(body)
+            vertices, tris, n_faces = _ply_ascii(path, TextRows(path, fh), elements, el_v, el_f, fprop)
+            return _checked_arrays(path, vertices, tris, n_faces)
     data = read_bytes(path)
-    if not data:
-        raise bad(path, "the file is empty")
     fmt, elements, body = _ply_header(data, path)
+    el_v, el_f, fprop = _ply_layout(path, elements)
+    order = "<" if fmt == "binary_little_endian" else ">"
+    parsed = _ply_binary(data, body, elements, order, path)
+    try:
+        vertices = np.stack([np.asarray(parsed["vertex"][c], dtype=np.float64) for c in "xyz"], axis=1)
+    except ValueError:
+        raise bad(path, "a vertex coordinate is not a number") from None
+    return _ply_faces(path, vertices, parsed["face"][fprop])
+
+
+def _ply_layout(path, elements: list[dict]) -> tuple[dict, dict, str]:
     names = [e["name"] for e in elements]
     if "vertex" not in names or "face" not in names:
         raise bad(path, f"needs 'vertex' and 'face' elements, has {names}")
@@ -580,18 +762,10 @@ def _ply_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
     fprop = next((p[0] for p in el_f["props"] if p[0] in ("vertex_indices", "vertex_index") and p[1] is not None), None)
     if fprop is None:
         raise bad(path, "face element needs a 'vertex_indices' list property")
-    if fmt == "ascii":
-        if el_v["count"] + el_f["count"] > 0:
-            check_budget(path, len(data) * TEXT_TOKEN_FACTOR, "parsing this text file")
-        parsed = _ply_ascii(data[body:].decode("latin-1"), elements, path)
-    else:
-        order = "<" if fmt == "binary_little_endian" else ">"
-        parsed = _ply_binary(data, body, elements, order, path)
-    try:
-        vertices = np.stack([np.asarray(parsed["vertex"][c], dtype=np.float64) for c in "xyz"], axis=1)
-    except ValueError:
-        raise bad(path, "a vertex coordinate is not a number") from None
-    faces = parsed["face"][fprop]
+    return el_v, el_f, fprop
+
+
+def _ply_faces(path, vertices: np.ndarray, faces) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(faces, np.ndarray) and faces.ndim == 2 and faces.shape[1] == 3:
         tris = faces.astype(np.int64)  # triangles: checked as arrays, never as Python lists
         repeated = (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])
@@ -665,7 +839,7 @@ def _weld(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 @guarded_reader
 def read_stl(path: Path, **options) -> Mesh:
     """Read a binary or ASCII STL as a :class:`Mesh` (identical corners joined, first-use order)."""
-    return Mesh(*_stl_arrays(path), name=path.stem)
+    return _mesh(path, *_stl_arrays(path))
 
 
 def _stl_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -690,18 +864,7 @@ def _stl_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
             if len(head) >= 84:
                 raise bad(path, f"binary STL declares {n_tris} triangles ({84 + 50 * n_tris} bytes) but the file has {size} bytes")
             raise bad(path, "not an STL file (too short for binary STL, and no 'solid' header)")
-        text = read_text(path, factor=TEXT_TOKEN_FACTOR)
-        tokens = text.split()
-        idx = [i for i, t in enumerate(tokens) if t == "vertex"]
-        if not idx or len(idx) % 3:
-            raise bad(path, f"ASCII STL with {len(idx)} 'vertex' lines; expected 3 per facet")
-        try:
-            coords = np.array([tokens[i + 1 : i + 4] for i in idx], dtype=np.float64)
-        except ValueError:
-            raise bad(path, "a 'vertex' line does not hold 3 numbers") from None
-        if tokens.count("facet") != len(idx) // 3 or tokens.count("endloop") != len(idx) // 3:
-            raise bad(path, "facet/endloop count does not match the vertex count (truncated?)")
-        corners = coords.reshape(-1, 3, 3)
+        corners = _ascii_stl_corners(path)
     if not np.all(np.isfinite(corners)):
         raise bad(path, "a corner has a NaN or infinite coordinate")
     vertices, triangles = _weld(corners)
@@ -709,6 +872,52 @@ def _stl_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if repeated.any():
         raise bad(path, f"facet {int(np.flatnonzero(repeated)[0])} has two identical corners (degenerate)")
     return vertices, triangles
+
+
+_STL_WORDS = re.compile(rb"(?<!\S)(vertex|facet|endloop)(?!\S)")
+
+
+def _ascii_stl_corners(path: Path) -> np.ndarray:
+    """Corners ``(T, 3, 3)`` of an ASCII STL, streamed: a first pass counts the ``vertex``
+    words (the result is sized against the budget), a second parses chunk by chunk."""
+    with open_regular(path) as fh:
+        n = facets = loops = 0
+        for chunk in iter_chunks(fh, CHUNK_BYTES):
+            if b"\x00" in chunk:
+                raise bad(path, "holds binary data (NUL bytes), not text")
+            for word in _STL_WORDS.findall(chunk):
+                n += word == b"vertex"
+                facets += word == b"facet"
+                loops += word == b"endloop"
+        if not n or n % 3:
+            raise bad(path, f"ASCII STL with {n} 'vertex' lines; expected 3 per facet")
+        if facets != n // 3 or loops != n // 3:
+            raise bad(path, "facet/endloop count does not match the vertex count (truncated?)")
+        # the corners, and the weld's sort of them (keys, order, inverse): about 5x the corners
+        check_budget(path, n * 24.0 * 5 + chunk_work(fh), f"{n // 3} facets")
+        coords = np.empty((n, 3))
+        fh.seek(0)
+        done = 0
+        carry: list[bytes] = []
+        for chunk in iter_chunks(fh, CHUNK_BYTES):
+            tokens = carry + chunk.split()
+            del chunk
+            idx = [i for i, t in enumerate(tokens) if t == b"vertex"]
+            carry = []
+            if idx and idx[-1] + 3 >= len(tokens):  # a vertex continued in the next chunk
+                carry = tokens[idx[-1]:]
+                idx.pop()
+            if done + len(idx) > n:
+                raise bad(path, "the file changed while it was read")
+            try:
+                coords[done : done + len(idx)] = [[float(t) for t in tokens[i + 1 : i + 4]] for i in idx]
+            except ValueError:
+                raise bad(path, "a 'vertex' line does not hold 3 numbers") from None
+            done += len(idx)
+            del tokens, idx
+        if carry or done != n:
+            raise bad(path, "a 'vertex' line does not hold 3 numbers")
+    return coords.reshape(-1, 3, 3)
 
 
 _ARRAY_READERS = {".obj": _obj_file_arrays, ".ply": _ply_arrays, ".off": _off_arrays, ".stl": _stl_arrays}

@@ -26,7 +26,7 @@ import numpy as np
 from ..errors import FileFormatError, InputError
 from ..model import Animation, Mesh, MeshSequence
 from ._atomic import atomic_dir, atomic_file, write_file_synced
-from ._common import bad, check_budget, fps_from_times, guarded_reader, load_npy, natural_key, open_regular, read_text, to_float32
+from ._common import TEXT_TOKEN_FACTOR, bad, check_budget, fps_from_times, guarded_reader, load_npy, natural_key, open_regular, read_text, to_float32
 from .meshes import obj_text
 
 __all__ = [
@@ -142,7 +142,7 @@ def _sidecar(path: Path, name: str) -> dict:
     if not side.is_file():
         return {}
     try:
-        data = json.loads(read_text(side, allow_empty=True))
+        data = json.loads(read_text(side, allow_empty=True, factor=TEXT_TOKEN_FACTOR))
     except (ValueError, UnicodeDecodeError, OSError) as exc:
         raise bad(side, f"not valid JSON ({exc})") from None
     if not isinstance(data, dict):

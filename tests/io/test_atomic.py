@@ -151,3 +151,19 @@ def test_folder_replacement_without_atomic_exchange_restores_after_a_crash(tmp_p
     backup.rename(tmp_path / pid_dead)
     _atomic._remove_stale(out)
     assert sorted(p.name for p in out.iterdir()) == before
+
+
+@pytest.mark.parametrize("scheme", [".out.npz.{pid}.0123abcd.frtmp.npz", ".out.npz.frbatch-{pid}-89abcdef.npz"])
+@pytest.mark.parametrize("pid", [10**25, 2**63, 0])
+def test_a_temporary_name_with_an_impossible_pid_is_a_leftover_not_a_crash(pid, scheme, tmp_path):
+    """Found by the long fuzz mode (issue 15): a pid beyond C long in a temporary's name
+    made ``leftovers`` raise OverflowError from os.kill; pid 0 probed our own group."""
+    from faceretarget.io import _atomic
+
+    stale = tmp_path / scheme.format(pid=pid)
+    stale.write_bytes(b"x")
+    user = tmp_path / "out.npz"
+    user.write_bytes(b"mine")
+    assert _atomic.leftovers(tmp_path) == [stale]
+    assert _atomic.remove_leftovers(user) == [stale]
+    assert not stale.exists() and user.read_bytes() == b"mine"
