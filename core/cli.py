@@ -18,9 +18,11 @@ import json
 import sys
 import time
 from importlib import import_module
+from pathlib import Path
 
 from . import __version__
-from .errors import FaceRetargetError, InputError, PluginError
+from .errors import CapabilityError, FaceRetargetError, FileFormatError, InputError, PluginError
+from .hookspecs import DATA_KINDS
 
 EXIT_FAILED = 1  # the command ran to its end, but some of its runs or jobs failed (see --keep-going)
 EXIT_ERROR = 2
@@ -41,34 +43,41 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _dispatch(args) -> tuple[int, str]:
-    """Run the sub-command: ``(exit status, error line or "")``."""
+    """Run the sub-command: ``(exit status, error line or "")``. With ``--debug`` the
+    traceback is printed too, and the exit status stays the same (2 for an error)."""
     try:
         return int(args.handler(args) or 0), ""
     except KeyboardInterrupt:
         return 130, "faceretarget: interrupted"
     except FaceRetargetError as exc:
-        if args.debug:
-            raise
+        _traceback(args)
         return EXIT_ERROR, f"faceretarget: error: {_one_line(exc)}"
     except BrokenPipeError:
         return 0, ""
     except OSError as exc:  # the file system said no (disk full, permissions): not our bug
-        if args.debug:
-            raise
+        _traceback(args)
         return EXIT_ERROR, f"faceretarget: error: {_one_line(exc)}"
     except Exception as exc:  # an unexpected failure: still one line unless --debug
-        if args.debug:
-            raise
+        _traceback(args)
         return EXIT_INTERNAL, (
-            f"faceretarget: internal error: {type(exc).__name__}: {_one_line(exc)} (run with --debug for the traceback)"
+            f"faceretarget: internal error: {type(exc).__name__}: {_one_line(exc)}"
+            + ("" if args.debug else " (run with --debug for the traceback)")
         )
     except BaseException as exc:  # SystemExit (or another BaseException) from code run in this process: never a success
-        if args.debug:
-            raise
+        _traceback(args)
         return EXIT_ERROR, (
             f"faceretarget: error: the command was ended by {type(exc).__name__}({_exit_arg(exc)}) raised in "
-            f"{_origin(exc)} before it finished; nothing more was done (run with --debug for the traceback)"
+            f"{_origin(exc)} before it finished; nothing more was done"
+            + ("" if args.debug else " (run with --debug for the traceback)")
         )
+
+
+def _traceback(args) -> None:
+    """With ``--debug``: the traceback of the exception being handled, on stderr."""
+    if getattr(args, "debug", False):
+        import traceback
+
+        traceback.print_exc(file=sys.stderr)
 
 
 def _exit_arg(exc: BaseException) -> str:
@@ -107,39 +116,101 @@ def _one_line(exc: BaseException) -> str:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="faceretarget", description="Facial animation retargeting.")
     parser.add_argument("--version", action="version", version=f"faceretarget {__version__}")
-    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error (the exit status stays the same)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = sub.add_parser("list", help="list registered retargeters")
+    p = sub.add_parser(
+        "list", help="list registered retargeters",
+        description="List every registered retargeter (built-in and from installed plugins) with the sources it takes, "
+        "its output, whether it edits and streams, and its origin; then the plugins that failed to load.",
+    )
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(handler=cmd_list)
 
-    p = sub.add_parser("info", help="describe one retargeter: paper, capabilities, parameters")
-    p.add_argument("name")
-    p.add_argument("--json", action="store_true")
+    p = sub.add_parser(
+        "info", help="describe one retargeter: paper, capabilities, parameters",
+        description="Describe one retargeter: its paper, the sources it takes and what it needs (landmarks, feature "
+        "lines, examples, layers: the `run` options that give them), and every parameter with its default and meaning.",
+        epilog="example: faceretarget info spacetime",
+    )
+    p.add_argument("name", help="retargeter name or alias (see `faceretarget list`)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(handler=cmd_info)
 
-    p = sub.add_parser("run", help="retarget a performance file onto a target rig file")
+    p = sub.add_parser(
+        "run", help="retarget a performance file onto a target rig file",
+        description="Retarget a performance (--source) onto a character (--target) with one method and write the "
+        "result (--out). Every part a method needs can come from ordinary files: landmarks, feature lines, example "
+        "poses and layered poses for either side (see `faceretarget info NAME` for what a method needs, and "
+        "`faceretarget cases export NAME DIR` for a complete set of files to try). A faceretarget bundle (.npz "
+        "holding a source, target or whole case) can stand for --source or --target; the options below replace "
+        "its parts.",
+        epilog="example: faceretarget run spacetime --source shot.c3d --target hero.glb --landmarks hero_landmarks.json --out shot_hero.glb",
+    )
     p.add_argument("name", help="retargeter name or alias (see `faceretarget list`)")
-    p.add_argument("--source", required=True, help="performance: markers (c3d/trc/csv), mesh sequence (folder/npz/pc2/mdd), weights csv, or a source bundle .npz")
-    p.add_argument("--target", required=True, help="target rig: glb/gltf with morph targets, folder of OBJs, rig or target bundle .npz")
-    p.add_argument("--landmarks", help="target landmark vertex ids (json/txt), when the target file has none")
-    p.add_argument("--out", required=True, help="output file (.glb, .npz, .pc2, .csv, or a folder for an OBJ sequence)")
-    p.add_argument("--set", dest="params", action="append", default=[], metavar="KEY=VALUE", help="retargeter parameter (repeatable)")
-    p.add_argument("--force", action="store_true", help="overwrite an existing output (never an input)")
+    src = p.add_argument_group("source (the performance)")
+    src.add_argument("--source", required=True, help="performance: markers (c3d/trc/csv), mesh sequence (folder/npz/pc2/mdd/npy), weights csv, or a source/case bundle .npz")
+    src.add_argument("--source-kind", choices=DATA_KINDS, help="what to read --source as when its extension is ambiguous (e.g. a .glb)")
+    src.add_argument("--topology", metavar="MESH", help="mesh giving the triangles of a point cache (.pc2/.mdd/.npy) source, same vertex order")
+    src.add_argument("--source-neutral", metavar="MESH", help="the actor's neutral (rest) mesh of a mesh-sequence source, same vertex order (default: frame 0); also gives its triangles")
+    src.add_argument("--fps", type=float, help="frame rate of a source format that does not store it")
+    src.add_argument("--source-landmarks", metavar="FILE", help="landmark vertex ids on the source mesh, in the order of the target's (json/txt); markers need none")
+    src.add_argument("--source-feature-lines", metavar="JSON", help="feature lines on the source mesh: {line name: [vertex ids]} (coating)")
+    src.add_argument("--source-examples", metavar="FILE", help="source example poses: npz (examples (M, V, 3), example_names) or a folder of meshes (normalmesh)")
+    src.add_argument("--source-rig", metavar="FILE", help="the actor's own blendshape rig, needed with a weight-curve source")
+    src.add_argument("--source-head-motion", metavar="NPY", help="(F, 4, 4) head motion of the source, when it is known")
+    src.add_argument("--actor-layers", metavar="NPZ", help="the actor's layered poses, a faceretarget layers .npz (layers)")
+    tgt = p.add_argument_group("target (the character)")
+    tgt.add_argument("--target", required=True, help="character: glb/gltf with morph targets, folder of OBJs, a mesh, or a target/case bundle .npz")
+    tgt.add_argument("--target-kind", choices=DATA_KINDS, help="what to read --target as, e.g. rig for a glb that also holds an animation")
+    tgt.add_argument("--landmarks", metavar="FILE", help="target landmark vertex ids (json/txt/file.npz:KEY), when the target file has none")
+    tgt.add_argument("--feature-lines", metavar="JSON", help="feature lines on the target mesh: {line name: [vertex ids]} (coating)")
+    tgt.add_argument("--examples", metavar="FILE", help="target example poses, paired with the source's by name: npz or folder of meshes (normalmesh)")
+    tgt.add_argument("--layers", metavar="NPZ", help="the character's layered poses and region masks, a faceretarget layers .npz (layers)")
+    out = p.add_argument_group("output")
+    out.add_argument("--out", required=True, help="output file (.glb, .npz, .pc2, .csv, or a folder for an OBJ sequence)")
+    out.add_argument("--set", dest="params", action="append", default=[], metavar="KEY=VALUE", help="retargeter parameter (repeatable), e.g. --set alpha=0.02")
+    out.add_argument("--force", action="store_true", help="overwrite an existing output (never an input)")
     p.set_defaults(handler=cmd_run)
 
-    p = sub.add_parser("formats", help="list file formats that can be read and written")
+    p = sub.add_parser(
+        "formats", help="list file formats that can be read and written",
+        description="List every registered reader and writer: name, what it reads or writes, file extensions.",
+    )
     p.set_defaults(handler=cmd_formats)
 
-    p = sub.add_parser("demo", help="run every method on built-in cases and write a report (the main job)")
+    p = sub.add_parser(
+        "demo", help="run every method on built-in cases and write a report (the main job)",
+        description="Build the synthetic human and stylized cases and the ICT-FaceKit case, run every registered method "
+        "and the paper reproductions, and write report.html, results.csv/json and a GLB per (case, method) into a new folder.",
+    )
     _attach(p, "faceretarget.evaluation.commands", "demo")
-    p = sub.add_parser("compare", help="compare retargeters on evaluation cases")
+    p = sub.add_parser(
+        "compare", help="compare retargeters on evaluation cases",
+        description="Run retargeters on built-in cases with a known answer, print the ranking, and optionally write the "
+        "report and tables (see docs/evaluation.md).",
+        epilog="example: faceretarget compare --cases synthetic ict --methods spacetime layers --out report/",
+    )
     _attach(p, "faceretarget.evaluation.commands", "compare")
-    p = sub.add_parser("batch", help="run a manifest of (shot, character, method) jobs")
+    p = sub.add_parser(
+        "batch", help="run a manifest of (shot, character, method) jobs",
+        description="Run the [[job]] entries of a TOML manifest (shot, character, method, params, out) in parallel "
+        "worker processes or on Dask; jobs whose output exists are skipped, so a stopped batch resumes.",
+        epilog="example manifest: `faceretarget cases export synthetic-human take/` writes take/batch.toml",
+    )
     _attach(p, "faceretarget.evaluation.commands", "batch")
-    p = sub.add_parser("convert", help="convert between file formats")
+    p = sub.add_parser(
+        "convert", help="convert between file formats",
+        description="Read IN with the reader for its extension (--kind chooses) and write OUT with the writer for its "
+        "extension, atomically; never over an input.",
+        epilog="example: faceretarget convert take.pc2 take.glb --topology actor.obj",
+    )
     _attach(p, "faceretarget.io.commands", "convert")
+    p = sub.add_parser(
+        "cases", help="list the built-in cases, or export one as ordinary files",
+        description="The built-in evaluation cases: `cases list` names them, `cases export NAME DIR` writes one as ordinary files to try `run` and `batch` on.",
+    )
+    _attach(p, "faceretarget.io.commands", "cases")
     return parser
 
 
@@ -235,6 +306,105 @@ def cmd_formats(args) -> int:
     return 0
 
 
+#: Source and target parts a method may need -> the ``run`` option that gives them.
+RUN_OPTIONS = {
+    "landmarks": "--landmarks FILE (target landmark vertex ids)",
+    "source_landmarks": "--source-landmarks FILE (source landmark vertex ids; a markers source needs none)",
+    "feature_lines": "--feature-lines JSON",
+    "source_feature_lines": "--source-feature-lines JSON",
+    "examples": "--examples FILE",
+    "source_examples": "--source-examples FILE",
+    "layers": "--layers NPZ",
+    "actor_layers": "--actor-layers NPZ",
+    "blendshapes": "a --target with blendshapes (a glb with morph targets, a rig folder or a rig .npz)",
+    "source_rig": "--source-rig FILE",
+}
+
+
+def _run_inputs(args) -> list[str]:
+    """Every file ``run`` reads (the output may be none of them)."""
+    names = ("source", "target", "topology", "source_neutral", "source_landmarks", "source_feature_lines", "source_examples",
+             "source_rig", "source_head_motion", "actor_layers", "landmarks", "feature_lines", "examples", "layers")
+    return [getattr(args, n) for n in names if getattr(args, n, None)]
+
+
+def _read_layers(path: str, option: str):
+    from .io.bundle import read_npz_object
+    from .model import LayeredRig
+
+    obj = read_npz_object(Path(path))
+    if not isinstance(obj, LayeredRig):
+        raise FileFormatError(f"{path}: {option} needs a faceretarget layers .npz (faceretarget.io.save(layered_rig, 'x.npz')), this file holds a {type(obj).__name__}")
+    return obj
+
+
+def load_run_source(args):
+    """The :class:`~faceretarget.model.Source` of ``run``: the --source file with the parts
+    given by the --source-* options (which replace a bundle's)."""
+    from . import io
+    from .model import Mesh, MeshSequence
+
+    options = {k: v for k, v in (("topology", args.topology), ("fps", args.fps)) if v is not None}
+    neutral = None
+    if args.source_neutral:
+        neutral = io.load(args.source_neutral, kind="mesh")
+        options.setdefault("topology", neutral)
+    source = io.load_source(args.source, kind=args.source_kind, rig=args.source_rig, **options)
+    changes = {}
+    if neutral is not None:
+        perf = source.performance
+        if not isinstance(perf, MeshSequence):
+            raise InputError(f"--source-neutral is for mesh-sequence sources; {args.source} holds {source.kind}")
+        if neutral.n_vertices != perf.n_vertices:
+            raise InputError(f"--source-neutral {args.source_neutral} has {neutral.n_vertices} vertices, the source {perf.n_vertices}; they must match one to one")
+        changes["performance"] = MeshSequence(perf.vertices, perf.triangles, fps=perf.fps, reference=Mesh(neutral.vertices, perf.triangles), name=perf.name)
+    if args.source_landmarks:
+        changes["landmarks"] = io.read_landmarks(args.source_landmarks)
+    if args.source_feature_lines:
+        changes["feature_lines"] = io.read_feature_lines(args.source_feature_lines)
+    if args.source_examples:
+        changes["examples"], changes["example_names"] = io._examples(args.source_examples)
+    if args.source_head_motion:
+        changes["head_motion"] = _read_npy(args.source_head_motion)
+    if args.actor_layers:
+        changes["actor_layers"] = _read_layers(args.actor_layers, "--actor-layers")
+    return source.replace(**changes) if changes else source
+
+
+def _read_npy(path: str):
+    import numpy as np
+
+    from .io._common import guarded_reader, load_npy
+
+    return guarded_reader(lambda p: np.asarray(load_npy(p, mmap=False)))(Path(path))
+
+
+def load_run_target(args):
+    """The :class:`~faceretarget.model.TargetRig` of ``run``: --target with its parts from the options."""
+    from . import io
+
+    target = io.load_target(args.target, landmarks=args.landmarks, feature_lines=args.feature_lines, examples=args.examples, kind=args.target_kind)
+    if args.layers:
+        target = target.replace(layers=_read_layers(args.layers, "--layers"))
+    return target
+
+
+def _check_needs(entry, source, target) -> None:
+    """A method that does not apply says what is missing and which option gives it."""
+    from .retargeter import _has
+
+    reason = entry.cls.why_not(source, target)
+    if reason is None:
+        return
+    hints = []
+    for need in entry.capabilities.needs:
+        options = need if isinstance(need, tuple) else (need,)
+        if not any(_has(source, target, n) for n in options):
+            hints.append(" or ".join(RUN_OPTIONS.get(n, n) for n in options))
+    hint = f"; give {'; '.join(hints)}" if hints else ""
+    raise CapabilityError(f"{reason}{hint} (see `faceretarget run --help`)")
+
+
 def cmd_run(args) -> int:
     from tqdm import tqdm
 
@@ -243,15 +413,17 @@ def cmd_run(args) -> int:
 
     params = parse_params(args.params)
     retargeter = get(args.name, **params)
-    inputs = [args.source, args.target] + ([args.landmarks] if args.landmarks else [])
+    inputs = _run_inputs(args)
     _check_output_path(args.out, inputs, args.force)  # before any slow work
-    plugin = registry().resolve(args.name).plugin
+    entry = registry().resolve(args.name)
+    plugin = entry.plugin
     steps = tqdm(total=5, desc=f"{retargeter.name}", unit="step", disable=None, file=sys.stderr)
     steps.set_postfix_str("reading source")
-    source = io.load_source(args.source)
+    source = load_run_source(args)
     steps.update()
     steps.set_postfix_str("reading target")
-    target = io.load_target(args.target, landmarks=args.landmarks)
+    target = load_run_target(args)
+    _check_needs(entry, source, target)
     steps.update()
     steps.set_postfix_str("fitting")
     t0 = time.perf_counter()

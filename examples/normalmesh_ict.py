@@ -12,7 +12,7 @@ animation and the target's normal mesh at a level of your choice.
     python examples/normalmesh_ict.py --out results/ --level 2
 
 The ICT data (MIT licence, see ``faceretarget/data/ICT-FaceKit-LICENSE.txt``) ships with the
-package as a fixture; the full-size copy in ``../shared/data/ict-facekit`` is the same face region.
+package as a fixture (the face region of the ICT-FaceKit model, https://github.com/ICT-VGL/ICT-FaceKit).
 """
 from __future__ import annotations
 

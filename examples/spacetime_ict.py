@@ -10,7 +10,7 @@ makes a spacetime edit, and writes the results when ``--out`` is given.
     python examples/spacetime_ict.py --out results/      # also write .glb / .npz
 
 The ICT data (MIT licence, see ``faceretarget/data/ICT-FaceKit-LICENSE.txt``) ships with the
-package as a fixture; the full-size copy in ``../shared/data/ict-facekit`` is the same face region.
+package as a fixture (the face region of the ICT-FaceKit model, https://github.com/ICT-VGL/ICT-FaceKit).
 """
 from __future__ import annotations
 

@@ -128,7 +128,8 @@ def _new_folder(path: Path | None, prefix: str) -> Path:
 # compare
 # ---------------------------------------------------------------------------------------
 def add_compare_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("cases", nargs="*", help="case names (synthetic, synthetic-human, synthetic-stylized, ict; keywords as NAME?k=v&k=v); default: synthetic-human synthetic-stylized ict")
+    parser.add_argument("cases", nargs="*", metavar="CASE", help="case names (synthetic, synthetic-human, synthetic-stylized, ict, cross_rig, cross_topology; keywords as 'NAME?k=v&k=v'); default: synthetic-human synthetic-stylized ict")
+    parser.add_argument("--cases", dest="case_options", nargs="+", default=[], metavar="CASE", help="the same cases as an option (added to any given before the options)")
     parser.add_argument("--methods", nargs="+", metavar="NAME", help="retargeters to compare (default: every registered one)")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="METHOD.PARAM=VALUE", help="a constructor parameter, e.g. spacetime.alpha=0.05 (repeatable)")
     parser.add_argument("--metrics", nargs="+", metavar="NAME", help="metrics to compute (default: every registered one)")
@@ -170,8 +171,9 @@ def run_compare(args) -> int:
         check_report_folder(args.out)
         outputs += [args.out / name for name in REPORT_FILES] if args.out.is_dir() else []
     check_outputs(outputs, force=args.force)  # before the comparison runs
+    cases = list(args.cases) + list(getattr(args, "case_options", None) or [])
     result = compare(
-        args.cases or None,
+        cases or None,
         methods=args.methods,
         params=_parse_sets(args.sets) or None,
         metrics=args.metrics,

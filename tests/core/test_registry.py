@@ -177,10 +177,11 @@ def test_every_hook_is_documented():
         assert f"`{hook}" in doc, f"hook {hook} is not documented in docs/plugins.md"
 
 
-def test_wheel_ships_registry_toml_and_reads_it_from_there(tmp_path):
+def test_wheel_ships_registry_toml_and_reads_it_from_there(tmp_path, source_copy):
+    project = source_copy(ROOT)  # built from a copy: no build/ or *.egg-info in the checkout
     out = subprocess.run(
-        [sys.executable, "-m", "build", "--wheel", "--no-isolation", "--outdir", str(tmp_path / "dist"), str(ROOT)],
-        capture_output=True, text=True,
+        [sys.executable, "-m", "build", "--wheel", "--no-isolation", "--outdir", str(tmp_path / "dist"), str(project)],
+        capture_output=True, text=True, cwd=tmp_path,
     )
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
     (wheel,) = (tmp_path / "dist").glob("faceretarget-*.whl")

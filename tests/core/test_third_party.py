@@ -1,10 +1,19 @@
-"""The example third-party plugin installs through its entry point, is listed, and conforms."""
+"""The example third-party plugin installs through its entry point, is listed, and conforms.
+
+It is installed with ``pip install --target`` into a temporary folder (from a copy of its
+sources), put on ``sys.path`` here and on ``PYTHONPATH`` of the subprocesses: the
+environment running the tests and the checkout are left as they were
+(``tests/test_clean_environment.py``).
+"""
+import importlib
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from envtools import pip_install_target
 
 from faceretarget.registry import reload
 
@@ -12,29 +21,46 @@ EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "third_party_plugin
 
 
 @pytest.fixture(scope="module")
-def installed_example():
-    """pip-install examples/third_party_plugin into this environment (idempotent)."""
-    out = subprocess.run(
-        [sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--quiet", str(EXAMPLE)],
-        capture_output=True, text=True,
-    )
+def installed_example(tmp_path_factory):
+    """The example plugin installed into a temporary ``--target`` folder: ``(folder, env)``."""
+    work = tmp_path_factory.mktemp("third_party")
+    site = work / "site"
+    out = pip_install_target(EXAMPLE, site, work)
     assert out.returncode == 0, out.stderr[-2000:]
-    import importlib
-
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])))
+    _forget_plugin_modules()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.syspath_prepend(str(site))
+        importlib.invalidate_caches()
+        yield site, env
+    _forget_plugin_modules()
     importlib.invalidate_caches()
-    yield
     reload()
 
 
+def _forget_plugin_modules() -> None:
+    for name in [m for m in sys.modules if m == "faceretarget_displacement" or m.startswith("faceretarget_displacement.")]:
+        del sys.modules[name]
+
+
 def test_faceretarget_list_shows_the_plugin(installed_example):
-    out = subprocess.run(["faceretarget", "list", "--json"], capture_output=True, text=True)
+    site, env = installed_example
+    cmd = [sys.executable, "-m", "faceretarget.cli", "list"]
+    out = subprocess.run([*cmd, "--json"], capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
     rows = {r["name"]: r for r in json.loads(out.stdout)["retargeters"]}
     assert "displacement" in rows
     assert rows["displacement"]["origin"] == "faceretarget-displacement 0.1.0"
     assert rows["displacement"]["builtin"] is False
-    text = subprocess.run(["faceretarget", "list"], capture_output=True, text=True).stdout
+    text = subprocess.run(cmd, capture_output=True, text=True, env=env).stdout
     assert "displacement" in text and "faceretarget-displacement" in text
+
+
+def test_the_plugin_is_loaded_from_the_temporary_folder(installed_example):
+    site, _ = installed_example
+    import faceretarget_displacement
+
+    assert Path(faceretarget_displacement.__file__).resolve().is_relative_to(site.resolve())
 
 
 def test_the_plugin_passes_the_conformance_kit(installed_example):

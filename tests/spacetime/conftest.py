@@ -1,4 +1,4 @@
-"""Small synthetic parallel rigs for the spacetime tests (no files, no /work/shared)."""
+"""Small synthetic parallel rigs for the spacetime tests (no files, nothing outside the repository)."""
 from __future__ import annotations
 
 from types import SimpleNamespace
