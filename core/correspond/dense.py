@@ -119,7 +119,10 @@ def dense_pairs(
     points = warp(target.vertices[ids])
     hits = closest_point_transfer(points, source)
     size = float(np.sqrt(np.mean(np.sum((sl - sl.mean(axis=0)) ** 2, axis=1))))
-    source_normals = source.face_normals[hits.triangle_ids]
+    # the source normal at each closest point: the barycentric blend of its vertex normals,
+    # the same whichever triangle meeting at an edge or vertex the search returned
+    blend = np.einsum("pk,pkd->pd", hits.barycentric, source.vertex_normals[source.triangles[hits.triangle_ids]])
+    source_normals = blend / np.maximum(np.linalg.norm(blend, axis=1, keepdims=True), np.finfo(float).tiny)
     cosine = np.einsum("pk,pk->p", source_normals, target.vertex_normals[ids])
     keep = (hits.distances <= MAX_DISTANCE * size) & (cosine > MIN_NORMAL_COSINE)
     if max_points is not None and keep.sum() > max_points:

@@ -1,12 +1,43 @@
 """Landmark-driven space warps."""
 from __future__ import annotations
 
-import numpy as np
+from dataclasses import dataclass
 
+import numpy as np
+import scipy.linalg
+
+from .. import config
 from ..errors import DegenerateGeometryError, ShapeError
-from ..geometry.rbf import RBFInterpolant, fit_rbf
+from ..geometry.rbf import RBFInterpolant, _merge_duplicates, kernel_values
 
 __all__ = ["rbf_warp"]
+
+#: Points evaluated per block (bounds the (block, N, 3) difference array).
+_BLOCK = 4096
+
+
+def _exact_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(P, N) distances from the differences (not |a|^2 + |b|^2 - 2 a.b, whose rounding
+    error near zero, about sqrt(eps) times the coordinates' size, makes the warp of a point
+    on or near a landmark depend on the units and placement of the faces)."""
+    out = np.empty((len(a), len(b)))
+    for start in range(0, len(a), _BLOCK):
+        d = a[start:start + _BLOCK, None, :] - b[None, :, :]
+        out[start:start + _BLOCK] = np.sqrt(np.einsum("pnk,pnk->pn", d, d))
+    return out
+
+
+@dataclass(frozen=True)
+class _Warp(RBFInterpolant):
+    """An :class:`~faceretarget.geometry.rbf.RBFInterpolant` evaluated with exact distances."""
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        p = np.asarray(points, dtype=np.float64)
+        lead = p.shape[:-1]
+        p = p.reshape(-1, p.shape[-1])
+        out = kernel_values(_exact_distances(p, self.centers), self.kernel, self.c) @ self.weights
+        out += p @ self.affine[:-1] + self.affine[-1]
+        return out.reshape(lead + (self.weights.shape[1],))
 
 
 def rbf_warp(source_positions, target_positions, *, kernel: str = "linear") -> RBFInterpolant:
@@ -16,6 +47,12 @@ def rbf_warp(source_positions, target_positions, *, kernel: str = "linear") -> R
     in 3D) and a linear polynomial, as in Seol et al. 2012 sec. 3.2; the result is
     callable on ``(P, 3)`` points. N >= 4 landmarks not all in one plane give the full
     affine part (otherwise only a translation is kept).
+
+    The warp commutes with similarities: scaling, rotating or moving the source positions
+    (and the points warped) or the target positions changes the result by the same
+    similarity, up to rounding. Distances are taken from coordinate differences, and the
+    ridge that keeps near-coincident landmarks solvable (``config.RIDGE_EPS``) is relative
+    to the largest kernel value, whatever the units.
     """
     src = np.asarray(source_positions, dtype=np.float64)
     tgt = np.asarray(target_positions, dtype=np.float64)
@@ -23,4 +60,37 @@ def rbf_warp(source_positions, target_positions, *, kernel: str = "linear") -> R
         raise ShapeError(f"rbf_warp: source and target positions must both be (N, 3), got {src.shape} and {tgt.shape}")
     if len(src) == 0:
         raise DegenerateGeometryError("rbf_warp: at least one landmark pair is needed")
-    return fit_rbf(src, tgt, kernel=kernel, polynomial=True)
+    if not (np.isfinite(src).all() and np.isfinite(tgt).all()):
+        raise DegenerateGeometryError("rbf_warp: landmark positions must be finite")
+    x, y = _merge_duplicates(src, tgt)
+    n, dim = x.shape
+    r = _exact_distances(x, x)
+    if n > 1:
+        nearest = np.where(np.eye(n, dtype=bool), np.inf, r).min(axis=1)
+        c = float(np.mean(nearest))
+    else:
+        c = 1.0
+    if kernel != "linear" and not (np.isfinite(c) and c > 0 and np.isfinite(1.0 / c)):
+        raise DegenerateGeometryError(f"rbf_warp: the kernel width c={c!r} must be a positive, normal number")
+    phi = kernel_values(r, kernel, c)
+    use_linear = n > dim and np.linalg.matrix_rank(x - x.mean(axis=0)) == dim
+    poly = np.hstack([x, np.ones((n, 1))]) if use_linear else np.ones((n, 1))
+    m = poly.shape[1]
+    system = np.zeros((n + m, n + m))
+    system[:n, :n] = phi
+    system[:n, n:] = poly
+    system[n:, :n] = poly.T
+    rhs = np.zeros((n + m, y.shape[1]))
+    rhs[:n] = y
+    top = float(np.abs(phi).max()) if n > 1 else 0.0
+    system[:n, :n] += config.RIDGE_EPS * (top if top > 0 else 1.0) * np.eye(n)
+    try:
+        sol = scipy.linalg.solve(system, rhs, assume_a="sym")
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError, ValueError) as exc:
+        raise DegenerateGeometryError(f"rbf_warp: the RBF system is singular ({exc}); check for coincident or collinear landmarks") from None
+    affine = np.zeros((dim + 1, y.shape[1]))
+    if use_linear:
+        affine[:] = sol[n:]
+    else:
+        affine[-1] = sol[n]
+    return _Warp(x, sol[:n], affine, kernel, float(c))

@@ -30,7 +30,10 @@ from __future__ import annotations
 
 import numpy as np
 
+import scipy.sparse as sp
+
 from faceretarget.geometry.deformation_gradients import DeformationTransfer
+from faceretarget.geometry.factorized import SPDFactor
 from functools import cached_property
 
 from faceretarget.geometry.local_frames import frame_neighbors
@@ -40,13 +43,14 @@ from .alignment import frame_chunks
 from .bases import BasisSpace, blend, select_bases, selection_vertices
 from .multiscale import MultiScale
 
-__all__ = ["CoatingModel", "size_ratio", "face_size", "line_proportion", "LINE_PROPORTION_SCALE", "canonical_axes"]
+__all__ = ["CoatingModel", "size_ratio", "face_size", "line_logs", "line_proportion", "weight_lines", "LINE_PROPORTION_SCALE", "canonical_axes"]
 
-#: Feature-line weight: ``sigma_eff = sigma * exp(-(d / LINE_PROPORTION_SCALE)^2)`` with ``d``
-#: the RMS log-ratio of the target's to the source's feature-line lengths, relative to the
-#: face-size ratio (:func:`line_proportion`). 0.1: lines within ~5% of the source's
-#: proportions keep most of the weight (synthetic human 0.75, ICT 0.91), lines 40-70%
-#: larger (the stylized target's eyes and mouth) none.
+#: Feature-line weight, per line: ``sigma_l = sigma * exp(-(d_l / LINE_PROPORTION_SCALE)^2)``
+#: with ``d_l`` the log-ratio of the target's to the source's length of line ``l``, relative
+#: to the face-size ratio (:func:`line_logs`). 0.1: lines within ~5% of the source's
+#: proportions keep most of the weight (synthetic human 0.55-0.83, ICT 0.85-0.93), lines
+#: 40-70% larger (the stylized target's eyes and mouth) none, and so does a line of another
+#: shape (a closed eye's slit against an open eye's rim: cases.cross_topology, d = 0.3-1.0).
 LINE_PROPORTION_SCALE = 0.1
 
 
@@ -61,12 +65,12 @@ def face_size(vertices: np.ndarray, triangles: np.ndarray) -> float:
     return float(np.sqrt(face_areas(vertices, triangles).sum()))
 
 
-def line_proportion(source: np.ndarray, target: np.ndarray, triangles: np.ndarray, source_lines: dict, target_lines: dict) -> float:
-    """RMS over the lines of ``log(L_target / (L_source * r))``: how much the target's feature
-    lines differ in proportion from the source's (``L`` the chain lengths, ``r`` the face-size
-    ratio :func:`size_ratio`); 0 without lines."""
+def line_logs(source: np.ndarray, target: np.ndarray, triangles: np.ndarray, source_lines: dict, target_lines: dict) -> dict[str, float]:
+    """``{line: log(L_target / (L_source * r))}``: how much each target feature line differs in
+    proportion from the source's line of the same name (``L`` the chain lengths, ``r`` the
+    face-size ratio :func:`size_ratio`); lines without a usable counterpart are left out."""
     r = size_ratio(source, target, triangles)
-    logs = []
+    logs = {}
     for name, chain in target_lines.items():
         if name not in source_lines:
             continue
@@ -76,8 +80,34 @@ def line_proportion(source: np.ndarray, target: np.ndarray, triangles: np.ndarra
         lt = np.linalg.norm(np.diff(target[t_chain], axis=0), axis=1).sum()
         ls = np.linalg.norm(np.diff(source[s_chain], axis=0), axis=1).sum()
         if lt > 0 and ls > 0:
-            logs.append(np.log(lt / (ls * r)))
+            logs[name] = float(np.log(lt / (ls * r)))
+    return logs
+
+
+def line_proportion(source: np.ndarray, target: np.ndarray, triangles: np.ndarray, source_lines: dict, target_lines: dict) -> float:
+    """RMS over the lines of :func:`line_logs`: how much the target's feature lines differ in
+    proportion from the source's, overall; 0 without lines."""
+    logs = list(line_logs(source, target, triangles, source_lines, target_lines).values())
     return float(np.sqrt(np.mean(np.square(logs)))) if logs else 0.0
+
+
+def weight_lines(transfer: DeformationTransfer, sigmas: dict) -> None:
+    """Give each feature line of ``transfer`` (built with ``sigma=1``) its own weight: the line
+    term becomes ``sum_l sigma_l sum_(segments of l) |(e0 - D e0_ref) / |e0_ref||^2``.
+
+    The rows of the line operator and of the segments' reference directions are scaled by
+    ``sqrt(sigma_l)`` (so the right-hand side ``F^T t`` gets ``sigma_l`` too) and the normal
+    matrix is re-assembled; the factorization is lazy, so it is done once, on this matrix.
+    """
+    if transfer.line_operator is None or transfer.sigma != 1.0:
+        return
+    per_segment = np.concatenate([np.full(max(len(chain) - 1, 0), float(sigmas.get(name, 0.0))) for name, chain in transfer.chains.items()])
+    root = np.sqrt(per_segment)
+    transfer.line_operator = (sp.diags(root) @ transfer.line_operator).tocsr()
+    transfer._line_ref = transfer._line_ref * root[:, None]
+    normal = (transfer.reduced_operator.T @ transfer.reduced_operator + transfer.line_operator.T @ transfer.line_operator).tocsr()
+    transfer.normal_matrix = normal
+    transfer.factor = SPDFactor(normal[transfer.free][:, transfer.free], what="deformation-transfer normal equations")
 
 
 def canonical_axes(points: np.ndarray) -> np.ndarray:
@@ -131,9 +161,14 @@ class CoatingModel:
         self.source_lines = {k: np.asarray(v) for k, v in source_lines.items()}
         self.target_lines = {k: np.asarray(v) for k, v in target_lines.items()}
         self.stable = np.asarray(stable, dtype=np.float64)
-        self.line_proportion = line_proportion(src, tgt, self.triangles, self.source_lines, self.target_lines)
-        self.sigma = float(sigma) * float(np.exp(-((self.line_proportion / LINE_PROPORTION_SCALE) ** 2)))
-        self.transfer = DeformationTransfer(self.target.smooth_reference, triangles, feature_lines=self.target_lines or None, sigma=max(self.sigma, 1e-300), gauge_weights=self.stable)
+        logs = line_logs(src, tgt, self.triangles, self.source_lines, self.target_lines)
+        self.line_proportion = float(np.sqrt(np.mean(np.square(list(logs.values()))))) if logs else 0.0
+        # one weight per line: a line whose proportions (or shape) differ from the source's
+        # gets no line term, without taking it from the lines that match
+        self.line_sigmas = {name: float(sigma) * float(np.exp(-((d / LINE_PROPORTION_SCALE) ** 2))) for name, d in logs.items()}
+        self.sigma = max(self.line_sigmas.values(), default=0.0)
+        self.transfer = DeformationTransfer(self.target.smooth_reference, triangles, feature_lines=self.target_lines or None, sigma=1.0, gauge_weights=self.stable)
+        weight_lines(self.transfer, self.line_sigmas)
         self.ratio = size_ratio(self.source.smooth_reference, self.target.smooth_reference, triangles)
         self.detail_scale = self.ratio if detail_scale == "auto" else float(detail_scale)
         self.source_center = self.source.smooth_reference.mean(axis=0)
