@@ -9,7 +9,8 @@ object yet`` while it is serialised, and a save can meet a file replaced under i
 (``OSError``). The kernel itself is compiled and registered before numba saves it
 (``Dispatcher.compile`` adds the overload first), so the only thing lost is the cache
 entry: :func:`install` makes such a save a no-op (the next process compiles and saves
-again) and a cache entry that cannot be loaded a miss (the kernel is compiled).
+again) and a cache entry that cannot be loaded a miss (the kernel is compiled). The first
+miss of one of our kernels in a process prints :data:`COMPILE_NOTICE` (one line, stderr).
 
 :func:`install` (called by ``import faceretarget``) patches numba when it is imported,
 or at once if it already is; it never imports numba itself. Other errors, and any
@@ -49,13 +50,33 @@ def _patch(caching) -> None:
 
     def load_overload(self, sig, target_context):
         try:
-            return load(self, sig, target_context)
+            found = load(self, sig, target_context)
         except Exception:  # an entry half-replaced by another process, or unreadable: compile instead
-            return None
+            found = None
+        if found is None:
+            _notice_compiling(getattr(self, "_py_func", None))
+        return found
 
     save_overload.__doc__, load_overload.__doc__ = save.__doc__, load.__doc__
     cache.save_overload, cache.load_overload = save_overload, load_overload
     setattr(cache, _MARK, True)
+
+
+#: Printed once per process, on stderr, when the first of our kernels is not in the cache.
+COMPILE_NOTICE = (
+    "faceretarget: compiling numerical kernels for this machine, once (about 1-2 minutes in all on 2 cores; "
+    "later runs load them from the cache). `faceretarget warmup` does it ahead."
+)
+_noticed = False
+
+
+def _notice_compiling(py_func) -> None:
+    global _noticed
+    module = getattr(py_func, "__module__", "") or ""
+    if _noticed or not module.startswith("faceretarget"):
+        return
+    _noticed = True
+    print(COMPILE_NOTICE, file=sys.stderr, flush=True)
 
 
 class _Finder(importlib.abc.MetaPathFinder):

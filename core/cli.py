@@ -175,7 +175,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "formats", help="list file formats that can be read and written",
-        description="List every registered reader and writer: name, what it reads or writes, file extensions.",
+        description="List every registered reader and writer: name, what it reads or writes, file extensions; "
+        "for a plugin's format, its origin and priority, and where two share an extension and kind, which one wins "
+        "(the other is shadowed: a reader then gets only the files the winner declines).",
     )
     p.set_defaults(handler=cmd_formats)
 
@@ -211,6 +213,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="The built-in evaluation cases: `cases list` names them, `cases export NAME DIR` writes one as ordinary files to try `run` and `batch` on.",
     )
     _attach(p, "faceretarget.io.commands", "cases")
+    p = sub.add_parser(
+        "warmup", help="compile every numerical kernel ahead (once per machine), so the first real run does not wait",
+        description="Fit and retarget every built-in method on tiny built-in cases, which compiles and caches the numba "
+        "kernels they use (the first run otherwise pauses for about 1-2 minutes on 2 cores); prints the time per method.",
+    )
+    _attach(p, "faceretarget.evaluation.commands", "warmup")
     return parser
 
 
@@ -294,15 +302,17 @@ def cmd_info(args) -> int:
 
 
 def cmd_formats(args) -> int:
-    from .registry import registry
+    from .io import formats, shadow_note
 
-    reg = registry()
-    print("readers:")
-    for r, info in sorted(reg.readers, key=lambda x: x[0].name):
-        print(f"  {r.name:<14} {r.kind:<14} {' '.join(r.extensions):<20} {r.description}")
-    print("writers:")
-    for w, info in sorted(reg.writers, key=lambda x: x[0].name):
-        print(f"  {w.name:<14} {w.kind:<14} {' '.join(w.extensions):<20} {w.description}")
+    rows = formats()
+    for direction, title in (("read", "readers:"), ("write", "writers:")):
+        print(title)
+        for row in sorted((r for r in rows if r["direction"] == direction), key=lambda r: r["name"]):
+            origin = "" if row["builtin"] else f" [{row['origin']}, priority {row['priority']:g}]"
+            print(f"  {row['name']:<14} {row['kind']:<14} {' '.join(row['extensions']):<20} {row['description']}{origin}")
+            note = shadow_note(row)
+            if note:
+                print(f"  {'':<14} {'':<14} {'':<20} -> {note}")
     return 0
 
 

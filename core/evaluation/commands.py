@@ -257,6 +257,59 @@ def run_demo(args) -> int:
     return _failed_exit(_failed_runs(result), len(result.runs), "runs", args.keep_going)
 
 
+# ---------------------------------------------------------------------------------------
+# warmup
+# ---------------------------------------------------------------------------------------
+def add_warmup_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--methods", nargs="+", metavar="NAME", help="only these methods (default: every built-in)")
+
+
+def warmup_cases() -> list:
+    """Tiny cases that take every built-in method through its kernels: blendshape and dense
+    targets, marker and mesh sources, same and different topology."""
+    from .. import cases
+
+    return [
+        cases.synthetic(n_frames=6, resolution=300),
+        cases.synthetic(n_frames=6, resolution=300, target="stylized"),
+        cases.ict(n_frames=6),
+        cases.cross_rig(n_frames=6, source_kind="markers"),
+        cases.cross_rig(n_frames=6, source_kind="mesh"),
+        cases.cross_topology(n_frames=3),
+    ]
+
+
+def run_warmup(args) -> int:
+    from ..registry import registry
+
+    import numpy as np
+
+    import faceretarget as fr
+
+    reg = registry()
+    names = args.methods or sorted(n for n, info in reg.retargeters.items() if info.plugin.builtin)
+    start = time.perf_counter()
+    tiny = warmup_cases()
+    failed = []
+    for name in names:
+        began, ran = time.perf_counter(), 0
+        for case in tiny:
+            method = fr.get(name)
+            if method.why_not(case.source, case.target):
+                continue
+            try:
+                animation = method.fit(case.source, case.target).retarget(case.source)
+                np.asarray(animation.vertices)
+                ran += 1
+            except Exception as exc:  # report and go on: warming up must not stop at one method
+                failed.append(f"{name} on {case.name}: {type(exc).__name__}: {exc}")
+        print(f"{name:28s} {ran} case(s) {time.perf_counter() - began:6.1f} s")
+    for line in failed:
+        print(f"failed: {line}", file=sys.stderr)
+    print(f"warm in {time.perf_counter() - start:.1f} s; later runs load the compiled kernels from numba's cache")
+    return 1 if failed else 0
+
+
 def _write_glbs(result, folder: Path, reg, write_animation, writer_for) -> str:
     try:
         writer = writer_for(Path("x.glb"), reg, "demo")

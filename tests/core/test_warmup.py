@@ -1,0 +1,63 @@
+"""Cold start: one line when our kernels compile, and `faceretarget warmup` to compile them ahead."""
+import subprocess
+import sys
+import types
+
+from faceretarget import _numba_cache
+
+
+def fake_caching(load_result):
+    class Cache:
+        def __init__(self, py_func):
+            self._py_func = py_func
+
+        def save_overload(self, sig, data):
+            return None
+
+        def load_overload(self, sig, target_context):
+            return load_result
+
+    return types.SimpleNamespace(Cache=Cache)
+
+
+def ours():
+    pass
+
+
+ours.__module__ = "faceretarget.plugins.spacetime._kernels"
+
+
+def theirs():
+    pass
+
+
+theirs.__module__ = "somebody_else"
+
+
+def test_the_first_miss_of_our_kernel_prints_one_line(monkeypatch, capsys):
+    monkeypatch.setattr(_numba_cache, "_noticed", False)
+    caching = fake_caching(None)
+    _numba_cache._patch(caching)
+    caching.Cache(theirs).load_overload(None, None)
+    assert capsys.readouterr().err == ""
+    caching.Cache(ours).load_overload(None, None)
+    caching.Cache(ours).load_overload(None, None)
+    err = capsys.readouterr().err
+    assert err.count("compiling numerical kernels") == 1 and "faceretarget warmup" in err
+
+
+def test_a_cache_hit_prints_nothing(monkeypatch, capsys):
+    monkeypatch.setattr(_numba_cache, "_noticed", False)
+    caching = fake_caching(object())
+    _numba_cache._patch(caching)
+    assert caching.Cache(ours).load_overload(None, None) is not None
+    assert capsys.readouterr().err == ""
+
+
+def test_warmup_runs_a_method_on_every_case_it_applies_to():
+    done = subprocess.run([sys.executable, "-m", "faceretarget.cli", "warmup", "--methods", "spacetime"],
+                          capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr
+    line = next(l for l in done.stdout.splitlines() if l.startswith("spacetime"))
+    assert int(line.split()[1]) >= 4  # synthetic x2, ict, cross_rig markers and mesh (not the mesh-only target)
+    assert "warm in" in done.stdout
