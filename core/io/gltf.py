@@ -5,8 +5,11 @@ kept, no welding), ``TRIANGLES``/``TRIANGLE_STRIP``/``TRIANGLE_FAN`` modes, inde
 not, dense or sparse accessors, float or normalized-integer components; morph-target
 names come from ``mesh.extras.targetNames``; a weight animation (``path: "weights"``)
 becomes an :class:`~faceretarget.model.Animation` over the rig, sampled at its frame
-rate (keys resampled to a uniform grid when they are not uniform). The node transform is
-not applied to rigs (they stay in mesh space).
+rate (keys resampled to a uniform grid when they are not uniform). Meshes and rigs are
+read in scene space: the world transform of the node showing them (``matrix`` or
+translation/rotation/scale, parents included) is applied; several meshes in a scene are
+merged (or one picked with ``mesh=``, a mesh or node name). An animation's rig stays in
+mesh space (its node's motion is the head motion).
 
 Writing (what Blender's and three.js's importers read):
 
@@ -506,18 +509,125 @@ def gltf_kind(path) -> str | None:
     return "mesh"
 
 
+def _local_matrix(doc: _Doc, node: dict, where: str) -> np.ndarray:
+    """A node's local transform (``matrix``, column-major, or translation/rotation/scale)."""
+    out = np.eye(4)
+    if "matrix" in node:
+        m = node["matrix"]
+        if not isinstance(m, list) or len(m) != 16 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in m):
+            raise doc.fail(f"{where}.matrix must be 16 numbers")
+        out = np.array(m, dtype=np.float64).reshape(4, 4).T
+    else:
+        def vec(key, n, default):
+            v = node.get(key, default)
+            if not isinstance(v, list) or len(v) != n or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+                raise doc.fail(f"{where}.{key} must be {n} numbers")
+            return np.array(v, dtype=np.float64)
+
+        t, q, sc = vec("translation", 3, [0, 0, 0]), vec("rotation", 4, [0, 0, 0, 1]), vec("scale", 3, [1, 1, 1])
+        if not np.linalg.norm(q) > 0:
+            raise doc.fail(f"{where}.rotation is not a unit quaternion")
+        out[:3, :3] = _quat_to_matrix(q[None])[0] * sc[None, :]
+        out[:3, 3] = t
+    if not np.all(np.isfinite(out)):
+        raise doc.fail(f"{where} has a non-finite transform")
+    return out
+
+
+def _instances(doc: _Doc) -> list[tuple[int, int, np.ndarray]]:
+    """``(node, mesh, world matrix)`` of every mesh the file's scene shows, in scene order
+    (the default scene; without scenes, every root node)."""
+    n_nodes = doc.count("nodes")
+    if doc.count("scenes"):
+        scene_index = doc.get(doc.gltf, "scene", int, "the file", 0)
+        scene = doc.item("scenes", scene_index, "the file's 'scene'")
+        roots = doc.get(scene, "nodes", list, f"scenes[{scene_index}]", [])
+    else:
+        children = set()
+        for i in range(n_nodes):
+            kids = doc.item("nodes", i, "the file").get("children", [])
+            children.update(k for k in kids if isinstance(k, int)) if isinstance(kids, list) else None
+        roots = [i for i in range(n_nodes) if i not in children]
+    out: list[tuple[int, int, np.ndarray]] = []
+    seen: set[int] = set()
+    stack = [(r, np.eye(4), "the scene") for r in reversed(roots)]
+    while stack:
+        index, parent, where = stack.pop()
+        node = doc.item("nodes", index, where)
+        if index in seen:
+            raise doc.fail(f"nodes[{index}] appears twice in the node hierarchy (a cycle or a shared child)")
+        seen.add(index)
+        world = parent @ _local_matrix(doc, node, f"nodes[{index}]")
+        if "mesh" in node:
+            out.append((index, doc.get(node, "mesh", int, f"nodes[{index}]"), world))
+        kids = doc.get(node, "children", list, f"nodes[{index}]", [])
+        stack.extend((k, world, f"nodes[{index}].children") for k in reversed(kids))
+    return out
+
+
+def _transform(world: np.ndarray, vertices: np.ndarray, deltas: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertices (and morph deltas: linear part only) in the scene's space."""
+    if np.array_equal(world, np.eye(4)):
+        return vertices, deltas
+    lin = world[:3, :3]
+    v = vertices @ lin.T + world[:3, 3]
+    return v, (None if deltas is None else deltas @ lin.T)
+
+
+def _mesh_names(doc: _Doc) -> list:
+    return [doc.item("meshes", i, "the file").get("name", i) for i in range(doc.count("meshes"))]
+
+
+def _select(doc: _Doc, option: Any, instances: list, *, with_targets: bool) -> tuple[int, np.ndarray]:
+    """(mesh index, world matrix) for ``mesh=`` (mesh index, mesh name or node name) or the default."""
+    if option is not None and not isinstance(option, int):
+        for node, m, world in instances:  # a node name selects that instance
+            if doc.item("nodes", node, "the file").get("name") == option:
+                return m, world
+    index = doc.choose_mesh(option, with_targets=with_targets)
+    for _, m, world in instances:
+        if m == index:
+            return index, world
+    return index, np.eye(4)  # a mesh no node shows: its own space
+
+
 @guarded_reader
-def read_gltf_mesh(path: Path, *, mesh=None, **options) -> Mesh:
-    """The first mesh (or ``mesh=`` index/name) of a glTF file, primitives joined, targets ignored."""
+def read_gltf_mesh(path: Path, *, mesh=None, merge=None, **options) -> Mesh:
+    """The mesh a glTF scene shows, in scene space (node transforms applied), primitives
+    joined, morph targets ignored.
+
+    Several meshes in the scene: ``merge=True`` (the default) joins them all, each moved by
+    its node's world transform, in scene order; ``mesh=`` (a mesh index, mesh name or node
+    name) reads just that one; ``merge=False`` reads the first.
+    """
     doc = _load(path)
-    vertices, triangles, _, _ = doc.mesh(doc.choose_mesh(mesh, with_targets=False))
+    instances = _instances(doc)
+    if mesh is None and merge is not False and len(instances) > 1:
+        verts, tris, offset = [], [], 0
+        for _, m, world in instances:
+            if abs(np.linalg.det(world[:3, :3])) == 0.0:
+                continue  # a node scaled to zero is hidden (e.g. a frame of a flip-book animation)
+            v, t, _, _ = doc.mesh(m)
+            v, _ = _transform(world, v, None)
+            verts.append(v)
+            tris.append(t + offset)
+            offset += v.shape[0]
+        return Mesh(np.concatenate(verts), np.concatenate(tris), name=path.stem)
+    if mesh is None and instances:
+        index, world = instances[0][1], instances[0][2]
+    else:
+        index, world = _select(doc, mesh, instances, with_targets=False)
+    vertices, triangles, _, _ = doc.mesh(index)
+    vertices, _ = _transform(world, vertices, None)
     return Mesh(vertices, triangles, name=path.stem)
 
 
-def _rig_from(doc: _Doc, index: int) -> BlendshapeRig:
+def _rig_from(doc: _Doc, index: int, world: np.ndarray | None = None) -> BlendshapeRig:
     vertices, triangles, deltas, mesh = doc.mesh(index)
     if deltas is None:
         raise doc.fail(f"meshes[{index}] has no morph targets")
+    if world is not None:
+        vertices, deltas = _transform(world, vertices, deltas)
     names = doc.target_names(mesh, deltas.shape[0], f"meshes[{index}]")
     bounds = None
     extras = mesh.get("extras")
@@ -530,9 +640,14 @@ def _rig_from(doc: _Doc, index: int) -> BlendshapeRig:
 
 @guarded_reader
 def read_gltf_rig(path: Path, *, mesh=None, **options) -> BlendshapeRig:
-    """A :class:`BlendshapeRig` from the morph targets of a glTF mesh (names from ``extras.targetNames``)."""
+    """A :class:`BlendshapeRig` from the morph targets of a glTF mesh (names from
+    ``extras.targetNames``), in scene space (its node's world transform applied; deltas
+    by its linear part). ``mesh=`` (mesh index, mesh name or node name) picks one; by
+    default the mesh with the most morph targets. A file that also holds an animation
+    gives its character this way: ``load(path, kind="rig")``."""
     doc = _load(path)
-    return _rig_from(doc, doc.choose_mesh(mesh, with_targets=True))
+    index, world = _select(doc, mesh, _instances(doc), with_targets=True)
+    return _rig_from(doc, index, world)
 
 
 def _sample_keys(times: np.ndarray, values: np.ndarray, grid: np.ndarray, step: bool) -> np.ndarray:
@@ -965,10 +1080,21 @@ def glb_bytes(doc: dict, blob: bytes) -> bytes:
     return b"".join(out)
 
 
+def final_stem(path) -> str:
+    """The stem of the file ``path`` will become: a writer handed an atomic temporary
+    (``.NAME.PID.TOKEN.frtmp.glb``, or the batch runner's former ``.NAME.frbatch-...``)
+    names its nodes and meshes after ``NAME``, never after the temporary."""
+    from ._atomic import temp_owner
+
+    p = Path(path)
+    owner = temp_owner(p.name)
+    return Path(owner[0]).stem if owner is not None else p.stem
+
+
 def write_gltf(obj, path, *, force: bool = False, inputs=(), name: str | None = None, **options) -> None:
     """Write ``obj`` as ``.glb`` (binary) or ``.gltf`` (JSON with an embedded buffer), atomically."""
     p = Path(path)
-    doc, blob = glb_document(obj, name=name or p.stem or "faceretarget")
+    doc, blob = glb_document(obj, name=name or final_stem(p) or "faceretarget")
     if p.suffix.lower() == ".gltf":
         doc["buffers"][0]["uri"] = "data:application/octet-stream;base64," + base64.b64encode(blob).decode("ascii")
         data = json.dumps(doc, indent=1, allow_nan=False).encode("utf-8")

@@ -14,11 +14,13 @@ from __future__ import annotations
 import csv
 import io
 import re
+import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import FaceRetargetWarning, InputError
 from ..model import MarkerSequence
 from ._atomic import atomic_file, write_bytes
 from ._common import CHUNK_BYTES, chunk_work, TEXT_TOKEN_FACTOR, TextRows, bad, check_budget, fmt_float, fps_from_times, guarded_reader, iter_chunks, open_regular, parse_float, read_text, to_float32
@@ -274,6 +276,15 @@ def read_marker_csv(path: Path, *, fps=None, reference=None, **options) -> Marke
     return _markers(path, positions, names, fps, reference)
 
 
+def _final_name(path) -> str:
+    """The name ``path`` will have once written: a writer handed an atomic temporary
+    (``.NAME.PID.TOKEN.frtmp.EXT``) records ``NAME``, never the temporary's name."""
+    from ._atomic import temp_owner
+
+    owner = temp_owner(Path(path).name)
+    return owner[0] if owner is not None else Path(path).name
+
+
 def _check_names(names, what: str, forbidden: str) -> None:
     for n in names:
         if any(ch in n for ch in forbidden):
@@ -375,7 +386,7 @@ def write_trc(markers: MarkerSequence, path, *, force: bool = False, inputs=(), 
     _check_names(markers.names, "TRC", "\t\n\r")
     n_f, n_m, fps = markers.n_frames, markers.n_markers, fmt_float(markers.fps)
     lines = [
-        f"PathFileType\t4\t(X/Y/Z)\t{Path(path).name}",
+        f"PathFileType\t4\t(X/Y/Z)\t{_final_name(path)}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
         f"{fps}\t{fps}\t{n_f}\t{n_m}\t{units}\t{fps}\t1\t{n_f}",
         "Frame#\tTime\t" + "\t".join(f"{n}\t\t" for n in markers.names).rstrip("\t"),
@@ -392,45 +403,120 @@ def write_trc(markers: MarkerSequence, path, *, force: bool = False, inputs=(), 
 # ---------------------------------------------------------------------------------------
 # C3D
 # ---------------------------------------------------------------------------------------
+#: the second byte of every C3D file (the header's "key" 0x50)
+C3D_KEY = 0x50
+
+
+def _c3d_param_frames(reader) -> int | None:
+    """POINT:FRAMES (a 16-bit unsigned word, or a float in some writers), or None."""
+    param = reader.get("POINT:FRAMES")
+    if param is None:
+        return None
+    value = int(param.float_value) if param.bytes_per_element >= 4 else int(param.uint16_value)
+    if value == 65535:  # saturated: long takes store the count elsewhere
+        for name in ("TRIAL:ACTUAL_END_FIELD", "POINT:LONG_FRAMES"):
+            longer = reader.get(name)
+            if longer is not None:
+                if name == "TRIAL:ACTUAL_END_FIELD":
+                    words = longer.uint16_array
+                    return int(words[0]) + int(words[1]) * 65536 - int(reader.header.first_frame) + 1
+                return int(longer.float_value) if longer.bytes_per_element >= 4 else int(longer.uint16_value)
+    return value
+
+
+def _not_c3d(path: Path, head: bytes) -> str | None:
+    """Why ``head`` (the first bytes) is not a C3D header, or None when it could be one."""
+    if len(head) >= 2 and head[1] == C3D_KEY and head[0] >= 2:
+        return None
+    if len(head) >= 2 and head[1] == C3D_KEY:
+        return f"the header's parameter-block pointer is {head[0]} (a C3D file's parameters start at block 2 or later)"
+    shown = head[:16]
+    if shown[:1] in (b"{", b"[") or all(32 <= b < 127 or b in (9, 10, 13) for b in shown):
+        what = f"it starts with the text {shown.decode('ascii', 'replace')!r}"
+    else:
+        what = f"it starts with the bytes {shown[:8].hex(' ')}"
+    return (f"not a C3D file: a C3D file's second byte is 0x50 ('P'), this one's is "
+            f"0x{head[1]:02x} ({head[1]}) and {what}; check the file (or its extension)")
+
+
 @guarded_reader
-def read_c3d(path: Path, *, fps=None, reference=None, **options) -> MarkerSequence:
-    """Markers from a C3D file (``c3d`` package); a negative residual marks a missing sample."""
+def _read_c3d(path: Path, *, fps=None, reference=None, **options) -> tuple[MarkerSequence, list[str]]:
     import c3d
 
     size = path.stat().st_size
     if size < 512:
         raise bad(path, f"too short for a C3D file ({size} bytes; the header block alone is 512)")
+    notes: list[str] = []
     with open_regular(path) as fh:
-        reader = c3d.Reader(fh)
-        n_frames = int(reader.last_frame) - int(reader.first_frame) + 1
+        why = _not_c3d(path, fh.read(16))
+        if why is not None:
+            raise bad(path, why)
+        fh.seek(0)
+        try:
+            reader = c3d.Reader(fh)
+        except (AssertionError, ValueError, KeyError, IndexError, struct.error) as exc:
+            raise bad(path, f"the C3D header or parameter section is damaged ({type(exc).__name__}: {str(exc).strip()[:120]})") from None
         n_points = int(reader.point_used)
-        if n_frames <= 0 or n_points <= 0:
-            raise bad(path, f"declares {n_frames} frames and {n_points} markers; both must be positive")
-        check_budget(path, n_frames * n_points * 3 * 8.0, f"{n_frames} frames of {n_points} markers")
+        if n_points <= 0:
+            raise bad(path, f"declares {n_points} markers (POINT:USED); a marker file needs at least one")
+        header_frames = int(reader.header.last_frame) - int(reader.header.first_frame) + 1
+        param_frames = _c3d_param_frames(reader)
+        # what ezc3d does: POINT:FRAMES counts the frames; the header's last-frame word
+        # (16 bits, often stale or saturated) only when the parameter is absent
+        declared = param_frames if param_frames is not None and param_frames > 0 else header_frames
+        if param_frames is not None and param_frames > 0 and param_frames != header_frames:
+            notes.append(f"the header's frame range ({int(reader.header.first_frame)}..{int(reader.header.last_frame)}, "
+                         f"{header_frames} frames) disagrees with POINT:FRAMES ({param_frames}); POINT:FRAMES is used, as ezc3d does")
         word = 4 if float(reader.point_scale) < 0 else 2
         per_frame = (n_points * 4 + int(reader.analog_used) * int(reader.analog_per_frame)) * word
         start = (int(reader.header.data_block) - 1) * 512
-        if start < 0 or size < start + n_frames * per_frame:
-            raise bad(path, f"truncated: {n_frames} frames of {n_points} markers need {start + n_frames * per_frame} bytes, the file has {size}")
+        if start < 0 or start >= size or per_frame <= 0:
+            raise bad(path, f"the data section starts at byte {start} but the file has {size}; the header is damaged")
+        available = (size - start) // per_frame
+        n_frames = min(declared, available) if declared > 0 else available
+        if 0 < available < declared:
+            notes.append(f"declares {declared} frames but holds {available} complete ones (truncated?); read the {available} that are there")
+        if n_frames <= 0:
+            raise bad(path, f"holds no complete frame of {n_points} markers ({size - start} data bytes, {per_frame} per frame)")
+        check_budget(path, n_frames * n_points * 3 * 8.0, f"{n_frames} frames of {n_points} markers")
         labels = [str(lab).strip() for lab in list(reader.point_labels)[:n_points]]
         if len(labels) != n_points or any(not lab for lab in labels):
             labels = [lab or f"marker{i}" for i, lab in enumerate(labels)] + [f"marker{i}" for i in range(len(labels), n_points)]
         positions = np.full((n_frames, n_points, 3), np.nan)
         count = 0
         for count, (_, points, _) in enumerate(reader.read_frames(copy=False), 1):
-            if count > n_frames:
-                raise bad(path, f"holds more frames than the {n_frames} it declares")
             pts = np.asarray(points, dtype=np.float64)
             if pts.shape[0] != n_points or pts.shape[1] < 4:
                 raise bad(path, f"frame {count} holds {pts.shape[0]} points; {n_points} declared")
             ok = pts[:, 3] >= 0
             positions[count - 1, ok] = pts[ok, :3]
-        if count != n_frames:
-            raise bad(path, f"truncated: declares {n_frames} frames but holds {count}")
+            if count == n_frames:
+                break
+        if count < n_frames:  # the c3d package's own frame range ended first
+            notes.append(f"{n_frames} frames expected, {count} could be read; read those")
+            positions = positions[:count]
+            if count == 0:
+                raise bad(path, "holds no readable frame")
         rate = float(reader.point_rate)
     if not np.all(np.isfinite(positions[~np.isnan(positions)])):
         raise bad(path, "holds infinite coordinates")
-    return _markers(path, positions, labels, fps if fps is not None else rate, reference)
+    return _markers(path, positions, labels, fps if fps is not None else rate, reference), notes
+
+
+def read_c3d(path, *, fps=None, reference=None, **options) -> MarkerSequence:
+    """Markers from a C3D file (``c3d`` package); a negative residual marks a missing sample.
+
+    The frame count is read the way ezc3d reads it: ``POINT:FRAMES`` (or, for long takes,
+    ``TRIAL:ACTUAL_END_FIELD``/``POINT:LONG_FRAMES``), never more than the complete frames
+    the file actually holds; the header's 16-bit last-frame word is used only when the
+    parameter is missing. A disagreement, or a file shorter than it declares, is read and
+    reported with a :class:`~faceretarget.errors.FaceRetargetWarning`. A file that is not
+    C3D at all is a :class:`~faceretarget.errors.FileFormatError` saying so.
+    """
+    markers, notes = _read_c3d(path, fps=fps, reference=reference, **options)
+    for note in notes:
+        warnings.warn(f"{path}: {note}", FaceRetargetWarning, stacklevel=2)
+    return markers
 
 
 def write_c3d(markers: MarkerSequence, path, *, force: bool = False, inputs=(), **options) -> None:

@@ -122,13 +122,16 @@ def test_live_link_face_csv(tmp_path):
     path = tmp_path / "take.csv"
     path.write_text(_live_link(130))
     w = fr.load(path)
-    assert isinstance(w, WeightSequence) and w.names == LIVE_LINK_NAMES and w.n_frames == 130
+    # the 9 head/eye rotation columns are not blendshape weights
+    assert isinstance(w, WeightSequence) and w.names == LIVE_LINK_NAMES[:52] and w.n_frames == 130
+    assert sorted(w.extras["channels"]) == sorted(LIVE_LINK_NAMES[52:]) and w.head_motion.shape == (130, 4, 4)
     assert w.fps == pytest.approx(60.0, rel=1e-2)
     fr.save(w, tmp_path / "out.csv")
     assert (tmp_path / "out.csv").read_text().splitlines()[0].startswith("Timecode,BlendShapeCount,EyeBlinkLeft,")
     again = fr.load(tmp_path / "out.csv")
     np.testing.assert_array_equal(again.weights, w.weights)
-    assert again.names == w.names
+    np.testing.assert_array_equal(again.head_motion, w.head_motion)
+    assert again.names == w.names and again.fps == w.fps
 
 
 def test_live_link_wrong_blendshape_count(tmp_path):

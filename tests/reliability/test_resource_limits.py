@@ -53,7 +53,7 @@ def gltf_text(count_: int) -> str:
 
 
 def c3d_bytes() -> bytes:
-    """A valid C3D file whose header then declares 65535 frames."""
+    """A valid C3D file of a few frames whose header then declares 65535 frames."""
     data = bytearray(seed_of("c3d")[0].read_bytes())
     data[8:10] = struct.pack("<H", 65535)  # header word 5: last frame
     return bytes(data)
@@ -118,8 +118,12 @@ def test_crafted_header_declaring_huge_sizes(reader_name, tmp_path, monkeypatch)
     else:
         path.write_bytes(make())
     result, peak = read_measured(path, reader_name)
-    assert isinstance(result, (errors.ResourceLimitError, errors.FileFormatError)), f"{reader_name}: {result!r}"
-    assert str(path) in str(result), "the error names the file"
+    if reader_name == "c3d" and not isinstance(result, errors.FaceRetargetError):
+        # read as ezc3d does: POINT:FRAMES and the frames present, never the header's last frame
+        assert result.n_frames == fr.load(seed_of("c3d")[0], format="c3d").n_frames, result
+    else:
+        assert isinstance(result, (errors.ResourceLimitError, errors.FileFormatError)), f"{reader_name}: {result!r}"
+        assert str(path) in str(result), "the error names the file"
     assert peak < ALLOWANCE, f"{reader_name} allocated {peak / 2**20:.1f} MiB before refusing"
 
 
