@@ -4,11 +4,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 
-from .. import config
 from ..errors import DegenerateGeometryError, ShapeError
-from ..geometry.rbf import RBFInterpolant, _merge_duplicates, kernel_values
+from ..geometry.rbf import RBFInterpolant, _merge_duplicates, kernel_values, solve_system
 
 __all__ = ["rbf_warp"]
 
@@ -74,23 +72,5 @@ def rbf_warp(source_positions, target_positions, *, kernel: str = "linear") -> R
         raise DegenerateGeometryError(f"rbf_warp: the kernel width c={c!r} must be a positive, normal number")
     phi = kernel_values(r, kernel, c)
     use_linear = n > dim and np.linalg.matrix_rank(x - x.mean(axis=0)) == dim
-    poly = np.hstack([x, np.ones((n, 1))]) if use_linear else np.ones((n, 1))
-    m = poly.shape[1]
-    system = np.zeros((n + m, n + m))
-    system[:n, :n] = phi
-    system[:n, n:] = poly
-    system[n:, :n] = poly.T
-    rhs = np.zeros((n + m, y.shape[1]))
-    rhs[:n] = y
-    top = float(np.abs(phi).max()) if n > 1 else 0.0
-    system[:n, :n] += config.RIDGE_EPS * (top if top > 0 else 1.0) * np.eye(n)
-    try:
-        sol = scipy.linalg.solve(system, rhs, assume_a="sym")
-    except (np.linalg.LinAlgError, scipy.linalg.LinAlgError, ValueError) as exc:
-        raise DegenerateGeometryError(f"rbf_warp: the RBF system is singular ({exc}); check for coincident or collinear landmarks") from None
-    affine = np.zeros((dim + 1, y.shape[1]))
-    if use_linear:
-        affine[:] = sol[n:]
-    else:
-        affine[-1] = sol[n]
-    return _Warp(x, sol[:n], affine, kernel, float(c))
+    weights, affine = solve_system(x, y, phi, use_linear, "rbf_warp: the RBF system is singular ({}); check for coincident or collinear landmarks")
+    return _Warp(x, weights, affine, kernel, float(c))

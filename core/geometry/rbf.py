@@ -94,6 +94,17 @@ def fit_rbf(centers: np.ndarray, values: np.ndarray, *, kernel: str = "linear", 
         raise DegenerateGeometryError(f"fit_rbf: the kernel width c={c!r} must be a positive, normal number")
     phi = kernel_values(_distances(x, x), kernel, c)
     use_linear = polynomial and n > dim and np.linalg.matrix_rank(x - x.mean(axis=0)) == dim
+    weights, affine = solve_system(x, y, phi, use_linear, "fit_rbf: the RBF system is singular ({}); check for coincident or collinear centres")
+    return RBFInterpolant(x, weights, affine, kernel, float(c))
+
+
+def solve_system(x: np.ndarray, y: np.ndarray, phi: np.ndarray, use_linear: bool, message: str):
+    """Weights (N, K) and affine part (D+1, K) of the RBF interpolant with kernel matrix
+    ``phi`` (N, N) at centres ``x`` (N, D): the saddle-point system with the polynomial
+    (linear + constant if ``use_linear``, else constant) and a ridge relative to the largest
+    kernel value (so the fit does not depend on the length unit). ``message`` formats the
+    error raised when the system is singular."""
+    n, dim = x.shape
     poly = np.hstack([x, np.ones((n, 1))]) if use_linear else np.ones((n, 1))
     m = poly.shape[1]
     system = np.zeros((n + m, n + m))
@@ -102,18 +113,18 @@ def fit_rbf(centers: np.ndarray, values: np.ndarray, *, kernel: str = "linear", 
     system[n:, :n] = poly.T
     rhs = np.zeros((n + m, y.shape[1]))
     rhs[:n] = y
-    scale = max(float(np.abs(phi).max()), 1.0)
-    system[:n, :n] += config.RIDGE_EPS * scale * np.eye(n)
+    top = float(np.abs(phi).max()) if n > 1 else 0.0
+    system[:n, :n] += config.RIDGE_EPS * (top if top > 0 else 1.0) * np.eye(n)
     try:
         sol = scipy.linalg.solve(system, rhs, assume_a="sym")
     except (np.linalg.LinAlgError, scipy.linalg.LinAlgError, ValueError) as exc:
-        raise DegenerateGeometryError(f"fit_rbf: the RBF system is singular ({exc}); check for coincident or collinear centres") from None
+        raise DegenerateGeometryError(message.format(exc)) from None
     affine = np.zeros((dim + 1, y.shape[1]))
     if use_linear:
         affine[:] = sol[n:]
     else:
         affine[-1] = sol[n]
-    return RBFInterpolant(x, sol[:n], affine, kernel, float(c))
+    return sol[:n], affine
 
 
 def _merge_duplicates(x: np.ndarray, y: np.ndarray):
