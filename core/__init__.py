@@ -85,12 +85,7 @@ def get(name: str, **params) -> Retargeter:
     from .registry import registry
 
     entry = registry().resolve(name)
-    defaults = entry.cls.default_params()
-    unknown = sorted(set(params) - set(defaults))
-    if unknown:
-        raise UnknownNameError(
-            f"{entry.name} has no parameter(s) {', '.join(unknown)}; valid parameters: {', '.join(sorted(defaults)) or '(none)'}"
-        )
+    entry.cls.check_params(params, who=entry.name)
     return entry.cls(**params)
 
 

@@ -190,10 +190,39 @@ def check_number(value, name: str, *, integer: bool = False, low: float | None =
     return number
 
 
+def did_you_mean(name, choices, *, n: int = 3, cutoff: float = 0.6) -> str:
+    """``" (did you mean 'x'?)"`` naming the choices closest to ``name`` (difflib), or ``""``.
+
+    Matching ignores case (``"JawOpen"`` suggests ``"jawOpen"``) and also tries the name
+    with ``-``/``_`` swapped, so a typo in a method, parameter, case, format or shape name
+    gets the likely intended one.
+    """
+    import difflib
+
+    if not isinstance(name, str) or not name:
+        return ""
+    pool = [c for c in dict.fromkeys(choices) if isinstance(c, str)]
+    if not pool:
+        return ""
+    lowered: dict[str, str] = {}
+    for c in pool:
+        lowered.setdefault(c.lower(), c)
+    keys = [name.lower(), name.lower().replace("-", "_"), name.lower().replace("_", "-")]
+    found: list[str] = []
+    for key in keys:
+        if key in lowered and key != name:
+            found.append(lowered[key])
+        found.extend(lowered[m] for m in difflib.get_close_matches(key, list(lowered), n=n, cutoff=cutoff))
+    found = [f for f in dict.fromkeys(found) if f != name][:n]
+    if not found:
+        return ""
+    return " (did you mean " + " or ".join(repr(f) for f in found) + "?)"
+
+
 def check_choice(value, name: str, choices: Sequence[str]) -> str:
     """A string parameter that must be one of ``choices`` (InputError listing them otherwise)."""
     if not isinstance(value, str) or value not in choices:
-        raise InputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {short_repr(value)}")
+        raise InputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {short_repr(value)}{did_you_mean(value, choices)}")
     return value
 
 

@@ -1568,5 +1568,7 @@ def get_case(name: str, **options: Any) -> Case:
     try:
         make = CASES[name]
     except KeyError:
-        raise UnknownNameError(f"no case named {name!r}; built-in cases: {', '.join(CASES)}") from None
+        from ._validate import did_you_mean
+
+        raise UnknownNameError(f"no case named {name!r}{did_you_mean(name, CASES)}; built-in cases: {', '.join(CASES)}") from None
     return make(**options)

@@ -20,6 +20,7 @@ working. Messages say what was wrong *and* how to fix it.
     ├── NotFittedError (AttributeError)       retarget() before fit()
     ├── NumericalError (ArithmeticError)      a solve failed or is singular
     ├── FileFormatError (ValueError)          a file is malformed, truncated, unsupported
+    │   └── FormatMismatchError               not this format (another kind of file; a reader declines it)
     ├── OutputError (OSError)                 writing refused (would overwrite an input ...)
     ├── ResourceLimitError (MemoryError)      a file would exceed the memory budget
     ├── ConfigError (ValueError)              registry.toml, manifests, settings
@@ -50,6 +51,7 @@ __all__ = [
     "NotFittedError",
     "NumericalError",
     "FileFormatError",
+    "FormatMismatchError",
     "OutputError",
     "ResourceLimitError",
     "ConfigError",
@@ -120,6 +122,13 @@ class NumericalError(FaceRetargetError, ArithmeticError):
 
 class FileFormatError(FaceRetargetError, ValueError):
     """A file is malformed, truncated or not of a supported format; the message names the file."""
+
+
+class FormatMismatchError(FileFormatError):
+    """A file is not of the format its reader expects: its content says it is something
+    else (a PNG image named ``.c3d``: the message names what it looks like), or a reader
+    (a plugin's too) declines it. :func:`faceretarget.io.load` then tries the next reader
+    registered for the extension, if any."""
 
 
 class OutputError(FaceRetargetError, OSError):

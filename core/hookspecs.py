@@ -40,8 +40,16 @@ class Reader:
         ``"mesh_sequence"`` -> MeshSequence, ``"rig"`` -> BlendshapeRig,
         ``"markers"`` -> MarkerSequence, ``"weights"`` -> WeightSequence)
     extensions : lower-case suffixes with the dot (``(".obj",)``); ``("/",)`` for a folder format
-    read : ``read(path, **options)`` -> the model object; raises FileFormatError naming the file
+    read : ``read(path, **options)`` -> the model object; raises FileFormatError naming the
+        file, or :class:`~faceretarget.errors.FormatMismatchError` to decline a file that is
+        not of its format (the next reader for the extension is then tried)
     description : one line for ``faceretarget formats``
+    priority : precedence among readers of one extension and kind: the highest is tried
+        first; built-ins have 0; on a tie built-ins come first, then plugins in load order.
+        A plugin reader for an extension the core reads needs ``priority > 0`` to win
+        (``faceretarget formats`` lists the readers it shadows or is shadowed by)
+    accepts : optional ``accepts(path) -> bool``, asked before ``read``: False declines the
+        file (cheaply, e.g. by its first bytes) and the next reader is tried
     """
 
     name: str
@@ -49,6 +57,8 @@ class Reader:
     extensions: tuple[str, ...]
     read: Callable[..., Any]
     description: str = ""
+    priority: int = 0
+    accepts: Callable[..., bool] | None = None
 
 
 @dataclass(frozen=True)
@@ -56,7 +66,11 @@ class Writer:
     """A file format a plugin can write (atomically; never over an input).
 
     kind : what ``write`` accepts: one of ``DATA_KINDS``
-    write : ``write(obj, path, **options)`` -> None
+    write : ``write(obj, path, **options)`` -> None. :func:`faceretarget.io.save` hands it
+        a *temporary* path beside the destination (same suffix; an empty file, or an empty
+        folder for a ``"/"`` format) and moves the result into place itself, so a writer
+        never needs to care about ``force`` or inputs (see :func:`faceretarget.io.atomic_path`)
+    priority : precedence among writers of one extension and kind (highest first; built-ins 0)
     """
 
     name: str
@@ -64,6 +78,7 @@ class Writer:
     extensions: tuple[str, ...]
     write: Callable[..., Any]
     description: str = ""
+    priority: int = 0
 
 
 @dataclass(frozen=True)

@@ -511,13 +511,16 @@ class BlendshapeRig:
         return flat.reshape(w.shape[:-1] + (self.neutral.n_vertices, 3))
 
     def index(self, name: str) -> int:
-        """Position of shape ``name`` (exact match)."""
+        """Position of shape ``name`` (exact match; an unknown name is an
+        :class:`~faceretarget.errors.UnknownNameError` suggesting the closest shape names)."""
+        from ._validate import did_you_mean
         from .errors import UnknownNameError
 
         try:
             return self.names.index(name)
         except ValueError:
-            raise UnknownNameError(f"no blendshape named {name!r}; this rig has: {', '.join(self.names)}") from None
+            listed = ", ".join(self.names[:60]) + (f" ... ({len(self.names)} in all)" if len(self.names) > 60 else "")
+            raise UnknownNameError(f"no blendshape named {name!r}{did_you_mean(name, self.names)}; this rig has: {listed}") from None
 
     def __repr__(self) -> str:
         return f"BlendshapeRig({self.n_shapes} shapes on {self.neutral!r})"

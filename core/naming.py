@@ -208,7 +208,9 @@ class Mapping:
 
     def __getitem__(self, name: str) -> tuple[str, ...]:
         if name not in self.targets:
-            raise UnknownNameError(f"{name!r} is not one of the mapped names")
+            from ._validate import did_you_mean
+
+            raise UnknownNameError(f"{name!r} is not one of the mapped names{did_you_mean(name, self.targets)}")
         return self.targets[name]
 
     def matrix(self) -> np.ndarray:
@@ -312,7 +314,10 @@ def map_names(from_names, to_names, preset: str = "auto", mapping=None) -> Mappi
     for f, ts in explicit.items():
         unknown = [t for t in ts if t not in dst_set]
         if unknown:
-            raise UnknownNameError(f"mapping: {f!r} -> {unknown} names no target shape; targets are: {', '.join(dst[:60])}")
+            from ._validate import did_you_mean
+
+            hints = "".join(did_you_mean(t, dst) for t in unknown)
+            raise UnknownNameError(f"mapping: {f!r} -> {unknown} names no target shape{hints}; targets are: {', '.join(dst[:60])}")
     targets: dict[str, tuple[str, ...]] = {}
     rules: dict[str, str] = {}
     ignored = []

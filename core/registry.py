@@ -31,6 +31,7 @@ from typing import Any
 import pluggy
 
 from . import config
+from ._validate import did_you_mean
 from ._deadline import DeadlineExpired, deadline, grace_for, watchdog_process
 from .errors import ConfigError, DuplicatePluginError, PluginError, PluginLoadError, PluginTimeoutError, UnknownNameError
 from .hookspecs import DATA_KINDS, PROJECT, FaceRetargetSpec, Metric, Reader, Writer
@@ -346,6 +347,12 @@ class Registry:
             exts = record.extensions
             if not isinstance(exts, (tuple, list)) or not exts or not all(isinstance(e, str) and e for e in exts):
                 raise PluginLoadError(f"{where}: {record.name!r}: extensions must be a non-empty tuple of strings like (\".obj\",), got {exts!r}")
+            priority = getattr(record, "priority", 0)
+            if isinstance(priority, bool) or not isinstance(priority, (int, float)) or priority != priority:
+                raise PluginLoadError(f"{where}: {record.name!r}: priority must be a number (higher wins; built-ins have 0), got {priority!r}")
+            accepts = getattr(record, "accepts", None)
+            if accepts is not None and not callable(accepts):
+                raise PluginLoadError(f"{where}: {record.name!r}: accepts must be a callable accepts(path) -> bool or None, got {accepts!r}")
         return record
 
     def _check_duplicates(self, entries: list[RetargeterInfo], metrics: list[Metric], info: PluginInfo) -> None:
@@ -391,7 +398,8 @@ class Registry:
             note = ""
             if self.failures:
                 note = "; plugins that failed to load: " + ", ".join(f"{f.name} ({f.distribution})" for f in self.failures)
-            raise UnknownNameError(f"no retargeter named {name!r}; valid choices: {valid}{note}")
+            hint = did_you_mean(name, [*self.retargeters, *self.aliases])
+            raise UnknownNameError(f"no retargeter named {name!r}{hint}; valid choices: {valid}{note}")
         return self.retargeters[key]
 
 

@@ -106,6 +106,32 @@ _NEED_TEXT = {
 }
 
 
+#: Need -> the Python argument that supplies it (named by :class:`CapabilityError` from ``fit``;
+#: the command line names its own options, see ``faceretarget run --help``).
+PYTHON_ARGUMENTS = {
+    "blendshapes": "TargetRig(neutral, blendshapes=BlendshapeRig(...)) or load_target(RIG_FILE)",
+    "layers": "TargetRig(neutral, layers=LayeredRig(...))",
+    "landmarks": "TargetRig(neutral, landmarks=Landmarks(ids)) or load_target(path, landmarks=FILE)",
+    "feature_lines": "TargetRig(neutral, feature_lines={name: [vertex ids]}) or load_target(path, feature_lines=JSON)",
+    "examples": "TargetRig(neutral, examples=..., example_names=...) or load_target(path, examples=FILE)",
+    "source_landmarks": "Source(performance, landmarks=Landmarks(ids)) or load_source(path, landmarks=FILE)",
+    "source_examples": "Source(performance, examples=..., example_names=...) or load_source(path, examples=FILE)",
+    "source_feature_lines": "Source(performance, feature_lines={name: [vertex ids]}) or load_source(path, feature_lines=JSON)",
+    "actor_layers": "Source(performance, actor_layers=LayeredRig(...))",
+    "source_rig": "Source(weights, rig=BlendshapeRig(...)) or load_source(path, rig=RIG_FILE)",
+}
+
+
+def missing_needs(capabilities: Capabilities, source: Source, target: TargetRig) -> list[tuple[str, ...]]:
+    """The needs of ``capabilities`` that (source, target) lack, each as its tuple of alternatives."""
+    out = []
+    for need in capabilities.needs:
+        options = need if isinstance(need, tuple) else (need,)
+        if not any(_has(source, target, n) for n in options):
+            out.append(options)
+    return out
+
+
 class Retargeter:
     """Base class of every retargeter, built-in or third-party.
 
@@ -145,16 +171,28 @@ class Retargeter:
 
     def set_params(self, **params) -> "Retargeter":
         """Set constructor parameters; unknown names raise. Returns self."""
-        valid = set(self._param_names())
+        self.check_params(params, who=type(self).__name__)
         for k, v in params.items():
-            if k not in valid:
-                from .errors import UnknownNameError
-
-                raise UnknownNameError(
-                    f"{type(self).__name__} has no parameter {k!r}; valid parameters: {', '.join(sorted(valid)) or '(none)'}"
-                )
             setattr(self, k, v)
         return self
+
+    @classmethod
+    def check_params(cls, params, who: str | None = None) -> None:
+        """Raise :class:`~faceretarget.errors.UnknownNameError` for keyword names that are
+        not constructor parameters of this retargeter, each with the closest valid name
+        ("did you mean") and the full list of valid parameters."""
+        from ._validate import did_you_mean
+        from .errors import UnknownNameError
+
+        valid = cls._param_names()
+        unknown = [k for k in params if k not in valid]
+        if not unknown:
+            return
+        who = who or cls.name or cls.__name__
+        named = ", ".join(f"{k!r}{did_you_mean(k, valid)}" for k in unknown)
+        raise UnknownNameError(
+            f"{who} has no parameter{'s' if len(unknown) > 1 else ''} {named}; valid parameters: {', '.join(valid) or '(none)'}"
+        )
 
     def clone(self) -> "Retargeter":
         """A new unfitted retargeter with the same (deep-copied) parameters."""
@@ -175,11 +213,7 @@ class Retargeter:
             return f"{cls.name or cls.__name__} takes {' or '.join(caps.sources)} sources; this source is {source.kind}"
         if target is None:
             return None
-        missing = []
-        for need in caps.needs:
-            options = need if isinstance(need, tuple) else (need,)
-            if not any(_has(source, target, n) for n in options):
-                missing.append(" or ".join(_NEED_TEXT.get(n, n) for n in options))
+        missing = [" or ".join(_NEED_TEXT.get(n, n) for n in options) for options in missing_needs(caps, source, target)]
         if missing:
             return f"{cls.name or cls.__name__} needs {'; '.join(missing)}; this one lacks it"
         return None
@@ -191,7 +225,8 @@ class Retargeter:
             raise InputError(f"{self.name}.fit: target must be a faceretarget.TargetRig, got {type(target).__name__}")
         reason = self.why_not(source, target)
         if reason:
-            raise CapabilityError(reason)
+            hints = [" or ".join(PYTHON_ARGUMENTS.get(n, n) for n in options) for options in missing_needs(self.capabilities, source, target)]
+            raise CapabilityError(f"{reason}; give {'; '.join(hints)}" if hints else reason)
 
     def _check_fitted(self) -> None:
         if not getattr(self, "fitted_", False):

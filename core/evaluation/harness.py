@@ -44,6 +44,7 @@ from ..errors import (
     PluginOutputError,
     UnknownNameError,
 )
+from .._validate import did_you_mean
 from ..hookspecs import Metric
 from ..model import Animation
 from ..retargeter import Retargeter, _jsonable
@@ -107,7 +108,9 @@ def parse_case_spec(spec: str) -> tuple[str, dict[str, Any]]:
     name, _, query = spec.partition("?")
     name = name.strip()
     if name not in CASE_NAMES:
-        raise UnknownNameError(f"no case named {name!r}; valid cases: {', '.join(CASE_NAMES)} (optionally with ?key=value&...)")
+        raise UnknownNameError(
+            f"no case named {name!r}{did_you_mean(name, CASE_NAMES)}; valid cases: {', '.join(CASE_NAMES)} (optionally with ?key=value&...)"
+        )
     kwargs: dict[str, Any] = {}
     for pair in filter(None, query.split("&")):
         key, sep, value = pair.partition("=")
@@ -170,8 +173,9 @@ def _params_for(method: _Method, params: Mapping | None) -> dict:
     defaults = method.cls.default_params()
     unknown = sorted(set(given) - set(defaults))
     if unknown:
+        named = ", ".join(f"{k!r}{did_you_mean(k, defaults)}" for k in unknown)
         raise UnknownNameError(
-            f"params for {method.name}: no parameter(s) {', '.join(unknown)}; valid: {', '.join(sorted(defaults)) or '(none)'}"
+            f"params for {method.name}: no parameter(s) {named}; valid: {', '.join(sorted(defaults)) or '(none)'}"
         )
     return given
 
@@ -659,12 +663,14 @@ def compare(
     if params:
         unknown = sorted(set(params) - {m.name for m in chosen})
         if unknown:
-            raise UnknownNameError(f"params given for {', '.join(unknown)}, which is not among the compared methods {[m.name for m in chosen]}")
+            named = ", ".join(f"{u!r}{did_you_mean(u, [m.name for m in chosen])}" for u in unknown)
+            raise UnknownNameError(f"params given for {named}, which is not among the compared methods {[m.name for m in chosen]}")
     all_metrics = {name: m for name, (m, _) in registry.metrics.items()}
     if metrics is not None:
         missing = [m for m in metrics if m not in all_metrics]
         if missing:
-            raise UnknownNameError(f"no metric(s) {', '.join(missing)}; valid: {', '.join(all_metrics)}")
+            named = ", ".join(f"{m!r}{did_you_mean(m, all_metrics)}" for m in missing)
+            raise UnknownNameError(f"no metric(s) {named}; valid: {', '.join(all_metrics)}")
         all_metrics = {m: all_metrics[m] for m in metrics}
     if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs < 1:
         raise ConfigError(f"n_jobs must be an integer >= 1, got {n_jobs!r}")

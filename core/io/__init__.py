@@ -8,7 +8,20 @@ Public API::
     load_target(path, landmarks=None, **options) -> TargetRig
     save_bundle(obj, path.npz) / load_bundle(path.npz)
     read_landmarks(path) -> Landmarks
-    formats() -> list of (direction, name, kind, extensions, description, origin)
+    formats() -> list of (direction, name, kind, extensions, description, origin, precedence)
+
+    # the input-safe atomic writer, for plugin writers and applications alike
+    with atomic_path(dest, force=False, inputs=()) as tmp: ...   # write tmp; it replaces dest
+    with atomic_file(dest) as fh: ...                            # an open temporary file
+    with atomic_dir(dest) as tmp_folder: ...                     # a folder, swapped in whole
+    write_bytes(dest, data); note_input(path); is_input(path)
+
+Writing contract: :func:`save` hands every writer, built-in or a plugin's, a temporary
+path beside the destination and moves the result into place itself, so no writer can
+replace an existing file without ``force`` or an input of this process (files a reader
+opened, and ``inputs=``). Readers may decline a file (``Reader.accepts`` returning False,
+or raising :class:`~faceretarget.errors.FormatMismatchError`) and declare precedence
+(``Reader.priority``; built-ins 0, ties to built-ins); see docs/plugins.md.
 
 Readers and writers are looked up in ``faceretarget.registry.registry()`` (so a plugin's
 ``faceretarget_readers``/``faceretarget_writers`` hooks add formats): by the file
@@ -28,11 +41,13 @@ Built-in formats (kind: extensions):
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
 from ..errors import FileFormatError, InputError, UnknownNameError
 from ..hookspecs import DATA_KINDS, Reader, Writer, hookimpl
+from ._atomic import atomic_dir, atomic_file, atomic_path, is_input, note_input, write_bytes
 
 __all__ = [
     "load",
@@ -44,7 +59,14 @@ __all__ = [
     "read_landmarks",
     "read_feature_lines",
     "formats",
+    "shadow_note",
     "kind_of",
+    "atomic_path",
+    "atomic_dir",
+    "atomic_file",
+    "write_bytes",
+    "note_input",
+    "is_input",
 ]
 
 _MESH_EXT = (".obj", ".ply", ".off", ".stl")
@@ -183,37 +205,100 @@ def _sniff(path: Path, ext: str) -> str | None:
     return None
 
 
-def _choose_reader(path: Path, kind: str | None, fmt: str | None) -> Reader:
-    readers = [r for r, _ in _registry().readers]
+def _ranked(records: list, info_of: dict) -> list:
+    """``records`` in precedence order: highest ``priority`` first; on a tie built-ins
+    first, then plugins in the order they were loaded."""
+    order = {id(r): i for i, r in enumerate(records)}
+    return sorted(records, key=lambda r: (-getattr(r, "priority", 0), not info_of[id(r)].builtin, order[id(r)]))
+
+
+def _reader_order(path: Path, kind: str | None, fmt: str | None) -> list[Reader]:
+    """The readers to try for ``path``, in order (the first that does not decline reads it)."""
+    from .._validate import did_you_mean
+
+    pairs = _registry().readers
+    info_of = {id(r): info for r, info in pairs}
+    readers = [r for r, _ in pairs]
     if fmt is not None:
         for r in readers:
             if r.name == fmt:
-                return r
-        raise UnknownNameError(f"no reader named {fmt!r}; readers: {', '.join(sorted({r.name for r in readers}))}")
+                return [r]
+        names = sorted({r.name for r in readers})
+        raise UnknownNameError(f"no reader named {fmt!r}{did_you_mean(fmt, names)}; readers: {', '.join(names)}")
     ext = _ext(path)
     candidates = [r for r in readers if ext in r.extensions]
     if not candidates:
         known = sorted({e for r in readers for e in r.extensions})
         what = "folders" if ext == "/" else (f"'{ext}' files" if ext else "files without an extension")
-        raise FileFormatError(f"{path}: no reader for {what}; readable: {', '.join(known)}")
+        looks = ""
+        if path.is_file():
+            from ._common import sniff
+
+            found = sniff(path)
+            if found is not None and found[0] not in ("empty", "text"):
+                looks = f" (it looks like {found[1]})"
+        hint = did_you_mean(ext, known) if ext not in ("/", "") else ""
+        raise FileFormatError(f"{path}: no reader for {what}{looks}{hint}; readable: {', '.join(known)}")
     if kind is not None:
         if kind not in DATA_KINDS:
-            raise UnknownNameError(f"unknown kind {kind!r}; kinds: {', '.join(DATA_KINDS)}")
+            raise UnknownNameError(f"unknown kind {kind!r}{did_you_mean(kind, DATA_KINDS)}; kinds: {', '.join(DATA_KINDS)}")
         matching = [r for r in candidates if r.kind == kind]
         if not matching:
             raise FileFormatError(
                 f"{path}: '{ext}' files cannot be read as {kind}; they can be read as {', '.join(sorted({r.kind for r in candidates}))}"
             )
-        return matching[0]
+        return _ranked(matching, info_of)
     if len({r.kind for r in candidates}) > 1:
         try:
             sniffed = _sniff(path, ext)
-        except OSError:  # unreadable: the reader will say so, naming the file
+        except (OSError, FileFormatError):  # unreadable or another kind of file: the reader says so
             sniffed = None
-        for r in candidates:
-            if r.kind == sniffed:
-                return r
-    return candidates[0]
+        same = [r for r in candidates if r.kind == sniffed]
+        if same:
+            return _ranked(same, info_of)
+        first_kind = candidates[0].kind
+        return _ranked([r for r in candidates if r.kind == first_kind], info_of)
+    return _ranked(candidates, info_of)
+
+
+def _choose_reader(path: Path, kind: str | None, fmt: str | None) -> Reader:
+    """The reader of highest precedence for ``path`` (before any declines)."""
+    return _reader_order(path, kind, fmt)[0]
+
+
+def _read_with(readers: list[Reader], path: Path, options: dict) -> Any:
+    """Read ``path`` with the first of ``readers`` that does not decline it: a reader
+    declines through its ``accepts(path)`` returning False, or by raising
+    :class:`~faceretarget.errors.FormatMismatchError`. When all decline, the error of the
+    first reader that read and declined is raised (naming the others), else one saying
+    what the file looks like."""
+    from ..errors import FormatMismatchError
+    from ._common import format_mismatch
+
+    declined: list[str] = []
+    first_error: FormatMismatchError | None = None
+    for reader in readers:
+        if reader.accepts is not None:
+            try:
+                ok = bool(reader.accepts(path))
+                why = "its accepts() said no"
+            except Exception as exc:  # a broken accepts() declines, and says why
+                ok, why = False, f"its accepts() raised {type(exc).__name__}: {exc}"
+            if not ok:
+                declined.append(f"{reader.name} ({why})")
+                continue
+        try:
+            return reader.read(path, **options)
+        except FormatMismatchError as exc:
+            declined.append(reader.name)
+            first_error = first_error or exc
+    tried = ", ".join(declined)
+    if first_error is not None:
+        if len(declined) == 1:
+            raise first_error
+        raise FormatMismatchError(f"{first_error}; no reader took it (tried {tried})") from None
+    looks = format_mismatch(path) if path.is_file() else None
+    raise FormatMismatchError(f"{path}: {looks + '; ' if looks else ''}every reader for it declined it: {tried}")
 
 
 def load(path, kind: str | None = None, *, format: str | None = None, **options) -> Any:
@@ -229,13 +314,14 @@ def load(path, kind: str | None = None, *, format: str | None = None, **options)
 
     p = Path(path)
     check_regular(p, folder_ok=True)  # a FIFO or device is refused before anything opens it
+    note_input(p)  # whichever reader reads it (a plugin's too), no writer may replace it
     if kind is None and format is None and _ext(p) == ".npz":
         from .bundle import BUNDLE_TYPES, npz_kind
 
         stored = npz_kind(p)
         if stored is None or stored in BUNDLE_TYPES:  # a bundle, or let the npz reader say what is wrong
             return load_bundle(p)
-    return _choose_reader(p, kind, format).read(p, **options)
+    return _read_with(_reader_order(p, kind, format), p, options)
 
 
 def kind_of(obj: Any) -> str:
@@ -302,8 +388,63 @@ def save(obj: Any, path, *, force: bool = False, inputs=(), format: str | None =
                 f"{', '.join(sorted({w.kind for w in candidates}))}"
             )
         obj, matching = coerced, [w for w in candidates if w.kind == new_kind]
-    matching[0].write(obj, p, force=force, inputs=inputs, **options)
+    info_of = {id(w): info for w, info in _registry().writers}
+    writer = _ranked(matching, info_of)[0]
+    _write_through(writer, info_of[id(writer)], obj, p, force=force, inputs=inputs, options=options)
     return p
+
+
+def _write_through(writer: Writer, info, obj: Any, dest: Path, *, force: bool, inputs, options: dict) -> None:
+    """The one way any writer, built-in or a plugin's, reaches the disk: it is handed a
+    temporary path beside ``dest`` (an empty file with ``dest``'s suffix, or an empty
+    folder for a folder format) and, when it returns, the core checks the destination
+    again and moves the result into place (:func:`atomic_path` / :func:`atomic_dir`). So no
+    writer can replace an existing file without ``force`` or any input of this process,
+    and a crash never leaves a partial file. A writer that writes the destination or an
+    input itself instead of its temporary is a :class:`~faceretarget.errors.PluginOutputError`
+    and its result is discarded."""
+    from ._atomic import atomic_dir, atomic_path
+
+    folder = _ext(dest, writing=True) == "/" and "/" in writer.extensions
+    inputs = list(inputs)
+    if folder:
+        context = atomic_dir(dest, inputs=inputs, force=force, allowed_suffixes=None if info.builtin else _plugin_folder_suffixes(writer))
+    else:
+        context = atomic_path(dest, inputs=inputs, force=force)
+    with context as tmp:
+        watched = _watch(dest, inputs)
+        writer.write(obj, tmp, force=True, inputs=inputs, **options)
+        touched = [path for path, before in watched.items() if _stamp(path) != before]
+        if touched:
+            from ..errors import PluginOutputError
+
+            raise PluginOutputError(
+                f"writer {writer.name!r} ({info.origin}) wrote {', '.join(map(str, touched[:3]))} itself instead of the "
+                f"temporary path it was given ({tmp.name}); its output was discarded. A writer must write only the path "
+                "it is handed: faceretarget moves it into place (see docs/plugins.md, 'Readers and writers')"
+            )
+
+
+def _plugin_folder_suffixes(writer: Writer) -> tuple[str, ...]:
+    """Suffixes of the files an existing folder may hold for a plugin's folder writer to
+    replace it: the file formats registered for the same kind (never other content)."""
+    return tuple(sorted({e for w, _ in _registry().writers if w.kind in (writer.kind, "mesh") for e in w.extensions if e != "/"} | {".json"}))
+
+
+def _stamp(path: Path):
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+def _watch(dest: Path, inputs) -> dict:
+    """``{path: stamp}`` of the destination and every input: what a writer must not touch."""
+    from ._atomic import recorded_inputs
+
+    paths = {dest, *(Path(i) for i in inputs), *(Path(i) for i in recorded_inputs())}
+    return {p: _stamp(p) for p in paths if p == dest or not p.is_dir()}
 
 
 # ---------------------------------------------------------------------------------------
@@ -510,6 +651,8 @@ def load_source(path, *, kind: str | None = None, landmarks=None, rig=None, head
         rig = load(rig, kind="rig")
     if rig is not None and not isinstance(rig, BlendshapeRig):
         raise InputError(f"load_source: rig must be a BlendshapeRig or a rig file, got {type(rig).__name__}")
+    if head_motion is None:  # a Live Link Face take carries the head rotation (weights.py)
+        head_motion = getattr(obj, "head_motion", None)
     if isinstance(obj, WeightSequence) and rig is not None:
         obj = _weights_onto_rig(obj, rig, path, mapping, preset)
     if isinstance(head_motion, (str, Path)):
@@ -562,13 +705,43 @@ def load_target(path, landmarks=None, *, feature_lines=None, examples=None, kind
 
 
 def formats() -> list[dict[str, Any]]:
-    """Every registered reader and writer: direction, name, kind, extensions, description, origin."""
+    """Every registered reader and writer: direction, name, kind, extensions, description,
+    origin, ``priority``, and precedence among records of one extension and kind:
+    ``shadowed_by`` (``{extension: name of the record that wins}``; a shadowed reader
+    still gets the files the winner declines) and ``shadows`` (``{extension: [names]}``)."""
     reg = _registry()
     rows = []
     for direction, items in (("read", reg.readers), ("write", reg.writers)):
+        info_of = {id(rec): info for rec, info in items}
+        groups: dict[tuple[str, str], list] = {}
+        for rec, _ in items:
+            for ext in rec.extensions:
+                groups.setdefault((ext, rec.kind), []).append(rec)
+        shadowed_by: dict[int, dict[str, str]] = {}
+        shadows: dict[int, dict[str, list[str]]] = {}
+        for (ext, _), recs in groups.items():
+            ranked = _ranked(recs, info_of)
+            for loser in ranked[1:]:
+                shadowed_by.setdefault(id(loser), {})[ext] = ranked[0].name
+                shadows.setdefault(id(ranked[0]), {}).setdefault(ext, []).append(loser.name)
         for rec, info in items:
             rows.append({
                 "direction": direction, "name": rec.name, "kind": rec.kind, "extensions": list(rec.extensions),
                 "description": rec.description, "origin": info.origin, "builtin": info.builtin,
+                "priority": getattr(rec, "priority", 0), "declines": getattr(rec, "accepts", None) is not None,
+                "shadowed_by": shadowed_by.get(id(rec), {}), "shadows": shadows.get(id(rec), {}),
             })
     return rows
+
+
+def shadow_note(row: dict[str, Any]) -> str:
+    """One line on a :func:`formats` row's precedence, e.g. ``"shadowed by obj (.obj)"`` or
+    ``"wins over obj (.obj)"``; empty when it shares no extension and kind with another."""
+    parts = []
+    if row["shadowed_by"]:
+        by = ", ".join(f"{name} ({ext})" for ext, name in sorted(row["shadowed_by"].items()))
+        later = "; gets only files the winner declines" if row["direction"] == "read" else ""
+        parts.append(f"shadowed by {by}{later}")
+    if row["shadows"]:
+        parts.append("wins over " + ", ".join(f"{'/'.join(names)} ({ext})" for ext, names in sorted(row["shadows"].items())))
+    return "; ".join(parts)

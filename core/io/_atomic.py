@@ -396,24 +396,31 @@ def write_bytes(path, data: bytes, *, inputs: Iterable = (), force: bool = False
 
 
 @contextmanager
-def atomic_dir(path, *, inputs: Iterable = (), force: bool = False, allowed_suffixes: tuple[str, ...] = ()) -> Iterator[Path]:
+def atomic_dir(path, *, inputs: Iterable = (), force: bool = False, allowed_suffixes: tuple[str, ...] | None = ()) -> Iterator[Path]:
     """A temporary folder that replaces folder ``path`` when the ``with`` block succeeds.
 
     Files written into the yielded folder should be fsync-ed by the caller (use
     :func:`write_file_synced`). With ``force``, an existing destination folder is
     replaced only if it holds nothing but regular files whose suffixes are in
-    ``allowed_suffixes`` (so a user folder with other content is never deleted).
+    ``allowed_suffixes`` (so a user folder with other content is never deleted; ``None``
+    leaves that check to a writer given the temporary folder). When ``path`` is itself a
+    temporary folder handed out by an enclosing ``atomic_dir`` (as :func:`faceretarget.io.save`
+    gives writers), it is written directly and the enclosing block replaces the destination.
     """
+    direct = _DIRECT.get(os.path.abspath(path))
+    if direct is not None:  # a temporary folder handed out by atomic_dir: write into it
+        _check_foreign(direct, allowed_suffixes)
+        if is_input(direct, inputs):
+            raise OutputError(f"{direct}: refusing to write over an input; choose another output path")
+        with _typed_os_errors(direct):
+            yield Path(path)
+        return
     dest = check_destination(path, inputs=inputs, force=force, folder=True)
-    if dest.is_dir():
-        foreign = [c.name for c in dest.iterdir() if not (c.is_file() and c.suffix.lower() in allowed_suffixes)]
-        if foreign:
-            raise OutputError(
-                f"{dest}: the existing folder holds other content ({', '.join(sorted(foreign)[:5])}); "
-                "choose a new or empty output folder"
-            )
+    _check_foreign(dest, allowed_suffixes)
     remove_leftovers(dest)
     tmp, lock = _create_locked(dest, folder=True)
+    key = os.path.abspath(tmp)
+    _DIRECT[key] = dest
     try:
         with _typed_os_errors(dest):
             yield tmp
@@ -424,8 +431,23 @@ def atomic_dir(path, *, inputs: Iterable = (), force: bool = False, allowed_suff
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     finally:
+        _DIRECT.pop(key, None)
         _release(tmp, lock)
     _fsync_dir(dest.parent)
+
+
+def _check_foreign(dest: Path, allowed_suffixes) -> None:
+    """Refuse to replace an existing folder holding anything but regular files with
+    ``allowed_suffixes`` (``None``: not checked here; a writer given the temporary folder
+    checks it with its own suffixes)."""
+    if allowed_suffixes is None or not dest.is_dir():
+        return
+    foreign = [c.name for c in dest.iterdir() if not (c.is_file() and c.suffix.lower() in allowed_suffixes)]
+    if foreign:
+        raise OutputError(
+            f"{dest}: the existing folder holds other content ({', '.join(sorted(foreign)[:5])}); "
+            "choose a new or empty output folder"
+        )
 
 
 def _replace_dir(tmp: Path, dest: Path) -> None:

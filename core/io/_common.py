@@ -15,7 +15,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .. import config
-from ..errors import FaceRetargetError, FileFormatError, InputError, OutputError, ResourceLimitError
+from ..errors import FaceRetargetError, FileFormatError, FormatMismatchError, InputError, OutputError, ResourceLimitError
 from ._atomic import note_input
 
 __all__ = [
@@ -34,6 +34,9 @@ __all__ = [
     "split_arrays",
     "join_arrays",
     "fps_from_times",
+    "sniff",
+    "format_mismatch",
+    "mismatch_error",
 ]
 
 _SIZE_UNITS = ("B", "KiB", "MiB", "GiB", "TiB")
@@ -124,7 +127,14 @@ def guarded_reader(fn: Callable) -> Callable:
                     return fn(p, **options)
         except InputError as exc:
             message = str(exc)
-            raise FileFormatError(message if message.startswith(str(p)) else f"{p}: {message}") from None
+            raise _mismatch_or(p, FileFormatError(message if message.startswith(str(p)) else f"{p}: {message}")) from None
+        except FormatMismatchError:
+            raise
+        except FileFormatError as exc:  # a file of another kind fails its parser: say what it is
+            mismatch = _mismatch_or(p, None)
+            if mismatch is None:
+                raise
+            raise mismatch from None
         except FaceRetargetError:
             raise
         except MemoryError:
@@ -133,11 +143,20 @@ def guarded_reader(fn: Callable) -> Callable:
             raise FileFormatError(f"{p}: nested too deeply to read") from None
         except Exception as exc:  # parsers and third-party libraries raise anything on bad input
             detail = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-            raise FileFormatError(
+            raise _mismatch_or(p, FileFormatError(
                 f"{p}: not a readable file of this format ({type(exc).__name__}{': ' + detail[:200] if detail else ''})"
-            ) from None
+            )) from None
 
     return read
+
+
+def _mismatch_or(path: Path, error):
+    """The :class:`FormatMismatchError` naming what ``path`` really is, when its content is
+    another kind of file than its extension says (:func:`format_mismatch`); else ``error``."""
+    if not path.is_file():
+        return error
+    mismatch = mismatch_error(path)
+    return error if mismatch is None else mismatch
 
 
 _KINDS = (
@@ -507,3 +526,189 @@ def fps_from_times(times: np.ndarray, default: float) -> float:
     if snapped > 0 and abs(fps - snapped) <= 1e-6 * fps:
         return snapped
     return fps
+
+
+# ---------------------------------------------------------------------------------------
+# format sniffing: what a file actually is, from its first bytes
+# ---------------------------------------------------------------------------------------
+#: (prefix, family, what it is, usual extension); checked in order on the first bytes
+_MAGIC: tuple[tuple[bytes, str, str, str], ...] = (
+    (b"\x89PNG\r\n\x1a\n", "png", "a PNG image", ".png"),
+    (b"\xff\xd8\xff", "jpeg", "a JPEG image", ".jpg"),
+    (b"GIF87a", "gif", "a GIF image", ".gif"),
+    (b"GIF89a", "gif", "a GIF image", ".gif"),
+    (b"II*\x00", "tiff", "a TIFF image", ".tif"),
+    (b"MM\x00*", "tiff", "a TIFF image", ".tif"),
+    (b"%PDF-", "pdf", "a PDF document", ".pdf"),
+    (b"PK\x03\x04", "zip", "a ZIP archive", ".zip"),
+    (b"PK\x05\x06", "zip", "a ZIP archive (empty)", ".zip"),
+    (b"\x1f\x8b", "gzip", "a gzip-compressed file", ".gz"),
+    (b"7z\xbc\xaf\x27\x1c", "7z", "a 7-Zip archive", ".7z"),
+    (b"Rar!\x1a\x07", "rar", "a RAR archive", ".rar"),
+    (b"BZh", "bzip2", "a bzip2-compressed file", ".bz2"),
+    (b"\xfd7zXZ\x00", "xz", "an xz-compressed file", ".xz"),
+    (b"glTF", "glb", "a binary glTF (GLB) file", ".glb"),
+    (b"\x93NUMPY", "npy", "a NumPy .npy array", ".npy"),
+    (b"POINTCACHE2\x00", "pc2", "a PC2 point cache", ".pc2"),
+    (b"Kaydara FBX Binary", "fbx", "an FBX file", ".fbx"),
+    (b"SQLite format 3\x00", "sqlite", "an SQLite database", ".sqlite"),
+    (b"\x7fELF", "elf", "a compiled program (ELF)", ""),
+    (b"\x89HDF\r\n\x1a\n", "hdf5", "an HDF5 file", ".h5"),
+    (b"RIFF", "riff", "a RIFF file (WAV audio or AVI video)", ".wav"),
+    (b"OggS", "ogg", "an Ogg audio/video file", ".ogg"),
+    (b"ID3", "mp3", "an MP3 audio file", ".mp3"),
+)
+
+#: extension -> (what the extension promises, families whose content fits it). A family
+#: not listed (or a text file where a binary format is expected) is a mismatch; content
+#: nothing recognises (most binary data) never is: the reader's own error stands.
+EXPECTED: dict[str, tuple[str, frozenset[str]]] = {
+    ".c3d": ("a C3D file", frozenset({"c3d"})),
+    ".glb": ("a binary glTF (GLB) file", frozenset({"glb"})),
+    ".gltf": ("a glTF file", frozenset({"json", "glb"})),
+    ".obj": ("a Wavefront OBJ file", frozenset({"text", "obj"})),
+    ".off": ("an OFF file", frozenset({"text", "off"})),
+    ".ply": ("a PLY file", frozenset({"ply"})),
+    ".stl": ("an STL file", frozenset({"stl", "text"})),
+    ".npz": ("a NumPy .npz archive", frozenset({"zip", "npz"})),
+    ".npy": ("a NumPy .npy array", frozenset({"npy"})),
+    ".pc2": ("a PC2 point cache", frozenset({"pc2"})),
+    ".mdd": ("an MDD point cache", frozenset()),
+    ".trc": ("a TRC file", frozenset({"text", "trc", "csv"})),
+    ".csv": ("a CSV file", frozenset({"text", "csv", "trc"})),
+    ".json": ("a JSON file", frozenset({"json"})),
+    ".txt": ("a text file", frozenset({"text", "csv", "json", "obj", "off", "trc"})),
+}
+
+#: families that are text: a text file where a binary format is expected is a mismatch
+_TEXT_FAMILIES = frozenset({"text", "html", "xml", "svg", "json", "obj", "off", "trc", "csv", "stl-ascii"})
+_SNIFF_BYTES = 4096
+
+
+def _sniff_text(head: bytes) -> tuple[str, str, str] | None:
+    """(family, what, extension) of text content, or None if ``head`` is not text."""
+    if b"\x00" in head:
+        return None
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        if exc.start < len(head) - 4:  # not merely a character cut at the end of the sample
+            try:
+                text = head.decode("latin-1")
+            except UnicodeDecodeError:  # pragma: no cover - latin-1 decodes anything
+                return None
+            if sum(ch < 32 and ch not in (9, 10, 13, 12) for ch in head) > len(head) // 100:
+                return None
+        else:
+            text = head[: exc.start].decode("utf-8", "replace")
+    body = text.lstrip("\ufeff \t\r\n")
+    low = body[:512].lower()
+    if low.startswith(("<!doctype html", "<html")) or "<html" in low[:256] or ("<head" in low and "<body" in low):
+        return "html", "an HTML web page (a download that saved the page instead of the file?)", ".html"
+    if low.startswith("<svg") or ("<svg" in low[:256] and low.startswith("<?xml")):
+        return "svg", "an SVG image", ".svg"
+    if low.startswith("<?xml") or low.startswith("<"):
+        return "xml", "an XML document", ".xml"
+    if low.startswith(("{", "[")):
+        return "json", "JSON text", ".json"
+    first = next((ln.strip() for ln in body.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), "")
+    head_word = first.split(None, 1)[0].lower() if first else ""
+    if low.startswith("ply\n") or low.startswith("ply\r"):
+        return "ply", "a PLY mesh", ".ply"
+    if head_word in ("off", "coff", "noff", "cnoff"):
+        return "off", "an OFF mesh", ".off"
+    if low.startswith("solid") and "facet" in low:
+        return "stl", "an ASCII STL mesh", ".stl"
+    if head_word == "pathfiletype":
+        return "trc", "a TRC marker file", ".trc"
+    if head_word in ("v", "vn", "vt", "f", "mtllib", "o", "g", "usemtl", "s") and any(
+        ln.startswith("v ") for ln in body.splitlines()[:50]
+    ):
+        return "obj", "a Wavefront OBJ mesh", ".obj"
+    if first.count(",") >= 1 and all(ln.count(",") == first.count(",") for ln in body.splitlines()[1:6] if ln.strip()):
+        return "csv", "a CSV table", ".csv"
+    return "text", "a text file", ".txt"
+
+
+def sniff(path) -> tuple[str, str, str] | None:
+    """What a file actually is, from its first bytes: ``(family, description, usual
+    extension)``, e.g. ``("png", "a PNG image", ".png")``, or None when nothing is
+    recognised (most binary data without a signature: MDD, binary STL, raw arrays).
+
+    Never reads more than 4 KiB and never raises (an unreadable file is None).
+    """
+    try:
+        with open_regular(Path(path)) as fh:
+            size = os.fstat(fh.fileno()).st_size
+            head = fh.read(_SNIFF_BYTES)
+    except (OSError, FaceRetargetError):
+        return None
+    if not head:
+        return "empty", "an empty file (0 bytes)", ""
+    for prefix, family, what, ext in _MAGIC:
+        if head.startswith(prefix):
+            if family == "zip":
+                return _sniff_zip(path, family, what, ext)
+            if family == "riff" and head[8:12] in (b"WAVE", b"AVI ", b"WEBP"):
+                kind = {b"WAVE": ("a WAV audio file", ".wav"), b"AVI ": ("an AVI video", ".avi"), b"WEBP": ("a WebP image", ".webp")}[head[8:12]]
+                return family, kind[0], kind[1]
+            return family, what, ext
+    if head[4:8] == b"ftyp":
+        return "mp4", "an MP4/MOV video (or HEIC image)", ".mp4"
+    if len(head) >= 2 and 1 <= head[0] < 32 and head[1] == 0x50 and size >= 512:
+        return "c3d", "a C3D motion-capture file", ".c3d"
+    text = _sniff_text(head)
+    if text is not None:
+        return text
+    if size >= 84 and size == 84 + 50 * int.from_bytes(head[80:84], "little"):
+        return "stl", "a binary STL mesh", ".stl"
+    return None
+
+
+def _sniff_zip(path, family: str, what: str, ext: str) -> tuple[str, str, str]:
+    """A ZIP archive told apart: a NumPy .npz (every member ``.npy``) or an Office/other zip."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            names = zf.namelist()[:10000]
+    except Exception:
+        return family, what, ext
+    if names and all(n.endswith(".npy") for n in names):
+        return "npz", "a NumPy .npz archive", ".npz"
+    if "[Content_Types].xml" in names:
+        return family, "an Office document (a ZIP archive: .docx, .xlsx, .pptx ...)", ".docx"
+    return family, what, ext
+
+
+def format_mismatch(path, expected_ext: str | None = None) -> str | None:
+    """``"this looks like a PNG image, not a C3D file"`` when the file's content is
+    another kind of file than its extension (or ``expected_ext``) promises, else None.
+    Only a confident recognition counts: unknown binary content is never a mismatch."""
+    ext = (expected_ext or Path(path).suffix).lower()
+    if ext not in EXPECTED:
+        return None
+    found = sniff(path)
+    if found is None:
+        return None
+    family, what, real_ext = found
+    promised, fits = EXPECTED[ext]
+    if family in fits or (family == "npz" and "zip" in fits):
+        return None
+    if family == "empty":  # the reader says so in its own words
+        return None
+    if family == "text" and fits & _TEXT_FAMILIES:
+        return None
+    message = f"this looks like {what}, not {promised}"
+    if real_ext and real_ext != ext and real_ext in EXPECTED and real_ext != ".txt":
+        message += f"; if that is what it is, give it the {real_ext} extension"
+    return message
+
+
+def mismatch_error(path, expected_ext: str | None = None, detail: str = "") -> "FormatMismatchError | None":
+    """A :class:`FormatMismatchError` naming what ``path`` really is (see
+    :func:`format_mismatch`), or None when its content fits its extension."""
+    from ..errors import FormatMismatchError
+
+    message = format_mismatch(path, expected_ext)
+    if message is None:
+        return None
+    return FormatMismatchError(f"{path}: {message}" + (f" ({detail})" if detail else ""))

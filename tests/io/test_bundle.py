@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import warnings
 
 import numpy as np
 import pytest
@@ -123,12 +122,14 @@ def test_target_from_rig_file_with_landmarks_out_of_range(tmp_path, rig):
 
 
 def test_weight_source_is_mapped_onto_the_rig_names(tmp_path, rig):
-    curves = WeightSequence(np.random.default_rng(0).random((5, 3)), ["JawOpen", "eyeBlinkLeft", "HeadYaw"], fps=60)
+    values = np.random.default_rng(0).random((5, 5))
+    values[:, 3:] = 0.0  # no pitch or roll
+    curves = WeightSequence(values, ["JawOpen", "eyeBlinkLeft", "HeadYaw", "HeadPitch", "HeadRoll"], fps=60)
     fr.save(curves, tmp_path / "take.csv")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        src = load_source(tmp_path / "take.csv", rig=rig, mapping={"eyeBlinkLeft": "eyeBlink_L"})
-    assert any("HeadYaw" in str(w.message) for w in caught)  # set aside, and said so
+    src = load_source(tmp_path / "take.csv", rig=rig, mapping={"eyeBlinkLeft": "eyeBlink_L"})
+    # a Live Link head rotation column is the head motion, not a weight
+    yaw = curves.weights[:, 2]
+    np.testing.assert_allclose(src.head_motion[:, 0, 2], np.sin(yaw), atol=1e-6)
     assert src.performance.names == rig.names and src.rig is rig
     np.testing.assert_array_equal(src.performance.weights[:, 0], curves.weights[:, 0])
     np.testing.assert_array_equal(src.performance.weights[:, 2], 0)  # brow/up has no curve
