@@ -64,8 +64,8 @@ def _patch(caching) -> None:
 
 #: Printed once per process, on stderr, when the first of our kernels is not in the cache.
 COMPILE_NOTICE = (
-    "faceretarget: compiling numerical kernels for this machine, once (about 1-2 minutes in all on 2 cores; "
-    "later runs load them from the cache). `faceretarget warmup` does it ahead."
+    "faceretarget: compiling numerical kernels for this machine, once (a few minutes of CPU in all, more on a busy "
+    "machine; later runs load them from the cache). `faceretarget warmup` does it ahead."
 )
 _noticed = False
 

@@ -216,7 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "warmup", help="compile every numerical kernel ahead (once per machine), so the first real run does not wait",
         description="Fit and retarget every built-in method on tiny built-in cases, which compiles and caches the numba "
-        "kernels they use (the first run otherwise pauses for about 1-2 minutes on 2 cores); prints the time per method.",
+        "kernels they use (the first run otherwise pauses for a few minutes while they compile); prints the time per method.",
     )
     _attach(p, "faceretarget.evaluation.commands", "warmup")
     return parser
