@@ -1,168 +1,203 @@
-"""Benchmark of the coating method (Xu et al. 2014) at the paper's size.
+"""Benchmark of the coating method (Xu et al. 2014) at the paper's size, with per-frame
+deformation transfer (Sumner & Popovic 2004) as its baseline in the same process.
 
-80K-vertex synthetic face, 28 blendshape bases, a long performance (default 1,300
-frames: a generated clip tiled to length and stored as a float32 memory-mapped file).
-Prints, from one run:
+80K-vertex synthetic face, 28 blendshape bases, a long performance (default 1,300 frames:
+a generated clip tiled to length, stored as a float32 memory-mapped file). Wall time, min
+and median of >= 5 repeats:
 
-- one-time setup (Poisson and deformation-transfer factorizations, transfer of the 28
-  bases) apart from the per-frame work;
-- the transfer time per frame amortized over the sequence *including the source's
-  decomposition* (head-motion estimation, smoothing, coating, weights) and the
-  per-frame deformation_transfer baseline's time on the same frames;
-- the time to propagate a large-scale edit and a fine-scale (wrinkle) edit over the
-  whole sequence (the solve; re-synthesizing changed frames is reported apart);
-- memory: peak traced numpy memory of the chunked path (``retarget_to``), which does
-  not grow with the number of frames, and the process's peak RSS.
+- ``fit()`` (issue 16 item 4: under 4 s) and the per-frame cost amortized over the sequence
+  *including the source's decomposition* (fit + retarget minus the one-time factorizations
+  and basis transfer, divided by the frames; goal under 40 ms; paper ~127 ms on 8 cores),
+  against ``deformation_transfer``'s per-frame cost on the same frames;
+- one ``edit()`` call over the whole sequence (goal under 1 s; paper 4.5 s large-scale);
+- memory of the chunked path (``iter_retarget``): peak traced memory for all frames over
+  the peak for half of them (bounded by the chunk: about 1);
+- scaling 10K to 160K vertices: ``retarget()`` per frame of coating and of deformation
+  transfer, peak traced memory of fit + retarget, fitted log-log exponents.
 
-Targets (issue 6): transfer < 40 ms a frame on 2 cores (paper: ~127 ms on 8 cores),
-edit propagation over 1,300 frames < 1 s (paper: 4.5 s large-scale, 6.8 s fine-scale).
-
-    python benchmarks/bench_coating.py [--frames 1300] [--resolution 80000] [--clip 130]
-
-It takes a few minutes.
+    python benchmarks/bench_coating.py [--quick] [--json] [--frames 1300] [--resolution 80000] [--clip 130]
 """
 from __future__ import annotations
 
-import argparse
-import resource
+import shutil
+import statistics
+import sys
 import tempfile
 import time
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
 
-import faceretarget as fr
-from faceretarget.plugins.coating import DetailEdit
-from faceretarget.plugins.coating.retargeter import CoatingRetargeter, DeformationTransferRetargeter
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import _common as C  # noqa: E402
+
+import faceretarget as fr  # noqa: E402
+from faceretarget.plugins.coating.retargeter import CoatingRetargeter, DeformationTransferRetargeter  # noqa: E402
+
+SCALING_FULL = (10_000, 20_000, 40_000, 80_000, 160_000)
+SCALING_QUICK = (10_000, 40_000, 160_000)
 
 
-def _mib(n_bytes: float) -> str:
-    return f"{n_bytes / 2**20:,.0f} MiB"
+def stats(values) -> dict:
+    return {"min_s": min(values), "median_s": statistics.median(values), "times_s": list(values)}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=1300)
+def scaling(sizes, frames: int, repeat: int) -> list[dict]:
+    out = {"coating": ([], []), "deformation_transfer": ([], [])}
+    fits = {"coating": [], "deformation_transfer": []}
+    for res in sizes:
+        case = fr.cases.synthetic(seed=0, resolution=res, n_frames=frames)
+        for name, cls in (("coating", CoatingRetargeter), ("deformation_transfer", DeformationTransferRetargeter)):
+            r = cls()
+            t0 = time.perf_counter()
+            r.fit(case.source, case.target)
+            fits[name].append(time.perf_counter() - t0)
+            t = C.timeit(lambda: np.asarray(r.retarget(case.source).vertices), repeat)
+            t = {k: (v / frames if k != "times_s" else [x / frames for x in v]) for k, v in t.items() if k != "result"}
+            peak, _ = C.peak_memory(lambda: np.asarray(cls().fit(case.source, case.target).retarget(case.source).vertices))
+            out[name][0].append(t)
+            out[name][1].append(peak)
+            print(f"  {case.target.neutral.n_vertices:>7,} vertices, {name}: fit {C.fmt(fits[name][-1], 's')}, retarget per frame "
+                  f"min {C.fmt(t['min_s'], 's')}, median {C.fmt(t['median_s'], 's')}; peak traced memory of fit + retarget "
+                  f"{peak / 2**20:,.0f} MiB", flush=True)
+        del case
+    entries = []
+    for name, (t, p) in out.items():
+        e = C.scaling_entry(f"{name} retarget() per frame ({frames} frames; fit once)", "vertices (resolution)", sizes, t, p,
+                            extra={"fit_s": fits[name], "fit_exponent": C.fit_exponent(sizes, fits[name])},
+                            note="peak memory: tracemalloc over fit + retarget")
+        entries.append(e)
+        C.print_scaling(e)
+        print(f"    fit (one run each): " + ", ".join(C.fmt(x, "s") for x in fits[name]) + f"; exponent {e['fit_exponent']:.2f}")
+    return entries
+
+
+def main(argv=None) -> dict:
+    ap = C.parser(__doc__)
+    ap.add_argument("--frames", type=int, default=None, help="default 1300 (130 with --quick)")
     ap.add_argument("--resolution", type=int, default=80000)
     ap.add_argument("--clip", type=int, default=130, help="frames generated, then tiled to --frames")
     ap.add_argument("--bases", type=int, default=28)
-    ap.add_argument("--baseline-frames", type=int, default=96, help="frames timed for the deformation_transfer baseline")
-    args = ap.parse_args()
+    ap.add_argument("--baseline-frames", type=int, default=None, help="frames of the deformation_transfer baseline (default 96, 32 with --quick)")
+    ap.add_argument("--skip-scaling", action="store_true")
+    args = ap.parse_args(argv)
+    repeat = C.repeats(args)
+    n = args.frames or (130 if args.quick else 1300)
+    m = args.baseline_frames or (32 if args.quick else 96)
+    result = {"script": "bench_coating", "machine": C.print_machine("bench_coating"), "rows": [], "scaling": []}
 
     t0 = time.perf_counter()
-    case = fr.cases.synthetic(seed=0, resolution=args.resolution, n_frames=args.clip)
+    clip = min(args.clip, n)
+    case = fr.cases.synthetic(seed=0, resolution=args.resolution, n_frames=clip)
     perf = case.source.performance
-    print(f"case: {perf.n_vertices} vertices, {perf.triangles.shape[0]} triangles; generated {args.clip} frames in {time.perf_counter() - t0:.1f} s")
+    print(f"case: {perf.n_vertices} vertices, {perf.triangles.shape[0]} triangles; generated {clip} frames in {time.perf_counter() - t0:.1f} s")
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_coating_"))
-    path = tmp / "source.npy"
-    mm = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(args.frames, perf.n_vertices, 3))
-    for start in range(0, args.frames, args.clip):
-        stop = min(args.frames, start + args.clip)
-        mm[start:stop] = perf.vertices[: stop - start]
-    mm.flush()
-    del mm
-    source = fr.Source(
-        fr.MeshSequence(np.load(path, mmap_mode="r"), perf.triangles, reference=perf.reference),
-        feature_lines=case.source.feature_lines,
-    )
-    n = args.frames
-    print(f"source: {n} frames, float32 memory-mapped ({_mib(path.stat().st_size)} on disk)")
+    try:
+        path = tmp / "source.npy"
+        mm = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(n, perf.n_vertices, 3))
+        for start in range(0, n, clip):
+            stop = min(n, start + clip)
+            mm[start:stop] = perf.vertices[: stop - start]
+        mm.flush()
+        del mm
+        source = fr.Source(fr.MeshSequence(np.load(path, mmap_mode="r"), perf.triangles, reference=perf.reference),
+                           feature_lines=case.source.feature_lines)
+        print(f"source: {n} frames, float32 memory-mapped")
 
-    # warm up numba (compile or load the cache) on a tiny case, so timings are steady-state
-    tiny = fr.cases.synthetic(resolution=300, n_frames=4)
-    CoatingRetargeter().fit(tiny.source, tiny.target).retarget(tiny.source)
+        tiny = fr.cases.synthetic(resolution=300, n_frames=4)  # numba: compile or load the cache
+        CoatingRetargeter().fit(tiny.source, tiny.target).retarget(tiny.source)
+        DeformationTransferRetargeter().fit(tiny.source, tiny.target).retarget(tiny.source)
 
-    # ---- coating: fit (setup + per-frame source passes) and transfer --------------------
-    r = CoatingRetargeter(epsilon=1e-9, max_bases=args.bases)
-    t = time.perf_counter()
-    cpu = time.process_time()
-    r.fit(source, case.target)
-    fit_s = time.perf_counter() - t
-    fit_cpu = time.process_time() - cpu
-    setup_s = r.timings_["setup_s"]
-    bases_s = r.timings_["bases_s"]
-    t = time.perf_counter()
-    model = r.model_
-    model.set_source_bases(model.source_bases)  # time the basis transfer alone (same result)
-    transfer_bases_s = time.perf_counter() - t
-    stable_s = r.timings_["stable_pass_s"]
-    print(f"\ncoating fit: {fit_s:.1f} s = stable-vertex pass {stable_s:.1f} s + setup (factorizations) {setup_s:.1f} s"
-          f" + basis selection (smoothing {min(n, r.max_selection_frames)} candidate frames) and transfer {bases_s:.1f} s; "
-          f"{r.n_bases_} bases; basis transfer alone {transfer_bases_s:.2f} s")
+        # ---- coating: fit + retarget, repeated ----------------------------------------------
+        fits, amortized, rets, r, anim = [], [], [], None, None
+        for _ in range(repeat + 1):  # the first is the warm-up
+            r = CoatingRetargeter(epsilon=1e-9, max_bases=args.bases)
+            t = time.perf_counter()
+            r.fit(source, case.target)
+            fit_s = time.perf_counter() - t
+            t = time.perf_counter()
+            model = r.model_
+            model.set_source_bases(model.source_bases)  # the basis transfer alone (same result)
+            transfer_bases_s = time.perf_counter() - t
+            del anim
+            t = time.perf_counter()
+            anim = r.retarget(source)
+            ret_s = time.perf_counter() - t
+            one_time = r.timings_["setup_s"] + transfer_bases_s
+            fits.append(fit_s)
+            rets.append(ret_s)
+            amortized.append((fit_s + ret_s - one_time) / n)
+        fits, rets, amortized = fits[1:], rets[1:], amortized[1:]
+        print(f"coating fit {', '.join(f'{x:.2f}' for x in fits)} s; retarget {', '.join(f'{x:.2f}' for x in rets)} s; "
+              f"last setup (factorizations) {r.timings_['setup_s']:.2f} s")
 
-    t = time.perf_counter()
-    cpu = time.process_time()
-    anim = r.retarget(source)
-    retarget_s = time.perf_counter() - t
-    retarget_cpu = time.process_time() - cpu
-    one_time = setup_s + transfer_bases_s
-    per_frame = (fit_s + retarget_s - one_time) / n
-    print(f"coating retarget: {retarget_s:.1f} s for {n} frames ({1000 * retarget_s / n:.1f} ms a frame)")
-    print(f"  one-time setup (factorizations + basis transfer): {one_time:.2f} s")
-    print(f"  per frame, amortized, source decomposition included: {1000 * per_frame:.1f} ms   (target < 40 ms; paper ~127 ms on 8 cores)")
-    print(f"  (CPU time of fit + retarget, all threads: {1000 * (fit_cpu + retarget_cpu) / n:.1f} ms a frame; wall >> CPU / threads means a busy machine)")
+        # ---- deformation_transfer baseline ----------------------------------------------------
+        short = fr.Source(fr.MeshSequence(source.performance.vertices[:m], perf.triangles, reference=perf.reference))
+        base = []
+        for _ in range(repeat + 1):
+            b = DeformationTransferRetargeter()
+            t = time.perf_counter()
+            b.fit(short, case.target)
+            b_fit = time.perf_counter() - t
+            t = time.perf_counter()
+            b.retarget(short)
+            base.append((b_fit - b.timings_["setup_s"] + time.perf_counter() - t) / m)
+        base = base[1:]
+        result["rows"].append(C.time_row(
+            f"coating per frame amortized (source decomposition included), {perf.n_vertices:,} vertices, {n:,} frames",
+            stats(amortized), 0.040, baseline=(f"deformation_transfer per frame ({m} frames)", stats(base)),
+            source="issue 16 item 4", note="paper: ~127 ms on 8 cores"))
+        result["rows"].append(C.time_row(f"coating fit(), {perf.n_vertices:,} vertices, {n:,} frames", stats(fits), 4.0,
+                                         source="issue 16 item 4"))
 
-    # ---- deformation_transfer baseline on the same frames ------------------------------
-    m = args.baseline_frames
-    short = fr.Source(fr.MeshSequence(source.performance.vertices[:m], perf.triangles, reference=perf.reference))
-    b = DeformationTransferRetargeter()
-    t = time.perf_counter()
-    b.fit(short, case.target)
-    b_fit = time.perf_counter() - t
-    t = time.perf_counter()
-    b.retarget(short)
-    b_s = time.perf_counter() - t
-    b_setup = b.timings_["setup_s"]
-    print(f"deformation_transfer baseline: setup {b_setup:.2f} s; per frame {1000 * (b_fit - b_setup + b_s) / m:.1f} ms (over {m} frames)")
+        # ---- edit over the whole sequence -------------------------------------------------
+        names = list(case.target.landmarks.names)
+        corner = int(case.target.landmarks.vertex_ids[names.index("mouth_corner_L")])
+        h = case.target.neutral.height
+        key = int(np.argmax(anim.extras["weights"][:, 1:].sum(axis=1)))
+        goal = np.asarray(anim.vertices[key, corner]) + np.array([0.0, 0.02 * h, 0.0])
+        edit = C.timeit(lambda: r.edit(anim, points=[(key, corner, goal)], window=(0, n - 1), mode="both"), repeat)
+        d = edit["result"].provenance["diagnostics"]["last_edit"]
+        edit_peak, _ = C.peak_memory(lambda: r.edit(anim, points=[(key, corner, goal)], window=(0, n - 1), mode="both"))
+        print(f"edit(): propagation {1e3 * d['solve_s']:.0f} ms, re-synthesis {d.get('synthesis_s', float('nan')):.2f} s "
+              f"of {d.get('changed_frames')} changed frames (last call); peak traced memory {edit_peak / 2**20:,.0f} MiB")
+        result["rows"].append(C.time_row(f"coating edit() (large-scale, bases + weights), {n:,} frames", edit, 1.0,
+                                         source="issue 16 item 4",
+                                         note=f"goal stated for 1,300 frames; paper 4.5 s; peak traced {edit_peak / 2**20:,.0f} MiB"))
+        del edit
 
-    # ---- edit propagation over the whole sequence ----------------------------------------
-    names = list(case.target.landmarks.names)
-    corner = int(case.target.landmarks.vertex_ids[names.index("mouth_corner_L")])
-    h = case.target.neutral.height
-    key = int(np.argmax(anim.extras["weights"][:, 1:].sum(axis=1)))
-    goal = anim.vertices[key, corner] + np.array([0.0, 0.02 * h, 0.0])
-    # warm up (first-call kernel loading), as an interactive session would be
-    from faceretarget.plugins.coating.details import apply_detail_edit
-    from faceretarget.plugins.coating.editing import apply_large_scale
+        # ---- memory of the chunked path ---------------------------------------------------------
+        peaks = []
+        for count in (n // 2, n):
+            part = fr.Source(fr.MeshSequence(source.performance.vertices[:count], perf.triangles, reference=perf.reference),
+                             feature_lines=case.source.feature_lines)
+            out = np.lib.format.open_memmap(tmp / "target.npy", mode="w+", dtype=np.float32,
+                                            shape=(count, case.target.neutral.n_vertices, 3))
 
-    apply_large_scale(r, anim.extras["coating"], anim, points=[(key, corner, goal)], distances=None, fixed=None, window=None, mode="both", lambdas=(1.0, 1.0, 1000.0))
-    for mode in ("both", "bases", "weights"):
-        out = r.edit(anim, points=[(key, corner, goal)], window=(0, n - 1), mode=mode)
-        d = out.provenance["diagnostics"]["last_edit"]
-        print(f"large-scale edit ({mode:7s}) over {n} frames: propagation {1000 * d['solve_s']:.0f} ms (target < 1 s), "
-              f"re-synthesis of {d['changed_frames']} changed frames {d['synthesis_s']:.1f} s")
-        del out
-    uv = case.meta["target_uv"]
-    region = np.flatnonzero((np.abs(uv[:, 0]) < 0.12) & (uv[:, 1] > 0.70) & (uv[:, 1] < 0.80))
-    track = anim.extras["coating"]
-    magnitude = np.linalg.norm(track.fine_motion(slice(None), region), axis=-1).sum(axis=1)
-    key = int(np.argmax(magnitude))
-    apply_detail_edit(r, track, anim, DetailEdit(frame=key, vertices=region, operation="scale", factor=1.5, window=(max(0, key - 5), min(n - 1, key + 5))))
-    out = r.edit(anim, detail=DetailEdit(frame=key, vertices=region, operation="scale", factor=1.5, window=(0, n - 1)))
-    d = out.provenance["diagnostics"]["last_edit"]
-    print(f"fine-scale edit ({d['edited_vertices']} vertices) over {n} frames: propagation {1000 * d['solve_s']:.0f} ms (target < 1 s), "
-          f"re-synthesis {d['synthesis_s']:.1f} s")
-    del out, anim
+            def run():
+                for sl, vertices in r.iter_retarget(part):
+                    out[sl] = vertices
 
-    # ---- memory of the chunked path: the same peak for half and all of the frames -------------
-    print(f"\nprocess peak RSS so far (in-memory results, edits): {_mib(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)}")
-    frame_bytes = perf.n_vertices * 3 * 8
-    for count in (n // 2, n):
-        part = fr.Source(fr.MeshSequence(source.performance.vertices[:count], perf.triangles, reference=perf.reference), feature_lines=case.source.feature_lines)
-        out = np.lib.format.open_memmap(tmp / "target.npy", mode="w+", dtype=np.float32, shape=(count, case.target.neutral.n_vertices, 3))
-        tracemalloc.start()
-        for sl, vertices in r.iter_retarget(part):
-            out[sl] = vertices
-        _, peak = tracemalloc.get_traced_memory()
-        tracemalloc.stop()
-        del out
-        print(f"chunked iter_retarget into a .npy, {count} frames: peak traced memory {_mib(peak)} (= {peak / frame_bytes:.0f} float64 frames; "
-              f"chunk_frames={r.chunk_frames}); output {_mib((tmp / 'target.npy').stat().st_size)} on disk")
-    for p in tmp.iterdir():
-        p.unlink()
-    tmp.rmdir()
+            peaks.append(C.peak_memory(run)[0])
+            del out
+            print(f"chunked iter_retarget into a .npy, {count} frames: peak traced memory {peaks[-1] / 2**20:,.0f} MiB "
+                  f"(chunk_frames={r.chunk_frames})")
+        result["rows"].append(C.value_row(
+            f"coating iter_retarget peak memory, {n:,} frames / {n // 2:,} frames", peaks[1] / peaks[0], peaks[1] / peaks[0],
+            1.1, "x", "lower", source="issue 16 item 4 (bounded by the chunk)",
+            note=f"{peaks[0] / 2**20:,.0f} and {peaks[1] / 2**20:,.0f} MiB traced"))
+        del anim, r, source
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    C.print_rows(result["rows"])
+
+    if not args.skip_scaling:
+        print("scaling (synthetic cases, 10K to 160K vertices):")
+        result["scaling"] = scaling(SCALING_QUICK if args.quick else SCALING_FULL, 8 if args.quick else 16,
+                                    repeat)
+    return C.finish(result, args)
 
 
 if __name__ == "__main__":

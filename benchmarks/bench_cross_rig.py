@@ -12,18 +12,27 @@ With ``--seeds`` the case is drawn again with other seeds (other curves and othe
 perturbations of the target rig); ``--fidelity`` prints a compact table of the dense and
 marker figures against the bounded per-frame fit, one row per seed (errors only, no timing).
 
-Run: ``python benchmarks/bench_cross_rig.py [--repeat N] [--frames 300 1200] [--seeds 0 1 2] [--fidelity]``.
+Rows for ``run_all.py`` (``--json``), on the markers case at 300 frames: default ``spacetime``
+``retarget()`` (issue 13: under 10 ms warm) against the bounded per-frame fit, and reading
+``Animation.vertices`` of the result (issue 16 item 5: 300 x 9,409 under 20 ms) against the
+same product written as one numpy matmul.
+
+Run: ``python benchmarks/bench_cross_rig.py [--quick] [--json] [--repeat N] [--frames 300 1200] [--seeds 0 1 2] [--fidelity]``.
 """
 from __future__ import annotations
 
-import argparse
-import os
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-import faceretarget as fr
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import _common as C  # noqa: E402
+
+import faceretarget as fr  # noqa: E402
 
 METHODS = [
     ("spacetime_noconst", {}, "per-frame least squares (baseline)"),
@@ -35,18 +44,12 @@ METHODS = [
 ]
 
 
-def blas_threads() -> str:
-    try:
-        from threadpoolctl import threadpool_info
-
-        return ", ".join(f"{i['internal_api']} {i['num_threads']}" for i in threadpool_info() if i.get("user_api") == "blas") or "?"
-    except ImportError:
-        return os.environ.get("OPENBLAS_NUM_THREADS", "default (threadpoolctl not installed)")
-
-
-def measure(case, name, params, repeat):
+def measure(case, name, params, repeat, timings=None):
+    """Errors and times of one method; ``timings`` (a dict) receives the raw ``retarget()`` and
+    ``.vertices`` times."""
     r = fr.get(name, **params).fit(case.source, case.target)
     anim = r.retarget(case.source)
+    np.asarray(anim.vertices)  # warm: first evaluation of the lazy vertices
     times, vertex_times = [], []
     for _ in range(repeat):
         start = time.perf_counter()
@@ -61,6 +64,10 @@ def measure(case, name, params, repeat):
     vel = 100 * np.sqrt(np.mean(np.sum((np.diff(got, axis=0) - np.diff(want, axis=0)) ** 2, axis=-1))) / height
     w = anim.weights
     outside = float(np.mean((w < -1e-9) | (w > 1 + 1e-9))) if w is not None else float("nan")
+    if timings is not None and times:
+        timings["retarget"] = {"min_s": min(times), "median_s": statistics.median(times), "times_s": times}
+        timings["vertices"] = {"min_s": min(vertex_times), "median_s": statistics.median(vertex_times), "times_s": vertex_times}
+        timings["anim"] = anim
     if not times:
         return rms, vel, outside, float("nan"), float("nan"), float("nan")
     return rms, vel, outside, min(times), statistics.median(times), statistics.median(vertex_times)
@@ -81,27 +88,49 @@ def fidelity(frames: list[int], seeds: list[int]) -> None:
             print(f"{n:6d} {seed:4d} {base:10.3f} " + " ".join(f"{r:>15s}" for r in row), flush=True)
 
 
-def main(repeat: int, frames: list[int], seeds: list[int]) -> None:
-    load = os.getloadavg()[0]
-    print(f"{os.cpu_count()} CPUs, load average {load:.2f}, BLAS threads: {blas_threads()}; retarget() wall time, "
-          f"min / median of {repeat} warm runs; .vertices (evaluated lazily) timed apart")
-    for n, seed, kind in ((n, seed, kind) for n in frames for seed in seeds for kind in ("markers", "mesh")):
-            case = fr.cases.cross_rig(seed=seed, n_frames=n, source_kind=kind)
-            print(f"\ncross_rig, seed {seed}, {n} frames, {kind} source")
-            print(f"{'method':40s} {'RMS %':>7s} {'vel %/fr':>9s} {'outside':>8s} {'min ms':>8s} {'med ms':>8s} {'.vertices med ms':>17s}")
-            for name, params, label in METHODS:
-                rms, vel, outside, tmin, tmed, tvert = measure(case, name, params, repeat)
-                print(f"{label:40s} {rms:7.3f} {vel:9.4f} {100 * outside:7.1f}% {1e3 * tmin:8.1f} {1e3 * tmed:8.1f} {1e3 * tvert:17.1f}")
+def main(argv=None) -> dict:
+    parser = C.parser(__doc__)
+    parser.add_argument("--frames", type=int, nargs="+", default=None, help="default 300 1200 (300 with --quick)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--fidelity", action="store_true", help="errors only, one row per seed")
+    args = parser.parse_args(argv)
+    frames = args.frames or ([300] if args.quick else [300, 1200])
+    if args.fidelity:
+        fidelity(frames, args.seeds)
+        return {}
+    repeat = C.repeats(args)
+    result = {"script": "bench_cross_rig", "machine": C.print_machine("bench_cross_rig"), "rows": [], "scaling": []}
+    print(f"retarget() wall time, min / median of {repeat} warm runs; .vertices (evaluated lazily) timed apart")
+    kinds = ("markers",) if args.quick else ("markers", "mesh")
+    for n, seed, kind in ((n, seed, kind) for n in frames for seed in args.seeds for kind in kinds):
+        case = fr.cases.cross_rig(seed=seed, n_frames=n, source_kind=kind)
+        print(f"\ncross_rig, seed {seed}, {n} frames, {kind} source")
+        print(f"{'method':40s} {'RMS %':>7s} {'vel %/fr':>9s} {'outside':>8s} {'min ms':>8s} {'med ms':>8s} {'.vertices med ms':>17s}")
+        got = {}
+        for name, params, label in METHODS:
+            timings = {}
+            rms, vel, outside, tmin, tmed, tvert = measure(case, name, params, repeat, timings)
+            got[label] = timings
+            print(f"{label:40s} {rms:7.3f} {vel:9.4f} {100 * outside:7.1f}% {1e3 * tmin:8.1f} {1e3 * tmed:8.1f} {1e3 * tvert:17.1f}", flush=True)
+        if (n, seed, kind) == (frames[0], args.seeds[0], "markers") and n == 300:
+            ours, base = got["spacetime default"], got["bounded per-frame [0, 1] (baseline)"]
+            result["rows"].append(C.time_row(
+                "spacetime retarget(), cross_rig markers (68 landmarks), 300 frames", ours["retarget"], 0.010,
+                baseline=("bounded per-frame fit (spacetime_rangepf) retarget()", base["retarget"]), source="issue 13"))
+            anim = ours["anim"]
+            rig = case.target.blendshapes
+            w = np.asarray(anim.weights, dtype=np.float64)
+            flat = np.asarray(rig.deltas, dtype=np.float64).reshape(len(rig.names), -1)
+            neutral = np.asarray(case.target.neutral.vertices, dtype=np.float64).ravel()
+            plain = C.timeit(lambda: (w @ flat + neutral).reshape(len(w), -1, 3), repeat)
+            n_vertices = case.target.neutral.n_vertices
+            result["rows"].append(C.time_row(
+                f"Animation.vertices of a blendshape result, {len(w)} frames x {n_vertices:,} vertices", ours["vertices"], 0.020,
+                baseline=("numpy weights @ deltas + neutral (no head motion)", plain), source="issue 16 item 5",
+                note="spacetime default on cross_rig markers"))
+    C.print_rows(result["rows"])
+    return C.finish(result, args)
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeat", type=int, default=5)
-    parser.add_argument("--frames", type=int, nargs="+", default=[300, 1200])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0])
-    parser.add_argument("--fidelity", action="store_true", help="errors only, one row per seed")
-    args = parser.parse_args()
-    if args.fidelity:
-        fidelity(args.frames, args.seeds)
-    else:
-        main(args.repeat, args.frames, args.seeds)
+    main()

@@ -3,7 +3,8 @@
 
     python benchmarks/bench_dense_fidelity.py [--frames 60] [--detail-resolution 1500] [--skip cross,units,detail,cross-detail,piercing]
 
-Prints tables (no pass/fail, no timing), each with the figure it is compared against:
+A fidelity benchmark: it prints no timings (so it has no time baseline) and ``run_all.py``
+does not run it. Prints tables (no pass/fail, no timing), each with the figure it is compared against:
 
 - **cross-topology** (``cases.cross_topology()``): the source resting at its neutral must give
   the target's neutral (RMS < 0.01% of the face height); RMS error of the performance
@@ -26,7 +27,9 @@ Prints tables (no pass/fail, no timing), each with the figure it is compared aga
 from __future__ import annotations
 
 import argparse
+import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -35,6 +38,9 @@ from faceretarget.evaluation.metrics import METRICS, normal_detail, to_head_fram
 from faceretarget.evaluation.presets import DETAIL_CASES
 from faceretarget.evaluation.harness import resolve_case
 from faceretarget.testing import _Affine, _moved_source, _moved_target, _static_source
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
 
 METHODS = ("deformation_transfer", "coating", "normalmesh")
 SCALES = (0.01, 100.0, 1000.0)
@@ -183,12 +189,13 @@ def piercing(frames: int) -> None:
     table(rows, ("levels", "used", "normal-mesh vertices", "target share (%)", "source mean per frame (%)", "covered (%)", "RMS (% H)"))
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--detail-resolution", type=int, default=None, help="resolution of the detail cases (default: the presets')")
     ap.add_argument("--skip", default="", help="comma-separated parts to skip: cross, units, detail, cross-detail, piercing")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    C.print_machine("bench_dense_fidelity (errors only, no timings)")
     skip = set(filter(None, args.skip.split(",")))
     if "cross" not in skip:
         cross_topology(args.frames)

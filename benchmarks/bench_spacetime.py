@@ -1,39 +1,43 @@
-"""Benchmark of the spacetime solver (Seol et al. 2012) at the paper's sizes.
+"""Benchmark of the spacetime retargeter (Seol et al. 2012) at the paper's sizes.
 
-54 markers, 50 blendshapes, PCA prior on. Prints (no pass/fail):
+54 markers, 50 blendshapes, PCA prior on. Every figure is wall time, min and median of
+>= 5 warm repeats, with its baseline timed in the same process:
 
-- the structured solve at 1,500 frames (paper, Table I: 47.38 s in Matlab; target here
-  < 5 ms) against the assembled sparse system solved with scipy ``spsolve`` in the same run
-  (target: >= 100x faster), their agreement and normal-equation residuals;
-- the structured solve at 10,000 frames (target < 50 ms; ``spsolve`` is not run there: it
-  can exhaust memory and end the interpreter, see PERF_NOTES) and the peak memory of the
-  solve at several lengths (tracemalloc), which should grow linearly with frames;
-- a spacetime edit with a 12-frame window through ``SpacetimeRetargeter.edit`` (target < 1 ms);
-- the whole ``retarget()`` (head-motion estimation included) for reference.
+- the structured solve at 1,500 frames (paper, Table I: 47.38 s in Matlab) against scipy
+  ``spsolve`` on the *already assembled* sparse system (assembly is timed apart, not in
+  the baseline); agreement and normal-equation residuals;
+- the whole ``retarget()`` (head-motion estimation included) at 1,500 and 10,000 frames
+  (issue 16: under 5 ms and 50 ms) against the per-frame least-squares baseline
+  (``spacetime_noconst``), and its peak memory per frame (goal under 4 KB a frame);
+- the bounded solve (weights in [0, 1], ADMM) against the unconstrained solve (issue 13:
+  within 10x);
+- a 12-frame ``edit()`` against the window solve alone;
+- scaling: ``retarget()`` and the solve from 150 to 100,000 frames, with the fitted
+  log-log exponent and the peak traced memory (tracemalloc) per size.
 
-Run: ``python benchmarks/bench_spacetime.py [--repeat N]``.
+Run: ``python benchmarks/bench_spacetime.py [--quick] [--repeat N] [--json]``.
 """
 from __future__ import annotations
 
-import argparse
-import os
-import statistics
 import sys
-import time
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # naive references
+
+import _common as C  # noqa: E402
 
 import faceretarget as fr  # noqa: E402
 from faceretarget.plugins.spacetime.prior import fit_prior  # noqa: E402
 from faceretarget.plugins.spacetime.retargeter import SpacetimeRetargeter  # noqa: E402
-from faceretarget.plugins.spacetime.solver import BoundedStats, System, solve_movement, solve_movement_bounded  # noqa: E402
+from faceretarget.plugins.spacetime.solver import System, solve_movement, solve_movement_bounded  # noqa: E402
 from naive import spacetime as naive  # noqa: E402
 
 N_MARKERS, N_SHAPES = 54, 50
+SCALING_FULL = (150, 500, 1500, 5000, 15_000, 50_000, 100_000)
+SCALING_QUICK = (150, 1500, 15_000, 100_000)
 
 
 def problem(n_frames: int, seed: int = 0):
@@ -58,104 +62,8 @@ def problem(n_frames: int, seed: int = 0):
     return system, deltas, known, values
 
 
-def timed(fn, repeat: int) -> tuple[float, object]:
-    """Best-of-``repeat`` time (the machine's undisturbed speed) and the result; the median
-    goes to ``MEDIANS`` (it shows how much a busy machine slows the run)."""
-    times, out = [], None
-    for _ in range(repeat):
-        start = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - start)
-    MEDIANS.append(statistics.median(times))
-    return min(times), out
-
-
-MEDIANS: list[float] = []
-
-
-def ms(seconds: float) -> str:
-    return f"{1e3 * seconds:8.2f} ms (median {1e3 * MEDIANS[-1]:.2f})"
-
-
-def peak_memory(fn) -> int:
-    tracemalloc.start()
-    fn()
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    return peak
-
-
-def main(repeat: int) -> None:
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"{os.cpu_count()} CPUs, load average {load:.1f}; times are best of N runs (median in brackets)")
-    start = time.perf_counter()
-    system, deltas, known, values = problem(16)
-    solve_movement(system, deltas, known, values)  # numba: compile or load the cache
-    print(f"first call (numba compile or cache load + eigendecomposition): {1e3 * (time.perf_counter() - start):.0f} ms")
-
-    # ---- 1,500 frames: structured vs assembled sparse ------------------------------
-    system, deltas, known, values = problem(1500)
-    _ = system.modal  # the m x m generalized eigendecomposition is part of fit()
-    t_fast, w_fast = timed(lambda: solve_movement(system, deltas, known, values), repeat)
-    kw = dict(prior_matrix=system.prior_matrix, prior_vector=system.prior_vector, ridge=system.ridge_matrix)
-    fast_text = ms(t_fast)
-    t_sparse, w_sparse = timed(lambda: naive.solve_kronecker(system.basis, deltas, known, values, **kw), max(1, repeat // 10))
-    sparse_text = ms(t_sparse)
-    rel = np.linalg.norm(w_fast - w_sparse) / np.linalg.norm(w_sparse)
-    res_fast = naive.kronecker_residual(w_fast, system.basis, deltas, known, values, **kw)
-    res_sparse = naive.kronecker_residual(w_sparse, system.basis, deltas, known, values, **kw)
-    print(f"1,500 frames, {N_MARKERS} markers, {N_SHAPES} shapes, prior on:")
-    print(f"  structured solve   {fast_text}   (target < 5 ms; paper: 47,380 ms in Matlab)")
-    print(f"  assembled spsolve  {sparse_text}")
-    print(f"  speed-up           {t_sparse / t_fast:8.0f} x   (target >= 100 x)")
-    print(f"  agreement          {rel:.1e} relative; normal-equation residual {res_fast:.1e} (structured), {res_sparse:.1e} (spsolve)")
-
-    # ---- 10,000 frames and memory -------------------------------------------------
-    system10, deltas10, known10, values10 = problem(10_000)
-    _ = system10.modal
-    t_long, w_long = timed(lambda: solve_movement(system10, deltas10, known10, values10), repeat)
-    print(f"10,000 frames: structured solve {ms(t_long)} (target < 50 ms); "
-          f"normal-equation residual {naive.kronecker_residual(w_long, system10.basis, deltas10, known10, values10, prior_matrix=system10.prior_matrix, prior_vector=system10.prior_vector, ridge=system10.ridge_matrix):.1e}")
-    print("peak memory of the solve (tracemalloc; input not counted):")
-    for n_frames in (1500, 3000, 6000, 10_000):
-        s, d, k, v = problem(n_frames)
-        _ = s.modal
-        peak = peak_memory(lambda: solve_movement(s, d, k, v))
-        print(f"  {n_frames:6d} frames: {peak / 2**20:7.2f} MiB  ({peak / n_frames:7.0f} bytes/frame)")
-
-    # ---- bounded movement matching (ADMM) against the unconstrained solve ----------
-    print("bounded solve (weights in [0, 1], beta = 1, data shifted so ~37% of the free solution is outside):")
-    for n_frames in (300, 1500, 10_000):
-        s, d, k, v = problem(n_frames)
-        s = System(s.basis, s.prior_matrix, s.prior_vector, 1.0, None)
-        d = d - 0.3 * (s.basis @ np.ones(N_SHAPES)).reshape(-1, 3)[None]
-        k, v = np.zeros(n_frames, bool), np.zeros_like(v)
-        lo, hi = np.zeros(N_SHAPES), np.ones(N_SHAPES)
-        _ = s.modal
-        solve_movement_bounded(s, d, k, v, lo, hi)  # compile / cache load, shifted eigenpairs
-        t_free, _ = timed(lambda: solve_movement(s, d, k, v), repeat)
-        free_text = ms(t_free)
-        stats = BoundedStats()
-        t_box, _ = timed(lambda: solve_movement_bounded(s, d, k, v, lo, hi, stats=stats), repeat)
-        print(f"  {n_frames:6d} frames: unconstrained {free_text}; bounded {ms(t_box)}; ratio {t_box / t_free:5.1f} x "
-              f"(goal <= 10 x), {stats.iterations} ADMM iterations")
-
-    # ---- a 12-frame edit through the retargeter -----------------------------------
-    source, target = rig_case(1500)
-    r = SpacetimeRetargeter().fit(source, target)  # default: bounds [0, 1] (none declared on this rig: unbounded)
-    t_ret, anim = timed(lambda: r.retarget(source), max(1, repeat // 5))
-    retarget_text = ms(t_ret)
-    new = anim.weights[700] + 0.3
-    r.edit(anim, frame=700, weights=new, window=(694, 705))
-    t_edit, edited = timed(lambda: r.edit(anim, frame=700, weights=new, window=(694, 705)), repeat * 5)
-    edit_text = ms(t_edit)
-    t_window, _ = timed(lambda: solve_movement(r.system_, anim.extras["spacetime"]["deltas"][694:706], np.isin(np.arange(12), [0, 6, 11]), np.repeat(new[None], 12, 0)), repeat * 5)
-    print(f"edit, 12-frame window: {edit_text} through SpacetimeRetargeter.edit (target < 1 ms); {ms(t_window)} for the window solve alone")
-    print(f"whole retarget() of 1,500 frames (head-motion estimation + solve + diagnostics): {retarget_text}")
-
-
 def rig_case(n_frames: int):
-    """A 50-shape rig on a grid mesh with 54 landmarks, driven with head motion, for the edit timing."""
+    """A 50-shape rig on a grid mesh with 54 landmarks, driven with head motion (a 0.1 rad yaw)."""
     rng = np.random.default_rng(1)
     nx = 12
     x, y = np.meshgrid(np.linspace(-7, 7, nx), np.linspace(-9, 9, nx))
@@ -172,16 +80,119 @@ def rig_case(n_frames: int):
     target = fr.TargetRig(mesh, blendshapes=rig, landmarks=fr.Landmarks(lm))
     t = np.arange(n_frames)[:, None]
     w = 0.5 + 0.5 * np.sin(2 * np.pi * t / rng.uniform(20, 90, N_SHAPES) + rng.uniform(0, 6, N_SHAPES))
-    local = rig.evaluate(w)[:, lm] * 1.1
+    local = (vertices[lm][None] + (w @ deltas[:, lm].reshape(N_SHAPES, -1)).reshape(n_frames, N_MARKERS, 3)) * 1.1
     angle = 0.1 * np.sin(t[:, 0] / 40.0)
     rot = np.zeros((n_frames, 3, 3))
     rot[:, 0, 0] = rot[:, 2, 2] = np.cos(angle)
     rot[:, 0, 2], rot[:, 2, 0], rot[:, 1, 1] = np.sin(angle), -np.sin(angle), 1.0
-    world = np.einsum("fij,fnj->fni", rot, local)
+    world = np.matmul(local, rot.transpose(0, 2, 1))
     return fr.Source(fr.MarkerSequence(world, reference=1.1 * vertices[lm])), target
 
 
+def main(argv=None) -> dict:
+    args = C.parser(__doc__).parse_args(argv)
+    n = C.repeats(args)
+    result = {"script": "bench_spacetime", "machine": C.print_machine("bench_spacetime"), "rows": [], "scaling": []}
+    rows = result["rows"]
+
+    system, deltas, known, values = problem(16)
+    first = C.timeit(lambda: solve_movement(system, deltas, known, values), 1, warmup=0)
+    print(f"first solve call (numba compile or cache load + eigendecomposition): {C.fmt(first['min_s'], 's')}")
+
+    # ---- 1,500 frames: structured solve vs spsolve on the assembled system ------------------
+    system, deltas, known, values = problem(1500)
+    _ = system.modal  # the m x m generalized eigendecomposition is part of fit()
+    kw = dict(prior_matrix=system.prior_matrix, prior_vector=system.prior_vector, ridge=system.ridge_matrix)
+    fast = C.timeit(lambda: solve_movement(system, deltas, known, values), n)
+    assembly = C.timeit(lambda: naive.kronecker_system(system.basis, deltas, known, values, **kw), n, warmup=0)
+    sub, rhs, unknown, x0 = assembly["result"]
+    import scipy.sparse.linalg as spla
+
+    sub = sub.tocsc()
+    sparse = C.timeit(lambda: spla.spsolve(sub, rhs), n)
+    w_sparse = x0.copy()
+    w_sparse[unknown] = sparse["result"]
+    w_sparse = w_sparse.reshape(1500, -1)
+    w_fast = fast["result"]
+    rel = np.linalg.norm(w_fast - w_sparse) / np.linalg.norm(w_sparse)
+    print(f"1,500 frames: agreement with spsolve {rel:.1e} relative; normal-equation residual "
+          f"{naive.kronecker_residual(w_fast, system.basis, deltas, known, values, **kw):.1e} (structured), "
+          f"{naive.kronecker_residual(w_sparse, system.basis, deltas, known, values, **kw):.1e} (spsolve); "
+          f"assembling the sparse system (not in the baseline): min {C.fmt(assembly['min_s'], 's')}")
+    rows.append(C.time_row("spacetime solve, 1,500 frames", fast, 0.005, baseline=("scipy spsolve, assembled system", sparse),
+                           source="bench (issue 16 item 2: kernel)", note="paper: 47.38 s in Matlab"))
+    rows.append(C.value_row("spacetime solve speed-up over spsolve, 1,500 frames", sparse["min_s"] / fast["min_s"],
+                            sparse["median_s"] / fast["median_s"], 100.0, "x", "higher", n=n,
+                            source="bench (issue 16 item 7)", note="spsolve on the assembled matrix; assembly excluded"))
+
+    # ---- bounded (ADMM) vs unconstrained, 1,500 frames ----------------------------------------
+    s = System(system.basis, system.prior_matrix, system.prior_vector, 1.0, None)
+    d = deltas - 0.3 * (s.basis @ np.ones(N_SHAPES)).reshape(-1, 3)[None]
+    k, v = np.zeros(1500, bool), np.zeros_like(values)
+    lo, hi = np.zeros(N_SHAPES), np.ones(N_SHAPES)
+    _ = s.modal
+    free = C.timeit(lambda: solve_movement(s, d, k, v), n)
+    box = C.timeit(lambda: solve_movement_bounded(s, d, k, v, lo, hi), n)
+    rows.append(C.value_row("bounded solve / unconstrained solve, 1,500 frames", box["min_s"] / free["min_s"],
+                            box["median_s"] / free["median_s"], 10.0, "x", "lower", n=n, source="issue 13 item 2",
+                            note=f"bounded min {C.fmt(box['min_s'], 's')}, unconstrained min {C.fmt(free['min_s'], 's')}",
+                            baseline={"name": "unconstrained solve", "min_s": free["min_s"], "median_s": free["median_s"], "n": n}))
+
+    # ---- retarget() end to end: 1,500 and 10,000 frames -----------------------------------
+    for frames, goal in ((1500, 0.005), (10_000, 0.050)):
+        source, target = rig_case(frames)
+        r = SpacetimeRetargeter().fit(source, target)
+        ours = C.timeit(lambda: r.retarget(source), n)
+        b = fr.get("spacetime_noconst").fit(source, target)
+        base = C.timeit(lambda: b.retarget(source), n)
+        rows.append(C.time_row(f"spacetime retarget(), {frames:,} frames (54 markers, 50 shapes, head motion estimated)",
+                               ours, goal, baseline=("per-frame least squares (spacetime_noconst) retarget()", base),
+                               source="issue 16 item 2"))
+        if frames == 10_000:
+            peak, _ = C.peak_memory(lambda: r.retarget(source))
+            solve_peak = []
+            sy, de, kn, va = problem(frames)
+            _ = sy.modal
+            solve_peak, _ = C.peak_memory(lambda: solve_movement(sy, de, kn, va))
+            rows.append(C.value_row(f"spacetime retarget() peak memory per frame, {frames:,} frames", peak / frames,
+                                    peak / frames, 4096.0, "B", "lower", n=1, source="issue 16 item 2",
+                                    note=f"tracemalloc peak {peak / 2**20:.1f} MiB; the solve alone {solve_peak / frames / 1024:.2f} KB a frame",
+                                    baseline=None))
+
+    # ---- a 12-frame edit through the retargeter -------------------------------------------
+    source, target = rig_case(1500)
+    r = SpacetimeRetargeter().fit(source, target)
+    anim = r.retarget(source)
+    new = anim.weights[700] + 0.3
+    edit = C.timeit(lambda: r.edit(anim, frame=700, weights=new, window=(694, 705)), max(n, 20))
+    window = C.timeit(lambda: solve_movement(r.system_, anim.extras["spacetime"]["deltas"][694:706],
+                                             np.isin(np.arange(12), [0, 6, 11]), np.repeat(new[None], 12, 0)), max(n, 20))
+    rows.append(C.time_row("spacetime edit(), 12-frame window of 1,500 frames", edit, 0.001,
+                           baseline=("the window's solve alone", window), source="bench (spacetime docs)"))
+    C.print_rows(rows)
+
+    # ---- scaling -------------------------------------------------------------------------
+    sizes = SCALING_QUICK if args.quick else SCALING_FULL
+    ret_t, ret_p, sol_t, sol_p = [], [], [], []
+    for frames in sizes:
+        source, target = rig_case(frames)
+        r = SpacetimeRetargeter().fit(source, target)
+        reps = n if frames <= 15_000 else 5
+        ret_t.append(C.timeit(lambda: r.retarget(source), reps))
+        ret_p.append(C.peak_memory(lambda: r.retarget(source))[0])
+        sy, de, kn, va = problem(frames)
+        _ = sy.modal
+        sol_t.append(C.timeit(lambda: solve_movement(sy, de, kn, va), reps))
+        sol_p.append(C.peak_memory(lambda: solve_movement(sy, de, kn, va))[0])
+        print(f"  {frames:>7,} frames: retarget() min {C.fmt(ret_t[-1]['min_s'], 's')} ({ret_p[-1] / frames / 1024:.1f} KB a frame), "
+              f"solve min {C.fmt(sol_t[-1]['min_s'], 's')} ({sol_p[-1] / frames / 1024:.2f} KB a frame)", flush=True)
+        del source, target, r, sy, de, kn, va
+    for name, t, p in (("spacetime retarget()", ret_t, ret_p), ("spacetime solve", sol_t, sol_p)):
+        entry = C.scaling_entry(name, "frames", sizes, t, p, extra={"bytes_per_size": [b / s for b, s in zip(p, sizes)]})
+        result["scaling"].append(entry)
+        C.print_scaling(entry)
+    return C.finish(result, args)
+
+
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeat", type=int, default=20, help="timing repetitions (median reported)")
-    main(parser.parse_args().repeat)
+    main()
