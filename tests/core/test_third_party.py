@@ -28,19 +28,21 @@ def installed_example(tmp_path_factory):
     out = pip_install_target(EXAMPLE, site, work)
     assert out.returncode == 0, out.stderr[-2000:]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])))
-    _forget_plugin_modules()
+    saved = _forget_plugin_modules()  # a copy the user installed stays what other tests hold
     with pytest.MonkeyPatch.context() as mp:
         mp.syspath_prepend(str(site))
         importlib.invalidate_caches()
         yield site, env
     _forget_plugin_modules()
+    sys.modules.update(saved)
     importlib.invalidate_caches()
     reload()
 
 
-def _forget_plugin_modules() -> None:
-    for name in [m for m in sys.modules if m == "faceretarget_displacement" or m.startswith("faceretarget_displacement.")]:
-        del sys.modules[name]
+def _forget_plugin_modules() -> dict:
+    """Remove the plugin's modules from ``sys.modules``; returns them."""
+    names = [m for m in sys.modules if m == "faceretarget_displacement" or m.startswith("faceretarget_displacement.")]
+    return {name: sys.modules.pop(name) for name in names}
 
 
 def test_faceretarget_list_shows_the_plugin(installed_example):
