@@ -4,7 +4,8 @@ Per-frame and iterative paths (a spacetime ADMM iteration, a layers frame) make 
 dense products, ``(F, M) x (M, M)`` or smaller; OpenBLAS's worker threads cost more than
 they save there and, interleaved with numba kernels, make timings 3-20x slower and noisy
 (``benchmarks/bench_spacetime.py`` prints the bounded solve both ways). Those paths run
-inside :func:`single_threaded_blas`; large factorizations elsewhere keep their threads.
+inside :func:`single_threaded_blas`; large factorizations elsewhere keep their threads, and a
+large product inside such a path takes them back with :func:`default_threaded_blas`.
 Results are identical: only the number of BLAS threads changes.
 """
 from __future__ import annotations
@@ -13,14 +14,15 @@ import contextlib
 import functools
 import threading
 
-__all__ = ["single_threaded_blas"]
+__all__ = ["single_threaded_blas", "default_threaded_blas"]
 
 _lock = threading.Lock()
 _controller = None
+_default_threads = 1
 
 
 def _get_controller():
-    global _controller
+    global _controller, _default_threads
     with _lock:
         if _controller is None:
             try:
@@ -29,6 +31,8 @@ def _get_controller():
                 _controller = False
             else:
                 _controller = ThreadpoolController()
+                blas = [lib.num_threads for lib in _controller.lib_controllers if lib.user_api == "blas"]
+                _default_threads = max(blas, default=1)
     return _controller
 
 
@@ -39,6 +43,15 @@ def single_threaded_blas():
     if not controller:
         return contextlib.nullcontext()
     return controller.limit(limits=1, user_api="blas")
+
+
+def default_threaded_blas():
+    """Context manager: BLAS back to the thread count it had when first asked (for one large
+    product inside a single-threaded path, e.g. a chunk of frames times a character's blocks)."""
+    controller = _get_controller()
+    if not controller:
+        return contextlib.nullcontext()
+    return controller.limit(limits=_default_threads, user_api="blas")
 
 
 def blas_single_threaded(func):

@@ -14,7 +14,11 @@ dense vertices never need forming.
 """
 from __future__ import annotations
 
+from contextlib import nullcontext
+
 import numpy as np
+
+from faceretarget._threads import default_threaded_blas
 
 from .model import CharacterModel
 
@@ -66,7 +70,8 @@ def world_vertices(character: CharacterModel, beta: np.ndarray, head_motion: np.
                 if nz.size < 0.7 * coef.shape[1]:
                     np.matmul(coef[:, nz], block[nz], out=dest)
                     continue
-            np.matmul(np.ascontiguousarray(coef), block, out=dest)
+            with default_threaded_blas() if n > 1 else nullcontext():  # (CHUNK, K) x (K, 3V): worth the BLAS threads
+                np.matmul(np.ascontiguousarray(coef), block, out=dest)
         assemble(scratch, offsets, n, character.neutral, character.vertex_ptr, character.entry_region, character.entry_col,
                  motion[start:stop], out[start:stop])
     return out

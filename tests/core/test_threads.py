@@ -4,7 +4,7 @@ import pytest
 from threadpoolctl import threadpool_info
 
 import faceretarget as fr
-from faceretarget._threads import single_threaded_blas
+from faceretarget._threads import default_threaded_blas, single_threaded_blas
 from faceretarget.plugins.spacetime import solver
 
 
@@ -17,6 +17,14 @@ def test_single_threaded_blas_limits_and_restores():
     with single_threaded_blas():
         assert set(blas_threads().values()) == {1}
     assert blas_threads() == before
+
+
+def test_a_large_product_inside_takes_the_threads_back():
+    before = blas_threads()
+    with single_threaded_blas():
+        with default_threaded_blas():
+            assert blas_threads() == before
+        assert set(blas_threads().values()) == {1}
 
 
 def test_spacetime_admm_and_layers_frames_run_on_one_blas_thread(monkeypatch):
