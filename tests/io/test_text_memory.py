@@ -11,7 +11,6 @@
   the factor their budget check uses.
 """
 import json
-import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ import pytest
 import faceretarget as fr
 from faceretarget.io import _common, read_feature_lines, read_landmarks
 from faceretarget.registry import registry
+from memtools import TEXT_READER_MODULES, traced_memory
 
 WORK = _common.CHUNK_FACTOR * 2 * _common.CHUNK_BYTES
 #: a small chunk for the streaming test: a reader that holds more than one chunk's
@@ -33,24 +33,8 @@ def _warm():
 
 
 def measured(call, monkeypatch=None):
-    """(result, peak bytes, largest size checked against the budget)."""
-    checked = [0.0]
-    if monkeypatch is not None:
-        real = _common.check_budget
-
-        def spy(path, nbytes, what):
-            checked[0] = max(checked[0], float(nbytes))
-            return real(path, nbytes, what)
-
-        for module in ("faceretarget.io._common", "faceretarget.io.meshes", "faceretarget.io.markers", "faceretarget.io.weights"):
-            monkeypatch.setattr(f"{module}.check_budget", spy, raising=False)
-    tracemalloc.start()
-    try:
-        tracemalloc.reset_peak()
-        result = call()
-        return result, tracemalloc.get_traced_memory()[1], checked[0]
-    finally:
-        tracemalloc.stop()
+    """(result, peak bytes, largest size checked against the budget: spied with ``monkeypatch``)."""
+    return traced_memory(call, TEXT_READER_MODULES if monkeypatch is not None else ())
 
 
 def grid(n: int, seed: int = 0) -> fr.Mesh:

@@ -26,7 +26,6 @@ ones in long mode (``fuzzkit.fuzz``); inputs are counted per class in the sessio
 import os
 import socket
 import threading
-import tracemalloc
 import types
 from pathlib import Path
 
@@ -41,6 +40,7 @@ from faceretarget.hookspecs import Reader, Writer
 from faceretarget.io import _atomic, _common
 from faceretarget.io.gltf import glb_bytes, glb_document
 from faceretarget.registry import Registry, registry
+from memtools import traced_memory
 from reliability import samples
 from reliability import fuzzkit
 from reliability.fuzzkit import any_floats, count, failed, fuzz, junk, typed
@@ -63,25 +63,7 @@ def _warm():
 
 def traced(call):
     """(outcome of ``call`` through typed(), peak bytes, largest size checked against the budget)."""
-    checked = [0.0]
-    real = _common.check_budget
-
-    def spy(path, nbytes, what):
-        checked[0] = max(checked[0], float(nbytes))
-        return real(path, nbytes, what)
-
-    mp = pytest.MonkeyPatch()
-    for module in ("faceretarget.io._common", "faceretarget.io.meshes", "faceretarget.io.markers", "faceretarget.io.weights",
-                   "faceretarget.io.gltf", "faceretarget.io.sequences"):
-        mp.setattr(f"{module}.check_budget", spy, raising=False)
-    tracemalloc.start()
-    try:
-        tracemalloc.reset_peak()
-        result = call()
-        return result, tracemalloc.get_traced_memory()[1], checked[0]
-    finally:
-        tracemalloc.stop()
-        mp.undo()
+    return traced_memory(call)
 
 
 # =======================================================================================
