@@ -494,6 +494,7 @@ class SpacetimeRetargeter(Retargeter):
             for _ in range(params["head_motion_refinement"]):
                 motion, fitted = calibration.refine_head_motion(reference, markers, motion, fitted, self.marker_basis_, system.ridge)
         deltas = self._local_deltas(source, motion, markers, reference)
+        del markers  # (F, N, 3), not needed past here: the solve's scratch takes its place
         stats = BoundedStats()
         weights = self._solve(system, deltas, known, known_weights, stats)
         terms = energy_terms(system, deltas, weights)
@@ -540,7 +541,11 @@ class SpacetimeRetargeter(Retargeter):
     def _local_deltas(self, source: Source, motion, markers, reference) -> np.ndarray:
         """(F, P, 3) source displacements from the neutral at the fitted points, head motion removed."""
         if self.dense_ is None:
-            return calibration.to_local(motion, markers) - reference
+            local = calibration.to_local(motion, markers)
+            if local is markers:
+                return local - reference
+            local -= reference
+            return local
         if source.kind != "mesh":
             raise CapabilityError("spacetime: this retargeter was fitted to a mesh source (dense samples); retarget a mesh source, or fit with samples='landmarks'")
         perf = source.performance

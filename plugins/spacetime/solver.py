@@ -544,6 +544,10 @@ def solve_bounded(system: System, deltas: np.ndarray, lower: np.ndarray, upper: 
     return out
 
 
+#: Frames per block of the velocity residuals in :func:`energy_terms` (bounds its scratch).
+ENERGY_CHUNK = 1024
+
+
 def energy_terms(system: System, deltas: np.ndarray, weights: np.ndarray) -> dict[str, np.ndarray]:
     """Per-frame error terms of a solution, missing rows dropped.
 
@@ -552,11 +556,19 @@ def energy_terms(system: System, deltas: np.ndarray, weights: np.ndarray) -> dic
     """
     s = flatten_deltas(deltas)
     valid = ~np.isnan(s)
-    resid = np.asarray(weights, dtype=np.float64) @ system.basis.T - np.where(valid, s, 0.0)
-    resid[~valid] = 0.0
+    complete = bool(valid.all())
+    resid = np.asarray(weights, dtype=np.float64) @ system.basis.T
+    if complete:  # no temporaries of the sequence's size (retarget() computes these as diagnostics)
+        resid -= s
+    else:
+        resid -= np.where(valid, s, 0.0)
+        resid[~valid] = 0.0
     position = np.einsum("fk,fk->f", resid, resid)
     velocity = np.zeros(s.shape[0])
-    if s.shape[0] > 1:
-        dv = (resid[1:] - resid[:-1]) * (valid[1:] & valid[:-1])
-        velocity[1:] = np.einsum("fk,fk->f", dv, dv)
+    for start in range(1, s.shape[0], ENERGY_CHUNK):
+        stop = min(start + ENERGY_CHUNK, s.shape[0])
+        dv = resid[start:stop] - resid[start - 1 : stop - 1]
+        if not complete:
+            dv *= valid[start:stop] & valid[start - 1 : stop - 1]
+        velocity[start:stop] = np.einsum("fk,fk->f", dv, dv)
     return {"velocity": velocity, "position": position}
