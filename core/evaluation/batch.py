@@ -421,7 +421,7 @@ def _run_dask(jobs: list[Job], workers: int, scheduler: str | None, processes: b
     try:
         from distributed import Client, LocalCluster, as_completed
     except ImportError as exc:
-        raise ConfigError(f"--dask / --scheduler need dask.distributed: pip install 'dask[distributed]' ({exc})") from None
+        raise ConfigError(f"--dask / --scheduler need dask.distributed, in the cluster extra: pip install 'faceretarget[cluster]' ({exc})") from None
     cluster = None
     try:
         if scheduler:
