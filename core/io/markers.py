@@ -70,19 +70,24 @@ def _delimiter(first_line: str) -> str:
     return max(",;\t", key=first_line.count)
 
 
-def _header_of(path: Path, fh) -> tuple[list[str], str, int]:
-    """(header cells, delimiter, byte offset of the data) from the first non-blank line."""
-    offset = 0
+def _raw_lines(path: Path, fh):
+    """The file's lines as bytes (line ends kept), a chunk at a time; NUL bytes refused."""
     for chunk in iter_chunks(fh, CHUNK_BYTES):
         if b"\x00" in chunk:
             raise bad(path, "holds binary data (NUL bytes), not text")
-        for line in chunk.splitlines(keepends=True):
-            offset += len(line)
-            text = _decode_line(line, offset == len(line)).strip("\r\n")
-            delimiter = _delimiter(text)
-            cells = next(csv.reader([text], delimiter=delimiter), [])
-            if any(c.strip() for c in cells):
-                return [h.strip() for h in cells], delimiter, offset
+        yield from chunk.splitlines(keepends=True)
+
+
+def _header_of(path: Path, fh) -> tuple[list[str], str, int]:
+    """(header cells, delimiter, byte offset of the data) from the first non-blank line."""
+    offset = 0
+    for line in _raw_lines(path, fh):
+        offset += len(line)
+        text = _decode_line(line, offset == len(line)).strip("\r\n")
+        delimiter = _delimiter(text)
+        cells = next(csv.reader([text], delimiter=delimiter), [])
+        if any(c.strip() for c in cells):
+            return [h.strip() for h in cells], delimiter, offset
     raise bad(path, "the file is empty")
 
 
@@ -316,14 +321,9 @@ def read_trc(path: Path, *, fps=None, reference=None, **options) -> MarkerSequen
     with open_regular(path) as fh:
         header: list[str] = []
         data_start = 0
-        for chunk in iter_chunks(fh, CHUNK_BYTES):
-            if b"\x00" in chunk:
-                raise bad(path, "holds binary data (NUL bytes), not text")
-            for line in chunk.splitlines(keepends=True):
-                data_start += len(line)
-                header.append(_decode_line(line, not header).rstrip("\r\n"))
-                if len(header) == 5:
-                    break
+        for line in _raw_lines(path, fh):
+            data_start += len(line)
+            header.append(_decode_line(line, not header).rstrip("\r\n"))
             if len(header) == 5:
                 break
         if not header or not header[0].startswith("PathFileType"):
