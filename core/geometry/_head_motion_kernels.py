@@ -13,11 +13,13 @@ import numpy as np
 
 
 @nb.njit(cache=True)
-def gauss_newton(moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, iterations):
+def gauss_newton(moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, iterations, warm):
     """Iterate every frame in place on ``rot (F, 3, 3)``, ``trans (F, 3)``.
 
     ``iterations[f]`` receives the steps frame ``f`` took, or -1 if it did not converge in
-    ``max_iter`` steps.
+    ``max_iter`` steps. Where ``warm[f]`` is set, frame ``f`` starts from frame ``f - 1``'s
+    result when that converged (head motion is continuous: a step or two instead of five);
+    elsewhere it starts from the given ``rot``/``trans``.
     """
     n_frames = rot.shape[0]
     step = np.empty(6)
@@ -28,6 +30,11 @@ def gauss_newton(moments, sums, offsets, which, centre, size, rot, trans, max_it
     for f in range(n_frames):
         p = which[f]
         iterations[f] = -1
+        if warm[f] and f > 0 and iterations[f - 1] >= 0:
+            for i in range(3):
+                trans[f, i] = trans[f - 1, i]
+                for j in range(3):
+                    rot[f, i, j] = rot[f - 1, i, j]
         for it in range(max_iter):
             r = rot[f]
             for i in range(3):

@@ -222,7 +222,9 @@ def estimate_head_motion(
         r0, t0, _ = procrustes.fit_rigid(ref, x[weak_frames], weights=w)
         rot[weak_frames], trans[weak_frames] = r0, t0
     moments, sums, offsets = _moments(gains, which, x0, ref)
-    iterations, done = _gauss_newton(moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol)
+    warm = np.ones(n_frames, dtype=np.bool_)
+    warm[weak_frames] = False  # those keep their Procrustes start
+    iterations, done = _gauss_newton(moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, warm)
     if not done.all():  # far from the identity (e.g. > 150 degrees): restart from Procrustes
         again = np.flatnonzero(~done)
         sub_rot, sub_trans, _ = procrustes.fit_rigid(ref, x[again], weights=w)
@@ -433,16 +435,18 @@ def _rotation_vectors(rot: np.ndarray) -> np.ndarray:
     return out
 
 
-def _gauss_newton(moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol):
+def _gauss_newton(moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, warm=None):
     """Gauss-Newton steps on ``rot (F, 3, 3)`` / ``trans (F, 3)`` in place (numba kernel, one
-    frame at a time until it converges); returns (most steps taken, converged (F,))."""
+    frame at a time until it converges; frames where ``warm (F,)`` is set start from the
+    previous frame's result); returns (most steps taken, converged (F,))."""
     from ._head_motion_kernels import gauss_newton
 
     steps = np.empty(rot.shape[0], dtype=np.int64)
+    warm = np.zeros(rot.shape[0], dtype=np.bool_) if warm is None else np.ascontiguousarray(warm, dtype=np.bool_)
     gauss_newton(
         np.ascontiguousarray(moments), np.ascontiguousarray(sums), np.ascontiguousarray(offsets),
         np.ascontiguousarray(which, dtype=np.int64), np.ascontiguousarray(centre, dtype=np.float64), float(size),
-        rot, trans, int(max_iter), float(tol), steps,
+        rot, trans, int(max_iter), float(tol), steps, warm,
     )
     done = steps >= 0
     return int(np.where(done, steps, max_iter).max(initial=0)), done

@@ -91,6 +91,26 @@ def apply(transforms: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.matmul(p, lin.transpose(0, 2, 1)) + m[:, None, :dim, dim]  # rows: p @ L^T (broadcasts (P, D))
 
 
-def remove(transforms: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Undo ``(F, D+1, D+1)`` transforms on ``points (F, P, D)``: back to reference coordinates."""
-    return apply(np.linalg.inv(np.asarray(transforms, dtype=np.float64)), points)
+def remove(transforms: np.ndarray, points: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
+    """Undo ``(F, D+1, D+1)`` transforms on ``points (F, P, D)``: back to reference coordinates.
+
+    With ``reference (P, D)`` returns the displacements from it instead (one pass, no
+    temporary). 3D points go through a numba kernel (one 3x3 inverse a frame); a singular
+    transform raises :class:`DegenerateGeometryError`.
+    """
+    m = np.asarray(transforms, dtype=np.float64)
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim == 3 and p.shape[2] == 3 and m.shape == (p.shape[0], 4, 4):
+        from ._procrustes_kernels import remove_affine
+
+        ref = np.zeros((p.shape[1], 3)) if reference is None else np.ascontiguousarray(reference, dtype=np.float64)
+        out = np.empty(p.shape)
+        bad = remove_affine(np.ascontiguousarray(m), np.ascontiguousarray(p), ref, out)
+        if bad >= 0:
+            raise DegenerateGeometryError(f"remove: the transform of frame {bad} is singular (or NaN); give invertible head motion")
+        return out
+    try:
+        out = apply(np.linalg.inv(m), p)
+    except np.linalg.LinAlgError:
+        raise DegenerateGeometryError("remove: a transform is singular; give invertible head motion") from None
+    return out if reference is None else out - reference

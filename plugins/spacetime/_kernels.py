@@ -20,22 +20,6 @@ from .solver import PIVOT_RTOL
 
 
 @nb.njit(cache=True)
-def _project(s, basis_phi, out):
-    """``out = s @ basis_phi`` row by row: (F, R) x (R, m); single-threaded, NaN-free input."""
-    n_frames, n_rows = s.shape
-    m = basis_phi.shape[1]
-    acc = np.empty(m)  # a local accumulator lets LLVM vectorize the inner loop
-    for t in range(n_frames):
-        acc[:] = 0.0
-        for r in range(n_rows):
-            v = s[t, r]
-            for j in range(m):
-                acc[j] += v * basis_phi[r, j]
-        for j in range(m):
-            out[t, j] = acc[j]
-
-
-@nb.njit(cache=True)
 def modal_sweep(s, bphi, pbphi, beta, c0, lam, known, yk, phi_t, out, z, zpos, y, scratch):
     """Structured movement-matching solve: project, one Thomas sweep per mode, back to weights.
 
@@ -66,15 +50,16 @@ def modal_sweep(s, bphi, pbphi, beta, c0, lam, known, yk, phi_t, out, z, zpos, y
 
     ``L`` is the path-graph Laplacian in time (Neumann ends), ``D^T D`` of the paper's
     appendix; rows of known frames are replaced by the identity, which moves the known values
-    to the right-hand side of their neighbours. The products are plain loops (no BLAS), so
-    the time does not depend on BLAS threading.
+    to the right-hand side of their neighbours. The three products are BLAS calls (4x the
+    plain loops on this machine); callers run them single-threaded
+    (``faceretarget._threads``), so they do not fight numba for the cores.
     """
-    _project(s, bphi, z)
+    np.dot(s, bphi, z)
     if beta != 0.0:
-        _project(s, pbphi, zpos)
+        np.dot(s, pbphi, zpos)
     laplacian_rhs(z, zpos, beta, c0, known, y)
     tridiagonal_modes(y, lam, known, yk, y, scratch)
-    _project(y, phi_t, out)
+    np.dot(y, phi_t, out)
 
 
 @nb.njit(cache=True)

@@ -176,11 +176,13 @@ def refine_head_motion(reference, markers, motion, weights, basis, ridge):
     return out, new_weights
 
 
-def to_local(motion: np.ndarray | None, markers: np.ndarray) -> np.ndarray:
-    """World markers ``(F, N, 3)`` -> neutral-frame coordinates (NaN rows stay NaN)."""
+def to_local(motion: np.ndarray | None, markers: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
+    """World markers ``(F, N, 3)`` -> neutral-frame coordinates (NaN rows stay NaN); with
+    ``reference (N, 3)``, the displacements from it (a new array)."""
     if motion is None:
-        return np.asarray(markers, dtype=np.float64)
-    return procrustes.remove(motion, markers)
+        local = np.asarray(markers, dtype=np.float64)
+        return local if reference is None else local - reference
+    return procrustes.remove(motion, markers, reference)
 
 
 #: With ``transfer="scale"`` the landmark fit's rotation is still applied when it exceeds

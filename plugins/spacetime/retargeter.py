@@ -541,11 +541,7 @@ class SpacetimeRetargeter(Retargeter):
     def _local_deltas(self, source: Source, motion, markers, reference) -> np.ndarray:
         """(F, P, 3) source displacements from the neutral at the fitted points, head motion removed."""
         if self.dense_ is None:
-            local = calibration.to_local(motion, markers)
-            if local is markers:
-                return local - reference
-            local -= reference
-            return local
+            return calibration.to_local(motion, markers, reference)
         if source.kind != "mesh":
             raise CapabilityError("spacetime: this retargeter was fitted to a mesh source (dense samples); retarget a mesh source, or fit with samples='landmarks'")
         perf = source.performance
@@ -555,7 +551,7 @@ class SpacetimeRetargeter(Retargeter):
                 f"spacetime: fitted to a source mesh of {corr.n_vertices} vertices, got {perf.n_vertices}; fit again on this source"
             )
         points = corr.apply(perf.vertices)
-        return calibration.to_local(motion, points) - corr.apply(perf.reference.vertices)[None]
+        return calibration.to_local(motion, points, corr.apply(perf.reference.vertices))
 
     def _source_markers(self, source: Source):
         """(F, N, 3) markers and (N, 3) neutral in the order of the target's landmarks."""
@@ -564,7 +560,9 @@ class SpacetimeRetargeter(Retargeter):
         if positions.ndim != 3 or positions.shape[2] != 3:
             raise ShapeError(f"spacetime: needs 3D markers (F, N, 3), got {positions.shape}")
         pairs = calibration.pair_markers(_marker_names(source), self.landmark_names_)
-        return positions[:, pairs], reference[pairs]
+        if np.array_equal(pairs, np.arange(positions.shape[1])):
+            return positions, reference  # already in order: no (F, N, 3) copy
+        return np.take(positions, pairs, axis=1), reference[pairs]
 
     def _constraint_weights(self, value, frame) -> np.ndarray:
         rig = self.rig_

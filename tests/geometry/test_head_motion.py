@@ -194,6 +194,35 @@ def test_large_rotations_converge(degrees):
     assert angles(estimate_head_motion(ref, moved, basis=basis), truth).max() < 1e-6
 
 
+def test_cut_between_far_apart_head_poses_converges_in_every_frame():
+    """Frames start from the previous frame's result; a cut to a pose 170 degrees away must
+    still land on the true motion (warm start falls back when it does not converge)."""
+    ref, x, basis, _ = face(n_frames=8)
+    truth = np.tile(np.eye(4), (8, 1, 1))
+    truth[4:, :3, :3] = Rotation.from_rotvec(np.radians(170.0) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    truth[4:, :3, 3] = [4.0, 1.0, -2.0]
+    moved = np.einsum("fij,fnj->fni", truth[:, :3, :3], x) + truth[:, None, :3, 3]
+    assert angles(estimate_head_motion(ref, moved, basis=basis, significance=None), truth).max() < 1e-6
+
+
+def test_remove_matches_the_inverse_matrix_and_keeps_nan():
+    rng = np.random.default_rng(3)
+    m = np.tile(np.eye(4), (5, 1, 1))
+    m[:, :3, :3] = rng.normal(size=(5, 3, 3)) + 3 * np.eye(3)  # general affine, not only rigid
+    m[:, :3, 3] = rng.normal(size=(5, 3))
+    points = rng.normal(size=(5, 7, 3))
+    points[2, 4] = np.nan
+    ref = rng.normal(size=(7, 3))
+    inverse = np.linalg.inv(m)
+    expected = np.einsum("fij,fnj->fni", inverse[:, :3, :3], points) + inverse[:, None, :3, 3]
+    np.testing.assert_allclose(procrustes.remove(m, points), expected, atol=1e-12)
+    np.testing.assert_allclose(procrustes.remove(m, points, ref), expected - ref, atol=1e-12)
+    assert np.isnan(procrustes.remove(m, points)[2, 4]).all()
+    m[3, :3, :3] = 0.0
+    with pytest.raises(DegenerateGeometryError, match="frame 3"):
+        procrustes.remove(m, points)
+
+
 def test_same_answer_in_any_length_unit():
     ref, x, basis, truth = face(degrees=0.5, mismatch=0.3)
     a, ia = estimate_head_motion(ref, x, basis=basis, return_info=True, significance=None)
