@@ -57,6 +57,7 @@ import numpy as np
 from .. import config
 from ..errors import DegenerateGeometryError, InputError, NonFiniteError, NumericalError, ShapeError
 from . import procrustes
+from .._threads import blas_single_threaded
 
 __all__ = ["estimate_head_motion", "rigidity_weights", "HeadMotionInfo", "DEFAULT_MAX_ITER", "DEFAULT_TOL"]
 
@@ -67,6 +68,9 @@ DEFAULT_MAX_ITER = 60
 DEFAULT_TOL = 1e-10
 #: Frames gathered at once where per-frame matrices are needed (missing markers).
 _CHUNK = 256
+#: Frames per block of the marker-sized scratch (gate residuals, moments): memory bounded
+#: by the block, and the block stays in cache.
+_RESIDUAL_CHUNK = 1024
 
 
 @dataclass(frozen=True)
@@ -117,6 +121,7 @@ def rigidity_weights(reference, basis=None, *, eps: float | None = None) -> np.n
     return w / w.mean()
 
 
+@blas_single_threaded  # many small products per chunk of frames (faceretarget._threads)
 def estimate_head_motion(
     reference,
     markers,
@@ -268,18 +273,24 @@ def _evidence(x0, valid, ref, w, basis, rot, trans, centre, size, schur, ainv, w
         gain = np.einsum("fk,kl,fl->f", z, schur[0], z)
     else:
         gain = np.einsum("fk,fkl,fl->f", z, schur[which], z)
-    local = _local_residual(x0, rot, trans, ref)
     floor = (config.HEAD_MOTION_NOISE_FLOOR * size) ** 2
-    if schur.shape[0] == 1:  # one pattern of visible markers: weights shared by all frames
+    rest = np.empty(n_frames)
+    shared = schur.shape[0] == 1  # one pattern of visible markers: weights shared by all frames
+    if shared:
         wd = np.repeat(valid[0] * w, 3)
-        y = local.reshape(n_frames, -1)
-        y[:, wd == 0] = 0.0
-        floor = floor * wd.sum()
-    else:
-        y = np.where(valid[..., None], local, 0.0).reshape(n_frames, -1)
-        wd = np.repeat(valid * w, 3, axis=1)
-        floor = floor * wd.sum(axis=1)
-    rest = _unexplained(y, wd, basis, ainv, which) + floor
+        unused = wd == 0
+    for start in range(0, n_frames, _RESIDUAL_CHUNK):  # scratch bounded by the chunk, not the shot
+        sl = slice(start, start + _RESIDUAL_CHUNK)
+        local = _local_residual(x0[sl], rot[sl], trans[sl], ref)
+        if shared:
+            y = local.reshape(len(local), -1)
+            if unused.any():
+                y[:, unused] = 0.0
+            rest[sl] = _unexplained(y, wd, basis, ainv, which[sl]) + floor * wd.sum()
+        else:
+            y = np.where(valid[sl, :, None], local, 0.0).reshape(len(local), -1)
+            wd_sl = np.repeat(valid[sl] * w, 3, axis=1)
+            rest[sl] = _unexplained(y, wd_sl, basis, ainv, which[sl]) + floor * wd_sl.sum(axis=1)
     span = min(max(int(window), 1), n_frames)
     gains = np.concatenate([[0.0], np.cumsum(np.maximum(gain, 0.0))])
     rests = np.concatenate([[0.0], np.cumsum(rest)])
@@ -408,8 +419,11 @@ def _moments(gains, which, x0, ref):
     offsets = np.einsum("pkia,ia->pk", blocks, ref)
     n_frames = x0.shape[0]
     if n_pat == 1:
-        moments = np.tensordot(x0, blocks[0], axes=([1], [1]))  # (F, b, 6, a)
-        moments = moments.transpose(0, 2, 3, 1).reshape(n_frames, 6, 9)
+        moments = np.empty((n_frames, 6, 9))
+        for start in range(0, n_frames, _RESIDUAL_CHUNK):  # tensordot copies its input: a chunk at a time
+            sl = slice(start, start + _RESIDUAL_CHUNK)
+            part = np.tensordot(x0[sl], blocks[0], axes=([1], [1]))  # (f, b, 6, a)
+            moments[sl] = part.transpose(0, 2, 3, 1).reshape(-1, 6, 9)
     else:
         rows = np.ascontiguousarray(blocks.transpose(0, 1, 3, 2)).reshape(n_pat, 18, -1)  # (P, 6*3, N)
         moments = np.empty((n_frames, 6, 9))

@@ -20,7 +20,7 @@ from .solver import PIVOT_RTOL
 
 
 @nb.njit(cache=True)
-def modal_sweep(s, bphi, pbphi, beta, c0, lam, known, yk, phi_t, out, z, zpos, y, scratch):
+def modal_sweep(s, bphi, pbphi, beta, c0, lam, known, phi_t, z, y, scratch):
     """Structured movement-matching solve: project, one Thomas sweep per mode, back to weights.
 
     For every mode j solves ``((1 - lam_j) L + lam_j I) y_j = L z_j + beta zpos_j + c0_j`` and
@@ -39,14 +39,15 @@ def modal_sweep(s, bphi, pbphi, beta, c0, lam, known, yk, phi_t, out, z, zpos, y
         Generalized eigenvalues in [0, 1].
     known : (F,) bool
         Frames whose value is given (boundary / user constraints): their row is identity.
-    yk : (F, m) float64
-        Modal values of the known frames (other rows unused).
     phi_t : (m, m) float64
         ``Phi^T``, C-contiguous (the generalized eigenvectors are its rows; weights = Phi y).
-    out : (F, m) float64
-        Receives the weights.
-    z, zpos, y, scratch : (F, m) float64
-        Work arrays (``zpos`` unused when beta == 0).
+    z : (F, m) float64
+        Work array; receives the weights.
+    y : (F, m) float64
+        Work array.
+    scratch : (F, m) float64
+        On entry, the modal values of the known frames in their rows (other rows unused);
+        work array.
 
     ``L`` is the path-graph Laplacian in time (Neumann ends), ``D^T D`` of the paper's
     appendix; rows of known frames are replaced by the identity, which moves the known values
@@ -56,10 +57,10 @@ def modal_sweep(s, bphi, pbphi, beta, c0, lam, known, yk, phi_t, out, z, zpos, y
     """
     np.dot(s, bphi, z)
     if beta != 0.0:
-        np.dot(s, pbphi, zpos)
-    laplacian_rhs(z, zpos, beta, c0, known, y)
-    tridiagonal_modes(y, lam, known, yk, y, scratch)
-    np.dot(y, phi_t, out)
+        np.dot(s, pbphi, y)
+    laplacian_rhs(z, y, beta, c0, known, y)  # y: P B Phi projection in, right-hand side out
+    tridiagonal_modes(y, lam, known, scratch, y, scratch)
+    np.dot(y, phi_t, z)
 
 
 @nb.njit(cache=True)
@@ -67,7 +68,8 @@ def laplacian_rhs(z, zpos, beta, c0, known, out):
     """``out_t = L z_t + beta zpos_t + c0`` for the unknown frames (rows of known frames: 0).
 
     ``L`` is the path-graph Laplacian in time with Neumann ends (a frame's degree is its
-    number of neighbours). ``out`` must not alias ``z`` or ``zpos``.
+    number of neighbours). ``out`` may alias ``zpos`` (read only at the entry it writes),
+    not ``z``.
     """
     n_frames, m = z.shape
     for t in range(n_frames):
@@ -93,14 +95,15 @@ def laplacian_rhs(z, zpos, beta, c0, known, out):
 def tridiagonal_modes(r, lam, known, yk, y, scratch):
     """Solve ``((1 - lam_j) L + lam_j I) y_j = r_j`` for every mode j by one Thomas sweep.
 
-    Rows of known frames are the identity (``y_t = yk_t``). ``y`` may alias ``r``.
+    Rows of known frames are the identity (``y_t = yk_t``). ``y`` may alias ``r`` and ``yk``
+    may alias ``scratch`` (a known row is read before its scratch entry is written).
     """
     n_frames, m = r.shape
     for t in range(n_frames):
         if known[t]:
             for j in range(m):
-                scratch[t, j] = 0.0
                 y[t, j] = yk[t, j]
+                scratch[t, j] = 0.0
             continue
         has_prev = t > 0
         has_next = t < n_frames - 1

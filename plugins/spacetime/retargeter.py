@@ -613,9 +613,9 @@ class SpacetimeRetargeter(Retargeter):
     def _solve(self, system: System, deltas: np.ndarray, known: np.ndarray, values: np.ndarray, stats: BoundedStats | None = None) -> np.ndarray:
         """Weights (F, M) for local marker deltas (F, N, 3); fills per-frame boundary values."""
         if self.mode == "movement":
-            values = values.copy()
             todo = known & np.isnan(values[:, 0])
             if todo.any():
+                values = values.copy()
                 if self.bounds_ is None:
                     values[todo] = solve_per_frame(self._system(None), deltas[todo], use_prior=True)
                 else:

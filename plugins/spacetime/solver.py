@@ -413,12 +413,10 @@ def _solve_structured(system: System, s: np.ndarray, known: np.ndarray, wk: np.n
 
     phi_t, lam, bphi, pbphi, c0, mass_phi = system.modal
     n_frames, m = s.shape[0], system.n_shapes
-    yk = np.zeros((n_frames, m))
+    out, y, scratch = np.empty((n_frames, m)), np.empty((n_frames, m)), np.empty((n_frames, m))
     if known.any():
-        yk[known] = wk[known] @ mass_phi
-    out = np.empty((n_frames, m))
-    work = np.empty((4, n_frames, m))
-    modal_sweep(s, bphi, pbphi, float(system.beta), c0, lam, known, yk, phi_t, out, work[0], work[1], work[2], work[3])
+        scratch[known] = wk[known] @ mass_phi  # modal values of the known frames
+    modal_sweep(s, bphi, pbphi, float(system.beta), c0, lam, known, phi_t, out, y, scratch)
     return out
 
 
@@ -553,22 +551,26 @@ def energy_terms(system: System, deltas: np.ndarray, weights: np.ndarray) -> dic
 
     Returns ``velocity`` (F,) with ``velocity[t] = ||B(w_t - w_{t-1}) - (s_t - s_{t-1})||^2``
     (0 at t = 0; the paper's fig. 11 measure) and ``position`` (F,) ``||B w_t - s_t||^2``.
+    Computed ``ENERGY_CHUNK`` frames at a time (``retarget()`` reports them as diagnostics:
+    no scratch of the sequence's size).
     """
     s = flatten_deltas(deltas)
-    valid = ~np.isnan(s)
-    complete = bool(valid.all())
-    resid = np.asarray(weights, dtype=np.float64) @ system.basis.T
-    if complete:  # no temporaries of the sequence's size (retarget() computes these as diagnostics)
-        resid -= s
-    else:
-        resid -= np.where(valid, s, 0.0)
-        resid[~valid] = 0.0
-    position = np.einsum("fk,fk->f", resid, resid)
-    velocity = np.zeros(s.shape[0])
-    for start in range(1, s.shape[0], ENERGY_CHUNK):
-        stop = min(start + ENERGY_CHUNK, s.shape[0])
-        dv = resid[start:stop] - resid[start - 1 : stop - 1]
-        if not complete:
-            dv *= valid[start:stop] & valid[start - 1 : stop - 1]
-        velocity[start:stop] = np.einsum("fk,fk->f", dv, dv)
+    w = np.asarray(weights, dtype=np.float64)
+    basis_t = np.ascontiguousarray(system.basis.T)
+    n_frames = s.shape[0]
+    position, velocity = np.empty(n_frames), np.zeros(n_frames)
+    for start in range(0, n_frames, ENERGY_CHUNK):
+        first = max(start - 1, 0)  # one frame of overlap for the velocity at the chunk's start
+        sl = slice(first, start + ENERGY_CHUNK)
+        valid = ~np.isnan(s[sl])
+        resid = w[sl] @ basis_t
+        if valid.all():
+            resid -= s[sl]
+        else:
+            resid -= np.where(valid, s[sl], 0.0)
+            resid[~valid] = 0.0
+        position[start : sl.stop] = np.einsum("fk,fk->f", resid[start - first :], resid[start - first :])
+        dv = resid[1:] - resid[:-1]
+        dv *= valid[1:] & valid[:-1]
+        velocity[first + 1 : sl.stop] = np.einsum("fk,fk->f", dv, dv)
     return {"velocity": velocity, "position": position}
