@@ -10,7 +10,8 @@ object yet`` while it is serialised, and a save can meet a file replaced under i
 (``Dispatcher.compile`` adds the overload first), so the only thing lost is the cache
 entry: :func:`install` makes such a save a no-op (the next process compiles and saves
 again) and a cache entry that cannot be loaded a miss (the kernel is compiled). The first
-miss of one of our kernels in a process prints :data:`COMPILE_NOTICE` (one line, stderr).
+miss of one of our kernels prints :data:`COMPILE_NOTICE` (one line, stderr; once for the
+processes of one run).
 
 :func:`install` (called by ``import faceretarget``) patches numba when it is imported,
 or at once if it already is; it never imports numba itself. Other errors, and any
@@ -20,8 +21,11 @@ from __future__ import annotations
 
 import importlib.abc
 import importlib.util
+import os
 import sys
+import tempfile
 import threading
+import time
 
 __all__ = ["install", "installed"]
 
@@ -62,11 +66,16 @@ def _patch(caching) -> None:
     setattr(cache, _MARK, True)
 
 
-#: Printed once per process, on stderr, when the first of our kernels is not in the cache.
+#: Printed on stderr when the first of our kernels is not in the cache: once per process,
+#: and once for all the processes of one run (``faceretarget demo``'s workers compile in
+#: parallel) through a time-stamped marker file.
 COMPILE_NOTICE = (
     "faceretarget: compiling numerical kernels for this machine, once (a few minutes of CPU in all, more on a busy "
     "machine; later runs load them from the cache). `faceretarget warmup` does it ahead."
 )
+#: Another process's notice younger than this (seconds) silences this one.
+NOTICE_QUIET_SECONDS = 600.0
+_MARKER = os.path.join(tempfile.gettempdir(), f"faceretarget-compile-notice-{getattr(os, 'getuid', lambda: 0)()}")
 _noticed = False
 
 
@@ -76,6 +85,17 @@ def _notice_compiling(py_func) -> None:
     if _noticed or not module.startswith("faceretarget"):
         return
     _noticed = True
+    try:
+        recent = time.time() - os.path.getmtime(_MARKER) < NOTICE_QUIET_SECONDS
+    except OSError:
+        recent = False
+    if recent:
+        return
+    try:
+        with open(_MARKER, "a"):
+            os.utime(_MARKER)
+    except OSError:
+        pass  # a read-only temp folder: every process prints, as before
     print(COMPILE_NOTICE, file=sys.stderr, flush=True)
 
 

@@ -34,8 +34,9 @@ def theirs():
 theirs.__module__ = "somebody_else"
 
 
-def test_the_first_miss_of_our_kernel_prints_one_line(monkeypatch, capsys):
+def test_the_first_miss_of_our_kernel_prints_one_line(monkeypatch, capsys, tmp_path):
     monkeypatch.setattr(_numba_cache, "_noticed", False)
+    monkeypatch.setattr(_numba_cache, "_MARKER", str(tmp_path / "marker"))
     caching = fake_caching(None)
     _numba_cache._patch(caching)
     caching.Cache(theirs).load_overload(None, None)
@@ -46,8 +47,25 @@ def test_the_first_miss_of_our_kernel_prints_one_line(monkeypatch, capsys):
     assert err.count("compiling numerical kernels") == 1 and "faceretarget warmup" in err
 
 
-def test_a_cache_hit_prints_nothing(monkeypatch, capsys):
+def test_one_notice_for_the_processes_of_one_run(monkeypatch, capsys, tmp_path):
+    """demo's workers compile in parallel: the first prints, the others (a fresh process
+    each: simulated by resetting the per-process flag) see its marker and stay quiet."""
+    monkeypatch.setattr(_numba_cache, "_MARKER", str(tmp_path / "marker"))
+    caching = fake_caching(None)
+    _numba_cache._patch(caching)
+    for _ in range(3):
+        monkeypatch.setattr(_numba_cache, "_noticed", False)
+        caching.Cache(ours).load_overload(None, None)
+    assert capsys.readouterr().err.count("compiling numerical kernels") == 1
+    monkeypatch.setattr(_numba_cache, "NOTICE_QUIET_SECONDS", 0.0)  # a later run: told again
     monkeypatch.setattr(_numba_cache, "_noticed", False)
+    caching.Cache(ours).load_overload(None, None)
+    assert capsys.readouterr().err.count("compiling numerical kernels") == 1
+
+
+def test_a_cache_hit_prints_nothing(monkeypatch, capsys, tmp_path):
+    monkeypatch.setattr(_numba_cache, "_noticed", False)
+    monkeypatch.setattr(_numba_cache, "_MARKER", str(tmp_path / "marker"))
     caching = fake_caching(object())
     _numba_cache._patch(caching)
     assert caching.Cache(ours).load_overload(None, None) is not None
