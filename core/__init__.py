@@ -70,11 +70,12 @@ __all__ = [
 def available() -> list[dict[str, Any]]:
     """Every registered retargeter: name, aliases, summary, paper, capabilities, origin.
 
-    Reads capabilities from the classes without compiling any numba kernel.
+    Read from the manifests (``registry.toml``, a plugin's ``faceretarget.toml``) without
+    importing plugin code; see :func:`faceretarget.registry.catalogue`.
     """
-    from .registry import registry
+    from .registry import catalogue
 
-    return [entry.as_dict() for _, entry in sorted(registry().retargeters.items())]
+    return [entry.as_dict() for _, entry in sorted(catalogue().retargeters.items())]
 
 
 def get(name: str, **params) -> Retargeter:
@@ -110,7 +111,7 @@ def save(obj, path, **options):
     return _save(obj, path, **options)
 
 
-_LAZY = {"cases": ".cases", "testing": ".testing", "evaluation": ".evaluation", "correspond": ".correspond", "io": ".io", "geometry": ".geometry", "registry": ".registry", "errors": ".errors", "model": ".model", "naming": ".naming"}
+_LAZY = {"cases": ".cases", "testing": ".testing", "evaluation": ".evaluation", "correspond": ".correspond", "io": ".io", "geometry": ".geometry", "registry": ".registry", "validation": ".validation", "manifest": ".manifest", "errors": ".errors", "model": ".model", "naming": ".naming"}
 
 
 def __getattr__(name: str):

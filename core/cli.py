@@ -240,9 +240,9 @@ def _attach(parser: argparse.ArgumentParser, module_name: str, command: str) -> 
 
 # ---------------------------------------------------------------------------------------
 def cmd_list(args) -> int:
-    from .registry import registry
+    from .registry import catalogue
 
-    reg = registry()
+    reg = catalogue()  # manifests only: no plugin code imported
     rows = [entry.as_dict() for _, entry in sorted(reg.retargeters.items())]
     failures = [{"plugin": f.name, "distribution": f.distribution, "version": f.version, "error": f.error} for f in reg.failures]
     if args.json:
@@ -269,15 +269,13 @@ def cmd_list(args) -> int:
 
 
 def cmd_info(args) -> int:
-    from .registry import registry
+    from .registry import catalogue
 
-    entry = registry().resolve(args.name)
-    defaults = entry.defaults
-    docs = dict(entry.cls.parameter_docs)
-    docs.update(entry.parameter_docs)
+    entry = catalogue().resolve(args.name)  # its manifest: no plugin code imported
+    params = entry.parameters
     if args.json:
         data = entry.as_dict()
-        data["parameters"] = {k: {"default": _jsonable(v), "doc": docs.get(k, "")} for k, v in defaults.items()}
+        data["parameters"] = {k: {"default": _jsonable(p.default), "valid": p.valid, "doc": p.doc} for k, p in params.items()}
         print(json.dumps(data, indent=2))
         return 0
     caps = entry.capabilities
@@ -292,12 +290,12 @@ def cmd_info(args) -> int:
     print(f"sources: {', '.join(caps.sources)}    needs: {needs}    output: {caps.outputs}")
     print(f"stream: {'yes' if caps.stream else 'no'}    edit: {'yes' if caps.edit else 'no'}")
     print("parameters:")
-    if not defaults:
+    if not params:
         print("  (none)")
-    for k, v in defaults.items():
-        print(f"  {k} = {v!r}")
-        if docs.get(k):
-            print(f"      {docs[k]}")
+    for k, p in params.items():
+        print(f"  {k} = {p.default!r}" + (f"    ({p.valid})" if p.valid else ""))
+        if p.doc:
+            print(f"      {p.doc}")
     return 0
 
 

@@ -24,6 +24,7 @@ working. Messages say what was wrong *and* how to fix it.
     ├── OutputError (OSError)                 writing refused (would overwrite an input ...)
     ├── ResourceLimitError (MemoryError)      a file would exceed the memory budget
     ├── ConfigError (ValueError)              registry.toml, manifests, settings
+    │   └── ParameterError (also InputError)  a method's parameter value is not valid
     └── PluginError                           a plugin failed to load or misbehaved
         ├── PluginLoadError
         ├── DuplicatePluginError
@@ -55,6 +56,7 @@ __all__ = [
     "OutputError",
     "ResourceLimitError",
     "ConfigError",
+    "ParameterError",
     "PluginError",
     "PluginLoadError",
     "DuplicatePluginError",
@@ -141,6 +143,12 @@ class ResourceLimitError(FaceRetargetError, MemoryError):
 
 class ConfigError(FaceRetargetError, ValueError):
     """A configuration file (``registry.toml``, a batch manifest, a mapping file) is malformed."""
+
+
+class ParameterError(ConfigError, InputError):
+    """A method's parameter has a value outside its declared constraints
+    (:mod:`faceretarget.validation`); the message names the method, the parameter, the
+    valid values and the value given. Both a :class:`ConfigError` and an :class:`InputError`."""
 
 
 class PluginError(FaceRetargetError):

@@ -13,8 +13,13 @@ Loading order (as in pluggy's own ``load_setuptools_entrypoints``, with error is
 3. ``check_pending()`` after each plugin: a hook implementation whose name matches no
    hookspec is reported against the plugin that brought it.
 
-``registry.toml`` (shipped inside the package) adds the catalogue data of the
-built-in retargeters: aliases, paper, summary and parameter documentation.
+Manifest first (:mod:`faceretarget.manifest`): ``registry.toml`` (shipped inside the
+package) describes every built-in retargeter (aliases, paper, summary, capabilities,
+parameters), and a third-party package may ship the same as ``faceretarget.toml``.
+:func:`catalogue` reads them without importing plugin code (``faceretarget list``/``info``,
+:func:`faceretarget.available`); :func:`registry` imports the plugins and checks each class
+against its manifest (capabilities, parameter names, defaults, constraints): a mismatch
+is a :class:`PluginLoadError` naming the plugin, the hook and the difference.
 ``FACERETARGET_TRACE=1`` prints every hook call.
 """
 from __future__ import annotations
@@ -22,10 +27,8 @@ from __future__ import annotations
 import importlib.metadata as md
 import inspect
 import sys
-import tomllib
 from contextlib import nullcontext
 from dataclasses import dataclass, field
-from importlib import resources
 from typing import Any
 
 import pluggy
@@ -35,9 +38,12 @@ from ._validate import did_you_mean
 from ._deadline import DeadlineExpired, deadline, grace_for, watchdog_process
 from .errors import ConfigError, DuplicatePluginError, PluginError, PluginLoadError, PluginTimeoutError, UnknownNameError
 from .hookspecs import DATA_KINDS, PROJECT, FaceRetargetSpec, Metric, Reader, Writer
-from .retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS, Capabilities, Retargeter
+from .manifest import PACKAGE_MANIFEST, Manifest, builtin_text, disagreements, find_package_manifest, from_class
+from .manifest import parse as parse_manifest
+from .retargeter import Capabilities, Retargeter
+from .validation import constraints_of, describe
 
-__all__ = ["Registry", "PluginInfo", "RetargeterInfo", "registry", "reload", "read_catalogue"]
+__all__ = ["Registry", "PluginInfo", "RetargeterInfo", "registry", "catalogue", "reload", "read_catalogue"]
 
 DISTRIBUTION = "faceretarget"
 
@@ -51,31 +57,38 @@ class PluginInfo:
     version: str
     builtin: bool
     error: str | None = None
+    #: The retargeters its package manifest (faceretarget.toml) declares, by name.
+    manifests: dict[str, Manifest] = field(default_factory=dict)
 
     @property
     def origin(self) -> str:
         return f"{self.distribution} {self.version}"
 
 
-@dataclass
 class RetargeterInfo:
-    """A registered retargeter class with its catalogue data."""
+    """A registered retargeter: its manifest (what ``list`` and ``info`` show) and its class,
+    imported on first use of :attr:`cls` when the entry came from a manifest alone."""
 
-    name: str
-    cls: type
-    plugin: PluginInfo
-    aliases: tuple[str, ...] = ()
-    summary: str = ""
-    paper: str = ""
-    parameter_docs: dict[str, str] = field(default_factory=dict)
+    def __init__(self, manifest: Manifest, plugin: PluginInfo, cls: type | None = None):
+        self.manifest = manifest
+        self.plugin = plugin
+        self._cls = cls
+
+    name = property(lambda self: self.manifest.name)
+    aliases = property(lambda self: self.manifest.aliases)
+    summary = property(lambda self: self.manifest.summary)
+    paper = property(lambda self: self.manifest.paper)
+    capabilities = property(lambda self: self.manifest.capabilities)
+    parameters = property(lambda self: self.manifest.parameters, doc="name -> Parameter (default, constraints, doc)")
+    defaults = property(lambda self: self.manifest.defaults)
+    parameter_docs = property(lambda self: {p: spec.doc for p, spec in self.manifest.parameters.items()})
 
     @property
-    def capabilities(self) -> Capabilities:
-        return self.cls.capabilities
-
-    @property
-    def defaults(self) -> dict[str, Any]:
-        return self.cls.default_params()
+    def cls(self) -> type:
+        """The Retargeter class (loads every plugin the first time, for an entry read from a manifest)."""
+        if self._cls is None:
+            self._cls = registry().resolve(self.name).cls
+        return self._cls
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -89,68 +102,14 @@ class RetargeterInfo:
             "capabilities": self.capabilities.as_dict(),
         }
 
+    def __repr__(self) -> str:
+        return f"<RetargeterInfo {self.name!r} from {self.plugin.name!r} ({self.plugin.origin})>"
+
 
 def read_catalogue(text: str | None = None, origin: str = "registry.toml") -> dict[str, dict[str, Any]]:
-    """Parse ``registry.toml`` (the packaged copy unless ``text`` is given).
-
-    Returns name -> entry with keys ``entry_point``, ``aliases``, ``paper``, ``summary``,
-    ``capabilities``, ``parameters``. Raises :class:`ConfigError` on any malformation.
-    """
-    if text is None:
-        try:
-            text = resources.files("faceretarget").joinpath("registry.toml").read_text(encoding="utf-8")
-        except (FileNotFoundError, OSError) as exc:
-            raise ConfigError(f"{origin}: not found inside the installed package ({exc}); reinstall faceretarget") from None
-    if not isinstance(text, str):
-        raise ConfigError(f"{origin}: expected TOML text, got {type(text).__name__}")
-    try:
-        data = tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, UnicodeError, TypeError) as exc:
-        raise ConfigError(f"{origin}: not valid TOML ({exc})") from None
-    entries = data.get("retargeters")
-    if not isinstance(entries, dict):
-        raise ConfigError(f"{origin}: needs a [retargeters.NAME] table per built-in retargeter")
-    out = {}
-    for name, entry in entries.items():
-        if not isinstance(entry, dict):
-            raise ConfigError(f"{origin}: [retargeters.{name}] must be a table")
-        for key, kind in (("entry_point", str), ("summary", str), ("paper", str)):
-            if not isinstance(entry.get(key), kind):
-                raise ConfigError(f"{origin}: [retargeters.{name}] needs a string {key!r}")
-        aliases = entry.get("aliases", [])
-        if not isinstance(aliases, list) or not all(isinstance(a, str) for a in aliases):
-            raise ConfigError(f"{origin}: [retargeters.{name}].aliases must be a list of strings")
-        params = entry.get("parameters", {})
-        if not isinstance(params, dict) or not all(isinstance(v, dict) and isinstance(v.get("doc"), str) for v in params.values()):
-            raise ConfigError(f"{origin}: [retargeters.{name}.parameters] entries must be tables with a 'doc' string (and 'default')")
-        caps = entry.get("capabilities", {})
-        if not isinstance(caps, dict):
-            raise ConfigError(f"{origin}: [retargeters.{name}.capabilities] must be a table")
-        _check_capabilities(caps, f"{origin}: [retargeters.{name}.capabilities]")
-        out[name] = {**entry, "aliases": aliases, "parameters": params, "capabilities": caps}
-    return out
-
-
-def _check_capabilities(caps: dict, where: str) -> None:
-    """Raise ConfigError unless ``caps`` is a valid ``Capabilities.as_dict()`` table."""
-    unknown = sorted(set(caps) - {"sources", "needs", "outputs", "stream", "edit", "same_topology"})
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))}")
-    sources = caps.get("sources", ["markers"])
-    if not isinstance(sources, list) or not all(isinstance(s, str) and s in SOURCE_KINDS for s in sources):
-        raise ConfigError(f"{where}: sources must be a list of {', '.join(SOURCE_KINDS)}")
-    needs = caps.get("needs", [])
-    valid = RIG_PARTS + SOURCE_EXTRAS
-    if not isinstance(needs, list) or not all(
-        (isinstance(n, str) and n in valid) or (isinstance(n, list) and n and all(isinstance(o, str) and o in valid for o in n))
-        for n in needs
-    ):
-        raise ConfigError(f"{where}: needs must be a list of {', '.join(valid)} (or lists of alternatives)")
-    if caps.get("outputs", "vertices") not in ("weights", "vertices"):
-        raise ConfigError(f"{where}: outputs must be \"weights\" or \"vertices\"")
-    for key in ("stream", "edit", "same_topology"):
-        if not isinstance(caps.get(key, False), bool):
-            raise ConfigError(f"{where}: {key} must be true or false")
+    """Parse ``registry.toml`` (the packaged copy unless ``text`` is given): see
+    :func:`faceretarget.manifest.parse`. Raises :class:`ConfigError` on any malformation."""
+    return parse_manifest(builtin_text() if text is None else text, origin)
 
 
 class Registry:
@@ -170,8 +129,75 @@ class Registry:
         self.writers: list[tuple[Writer, PluginInfo]] = []
         self.metrics: dict[str, tuple[Metric, PluginInfo]] = {}
         self.catalogue = read_catalogue()
+        self.manifests = {name: Manifest.from_entry(name, entry, "registry.toml") for name, entry in self.catalogue.items()}
 
     # -- loading ---------------------------------------------------------------------
+    def index(self) -> "Registry":
+        """The retargeters as their manifests describe them, importing no plugin that has one
+        (``faceretarget list`` / ``info``, :func:`faceretarget.available`): the built-ins from
+        ``registry.toml``, third-party plugins from their package's ``faceretarget.toml``.
+        A third-party plugin without a manifest is loaded as :meth:`load` does. Readers,
+        writers and metrics are not indexed (use :meth:`load`)."""
+        eps = sorted(md.entry_points(group=PROJECT), key=lambda ep: ep.name)
+        builtin = {ep.name: ep for ep in eps if _dist_name(ep) == DISTRIBUTION}
+        for name, manifest in self.manifests.items():
+            ep = builtin.get(manifest.entry_point)
+            if ep is None:
+                raise ConfigError(
+                    f"registry.toml lists retargeter {name!r} (entry point {manifest.entry_point!r}) but no built-in plugin provides it"
+                )
+            self._add([RetargeterInfo(manifest, PluginInfo(ep.name, DISTRIBUTION, _dist_version(ep), builtin=True))])
+        if config.env_flag(config.ENV_DISABLE_PLUGINS):
+            return self
+        allow = {a.strip() for a in _env(config.ENV_PLUGIN_ALLOWLIST).split(",") if a.strip()}
+        unindexed = []
+        for ep in (ep for ep in eps if _dist_name(ep) != DISTRIBUTION):
+            info = PluginInfo(ep.name, _dist_name(ep) or "unknown", _dist_version(ep), builtin=False)
+            if allow and ep.name not in allow and info.distribution not in allow:
+                continue
+            try:
+                found = self._package_manifests(ep, info)
+            except ConfigError as exc:
+                self._fail(info, str(exc), fatal=False)
+                continue
+            if not found:
+                unindexed.append(ep)
+                continue
+            entries = [RetargeterInfo(m, info) for m in found.values()]
+            try:
+                self._check_duplicates(entries, [], info)
+            except PluginError as exc:
+                self._fail(info, str(exc), fatal=False)
+                continue
+            self._add(entries)
+            self.plugins.append(info)
+        if unindexed:
+            limit = config.seconds_setting(config.ENV_IMPORT_TIMEOUT, config.DEFAULT_IMPORT_TIMEOUT)
+            with watchdog_process() if limit else nullcontext():
+                self._load_external(unindexed, set(), limit)
+        return self
+
+    @staticmethod
+    def _package_manifests(ep: md.EntryPoint, info: PluginInfo) -> dict[str, Manifest]:
+        """The manifests of ``faceretarget.toml`` in ``ep``'s package (kept on ``info``), or {}."""
+        path = find_package_manifest(ep.value)
+        if path is None:
+            return {}
+        origin = f"plugin {info.name!r} ({info.origin}): {path}"
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeError) as exc:
+            raise ConfigError(f"{origin}: cannot be read ({exc})") from None
+        entries = parse_manifest(text, origin, defaults={"entry_point": ep.name, "paper": ""})
+        info.manifests = {name: Manifest.from_entry(name, entry, origin) for name, entry in entries.items()}
+        return info.manifests
+
+    def _add(self, entries: list[RetargeterInfo]) -> None:
+        for entry in entries:
+            self.retargeters[entry.name] = entry
+            for alias in entry.aliases:
+                self.aliases[alias.lower()] = entry.name
+
     def load(self, extra: list[tuple[str, Any]] | None = None) -> "Registry":
         """Load built-in then third-party entry points (and ``extra`` (name, module) pairs)."""
         eps = sorted(md.entry_points(group=PROJECT), key=lambda ep: ep.name)
@@ -201,6 +227,11 @@ class Registry:
         for ep in external:
             info = PluginInfo(ep.name, _dist_name(ep) or "unknown", _dist_version(ep), builtin=False)
             if allow and ep.name not in allow and info.distribution not in allow:
+                continue
+            try:  # read before importing: the class is checked against it at registration
+                self._package_manifests(ep, info)
+            except ConfigError as exc:
+                self._fail(info, str(exc), fatal=False)
                 continue
             try:
                 with deadline(limit, hard=_stuck(info, limit, "importing")):
@@ -272,6 +303,12 @@ class Registry:
             writers = [self._validate_record(w, Writer, "faceretarget_writers", info) for w in staged["faceretarget_writers"]]
             metrics = [self._validate_record(m, Metric, "faceretarget_metrics", info) for m in staged["faceretarget_metrics"]]
             self._check_duplicates(entries, metrics, info)
+            unprovided = sorted(set(info.manifests) - {e.name for e in entries})
+            if unprovided:
+                raise PluginLoadError(
+                    f"plugin {info.name!r} ({info.origin}): its {PACKAGE_MANIFEST} declares {', '.join(map(repr, unprovided))} "
+                    f"but hook faceretarget_retargeters returned no such class"
+                )
         except PluginError as exc:
             self.pm.unregister(module)
             self._fail(info, str(exc), fatal, exc)
@@ -283,10 +320,7 @@ class Registry:
             error = PluginLoadError(f"plugin {info.name!r} ({info.origin}): what its hooks returned is invalid: {type(exc).__name__}: {exc}")
             self._fail(info, str(error), fatal, error)
             return
-        for entry in entries:
-            self.retargeters[entry.name] = entry
-            for alias in entry.aliases:
-                self.aliases[alias.lower()] = entry.name
+        self._add(entries)
         self.readers.extend((r, info) for r in readers)
         self.writers.extend((w, info) for w in writers)
         for m in metrics:
@@ -318,11 +352,25 @@ class Registry:
                 raise PluginLoadError(
                     f"{where}: {cls.__name__}.__init__ parameter {p.name!r} must be keyword-only with a default"
                 )
-        entry = self.catalogue.get(cls.name) if info.builtin else None
-        if entry is not None:
-            docs = {k: v.get("doc", "") for k, v in entry["parameters"].items()}
-            return RetargeterInfo(cls.name, cls, info, tuple(entry["aliases"]), entry["summary"], entry["paper"], docs)
-        return RetargeterInfo(cls.name, cls, info, tuple(getattr(cls, "aliases", ())), cls.summary or (cls.__doc__ or "").strip().split("\n")[0], getattr(cls, "paper", ""), dict(cls.parameter_docs))
+        try:
+            constraints = constraints_of(cls)
+        except (TypeError, ValueError) as exc:
+            raise PluginLoadError(f"{where}: {cls.__name__}.parameter_constraints: {exc}") from None
+        defaults = cls.default_params()
+        for p, allowed in constraints.items():
+            if p not in defaults:
+                raise PluginLoadError(f"{where}: {cls.__name__}.parameter_constraints names {p!r}, which __init__ does not take")
+            if allowed and not any(c.accepts(defaults[p]) for c in allowed):
+                raise PluginLoadError(f"{where}: {cls.__name__}: the default {p}={defaults[p]!r} is not {describe(allowed)}")
+        declared = self.manifests.get(cls.name) if info.builtin else info.manifests.get(cls.name)
+        if declared is None:
+            return RetargeterInfo(from_class(cls, info.name), info, cls)
+        mismatches = disagreements(cls, declared)
+        if mismatches:
+            raise PluginLoadError(
+                f"{where}: {cls.__name__} ({cls.name!r}) and its manifest {declared.origin} disagree: " + "; ".join(mismatches)
+            )
+        return RetargeterInfo(declared, info, cls)
 
     @staticmethod
     def _validate_record(record: Any, kind: type, hook: str, info: PluginInfo):
@@ -414,10 +462,25 @@ def registry() -> Registry:
     return _REGISTRY
 
 
+_CATALOGUE: Registry | None = None
+
+
+def catalogue() -> Registry:
+    """The process-wide index of retargeters read from manifests (:meth:`Registry.index`):
+    what ``faceretarget list`` / ``info`` and :func:`faceretarget.available` show, without
+    importing plugin code. Use :func:`registry` for the classes, readers, writers, metrics."""
+    global _CATALOGUE
+    if _REGISTRY is not None:  # plugins already loaded: their classes and failures are the truth
+        return _REGISTRY
+    if _CATALOGUE is None:
+        _CATALOGUE = Registry().index()
+    return _CATALOGUE
+
+
 def reload() -> Registry:
     """Forget and reload every plugin (after installing one, or changing the environment)."""
-    global _REGISTRY
-    _REGISTRY = None
+    global _REGISTRY, _CATALOGUE
+    _REGISTRY = _CATALOGUE = None
     return registry()
 
 

@@ -18,28 +18,17 @@ from typing import ClassVar, Iterator
 
 import numpy as np
 
-from faceretarget._validate import check_bool, check_choice, check_number, check_param
+from faceretarget import manifest
 from faceretarget.errors import InputError, OutputError, TopologyMismatchError
 from faceretarget.geometry.deformation_gradients import DeformationTransfer, check_triangles, gradient_columns, reference_inverse
 from faceretarget.model import Animation, MeshSequence, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
+from faceretarget.validation import Options, check_value, validate_params
 
 from .alignment import Placement, estimate_motion, frame_chunks, stable_vertices, to_world
 from .topology import OutputMap, common_topology, describe, same_topology
 
 __all__ = ["CoatingRetargeter", "DeformationTransferRetargeter"]
-
-#: Bounds of the numeric parameters, far beyond any useful value: they keep the solves
-#: finite (squared weights) and the run time bounded.
-MAX_ITERATIONS = 10_000
-MAX_WEIGHT = 1e8
-#: The coating's reconstruction error grows as 1 / screening below about 1e-3 (the Poisson
-#: system tends to the singular L): 1e-4 gives ~10x the default's error, 1e-8 ~10 face heights.
-SCREENING_RANGE = (1e-4, 1e6)
-MAX_DETAIL_SCALE = 1e3
-LAPLACIANS = ("uniform", "cotangent")
-#: Longest default edit window (seconds either side of the edited frames).
-MAX_EDIT_WINDOW = 1e6
 
 
 class _MeshTransfer(Retargeter):
@@ -65,10 +54,11 @@ class _MeshTransfer(Retargeter):
             )
         return None
 
-    def _check_shared(self) -> None:
-        """The parameters both methods have: ``stable_fraction`` in (0, 1], ``chunk_frames`` >= 1."""
-        check_param(check_number, self.stable_fraction, f"{self.name}.stable_fraction", low=0, high=1, open_low=True)
-        check_param(check_number, self.chunk_frames, f"{self.name}.chunk_frames", integer=True, low=1)
+    def _check_params(self) -> None:
+        """Every constructor parameter against its declared constraints (registry.toml; the edit
+        weights too, so a bad one fails at fit, not at the first edit): a
+        :class:`~faceretarget.errors.ParameterError` naming it, its valid values and the value."""
+        validate_params(self)
 
     def _prepare(self, source: Source, target: TargetRig):
         """Common topology and the stable vertices of the fit source (one pass over its frames)."""
@@ -148,27 +138,8 @@ class CoatingRetargeter(_MeshTransfer):
         "Multi-scale transfer of dense performances: smooth blendshape bases by feature-preserving deformation "
         "transfer + Laplacian-coating details; spacetime edits of bases, weights and wrinkles"
     )
-    parameter_docs: ClassVar[dict[str, str]] = {
-        "iterations": "Taubin lambda|mu smoothing iterations giving the smooth mesh (paper: about 40)",
-        "epsilon": "basis selection stops when the RMS reconstruction error of the smooth frames is below epsilon x face size (square root of the source's area, about its height; eq. 7)",
-        "max_bases": "upper bound on the number of blendshape bases selected from the source frames",
-        "max_selection_frames": "basis candidates are at most this many evenly spaced source frames (all frames of shorter sequences)",
-        "sigma": "weight of the feature-line term in the basis deformation transfer (eq. 9; paper: 100), scaled for each line by exp(-(d/0.1)^2), d the log-ratio of the target's to the source's length of that line relative to the face-size ratio",
-        "laplacian": "'uniform' or 'cotangent' Laplacian of the coating's Poisson system",
-        "screening": "Poisson screening a / mean(diag L) making L + a I invertible and detail reconstruction local",
-        "detail_scale": "factor on the transferred fine-scale motion: 1 keeps the source's coating magnitude in the target's units (paper); 'auto' scales by the target/source size ratio",
-        "stable_fraction": "fraction of least-moving vertices used to estimate head motion and fix the translation gauge",
-        "chunk_frames": "frames processed together (memory is bounded by the chunk, not the sequence)",
-        "cache_details": "keep the source's fine-scale motion (float32, F x V x 3) with an in-memory result so detail edits need no recomputation",
-        "lambda_b": "edit: weight of the basis deformation-transfer term E_b (eq. 12)",
-        "lambda_w": "edit: weight of the weight-velocity term E_w (eq. 13)",
-        "lambda_c": "edit: weight of the user constraints E_c, per squared mean edge length (eq. 14-15)",
-        "edit_window": "edit: default temporal window, in seconds either side of the edited frames; weights change only inside it and are anchored at its ends",
-        "detail_threshold": "detail edit: active frames are those whose region coating magnitude exceeds this fraction of the key frame's (paper: 0.23)",
-        "lambda_key": "detail edit: weight of the key-frame term E_c (eq. 19; paper: 1)",
-        "lambda_gradient": "detail edit: weight of the temporal + spatial gradient term E_t (eq. 20; paper: 0.1)",
-        "lambda_boundary": "detail edit: weight of the fixed boundary-frame term E_s (eq. 21; paper: 1)",
-    }
+    #: Types, ranges and choices of the parameters, with their meanings: registry.toml.
+    parameter_constraints: ClassVar[dict] = manifest.constraints("coating")
 
     def __init__(
         self,
@@ -230,31 +201,11 @@ class CoatingRetargeter(_MeshTransfer):
             )
         return None
 
-    def _check_params(self) -> None:
-        """Every constructor parameter (the edit weights too, so a bad one fails at fit, not at
-        the first edit): a :class:`ConfigError` naming it, its valid range and the value."""
-        self._check_shared()
-        check_param(check_number, self.iterations, "coating.iterations", integer=True, low=0, high=MAX_ITERATIONS)
-        check_param(check_number, self.epsilon, "coating.epsilon", low=0, open_low=True)
-        check_param(check_number, self.max_bases, "coating.max_bases", integer=True, low=1)
-        check_param(check_number, self.max_selection_frames, "coating.max_selection_frames", integer=True, low=1)
-        check_param(check_number, self.sigma, "coating.sigma", low=0, open_low=True, high=MAX_WEIGHT)
-        check_param(check_choice, self.laplacian, "coating.laplacian", LAPLACIANS)
-        check_param(check_number, self.screening, "coating.screening", low=SCREENING_RANGE[0], high=SCREENING_RANGE[1])
-        check_param(check_number, self.detail_scale, "coating.detail_scale", low=0, open_low=True, high=MAX_DETAIL_SCALE, choices=("auto",))
-        check_param(check_bool, self.cache_details, "coating.cache_details")
-        self._edit_weights(self.lambda_b, self.lambda_w, self.lambda_c)
-        check_param(check_number, self.edit_window, "coating.edit_window", low=0, high=MAX_EDIT_WINDOW)
-        check_param(check_number, self.detail_threshold, "coating.detail_threshold", low=0, high=1)
-        check_param(check_number, self.lambda_key, "coating.lambda_key", low=0, open_low=True, high=MAX_WEIGHT)
-        check_param(check_number, self.lambda_gradient, "coating.lambda_gradient", low=0, open_low=True, high=MAX_WEIGHT)
-        check_param(check_number, self.lambda_boundary, "coating.lambda_boundary", low=0, high=MAX_WEIGHT)
-
-    @staticmethod
-    def _edit_weights(lambda_b, lambda_w, lambda_c) -> tuple[float, float, float]:
-        """The large-scale edit's term weights, each a finite number in (0, MAX_WEIGHT]."""
+    def _edit_weights(self, lambda_b, lambda_w, lambda_c) -> tuple[float, float, float]:
+        """The large-scale edit's term weights (an edit call's own, else the parameters), each
+        checked against the parameter's constraints."""
         return tuple(
-            check_param(check_number, value, f"coating.{name}", low=0, open_low=True, high=MAX_WEIGHT)
+            check_value(value, self.parameter_constraints[name], name, "coating.edit")
             for name, value in (("lambda_b", lambda_b), ("lambda_w", lambda_w), ("lambda_c", lambda_c))
         )
 
@@ -456,7 +407,7 @@ class CoatingRetargeter(_MeshTransfer):
             spec = detail if isinstance(detail, DetailEdit) else DetailEdit(**dict(detail))
             new_track, changed, diagnostics = apply_detail_edit(self, track, animation, spec)
         else:
-            mode = check_param(check_choice, mode, "coating.edit: mode", _MODES)
+            mode = check_value(mode, [Options(_MODES)], "mode", "coating.edit")
             lambdas = self._edit_weights(
                 self.lambda_b if lambda_b is None else lambda_b,
                 self.lambda_w if lambda_w is None else lambda_w,
@@ -485,10 +436,7 @@ class DeformationTransferRetargeter(_MeshTransfer):
     name: ClassVar[str] = "deformation_transfer"
     capabilities: ClassVar[Capabilities] = Capabilities(sources=("mesh",), outputs="vertices")
     summary: ClassVar[str] = "Per-frame deformation transfer (Sumner & Popovic 2004): triangle deformation gradients solved on the target"
-    parameter_docs: ClassVar[dict[str, str]] = {
-        "stable_fraction": "fraction of least-moving vertices used to estimate head motion and fix the translation gauge",
-        "chunk_frames": "frames transferred together (one factorization, multi-column solves)",
-    }
+    parameter_constraints: ClassVar[dict] = manifest.constraints("deformation_transfer")
 
     def __init__(self, *, stable_fraction: float = 0.5, chunk_frames: int = 32):
         self.stable_fraction = stable_fraction
@@ -497,7 +445,7 @@ class DeformationTransferRetargeter(_MeshTransfer):
     def _fit(self, source: Source, target: TargetRig) -> None:
         from .model import size_ratio
 
-        self._check_shared()
+        self._check_params()
         topo, stable = self._prepare(source, target)
         start = time.perf_counter()
         self.transfer_ = DeformationTransfer(self.placement_.to_model(topo.target_reference), self.source_triangles_, gauge_weights=stable)

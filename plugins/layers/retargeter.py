@@ -17,52 +17,23 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from faceretarget._threads import blas_single_threaded, single_threaded_blas
-from faceretarget._validate import check_bool, check_choice, check_number, check_param, short_repr
-from faceretarget.errors import (CapabilityError, ConfigError, FaceRetargetError, InputError, ShapeError,
-                                 TopologyMismatchError)
+from faceretarget import manifest
+from faceretarget._validate import short_repr
+from faceretarget.errors import CapabilityError, ConfigError, FaceRetargetError, ShapeError, TopologyMismatchError
 from faceretarget.model import Animation, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
+from faceretarget.validation import Interval, check_value, validate_params
 
 from . import compose
 from .model import build_actor, build_character
-from .residual import RESIDUAL_MODES, build_residual, solve_residual
+from .residual import build_residual, solve_residual
 from .solver import extract, fit_block, observe, reconstruct, resolve_lip_bias
 
 __all__ = ["LayersRetargeter"]
 
-#: Upper bounds of the numeric parameters (far beyond any useful value; they keep the
-#: solver's arithmetic finite and its run time bounded).
-MAX_SMOOTHING = 1e6
-MAX_LIP_SIGMA = 1e6
-MAX_ITER = 10_000
-MAX_REFINEMENT = 20
-COMPOSITIONS = ("additive", "convex")
-HEAD_MOTION = ("auto", "procrustes", "none")
-
-
-def _number(value, name: str, **limits):
-    """``check_number`` with the plugin's error type (ConfigError, message naming ``name``)."""
-    return check_param(check_number, value, name, **limits)
-
-
-def _choice(value, name: str, choices) -> str:
-    return check_param(check_choice, value, name, choices)
-
-
-def _name_or_index(value, name: str, what: str):
-    """None, a name (str) or a whole-number index (range checked later, against the model)."""
-    if value is None or isinstance(value, str):
-        return value
-    message = f"{name}: expected None, the name of a {what} or its 0-based index (a whole number), got {short_repr(value)}"
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ConfigError(message)
-    try:
-        return check_number(value, name, integer=True)
-    except InputError:
-        raise ConfigError(message) from None
-
 
 def _lip_markers(value):
+    """``lip_markers`` as a pair: what its declared constraint (None or an array) cannot say."""
     if value is None:
         return None
     message = ("lip_markers: expected None or a pair (upper, lower) of marker/track names or 3D marker indices, "
@@ -79,12 +50,8 @@ def _lip_markers(value):
         elif isinstance(item, (bool, np.bool_)) or not isinstance(item, (int, float, np.integer, np.floating)):
             raise ConfigError(message)
         else:
-            out.append(_number(item, "lip_markers", integer=True))
+            out.append(check_value(item, [Interval(int)], "lip_markers", "layers"))
     return tuple(out)
-
-
-def _flag(value, name: str) -> bool:
-    return check_param(check_bool, value, name)
 
 
 #: The head-motion significance test looks at about this many frames spread over the shot.
@@ -143,23 +110,8 @@ class LayersRetargeter(Retargeter):
         same_topology=False,
     )
     summary = "Layered simplicial bases (emotion, speech, blink) with region mask weights, transferred parameter-parallel"
-    parameter_docs = {
-        "smoothing": "lambda of Eq. 7: pull of each frame's weights and coefficients (and residual weights) towards the previous frame's",
-        "lip_sigma": "sigma of the lip-closure bias, as a fraction of the widest lip opening among the speech poses (0: bias off)",
-        "gamma_max": "cap on the bias factor gamma < 1, so the data term never vanishes on closed lips",
-        "lip_markers": "(upper, lower) lip marker or 2D-track names, or 3D marker indices; default: by name ('lip' + upper/lower) or geometry",
-        "speech_layer": "name of the layer holding the visemes (the bias target)",
-        "closed_viseme": "closed-lips pose of the speech layer (name or index); default: its first pose",
-        "mouth_region": "region the bias acts on (name or index); default: the region covering the lip markers",
-        "composition": "'additive' (each layer weight w_jl in [0, 1]: the layers add) or 'convex' (the paper: sum_j w_jl = 1 per region)",
-        "head_motion": "'auto' (Source.head_motion if given, else estimated when a whole-shot significance test finds head motion, else none), 'procrustes' (always estimate) or 'none' (the source has no head motion)",
-        "head_motion_refinement": "model-based alignment rounds (solve with the data taken modulo the alignment's small motions, then align each frame to the model's reconstruction); 0 = the paper's alignment to the mean",
-        "rigid_points": "'stable' (weight the rigid fit to points the layers barely move) or 'all' (plain Procrustes)",
-        "residual": "'auto' (carry what the layers do not span through TargetRig.blendshapes at its landmarks, when it has both), 'blendshapes' (require it) or 'none' (the paper: layers only)",
-        "project_blendshapes": "also project every frame onto TargetRig.blendshapes by bounded least squares (output weights)",
-        "max_iter": "maximum Levenberg-Marquardt steps per frame",
-        "tol": "relative decrease of the objective below which a frame has converged",
-    }
+    #: Types, ranges and choices of the parameters, with their meanings: registry.toml.
+    parameter_constraints = manifest.constraints("layers")
 
     def __init__(
         self,
@@ -198,38 +150,15 @@ class LayersRetargeter(Retargeter):
 
     # -- parameters ------------------------------------------------------------------
     def _params(self) -> dict:
-        """Every constructor parameter, checked (ConfigError naming it and the valid values)."""
-        speech = self.speech_layer
-        if not isinstance(speech, str):
-            raise ConfigError(f"speech_layer: expected the name (str) of the layer holding the visemes, got {short_repr(speech)}")
-        return dict(
-            smoothing=_number(self.smoothing, "smoothing", low=0, high=MAX_SMOOTHING),
-            lip_sigma=_number(self.lip_sigma, "lip_sigma", low=0, high=MAX_LIP_SIGMA),
-            gamma_max=self._gamma_max(),
-            lip_markers=_lip_markers(self.lip_markers),
-            speech_layer=speech,
-            closed_viseme=_name_or_index(self.closed_viseme, "closed_viseme", "pose of the speech layer"),
-            mouth_region=_name_or_index(self.mouth_region, "mouth_region", "region"),
-            composition=_choice(self.composition, "composition", COMPOSITIONS),
-            head_motion=_choice(self.head_motion, "head_motion", HEAD_MOTION),
-            head_motion_refinement=_number(self.head_motion_refinement, "head_motion_refinement", integer=True, low=0,
-                                           high=MAX_REFINEMENT),
-            rigid_points=_choice(self.rigid_points, "rigid_points", ("stable", "all")),
-            residual=_choice(self.residual, "residual", RESIDUAL_MODES),
-            project_blendshapes=_flag(self.project_blendshapes, "project_blendshapes"),
-            max_iter=_number(self.max_iter, "max_iter", integer=True, low=1, high=MAX_ITER),
-            tol=_number(self.tol, "tol", low=0),
-        )
+        """Every constructor parameter, checked against its declared constraints (registry.toml;
+        a ParameterError naming it and the valid values), ``lip_markers`` also as a pair."""
+        params = validate_params(self)
+        params["lip_markers"] = _lip_markers(params["lip_markers"])
+        return params
 
-    def _gamma_max(self) -> float:
-        message = f"gamma_max: expected a finite number >= 0 and < 1, got {short_repr(self.gamma_max)}"
-        try:
-            value = check_number(self.gamma_max, "gamma_max", low=0, high=1)
-        except InputError:
-            raise ConfigError(message) from None
-        if value >= 1.0:
-            raise ConfigError(message)
-        return value
+    def _param(self, name: str):
+        """One parameter, checked again at retarget time (set_params may change it after fit)."""
+        return check_value(getattr(self, name), self.parameter_constraints[name], name, "layers")
 
     # -- fit -------------------------------------------------------------------------
     def _fit(self, source: Source, target: TargetRig) -> None:
@@ -286,15 +215,11 @@ class LayersRetargeter(Retargeter):
     # -- retarget --------------------------------------------------------------------
     def _settings(self) -> dict:
         """The retarget-time parameters, checked again (set_params may change them after fit)."""
+        p = {name: self._param(name) for name in
+             ("rigid_points", "smoothing", "gamma_max", "max_iter", "tol", "composition", "head_motion_refinement")}
         return dict(
-            rigid_points=_choice(self.rigid_points, "rigid_points", ("stable", "all")),
-            smoothing=_number(self.smoothing, "smoothing", low=0, high=MAX_SMOOTHING),
-            gamma_max=self._gamma_max(),
-            max_iter=_number(self.max_iter, "max_iter", integer=True, low=1, high=MAX_ITER),
-            tol=_number(self.tol, "tol", low=0),
-            additive=_choice(self.composition, "composition", COMPOSITIONS) == "additive",
-            passes=1 + _number(self.head_motion_refinement, "head_motion_refinement", integer=True, low=0,
-                               high=MAX_REFINEMENT),
+            rigid_points=p["rigid_points"], smoothing=p["smoothing"], gamma_max=p["gamma_max"], max_iter=p["max_iter"],
+            tol=p["tol"], additive=p["composition"] == "additive", passes=1 + p["head_motion_refinement"],
         )
 
     def _solve(self, markers, tracks, head_motion, states=None, frame_offset=0, settings=None):
@@ -317,7 +242,7 @@ class LayersRetargeter(Retargeter):
 
     def _observe(self, markers, tracks, head_motion, frame_offset=0):
         """Pass 0 only: alignment to the neutral (the paper's Eq. 6)."""
-        rigid_points = _choice(self.rigid_points, "rigid_points", ("stable", "all"))
+        rigid_points = self._param("rigid_points")
         return observe(self.actor_, self.lip_, markers, tracks, head_motion, rigid_points=rigid_points,
                        frame_offset=frame_offset)
 
@@ -344,7 +269,7 @@ class LayersRetargeter(Retargeter):
             if source.tracks2d is None:
                 raise CapabilityError(f"layers: the model was fitted with {self.actor_.n2} 2D tracks; this source has no tracks2d")
             tracks = source.tracks2d.positions
-        mode = _choice(self.head_motion, "head_motion", HEAD_MOTION)
+        mode = self._param("head_motion")
         if mode == "none":
             return markers, tracks, "none", "none (head_motion='none')"
         if mode == "auto" and source.head_motion is not None:
@@ -475,7 +400,7 @@ class LayersRetargeter(Retargeter):
     def _stream(self, frames: Iterator) -> Iterator[np.ndarray]:
         states = None
         settings = self._settings()
-        mode = _choice(self.head_motion, "head_motion", HEAD_MOTION)
+        mode = self._param("head_motion")
         for index, item in enumerate(frames):
             markers, tracks, head = self._parse_frame(item, index)
             if mode == "none":

@@ -42,12 +42,14 @@ from typing import ClassVar
 
 import numpy as np
 
-from faceretarget._validate import as_array, check_choice, check_number
+from faceretarget import manifest
+from faceretarget._validate import as_array
 from faceretarget.errors import DegenerateGeometryError, InputError, ShapeError, TopologyMismatchError
 from faceretarget.geometry.procrustes import fit_rigid, to_matrix
 from faceretarget.geometry.raycast import RayCaster
 from faceretarget.model import Animation, Landmarks, MeshSequence, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
+from faceretarget.validation import validate_params
 
 from . import base_mesh as bm
 from .attach import attach, carry, coverage
@@ -55,7 +57,6 @@ from .base_retarget import fit_base_map
 from .normal_mesh import (
     KIND_BOUNDARY,
     KIND_REPAIRED,
-    REPAIRS,
     FrameDecomposer,
     Surface,
     build_normal_mesh,
@@ -92,37 +93,6 @@ REMOVED_WARNING = 0.25
 #: Most vertex pairs of the two normal meshes used to warp the target onto the source for
 #: the fallback's correspondence (the finest level with at most this many vertices).
 WARP_PAIRS = 1500
-#: Upper bounds of the numeric parameters, far beyond any useful value (they keep the RBF
-#: solve and the offsets finite).
-MAX_RBF_C = 1e6
-MAX_RBF_SMOOTHING = 1e6
-MAX_OFFSET = 1e3
-MAX_DETAIL_SCALE = 1e3
-DETAIL_SCALES = ("length", "area")
-HEAD_MOTIONS = ("auto", "estimate", "none")
-BOUNDARY_MOTIONS = ("transfer", "initial")
-SLIDINGS = ("transfer", "none")
-FALLBACKS = ("examples", "nearest")
-BACKENDS = ("auto", "embree", "bvh")
-
-PARAMETER_DOCS = {
-    "levels": "normal-mesh levels above the base mesh (paper: 4-5; each level has 4x the triangles); 'auto' = the finest level's edges half the target mesh's, within half to once the source mesh's",
-    "detail_levels": "levels whose source normal-offset changes are transferred (Eq. 8); -1 = all, 0 = base motion only",
-    "rbf_c": "multiquadric c of Eq. 3, in units of the mean distance between a base point's example displacements",
-    "rbf_smoothing": "ridge of the per-point RBF solve, times c (0 = exact interpolation of the examples, Eq. 4)",
-    "detail_scale": "scale delta of the offset changes: 'length' = square root of the target/source area ratio (unit-free), 'area' = the ratio itself (Eq. 9 as printed), or a number",
-    "max_offset": "piercing error if the hit is farther than this times the length of the edge the new vertex splits",
-    "repair": "a piercing error's vertex: 'surface' = neighbour average moved to its closest surface point (frames: the material point of its neutral place); 'average' = neighbour average (sec. 4.4)",
-    "max_piercing": "base triangles whose patch has piercing errors on more than this share of its vertices (either neutral or a source example) are removed and left to the fallback; 1 = keep all (the paper)",
-    "sliding": "'transfer' = finest-level vertices also slide over the target as the source's material points slide past the source's normal mesh; 'none' = target vertices ride the normal mesh (the paper)",
-    "fallback": "target vertices off the normal mesh: 'examples' = each by its own example-based map (Eq. 3-4) of its corresponding source point's motion, blended in over a band; 'nearest' = follow the nearest normal-mesh point's translation",
-    "base_triangles": "base connectivity (K, 3) over the feature points; default None = automatic (Delaunay in a shared 2D projection)",
-    "source_feature_points": "Landmarks on the source mesh for the base mesh; default None = Source.landmarks",
-    "target_feature_points": "Landmarks on the target mesh, in the same order; default None = TargetRig.landmarks",
-    "head_motion": "'auto' = Source.head_motion if given, else estimated and kept if significant; 'estimate' = always estimated; 'none'",
-    "boundary_motion": "boundary vertices: 'transfer' their displacement-vector changes like the normal offsets, or keep the neutral's vectors ('initial', sec. 4.4)",
-    "backend": "ray casting: 'auto' (Embree if embreex imports, else the numba BVH), 'embree' or 'bvh'",
-}
 
 
 class NormalMeshRetargeter(Retargeter):
@@ -138,7 +108,8 @@ class NormalMeshRetargeter(Retargeter):
         same_topology=False,
     )
     summary: ClassVar[str] = "example-based RBF on a base mesh, then normal-mesh offset details level by level"
-    parameter_docs: ClassVar[dict[str, str]] = PARAMETER_DOCS
+    #: Types, ranges and choices of the parameters, with their meanings: registry.toml.
+    parameter_constraints: ClassVar[dict] = manifest.constraints("normalmesh")
 
     def __init__(
         self,
@@ -181,21 +152,10 @@ class NormalMeshRetargeter(Retargeter):
     # fit
     # ------------------------------------------------------------------------------
     def _check_params(self) -> None:
-        """Every constructor parameter: an :class:`InputError` naming it, its valid values and the
-        value given. (The feature points and base triangles are checked where they are read.)"""
-        check_number(self.levels, "normalmesh.levels", integer=True, low=0, high=MAX_LEVELS, choices=("auto",))
-        check_number(self.detail_levels, "normalmesh.detail_levels (-1 = all levels)", integer=True, low=-1)
-        check_number(self.rbf_c, "normalmesh.rbf_c", low=0, open_low=True, high=MAX_RBF_C)
-        check_number(self.rbf_smoothing, "normalmesh.rbf_smoothing", low=0, high=MAX_RBF_SMOOTHING)
-        check_number(self.max_offset, "normalmesh.max_offset", low=0, open_low=True, high=MAX_OFFSET)
-        check_number(self.detail_scale, "normalmesh.detail_scale", low=0, high=MAX_DETAIL_SCALE, choices=DETAIL_SCALES)
-        check_choice(self.repair, "normalmesh.repair", REPAIRS)
-        check_number(self.max_piercing, "normalmesh.max_piercing", low=0, high=1)
-        check_choice(self.sliding, "normalmesh.sliding", SLIDINGS)
-        check_choice(self.fallback, "normalmesh.fallback", FALLBACKS)
-        check_choice(self.head_motion, "normalmesh.head_motion", HEAD_MOTIONS)
-        check_choice(self.boundary_motion, "normalmesh.boundary_motion", BOUNDARY_MOTIONS)
-        check_choice(self.backend, "normalmesh.backend", BACKENDS)
+        """Every constructor parameter against its declared constraints (registry.toml): a
+        :class:`~faceretarget.errors.ParameterError` (an InputError) naming it, its valid values
+        and the value given. (The feature points and base triangles are checked where read.)"""
+        validate_params(self)
 
     def _feature_points(self, source: Source, target: TargetRig) -> tuple[Landmarks, Landmarks]:
         src = self.source_feature_points if self.source_feature_points is not None else source.landmarks

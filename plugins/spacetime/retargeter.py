@@ -30,32 +30,16 @@ from faceretarget.errors import (
     UnknownNameError,
 )
 from faceretarget._threads import blas_single_threaded
-from faceretarget._validate import as_array, check_bool, check_choice, check_number, check_param, short_repr
-from faceretarget import naming
+from faceretarget._validate import as_array, short_repr
+from faceretarget import manifest, naming
 from faceretarget.model import Animation, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
+from faceretarget.validation import Interval, check_value, validate_params
 
 from . import calibration
 from .examples import adapt_basis, example_weights
 from .prior import fit_prior
 from .solver import BoundedStats, System, energy_terms, solve_bounded, solve_movement, solve_movement_bounded, solve_per_frame
-
-MODES = ("movement", "noconst", "rangepf", "priorpf")
-BOUNDARIES = ("auto", "per_frame", "neutral", "none")
-TRANSFERS = ("scale", "similarity", "rbf")
-SAMPLES = ("auto", "landmarks", "dense")
-KERNELS = ("linear", "multiquadric", "gaussian", "thin_plate")
-CENTERS = ("neutral", "mean")
-#: Upper limit of the weights ``alpha`` and ``beta`` (far beyond any useful value; the
-#: prior and Sobolev terms must stay finite when scaled by face size and frame rate).
-MAX_WEIGHT = 1e12
-#: Limit of ``lower`` / ``upper`` (blendshape weights, normally 0..1).
-MAX_RANGE = 1e6
-#: Upper limit of ``head_motion_refinement`` (each step is a full per-frame Gauss-Newton pass;
-#: a few steps converge, see the parameter's documentation).
-MAX_HEAD_MOTION_REFINEMENT = 100
-#: Limit of ``max_samples`` (dense correspondence points).
-MAX_SAMPLES = 1_000_000
 
 
 class SpacetimeRetargeter(Retargeter):
@@ -124,6 +108,8 @@ class SpacetimeRetargeter(Retargeter):
         edit=True,
         same_topology=False,
     )
+    #: Types, ranges and choices of the parameters, with their meanings: registry.toml.
+    parameter_constraints: ClassVar[dict] = manifest.constraints("spacetime")
 
     def __init__(
         self,
@@ -325,42 +311,22 @@ class SpacetimeRetargeter(Retargeter):
 
         The checked values (plain ``float``/``int``/``bool``/``str``) are kept in ``params_``
         and used by ``fit``/``retarget``/``edit``; array-valued parameters are checked where
-        their shapes are known.
+        their shapes are known. Types, ranges and choices are declared in registry.toml
+        (``parameter_constraints``); what they cannot say (several parameters together, the
+        boundary array's numbers) is checked here.
         """
-        mode = _config(check_choice, self.mode, "mode", MODES)
-        alpha = _config(check_number, self.alpha, "alpha", low=0, high=MAX_WEIGHT)
-        beta = _config(check_number, self.beta, "beta", low=0, high=MAX_WEIGHT)
-        lower = _config(check_number, self.lower, "lower", low=-MAX_RANGE, high=MAX_RANGE)
-        upper = _config(check_number, self.upper, "upper", low=-MAX_RANGE, high=MAX_RANGE)
+        p = validate_params(self)  # a ParameterError (a ConfigError) naming a bad one
+        mode, beta, lower, upper = p["mode"], p["beta"], p["lower"], p["upper"]
         if not lower < upper:
             raise ConfigError(
                 f"spacetime: lower/upper: need lower < upper (the weight range of 'rangepf'), got lower={lower!r}, upper={upper!r}"
             )
-        _config(check_choice, self.rbf_kernel, "rbf_kernel", KERNELS)
-        transfer = _config(check_choice, self.transfer, "transfer", TRANSFERS)
-        samples = _config(check_choice, self.samples, "samples", SAMPLES)
-        max_samples = _config(check_number, self.max_samples, "max_samples", integer=True, low=20, high=MAX_SAMPLES)
-        sparsity = _config(check_number, self.sparsity, "sparsity", low=0, high=MAX_WEIGHT)
-        example_weight = _config(check_number, self.example_weight, "example_weight", low=0, high=MAX_WEIGHT)
-        if sparsity > 0 and mode == "movement" and beta == 0:
+        if p["sparsity"] > 0 and mode == "movement" and beta == 0:
             raise ConfigError(
                 "spacetime: sparsity > 0 weighs the L1 term against the position term, which beta=0 turns off; "
                 "give beta > 0 or sparsity=0"
             )
-        if isinstance(self.bounds, str) and self.bounds != "rig":
-            raise ConfigError(f"spacetime: bounds: expected 'rig', None, (lower, upper) or an (M, 2) array, got {short_repr(self.bounds)}")
-        _config(check_choice, self.prior_center, "prior_center", CENTERS)
-        refinement = _config(
-            check_number, self.head_motion_refinement, "head_motion_refinement", integer=True, low=0, high=MAX_HEAD_MOTION_REFINEMENT
-        )
-        scale_alpha = _flag(self.scale_alpha, "scale_alpha")
-        remove_head_motion = _flag(self.remove_head_motion, "remove_head_motion")
         if isinstance(self.boundary, str):
-            if self.boundary not in BOUNDARIES:
-                raise ConfigError(
-                    f"spacetime: boundary: expected one of {', '.join(map(repr, BOUNDARIES))} or a (2, M) array of weights "
-                    f"[first, last], got {short_repr(self.boundary)}"
-                )
             if self.boundary == "none" and mode == "movement" and beta == 0:
                 raise ConfigError(
                     "spacetime: boundary='none' leaves movement matching without any position anchor; "
@@ -368,25 +334,9 @@ class SpacetimeRetargeter(Retargeter):
                 )
         else:
             _float_array(self.boundary, "boundary", "one of 'per_frame', 'neutral', 'none' or a (2, M) array of weights")
-        if self.constraints is not None and not isinstance(self.constraints, Mapping):
-            raise ConfigError(
-                f"spacetime: constraints must be None or a mapping {{frame: weights}}, got {type(self.constraints).__name__}"
-            )
-        self.params_ = {
-            "mode": mode,
-            "alpha": alpha,
-            "beta": beta,
-            "scale_alpha": scale_alpha,
-            "lower": lower,
-            "upper": upper,
-            "remove_head_motion": remove_head_motion,
-            "head_motion_refinement": refinement,
-            "transfer": transfer,
-            "samples": samples,
-            "max_samples": max_samples,
-            "sparsity": sparsity,
-            "example_weight": example_weight,
-        }
+        keep = ("mode", "alpha", "beta", "scale_alpha", "lower", "upper", "remove_head_motion", "head_motion_refinement",
+                "transfer", "samples", "max_samples", "sparsity", "example_weight")
+        self.params_ = {k: p[k] for k in keep}
 
     def _prior_samples(self, rig, landmarks, neutral, basis) -> np.ndarray:
         """(K, 3N) absolute (warped) marker positions of the prior's training faces."""
@@ -448,7 +398,8 @@ class SpacetimeRetargeter(Retargeter):
             unknown = [k for k in mw if k not in names]
             if unknown:
                 raise TopologyMismatchError(f"spacetime: marker_weights name unknown markers: {', '.join(map(str, unknown[:8]))}")
-            out = np.array([_config(check_number, mw.get(n, 0.0), f"marker_weights[{n!r}]", low=0) for n in names], dtype=np.float64)
+            weight = [Interval(float, 0, None)]
+            out = np.array([check_value(mw.get(n, 0.0), weight, f"marker_weights[{n!r}]", "spacetime") for n in names], dtype=np.float64)
             frame = None
         else:
             arr = _float_array(mw, "marker_weights", f"None, ({n_markers},) or (F, {n_markers}) weights, or {{marker name: weight}}")
@@ -574,7 +525,7 @@ class SpacetimeRetargeter(Retargeter):
                     index = rig.index(str(k))
                 except UnknownNameError as exc:
                     raise UnknownNameError(f"spacetime: {name}: {exc}") from None
-                out[index] = _config(check_number, v, f"{name}[{k!r}]")
+                out[index] = check_value(v, [Interval(float)], f"{name}[{k!r}]", "spacetime")
         else:
             out = _float_array(value, name, f"({rig.n_shapes},) weights or {{shape name: weight}}")
             if out.shape != (rig.n_shapes,):
@@ -746,17 +697,6 @@ def _frame_index(frame, n_frames: int, what: str = "frame") -> int:
             f"spacetime: {what} {short_repr(frame)} out of range for {n_frames} frames (valid {-n_frames}..{n_frames - 1})"
         )
     return f % n_frames
-
-
-def _config(check, value, name: str, *args, **kwargs):
-    """``check_number`` / ``check_choice`` of a constructor parameter; a bad value is a
-    :class:`ConfigError` naming the parameter and the valid values."""
-    return check_param(check, value, f"spacetime: {name}", *args, **kwargs)
-
-
-def _flag(value, name: str) -> bool:
-    """A boolean parameter (True/False, or the integers 0/1)."""
-    return _config(check_bool, value, name)
 
 
 def _iterable(value) -> bool:

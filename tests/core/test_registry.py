@@ -124,7 +124,8 @@ def test_disable_and_allowlist_environment(tmp_path, on_path, monkeypatch):
 
 def test_trace_environment_prints_hook_calls():
     env = dict(os.environ, FACERETARGET_TRACE="1")
-    out = subprocess.run([sys.executable, "-c", "import faceretarget as fr; fr.available()"], capture_output=True, text=True, env=env)
+    # fr.available() reads manifests and calls no hook; loading the plugins does
+    out = subprocess.run([sys.executable, "-c", "import faceretarget as fr; fr.registry.registry()"], capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
     assert "faceretarget_retargeters" in out.stderr
 

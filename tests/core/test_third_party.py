@@ -71,3 +71,28 @@ def test_the_plugin_passes_the_conformance_kit(installed_example):
     reg = reload()
     cls = reg.retargeters["displacement"].cls
     check_retargeter(cls)
+
+
+def test_list_and_info_read_the_plugin_manifest_without_importing_it(installed_example):
+    site, env = installed_example
+    code = (
+        "import sys, contextlib, io; from faceretarget import cli\n"
+        "with contextlib.redirect_stdout(io.StringIO()) as out:\n"
+        "    cli.main(['list']); cli.main(['info', 'displacement'])\n"
+        "print('faceretarget_displacement' in sys.modules); print(out.getvalue())"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    imported, text = out.stdout.split("\n", 1)
+    assert imported == "False", "faceretarget list/info imported the plugin instead of reading its faceretarget.toml"
+    assert "jacobian = True    (True or False)" in text
+
+
+def test_the_plugin_checks_its_parameters_with_the_public_module(installed_example):
+    import faceretarget as fr
+    from faceretarget.errors import ParameterError
+
+    reload()
+    case = fr.cases.synthetic(resolution=200, n_frames=2)
+    with pytest.raises(ParameterError, match="displacement: parameter 'jacobian': expected True or False, got 'no'"):
+        fr.get("displacement", jacobian="no").fit(case.source, case.target)

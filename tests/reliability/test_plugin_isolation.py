@@ -360,6 +360,7 @@ def hook_site(tmp_path, monkeypatch):
     monkeypatch.delenv("FACERETARGET_DISABLE_PLUGINS", raising=False)
     monkeypatch.setenv("FACERETARGET_PLUGINS", "hookplugins")
     monkeypatch.setattr(registry_module, "_REGISTRY", None)
+    monkeypatch.setattr(registry_module, "_CATALOGUE", None)
     importlib.invalidate_caches()
     return root
 

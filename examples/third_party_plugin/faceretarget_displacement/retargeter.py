@@ -17,10 +17,11 @@ from __future__ import annotations
 import numpy as np
 
 import faceretarget as fr
-from faceretarget.errors import DegenerateGeometryError, InputError, ShapeError
+from faceretarget.errors import DegenerateGeometryError, ShapeError
 from faceretarget.geometry import procrustes
 from faceretarget.geometry.head_motion import estimate_head_motion
 from faceretarget.geometry.rbf import fit_rbf
+from faceretarget.validation import validate_params
 
 
 class DisplacementRetargeter(fr.Retargeter):
@@ -30,19 +31,25 @@ class DisplacementRetargeter(fr.Retargeter):
     summary = "landmark displacements warped by an RBF and interpolated over the target (Noh & Neumann 2001)"
     paper = "Noh & Neumann 2001, Expression Cloning, SIGGRAPH"
     capabilities = fr.Capabilities(sources=("markers", "mesh"), needs=("landmarks", "source_landmarks"), outputs="vertices")
+    # what `faceretarget info displacement` shows, and what fit() checks (faceretarget.validation);
+    # faceretarget.toml beside this package says the same for `faceretarget list`, which reads
+    # it without importing this module (the registry checks that the two agree)
     parameter_docs = {
         "jacobian": "rescale displacements by the warp's local Jacobian (True) or copy them unchanged (False)",
         "head_motion": "remove the source's rigid head motion before transfer and re-apply it after",
     }
+    parameter_constraints = {"jacobian": ["boolean"], "head_motion": ["boolean"]}
 
     def __init__(self, *, jacobian=True, head_motion=True):
         self.jacobian = jacobian
         self.head_motion = head_motion
 
     def _fit(self, source, target):
-        # parameters are checked here, not in __init__ (the estimator contract)
-        self.jacobian_ = _flag(self.jacobian, "jacobian")
-        self.head_motion_ = _flag(self.head_motion, "head_motion")
+        # parameters are checked here, not in __init__ (the estimator contract): a bad one is a
+        # faceretarget.errors.ParameterError naming this method, the parameter and the valid values
+        params = validate_params(self)
+        self.jacobian_ = params["jacobian"]
+        self.head_motion_ = params["head_motion"]
         src = np.asarray(source.marker_reference(), dtype=np.float64)
         tgt = target.landmarks.positions(target.neutral.vertices, target.neutral.triangles)
         if src.shape != tgt.shape:
@@ -82,15 +89,6 @@ class DisplacementRetargeter(fr.Retargeter):
             motion[:, :3, 3] *= self.unit_ratio_  # in the target's unit
             vertices = procrustes.apply(motion, vertices)
         return fr.Animation(vertices=vertices, head_motion=motion, triangles=self.triangles_, fps=source.fps)
-
-
-def _flag(value, name: str) -> bool:
-    """A True/False parameter (numpy booleans and the integers 0/1 too). Never judged by
-    truthiness, so an array, None or the string "no" is an InputError naming the parameter."""
-    if isinstance(value, (bool, np.bool_)) or (isinstance(value, (int, np.integer)) and value in (0, 1)):
-        return bool(value)
-    text = repr(value)
-    raise InputError(f"displacement: parameter {name} must be True or False, got {text if len(text) <= 60 else text[:57] + '...'}")
 
 
 def _size(points: np.ndarray) -> float:
