@@ -31,7 +31,8 @@ picks a reader/writer by name.
 
 Built-in formats (kind: extensions):
 
-- mesh: .obj .ply .off .stl .glb .gltf .npz
+- mesh: .obj .ply .off .stl .glb .gltf .npz; through meshio (priority -1, :mod:`.meshio_formats`):
+  .vtk .vtu .msh .mesh .meshb .inp .bdf .fem .nas (read only) .avs .post .dato .vol
 - mesh_sequence: folder of meshes, .npy, .npz, .pc2, .mdd (memory-mapped), .glb/.gltf
 - rig: folder (neutral + one mesh per shape), .glb/.gltf (morph targets), .npz
 - markers: .c3d .trc .csv .npz
@@ -124,11 +125,15 @@ def builtin_readers() -> list[Reader]:
         Reader("gltf-animation", "animation", _GLTF_EXT, _lazy("gltf", "read_gltf_animation"), "glTF morph-weight animation or per-frame meshes"),
         Reader("npz-animation", "animation", (".npz",), _npz_reader("animation"), "faceretarget npz animation"),
     ]
-    return r
+    from .meshio_formats import meshio_readers  # VTK, Gmsh, ... below the native readers; meshio imported on use
+
+    return r + meshio_readers()
 
 
 def builtin_writers() -> list[Writer]:
     """The writers of this package (registered through the ``faceretarget_writers`` hook)."""
+    from .meshio_formats import meshio_writers  # VTK, Gmsh, ... below the native writers; meshio imported on use
+
     npz = _lazy("bundle", "write_npz")
     gltf = _lazy("gltf", "write_gltf")
     return [
@@ -149,7 +154,7 @@ def builtin_writers() -> list[Writer]:
         Writer("trc", "markers", (".trc",), _lazy("markers", "write_trc"), "TRC, exact decimals"),
         Writer("csv-markers", "markers", (".csv",), _lazy("markers", "write_marker_csv"), "CSV frame,time,NAME_x,NAME_y,NAME_z"),
         Writer("csv-weights", "weights", (".csv",), _lazy("weights", "write_weights_csv"), "Live Link Face CSV layout"),
-    ] + [Writer(f"npz-{kind.replace('mesh_', '')}", kind, (".npz",), npz, "faceretarget npz (exact)") for kind in DATA_KINDS]
+    ] + [Writer(f"npz-{kind.replace('mesh_', '')}", kind, (".npz",), npz, "faceretarget npz (exact)") for kind in DATA_KINDS] + meshio_writers()
 
 
 @hookimpl
