@@ -197,6 +197,9 @@ class Run:
     parameters: dict = field(default_factory=dict)
     fit_s: float | None = None
     retarget_s: float | None = None
+    #: seconds of ``fit_s + retarget_s`` spent in numba's compiler (compiling kernels or
+    #: loading them from the on-disk cache): a one-time cost per process, not the method's speed
+    compile_s: float | None = None
     peak_memory_mib: float | None = None
     error: dict | None = None
     animation: Animation | None = None
@@ -213,6 +216,7 @@ class Run:
             "parameters": _jsonable(self.parameters),
             "fit_s": self.fit_s,
             "retarget_s": self.retarget_s,
+            "compile_s": self.compile_s,
             "peak_memory_mib": self.peak_memory_mib,
             "error": self.error,
         }
@@ -423,6 +427,20 @@ def validate_output(animation, case, method_name: str) -> None:
         raise PluginOutputError(f"{method_name} returned NaN or infinite weights")
 
 
+@contextmanager
+def _compile_clock():
+    """Yields a function giving the seconds spent in numba's compiler inside the block
+    (outermost compiler-lock spans: compiling kernels and loading them from the disk cache)."""
+    try:
+        from numba.core import event
+    except ImportError:  # no numba: nothing is compiled
+        yield lambda: 0.0
+        return
+    timer = event.TimingListener()
+    with event.install_listener("numba:compiler_lock", timer):
+        yield lambda: timer.duration if timer.done else 0.0
+
+
 def _run_one(case, cname: str, method: _Method, params: dict) -> Run:
     run = Run(cname, method.name, OK, plugin=method.plugin, distribution=method.distribution, version=method.version)
     try:
@@ -441,14 +459,15 @@ def _run_one(case, cname: str, method: _Method, params: dict) -> Run:
     try:
         retargeter = method.cls(**params)
         run.parameters = retargeter.get_params()
-        stage = "fit"
-        t0 = time.perf_counter()
-        retargeter.fit(case.source, case.target)
-        t1 = time.perf_counter()
-        stage = "retarget"
-        animation = retargeter.retarget(case.source)
-        t2 = time.perf_counter()
-        run.fit_s, run.retarget_s = t1 - t0, t2 - t1
+        with _compile_clock() as compiling:
+            stage = "fit"
+            t0 = time.perf_counter()
+            retargeter.fit(case.source, case.target)
+            t1 = time.perf_counter()
+            stage = "retarget"
+            animation = retargeter.retarget(case.source)
+            t2 = time.perf_counter()
+        run.fit_s, run.retarget_s, run.compile_s = t1 - t0, t2 - t1, compiling()
         run.peak_memory_mib = max(0, tracemalloc.get_traced_memory()[1] - base) / 2**20
         stage = "validate"
         validate_output(animation, case, method.name)
@@ -481,6 +500,7 @@ def _metric_rows(run: Run, case, metrics: Mapping[str, Metric]) -> list[dict]:
         "fit_s": run.fit_s,
         "retarget_s": run.retarget_s,
         "total_s": (run.fit_s or 0.0) + (run.retarget_s or 0.0),
+        "compile_s": run.compile_s,
         "peak_memory_mib": run.peak_memory_mib,
         "method": run.method,
         "cache": {},

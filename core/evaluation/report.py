@@ -2,14 +2,20 @@
 
 ``write_report(result, folder)`` writes
 
-- ``report.html``: opens offline (every script, style and figure is inline; no network):
-  the ranking, per case a metric table, an interactive viewer that scrubs through the
-  frames of the source, the ground truth and every method side by side (canvas 2D
-  renderer in ``assets/report.js``, shaded or coloured by per-vertex error), key frames
-  side by side, per-vertex error heat maps on the target mesh, the velocity error over
-  time, weight curves, the paper reproductions (presets: each paper's claim and setting,
-  and whether the measurement agrees, in red with the numbers when it does not) and the
-  metric definitions;
+- ``report.html``: opens offline (every script, style and figure is inline; no network)
+  and fits a 1280 px wide window (no table wider than the page, chart labels that never
+  overlap, numbers as ``12,934`` or ``2.99×10⁻⁵``). It starts with, per case, who wins on
+  the ranking metric, by how much, where else and why (:mod:`._summary`), the paper
+  reproductions that disagree with their paper, and which methods are paper methods and
+  which baselines; then the ranking by one named metric (``rank_by``, default
+  ``vertex_error_rms``) with the run time apart from numba compile time; per case a
+  metric table, an interactive viewer that scrubs through the frames of the source, the
+  ground truth and every method side by side (canvas 2D renderer in
+  ``assets/report.js``, shaded or coloured by per-vertex error), key frames side by side,
+  per-vertex error heat maps on the target mesh, the velocity error over time, weight
+  curves, the paper reproductions (presets: each paper's claim and setting, and whether
+  the measurement agrees, in red with the numbers when it does not), the metric
+  definitions and the runs (fit, retarget, of which compile, peak memory, parameters);
 - ``results.csv``: the tidy table ``case, method, metric, value, unit, status, reason``;
 - ``results.json``: the rows, the ranking, every run (parameters, timings, errors), the
   metric definitions and the presets.
@@ -28,13 +34,13 @@ import json
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from ..errors import OutputError
 from .harness import ERROR, NOT_APPLICABLE, OK, ComparisonResult, atomic_write_text
-from .metrics import RANKED_METRICS, landmark_velocity_curve, per_vertex_error, to_head_frame
+from .metrics import landmark_velocity_curve, per_vertex_error, to_head_frame
 
 __all__ = ["write_report", "Plot", "Series", "svg_plot", "decimate", "render_html"]
 
@@ -45,8 +51,8 @@ MAX_VERTICES = 2500
 MIN_VERTICES = 300
 #: Weight curves drawn per case (the shapes with the largest variance in the ground truth).
 MAX_WEIGHT_PANELS = 6
-#: Columns of the per-case summary table.
-SUMMARY_METRICS = ("vertex_error_rms", "vertex_error_max", "marker_error_mean", "velocity_error", "lip_closure_error", "eyelid_closure_error", "lve", "fdd_abs", "detail_error", "detail_correlation", "weight_outside_share", "time_total", "peak_memory")
+#: Columns of the per-case summary table (times are in the ranking and the runs, apart from compilation).
+SUMMARY_METRICS = ("vertex_error_rms", "vertex_error_max", "marker_error_mean", "velocity_error", "lip_closure_error", "eyelid_closure_error", "lve", "fdd_abs", "detail_error", "detail_correlation", "weight_outside_share")
 
 _PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
 
@@ -68,7 +74,7 @@ class Series:
 
 @dataclass
 class Plot:
-    """A line plot (``kind="line"``) or a bar chart (``kind="bar"``: one bar per series, ``y[0]``)."""
+    """A line plot (``kind="line"``) or a bar chart (``kind="bar"``: one horizontal bar per series, ``y[0]``)."""
 
     title: str
     series: list[Series] = field(default_factory=list)
@@ -107,45 +113,139 @@ def _fmt(v) -> str:
     return f"{v:.4g}"
 
 
-def svg_plot(plot: Plot, width: int = 640, height: int = 300) -> str:
-    """An inline ``<svg>`` of ``plot`` (axes, ticks, legend)."""
-    left, right, top, bottom = 64, 150, 28, 42
-    w, h = width - left - right, height - top - bottom
+_SUPERSCRIPT = str.maketrans("-0123456789", "\u207b\u2070\u00b9\u00b2\u00b3\u2074\u2075\u2076\u2077\u2078\u2079")
+
+
+def format_number(v) -> str:
+    """A number for people: ``12,934``, ``0.5468``, ``2.99×10⁻⁵`` (never ``1.29e+04``); "" for None / NaN."""
+    if v is None or not np.isfinite(float(v)):
+        return ""
+    v = float(v)
+    if v == 0:
+        return "0"
+    if abs(v) >= 1000:
+        return f"{v:,.0f}"
+    if abs(v) >= 1e-3:
+        return f"{v:.4g}"
+    mantissa, exponent = f"{v:.2e}".split("e")
+    mantissa = mantissa.rstrip("0").rstrip(".")
+    return f"{mantissa}\u00d710{str(int(exponent)).translate(_SUPERSCRIPT)}"
+
+
+#: Font sizes of the plot's text (``report.css``: ``.tick``/``.legend`` 10.5 px, ``.ptitle`` 13 px bold)
+#: and a generous average glyph width, to lay text out without a browser.
+TICK_PX, TITLE_PX, GLYPH = 10.5, 13.0, 0.64
+
+
+def _text_px(text: str, size: float = TICK_PX) -> float:
+    return len(text) * size * GLYPH
+
+
+def _clip(text: str, chars: int) -> str:
+    return text if len(text) <= chars else text[: chars - 1] + "\u2026"
+
+
+def _wrap(text: str, width: float, size: float = TITLE_PX) -> list[str]:
+    """``text`` broken at spaces into lines at most ``width`` px wide (estimated)."""
+    lines, line = [], ""
+    for word in text.split():
+        trial = f"{line} {word}".strip()
+        if line and _text_px(trial, size) > width:
+            lines.append(line)
+            line = word
+        else:
+            line = trial
+    return lines + [line] if line else lines
+
+
+def _spaced_ticks(lo: float, hi: float, length: float, label) -> list[float]:
+    """Ticks whose labels (``label(t)``) fit ``length`` px side by side without touching."""
+    tolerance = 1e-9 * (hi - lo)
+    for n in (5, 4, 3, 2, 1):
+        ticks = [t for t in _ticks(lo, hi, n) if lo - tolerance <= t <= hi + tolerance]
+        widest = max((_text_px(label(t)) for t in ticks), default=0.0)
+        if len(ticks) < 2 or length / (len(ticks) - 1) > widest + 8:
+            return ticks
+    return ticks
+
+
+def _title(plot: Plot, width: int, left: int) -> tuple[str, int]:
+    """The title's ``<text>`` lines and the height they take."""
+    lines = _wrap(plot.title, width - left - 8) or [""]
     esc = html.escape
-    parts = [f'<svg class="plot" xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {width} {height}" width="{width}" height="{height}" role="img">']
-    parts.append(f'<text x="{left}" y="16" class="ptitle">{esc(plot.title)}</text>')
-    colors = [s.color or _PALETTE[i % len(_PALETTE)] for i, s in enumerate(plot.series)]
+    text = "".join(f'<text x="{left}" y="{16 + 16 * i}" class="ptitle">{esc(line)}</text>' for i, line in enumerate(lines))
+    return text, 16 * len(lines)
+
+
+def svg_plot(plot: Plot, width: int = 640, height: int = 300) -> str:
+    """An inline ``<svg>`` of ``plot`` (axes, ticks, legend); bar charts are horizontal, one
+    labelled row per series, so long names never overlap."""
     if plot.kind == "bar":
-        values = [(_finite(s.y[0]) if len(s.y) else None) for s in plot.series]
-        finite = [v for v in values if v is not None]
-        if not finite:
-            parts.append(f'<text x="{left + 10}" y="{top + 30}">no values</text></svg>')
-            return "".join(parts)
-        lo, hi = min(0.0, min(finite)), max(0.0, max(finite))
-        if hi == lo:
-            hi = lo + 1.0
-        ys = lambda v: top + h - (v - lo) / (hi - lo) * h  # noqa: E731
-        bw = w / max(len(values), 1)
-        for t in _ticks(lo, hi):
-            parts.append(f'<line x1="{left}" x2="{left + w}" y1="{ys(t):.1f}" y2="{ys(t):.1f}" class="grid"/><text x="{left - 6}" y="{ys(t) + 4:.1f}" class="tick" text-anchor="end">{_fmt(t)}</text>')
-        for i, (s, v) in enumerate(zip(plot.series, values)):
-            x0 = left + i * bw + 0.15 * bw
-            if v is not None:
-                y0, y1 = sorted((ys(0.0), ys(v)))
-                parts.append(f'<rect x="{x0:.1f}" y="{y0:.1f}" width="{0.7 * bw:.1f}" height="{max(y1 - y0, 0.5):.1f}" fill="{colors[i]}"><title>{esc(s.name)}: {_fmt(v)}</title></rect>')
-                parts.append(f'<text x="{x0 + 0.35 * bw:.1f}" y="{min(y0, y1) - 3:.1f}" class="tick" text-anchor="middle">{_fmt(v)}</text>')
-            parts.append(f'<text x="{x0 + 0.35 * bw:.1f}" y="{top + h + 14}" class="tick" text-anchor="middle">{esc(s.name[:18])}</text>')
-        parts.append(f'<text x="14" y="{top + h / 2:.0f}" class="axis" transform="rotate(-90 14 {top + h / 2:.0f})" text-anchor="middle">{esc(plot.ylabel)}</text>')
-        parts.append("</svg>")
-        return "".join(parts)
+        return _bar_plot(plot, width)
+    return _line_plot(plot, width, height)
+
+
+def _svg_open(width: float, height: float) -> str:
+    return f'<svg class="plot" xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {width:.0f} {height:.0f}" width="{width:.0f}" height="{height:.0f}" role="img">'
+
+
+def _no_values(plot: Plot, width: int) -> str:
+    title, th = _title(plot, width, 8)
+    return f'{_svg_open(width, th + 40)}{title}<text x="18" y="{th + 26}">no values</text></svg>'
+
+
+def _bar_plot(plot: Plot, width: int) -> str:
+    esc = html.escape
+    values = [(_finite(s.y[0]) if len(s.y) else None) for s in plot.series]
+    finite = [v for v in values if v is not None]
+    if not finite:
+        return _no_values(plot, width)
+    colors = [s.color or _PALETTE[i % len(_PALETTE)] for i, s in enumerate(plot.series)]
+    names = [_clip(s.name, 40) for s in plot.series]
+    labels = [format_number(v) for v in values]
+    left = 12 + min(max(_text_px(n) for n in names), 0.4 * width)
+    right = 12 + max(_text_px(t) for t in labels)
+    lo, hi = min(0.0, min(finite)), max(0.0, max(finite))
+    if hi == lo:
+        hi = lo + 1.0
+    w = width - left - right
+    title, top = _title(plot, width, 8)
+    top += 10
+    row = 22
+    bottom = top + row * len(values)
+    height = bottom + 34 + (14 if plot.ylabel else 0)
+    xs = lambda v: left + (v - lo) / (hi - lo) * w  # noqa: E731
+    parts = [_svg_open(width, height), title]
+    for t in _spaced_ticks(lo, hi, w, format_number):
+        parts.append(f'<line x1="{xs(t):.1f}" x2="{xs(t):.1f}" y1="{top}" y2="{bottom}" class="grid"/><text x="{xs(t):.1f}" y="{bottom + 14}" class="tick" text-anchor="middle">{format_number(t)}</text>')
+    for i, (s, v) in enumerate(zip(plot.series, values)):
+        y = top + i * row
+        parts.append(f'<text x="{left - 6:.1f}" y="{y + 15}" class="tick" text-anchor="end">{esc(names[i])}<title>{esc(s.name)}</title></text>')
+        if v is None:
+            parts.append(f'<text x="{xs(0.0) + 4:.1f}" y="{y + 15}" class="tick">no value</text>')
+            continue
+        x0, x1 = sorted((xs(0.0), xs(v)))
+        parts.append(f'<rect x="{x0:.1f}" y="{y + 4}" width="{max(x1 - x0, 0.5):.1f}" height="{row - 8}" fill="{colors[i]}"><title>{esc(s.name)}: {labels[i]}</title></rect>')
+        anchor, at = ("start", x1 + 4) if v >= 0 else ("end", x0 - 4)
+        if v < 0 and at - _text_px(labels[i]) < left:
+            anchor, at = "start", x1 + 4
+        parts.append(f'<text x="{at:.1f}" y="{y + 15}" class="tick" text-anchor="{anchor}">{labels[i]}</text>')
+    parts.append(f'<line x1="{xs(0.0):.1f}" x2="{xs(0.0):.1f}" y1="{top}" y2="{bottom}" class="zero"/>')
+    if plot.ylabel:
+        parts.append(f'<text x="{left + w / 2:.0f}" y="{height - 6}" class="axis" text-anchor="middle">{esc(plot.ylabel)}</text>')
+    parts.append("</svg>")
+    return "".join(parts)
+
+
+def _line_plot(plot: Plot, width: int, height: int) -> str:
+    esc = html.escape
     xs_all = np.concatenate([np.asarray(s.x, float) for s in plot.series]) if plot.series else np.zeros(0)
     ys_all = np.concatenate([np.asarray(s.y, float) for s in plot.series]) if plot.series else np.zeros(0)
     ok = np.isfinite(ys_all) & np.isfinite(xs_all)
     if plot.log_y:
         ok &= ys_all > 0
     if not ok.any():
-        parts.append(f'<text x="{left + 10}" y="{top + 30}">no values</text></svg>')
-        return "".join(parts)
+        return _no_values(plot, width)
     tf = (lambda a: np.log10(np.maximum(a, 1e-300))) if plot.log_y else (lambda a: np.asarray(a, float))  # noqa: E731
     x0, x1 = float(xs_all[ok].min()), float(xs_all[ok].max())
     y0, y1 = float(tf(ys_all[ok]).min()), float(tf(ys_all[ok]).max())
@@ -155,14 +255,25 @@ def svg_plot(plot: Plot, width: int = 640, height: int = 300) -> str:
         y0, y1 = y0 - 0.5, y1 + 0.5
     pad = 0.05 * (y1 - y0)
     y0, y1 = y0 - pad, y1 + pad
+    ylabel = (lambda t: format_number(10**t)) if plot.log_y else format_number  # noqa: E731
+    colors = [s.color or _PALETTE[i % len(_PALETTE)] for i, s in enumerate(plot.series)]
+    names = [_clip(s.name, 24) for s in plot.series]
+    title, top = _title(plot, width, 8)
+    top += 12
+    bottom = 42
+    h = max(height - top - bottom, 16 * len(names) + 4, 80)
+    yticks = _spaced_ticks(y0, y1, h, lambda t: "0")  # vertical spacing: one line of text each
+    left = 30 + max(_text_px(ylabel(t)) for t in yticks)
+    right = 44 + max((_text_px(n) for n in names), default=0.0)
+    w = width - left - right
+    height = top + h + bottom
     sx = lambda v: left + (v - x0) / (x1 - x0) * w  # noqa: E731
     sy = lambda v: top + h - (v - y0) / (y1 - y0) * h  # noqa: E731
-    parts.append(f'<rect x="{left}" y="{top}" width="{w}" height="{h}" class="frame"/>')
-    for t in _ticks(y0, y1):
-        label = _fmt(10**t) if plot.log_y else _fmt(t)
-        parts.append(f'<line x1="{left}" x2="{left + w}" y1="{sy(t):.1f}" y2="{sy(t):.1f}" class="grid"/><text x="{left - 6}" y="{sy(t) + 4:.1f}" class="tick" text-anchor="end">{label}</text>')
-    for t in _ticks(x0, x1):
-        parts.append(f'<text x="{sx(t):.1f}" y="{top + h + 14}" class="tick" text-anchor="middle">{_fmt(t)}</text>')
+    parts = [_svg_open(width, height), title, f'<rect x="{left:.1f}" y="{top}" width="{w:.1f}" height="{h}" class="frame"/>']
+    for t in yticks:
+        parts.append(f'<line x1="{left:.1f}" x2="{left + w:.1f}" y1="{sy(t):.1f}" y2="{sy(t):.1f}" class="grid"/><text x="{left - 6:.1f}" y="{sy(t) + 4:.1f}" class="tick" text-anchor="end">{ylabel(t)}</text>')
+    for t in _spaced_ticks(x0, x1, w, format_number):
+        parts.append(f'<text x="{sx(t):.1f}" y="{top + h + 14}" class="tick" text-anchor="middle">{format_number(t)}</text>')
     for i, s in enumerate(plot.series):
         x, y = np.asarray(s.x, float), tf(np.asarray(s.y, float))
         good = np.isfinite(x) & np.isfinite(y) & ((np.asarray(s.y, float) > 0) if plot.log_y else True)
@@ -172,9 +283,9 @@ def svg_plot(plot: Plot, width: int = 640, height: int = 300) -> str:
         dash = ' stroke-dasharray="5,4"' if s.dashed else ""
         parts.append(f'<polyline points="{pts}" fill="none" stroke="{colors[i]}" stroke-width="1.6"{dash}><title>{esc(s.name)}</title></polyline>')
         ly = top + 12 + 16 * i
-        parts.append(f'<line x1="{left + w + 10}" x2="{left + w + 30}" y1="{ly - 4}" y2="{ly - 4}" stroke="{colors[i]}" stroke-width="2"{dash}/><text x="{left + w + 34}" y="{ly}" class="legend">{esc(s.name[:20])}</text>')
+        parts.append(f'<line x1="{left + w + 10:.1f}" x2="{left + w + 30:.1f}" y1="{ly - 4}" y2="{ly - 4}" stroke="{colors[i]}" stroke-width="2"{dash}/><text x="{left + w + 34:.1f}" y="{ly}" class="legend">{esc(names[i])}</text>')
     parts.append(f'<text x="{left + w / 2:.0f}" y="{height - 6}" class="axis" text-anchor="middle">{esc(plot.xlabel)}</text>')
-    parts.append(f'<text x="14" y="{top + h / 2:.0f}" class="axis" transform="rotate(-90 14 {top + h / 2:.0f})" text-anchor="middle">{esc(plot.ylabel)}</text>')
+    parts.append(f'<text x="12" y="{top + h / 2:.0f}" class="axis" transform="rotate(-90 12 {top + h / 2:.0f})" text-anchor="middle">{esc(plot.ylabel)}</text>')
     parts.append("</svg>")
     return "".join(parts)
 
@@ -376,11 +487,26 @@ def _asset(name: str) -> str:
     return resources.files("faceretarget.evaluation").joinpath("assets", name).read_text(encoding="utf-8")
 
 
+def _breakable(name: str) -> str:
+    """A metric or method name that may wrap after its underscores (narrow table headers)."""
+    return "_<wbr>".join(html.escape(part) for part in name.split("_"))
+
+
+def _role_tag(role) -> str:
+    if role is None:
+        return ""
+    return f'<span class="role {role.kind.split()[0]}" title="{html.escape(role.label)}">{html.escape(role.label)}</span>'
+
+
+def _method_cell(name: str, roles: Mapping, extra: str = "") -> str:
+    return f'<th class="method">{_breakable(name)}{_role_tag(roles.get(name))}{extra}</th>'
+
+
 def _cell(row: dict | None, best: bool = False) -> str:
     if row is None:
         return '<td class="na">-</td>'
     if row["status"] == OK and row["value"] is not None:
-        return f'<td class="num{" best" if best else ""}">{_fmt(row["value"])}</td>'
+        return f'<td class="num{" best" if best else ""}">{format_number(row["value"])}</td>'
     cls = "err" if row["status"] == ERROR else "na"
     label = "error" if row["status"] == ERROR else "n/a"
     return f'<td class="{cls}" title="{html.escape(row["reason"] or "")}">{label}</td>'
@@ -393,45 +519,160 @@ def _best(values: dict[str, float], better: str) -> set[str]:
     return {k for k, v in values.items() if v == target}
 
 
-def _metric_table(result: ComparisonResult, cname: str, metrics: Sequence[str]) -> str:
-    esc = html.escape
-    index = {(r["method"], r["metric"]): r for r in result.rows if r["case"] == cname}
-    head = "".join(
-        f'<th title="{esc(result.metrics[m.split("[")[0]].description if m.split("[")[0] in result.metrics else "")}">{esc(m)}<br><small>{esc(index.get((result.methods[0], m), {}).get("unit", "") if result.methods else "")}</small></th>'
-        for m in metrics
-    )
-    out = [f'<div class="scroll"><table class="metrics"><thead><tr><th>method</th><th>status</th>{head}</tr></thead><tbody>']
+def _best_per_metric(result: ComparisonResult, index: dict, metrics: Sequence[str]) -> dict[str, set[str]]:
     best = {}
     for m in metrics:
         vals = {meth: index[(meth, m)]["value"] for meth in result.methods if (meth, m) in index and index[(meth, m)]["status"] == OK and index[(meth, m)]["value"] is not None}
         best[m] = _best(vals, result.better(m))
+    return best
+
+
+def _metric_header(result: ComparisonResult, metric: str, unit: str, ranked: bool) -> str:
+    esc = html.escape
+    base = metric.split("[")[0]
+    definition = result.metrics[base].description if base in result.metrics else ""
+    cls = ' class="ranked"' if ranked else ""
+    return f'<th{cls} title="{esc(definition)}">{_breakable(metric)}<br><small>{esc(unit)}</small></th>'
+
+
+def _metric_table(result: ComparisonResult, cname: str, metrics: Sequence[str], roles: Mapping, rank_by: str | None) -> str:
+    """Methods down, metrics across; the best value per metric highlighted, the ranking metric marked."""
+    esc = html.escape
+    index = {(r["method"], r["metric"]): r for r in result.rows if r["case"] == cname}
+    units = {r["metric"]: r["unit"] for r in result.rows if r["case"] == cname}
+    head = "".join(_metric_header(result, m, units.get(m, ""), m == rank_by) for m in metrics)
+    best = _best_per_metric(result, index, metrics)
+    out = [f'<table class="metrics case-metrics"><thead><tr><th>method</th>{head}</tr></thead><tbody>']
     for run in (r for r in result.runs if r.case == cname):
-        status = f'<td class="{ {OK: "ok", NOT_APPLICABLE: "na", ERROR: "err"}[run.status]}" title="{esc(run.reason)}">{esc(run.status)}</td>'
+        status = "" if run.status == OK else f'<span class="{"err" if run.status == ERROR else "na"} status">{esc(run.status)}</span>'
         cells = "".join(_cell(index.get((run.method, m)), run.method in best[m]) for m in metrics)
-        out.append(f"<tr><th>{esc(run.method)}</th>{status}{cells}</tr>")
+        out.append(f"<tr>{_method_cell(run.method, roles, status)}{cells}</tr>")
         if run.status != OK:
-            out.append(f'<tr class="reason"><td></td><td colspan="{len(metrics) + 1}">{esc(run.reason)}</td></tr>')
-    out.append("</tbody></table></div>")
+            out.append(f'<tr class="reason"><td colspan="{len(metrics) + 1}">{esc(run.reason)}</td></tr>')
+    out.append("</tbody></table>")
     return "".join(out)
 
 
-def _ranking_table(result: ComparisonResult) -> str:
+def _all_metrics_table(result: ComparisonResult, cname: str, metrics: Sequence[str], roles: Mapping) -> str:
+    """Metrics down, methods across (any number of metrics fits the page width)."""
     esc = html.escape
-    rows = result.ranking()
-    out = ['<table class="metrics ranking"><thead><tr><th>rank</th><th>method</th><th>mean rank</th><th>cases ranked</th><th>not applicable</th><th>failed</th><th>vertex error RMS<br><small>% face height, mean over cases</small></th><th>time<br><small>s, mean</small></th></tr></thead><tbody>']
+    index = {(r["method"], r["metric"]): r for r in result.rows if r["case"] == cname}
+    units = {r["metric"]: r["unit"] for r in result.rows if r["case"] == cname}
+    methods = [r.method for r in result.runs if r.case == cname]
+    best = _best_per_metric(result, index, metrics)
+    head = "".join(f"<th>{_breakable(m)}</th>" for m in methods)
+    out = [f'<table class="metrics all-metrics"><thead><tr><th>metric</th><th>unit</th><th>better</th>{head}</tr></thead><tbody>']
+    for m in metrics:
+        base = m.split("[")[0]
+        definition = result.metrics[base].description if base in result.metrics else ""
+        cells = "".join(_cell(index.get((meth, m)), meth in best[m]) for meth in methods)
+        out.append(f'<tr><th title="{esc(definition)}">{_breakable(m)}</th><td>{esc(units.get(m, ""))}</td><td>{esc(result.better(m))}</td>{cells}</tr>')
+    out.append("</tbody></table>")
+    return "".join(out)
+
+
+def _excl_compile(run) -> float | None:
+    """Seconds of fit + retarget without numba compilation (None when not measured)."""
+    if run.fit_s is None or run.retarget_s is None:
+        return None
+    return max(run.fit_s + run.retarget_s - (run.compile_s or 0.0), 0.0)
+
+
+def _timings(result: ComparisonResult, method: str) -> tuple[float | None, float | None]:
+    """(mean over runs of the time without compilation, total compile seconds) of ``method``."""
+    runs = [r for r in result.runs if r.method == method and r.status == OK]
+    times = [t for t in (_excl_compile(r) for r in runs) if t is not None]
+    compiles = [r.compile_s for r in runs if r.compile_s is not None]
+    return (float(np.mean(times)) if times else None), (float(np.sum(compiles)) if compiles else None)
+
+
+def _ranking_table(result: ComparisonResult, rank_by: str | None, roles: Mapping) -> str:
+    """Rank, method and role, the ranking metric's value per case, mean rank, times, runs that did not count."""
+    esc = html.escape
+    cases = list(result.cases)
+    rows = result.ranking(metrics=[rank_by]) if rank_by else result.ranking()
+    unit = result.metrics[rank_by].unit if rank_by in result.metrics else ""
+    values = {(r["case"], r["method"]): r for r in result.rows if r["metric"] == rank_by}
+    best = {c: _best({m: r["value"] for (cc, m), r in values.items() if cc == c and r["status"] == OK and r["value"] is not None}, result.better(rank_by or "")) for c in cases}
+    case_heads = "".join(f'<th class="ranked">{_breakable(c)}<br><small>{esc(unit)}</small></th>' for c in cases)
+    out = [
+        '<table class="metrics ranking"><thead><tr><th>rank</th><th>method</th>',
+        case_heads,
+        '<th>mean rank<br><small>over cases</small></th><th>time<br><small>s, mean, excl. compile</small></th>',
+        '<th>compile<br><small>s, total</small></th><th>did not run</th></tr></thead><tbody>',
+    ]
     for r in rows:
+        method = r["method"]
+        per_case = "".join(_cell(values.get((c, method)), method in best[c]) for c in cases)
+        run_time, compile_time = _timings(result, method)
+        missing = ", ".join(part for part in (f'{r["not_applicable"]} n/a' if r["not_applicable"] else "", f'{r["failed"]} failed' if r["failed"] else "") if part)
         out.append(
-            f'<tr><td class="num">{r["rank"] if r["rank"] is not None else "-"}</td><th>{esc(r["method"])}</th><td class="num">{_fmt(r["mean_rank"]) or "-"}</td>'
-            f'<td class="num">{r["ranked_cases"]}</td><td class="num">{r["not_applicable"]}</td><td class="num">{r["failed"]}</td>'
-            f'<td class="num">{_fmt(r["vertex_error_rms"]) or "-"}</td><td class="num">{_fmt(r["time_total"]) or "-"}</td></tr>'
+            f'<tr><td class="num">{r["rank"] if r["rank"] is not None else "-"}</td>{_method_cell(method, roles)}{per_case}'
+            f'<td class="num">{format_number(r["mean_rank"]) or "-"}</td><td class="num">{format_number(run_time) or "-"}</td>'
+            f'<td class="num">{format_number(compile_time) or "-"}</td><td>{esc(missing)}</td></tr>'
         )
     out.append("</tbody></table>")
     return "".join(out)
 
 
+def _ranking_note(result: ComparisonResult, rank_by: str | None) -> str:
+    esc = html.escape
+    if rank_by is None:
+        return '<p class="note">No accuracy metric was computed, so the methods are not ranked.</p>'
+    m = result.metrics[rank_by]
+    direction = "lower" if m.better == "lower" else "higher"
+    return (
+        f'<p class="ranking-metric"><strong>Ranked by {esc(rank_by)}</strong> ({esc(m.unit)}, {direction} is better): '
+        f"{esc(m.description)} Within each case the methods are ranked by this one metric (1 = best, ties share ranks); "
+        f"a method's rank is the mean of its ranks over the cases it ran on. The other metrics are in each case's table.</p>"
+        '<p class="note">Time is the wall clock of fit + retarget without numba compilation; compile is the time spent '
+        "compiling (or loading from the disk cache) numerical kernels inside those calls, a one-time cost per process "
+        "that falls on whichever run comes first.</p>"
+    )
+
+
+def _summaries_html(summaries: Sequence) -> str:
+    items = "".join(_summary_html(s, i) for i, s in enumerate(summaries))
+    return f'<ul class="summaries">{items}</ul>'
+
+
+def _summary_html(summary, index: int | None = None) -> str:
+    esc = html.escape
+    link = f' <a href="#case-{index}">details</a>' if index is not None else ""
+    notes = "".join(f' <span class="behind">{esc(n)}</span>' for n in summary.notes)
+    why = f' <span class="why">{esc(summary.why)}</span>' if summary.why else ""
+    others = f" {esc(summary.others)}" if summary.others else ""
+    return f'<li class="summary" data-case="{esc(summary.case)}"><strong>{esc(summary.verdict)}</strong>{others}{why}{notes}{link}</li>'
+
+
+def _reproductions_line(presets) -> str:
+    """One line under the summary: how many paper reproductions agree, and which disagree (in red)."""
+    if not presets:
+        return ""
+    esc = html.escape
+    verdicts = [getattr(p, "agrees", None) for p in presets]
+    disagree = [p for p, v in zip(presets, verdicts) if v is False]
+    counts = f"{sum(v is True for v in verdicts)} agree, {len(disagree)} disagree, {sum(v is None for v in verdicts)} not decided"
+    links = ", ".join(f'<a class="disagree" href="#preset-{esc(p.name)}">{esc(p.name)}</a>' for p in disagree)
+    flagged = f'; <span class="disagree">disagreeing with their paper: {links}</span>' if disagree else ""
+    return f'<p class="reproductions-line">Paper reproductions: {counts}{flagged}.</p>'
+
+
+def _roles_legend(roles: Mapping) -> str:
+    esc = html.escape
+    if not roles:
+        return ""
+    groups: dict[str, list[str]] = {}
+    for name, role in roles.items():
+        groups.setdefault(role.kind, []).append(name)
+    words = {"paper method": "paper methods (the retargeter a paper describes)", "baseline": "baselines (what a paper compares against)", "other": "other methods"}
+    parts = [f"{esc(words.get(kind, kind))}: {esc(', '.join(names))}" for kind, names in groups.items()]
+    return f'<p class="note roles">{"; ".join(parts)}.</p>'
+
+
 def _table_cell(value) -> str:
     if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
-        return f'<td class="num">{_fmt(value)}</td>'
+        return f'<td class="num">{format_number(value)}</td>'
     return f"<td>{html.escape('' if value is None else str(value))}</td>"
 
 
@@ -504,47 +745,74 @@ def _budget(result: ComparisonResult, max_bytes: int, max_frames: int, max_verti
     return int(np.clip(per_case / (n_seqs * max_frames * 6), MIN_VERTICES, max_vertices))
 
 
-def render_html(result: ComparisonResult, *, title: str = "faceretarget comparison", max_bytes: int = MAX_BYTES, max_frames: int = MAX_FRAMES, max_vertices: int = MAX_VERTICES) -> str:
-    """The self-contained report page as a string."""
+def _case_section(result: ComparisonResult, ci: int, cname: str, case, summary, roles: Mapping, rank_by: str | None) -> str:
+    esc = html.escape
+    present = {r["metric"] for r in result.rows if r["case"] == cname}
+    cols = [m for m in SUMMARY_METRICS if m in present]
+    if rank_by in present and rank_by not in cols:
+        cols.insert(0, rank_by)
+    regions = sorted(m for m in present if m.startswith("vertex_error_region["))
+    others = [m for m in dict.fromkeys(r["metric"] for r in result.rows if r["case"] == cname) if m not in cols]
+    source = case.source
+    sec = [
+        f'<section class="case" id="case-{ci}"><h2>Case: {esc(cname)}</h2>',
+        f'<p class="meta">source: {esc(source.kind)}, {source.n_frames} frames at {source.fps:g} fps; target: {case.target.neutral.n_vertices} vertices, parts: {esc(", ".join(case.target.parts()) or "none")}; ground truth: {"yes" if getattr(case, "truth", None) is not None else "no"}</p>',
+        f'<ul class="summaries">{_summary_html(summary)}</ul>',
+        "<h3>Metrics</h3>",
+        _metric_table(result, cname, cols, roles, rank_by),
+        f'<details><summary>all metrics ({len(others)} more, incl. {len(regions)} regions)</summary>{_all_metrics_table(result, cname, others, roles)}</details>',
+        f'<h3>Viewer</h3><div class="viewer" data-case="{ci}"></div>',
+        f'<h3>Key frames side by side</h3><div class="keyframes" data-case="{ci}"></div>',
+        f'<h3>Per-vertex error on the target mesh</h3><p class="note">mean over frames of ||result - truth||, % of face height; shared colour scale per case.</p><div class="heat" data-case="{ci}"></div>',
+    ]
+    vplot = _velocity_plot(result, cname, case)
+    if vplot is not None:
+        sec.append("<h3>Velocity error over time</h3>" + svg_plot(vplot, width=760))
+    wplots = _weight_plots(result, cname, case)
+    if wplots:
+        sec.append('<h3>Weight curves</h3><div class="plots">' + "".join(svg_plot(p, width=560, height=230) for p in wplots) + "</div>")
+    sec.append("</section>")
+    return "".join(sec)
+
+
+def _runs_table(result: ComparisonResult, roles: Mapping) -> str:
+    esc = html.escape
+    status_class = {OK: "ok", NOT_APPLICABLE: "na", ERROR: "err"}
+    rows = "".join(
+        f'<tr><th>{_breakable(r.case)}</th>{_method_cell(r.method, roles)}<td class="{status_class[r.status]}">{esc(r.status)}</td>'
+        f'<td>{esc(r.plugin)} ({esc(r.distribution)} {esc(r.version)})</td><td class="num">{format_number(r.fit_s)}</td><td class="num">{format_number(r.retarget_s)}</td>'
+        f'<td class="num">{format_number(r.compile_s)}</td><td class="num">{format_number(_excl_compile(r))}</td>'
+        f'<td class="num">{format_number(r.peak_memory_mib)}</td><td><details><summary>{len(r.parameters)} parameters</summary><code>{esc(json.dumps(r.as_dict()["parameters"]))}</code></details></td><td class="reason-text">{esc(r.reason)}</td></tr>'
+        for r in result.runs
+    )
+    return (
+        '<table class="metrics runs"><thead><tr><th>case</th><th>method</th><th>status</th><th>plugin</th><th>fit<br><small>s</small></th>'
+        "<th>retarget<br><small>s</small></th><th>of which compile<br><small>s</small></th><th>excl. compile<br><small>s</small></th>"
+        f"<th>peak<br><small>MiB</small></th><th>parameters</th><th>reason / error</th></tr></thead><tbody>{rows}</tbody></table>"
+    )
+
+
+def render_html(result: ComparisonResult, *, title: str = "faceretarget comparison", max_bytes: int = MAX_BYTES, max_frames: int = MAX_FRAMES, max_vertices: int = MAX_VERTICES, rank_by: str | None = None, registry=None) -> str:
+    """The self-contained report page as a string.
+
+    ``rank_by``: the metric that ranks the methods (default ``vertex_error_rms``); ``registry``:
+    where the methods' papers and roles are looked up (default the process-wide registry).
+    """
     from .. import __version__
+    from ._summary import case_summary, method_roles, ranking_metric
 
     esc = html.escape
+    rank_by = ranking_metric(result, rank_by)
+    roles = method_roles(result.methods, registry)
+    summaries = [case_summary(result, cname, rank_by, roles) for cname in result.cases]
     vertex_budget = _budget(result, max_bytes, max_frames, max_vertices)
-    views, sections = [], []
+    sections, views = [], []
     for ci, (cname, case) in enumerate(result.cases.items()):
-        present = {r["metric"] for r in result.rows if r["case"] == cname}
-        cols = [m for m in SUMMARY_METRICS if m in present]
-        regions = sorted(m for m in present if m.startswith("vertex_error_region["))
-        others = [m for m in dict.fromkeys(r["metric"] for r in result.rows if r["case"] == cname) if m not in cols]
-        source = case.source
-        sec = [
-            f'<section class="case" id="case-{ci}"><h2>Case: {esc(cname)}</h2>',
-            f'<p class="meta">source: {esc(source.kind)}, {source.n_frames} frames at {source.fps:g} fps; target: {case.target.neutral.n_vertices} vertices, parts: {esc(", ".join(case.target.parts()) or "none")}; ground truth: {"yes" if getattr(case, "truth", None) is not None else "no"}</p>',
-            "<h3>Metrics</h3>",
-            _metric_table(result, cname, cols),
-            f'<details><summary>all metrics ({len(others)} more, incl. {len(regions)} regions)</summary>{_metric_table(result, cname, others)}</details>',
-            f'<h3>Viewer</h3><div class="viewer" data-case="{ci}"></div>',
-            f'<h3>Key frames side by side</h3><div class="keyframes scroll" data-case="{ci}"></div>',
-            f'<h3>Per-vertex error on the target mesh</h3><p class="note">mean over frames of ||result - truth||, % of face height; shared colour scale per case.</p><div class="heat" data-case="{ci}"></div>',
-        ]
-        vplot = _velocity_plot(result, cname, case)
-        if vplot is not None:
-            sec.append("<h3>Velocity error over time</h3>" + svg_plot(vplot, width=760))
-        wplots = _weight_plots(result, cname, case)
-        if wplots:
-            sec.append('<h3>Weight curves</h3><div class="plots">' + "".join(svg_plot(p, width=460, height=220) for p in wplots) + "</div>")
-        sec.append("</section>")
-        sections.append("".join(sec))
+        sections.append(_case_section(result, ci, cname, case, summaries[ci], roles, rank_by))
         views.append(_case_view(result, cname, case, vertex_budget, max_frames))
     presets = (_presets_summary(result.presets) + "".join(_preset_html(p) for p in result.presets)) or '<p class="note">No paper reproductions in this run.</p>'
     definitions = "".join(
-        f"<tr><th>{esc(name)}</th><td>{esc(m.unit)}</td><td>{esc(m.better)}</td><td>{esc(m.description)}</td></tr>" for name, m in result.metrics.items()
-    )
-    runs = "".join(
-        f'<tr><th>{esc(r.case)}</th><td>{esc(r.method)}</td><td class="{ {OK: "ok", NOT_APPLICABLE: "na", ERROR: "err"}[r.status]}">{esc(r.status)}</td>'
-        f'<td>{esc(r.plugin)} ({esc(r.distribution)} {esc(r.version)})</td><td class="num">{_fmt(r.fit_s)}</td><td class="num">{_fmt(r.retarget_s)}</td>'
-        f'<td class="num">{_fmt(r.peak_memory_mib)}</td><td><details><summary>{len(r.parameters)} parameters</summary><code>{esc(json.dumps(r.as_dict()["parameters"]))}</code></details></td><td>{esc(r.reason)}</td></tr>'
-        for r in result.runs
+        f"<tr><th>{_breakable(name)}</th><td>{esc(m.unit)}</td><td>{esc(m.better)}</td><td>{esc(m.description)}</td></tr>" for name, m in result.metrics.items()
     )
     nav = "".join(f'<a href="#case-{i}">{esc(n)}</a>' for i, n in enumerate(result.cases))
     data = json.dumps({"cases": views}, separators=(",", ":")).replace("</", "<\\/")
@@ -554,13 +822,14 @@ def render_html(result: ComparisonResult, *, title: str = "faceretarget comparis
 <title>{esc(title)}</title><style>{_asset("report.css")}</style></head>
 <body data-js-errors="0" data-faces-rendered="0">
 <header><h1>{esc(title)}</h1><p class="meta">faceretarget {esc(__version__)}, {stamp}; {len(result.cases)} case(s), {len(result.methods)} method(s). Opens offline; every figure is inline.</p>
-<nav><a href="#ranking">ranking</a>{nav}<a href="#presets">paper reproductions</a><a href="#definitions">metric definitions</a><a href="#runs">runs</a></nav></header>
+<nav><a href="#summary">summary</a><a href="#ranking">ranking</a>{nav}<a href="#presets">paper reproductions</a><a href="#definitions">metric definitions</a><a href="#runs">runs</a></nav></header>
 <main>
-<section id="ranking"><h2>Ranking</h2><p class="note">Mean rank over cases and the metrics {esc(", ".join(m for m in RANKED_METRICS if m in result.metrics))} (1 = best; ties share ranks). Methods that did not apply or failed are listed with counts.</p>{_ranking_table(result)}</section>
+<section id="summary"><h2>Who wins, and why</h2>{_summaries_html(summaries)}{_reproductions_line(result.presets)}{_roles_legend(roles)}</section>
+<section id="ranking"><h2>Ranking</h2>{_ranking_note(result, rank_by)}{_ranking_table(result, rank_by, roles)}</section>
 {"".join(sections)}
 <section id="presets"><h2>Paper reproductions</h2>{presets}</section>
 <section id="definitions"><h2>Metric definitions</h2><table class="metrics defs"><thead><tr><th>metric</th><th>unit</th><th>better</th><th>definition</th></tr></thead><tbody>{definitions}</tbody></table></section>
-<section id="runs"><h2>Runs</h2><div class="scroll"><table class="metrics"><thead><tr><th>case</th><th>method</th><th>status</th><th>plugin</th><th>fit s</th><th>retarget s</th><th>peak MiB</th><th>parameters</th><th>reason / error</th></tr></thead><tbody>{runs}</tbody></table></div></section>
+<section id="runs"><h2>Runs</h2>{_runs_table(result, roles)}</section>
 </main>
 <script type="application/json" id="report-data">{data}</script>
 <script>{_asset("report.js")}</script>
@@ -582,22 +851,24 @@ def check_report_folder(folder) -> Path:
     return folder
 
 
-def write_report(result: ComparisonResult, folder, *, title: str = "faceretarget comparison", max_bytes: int = MAX_BYTES, max_frames: int = MAX_FRAMES, max_vertices: int = MAX_VERTICES, force: bool = False, inputs=()) -> dict[str, Path]:
+def write_report(result: ComparisonResult, folder, *, title: str = "faceretarget comparison", max_bytes: int = MAX_BYTES, max_frames: int = MAX_FRAMES, max_vertices: int = MAX_VERTICES, force: bool = False, inputs=(), rank_by: str | None = None, registry=None) -> dict[str, Path]:
     """Write ``report.html``, ``results.csv`` and ``results.json`` into ``folder``.
 
     The folder is created if missing (its parent must exist); each file is written
     atomically, never over an input (``inputs``, or a file read by this process) and
     over an existing file only with ``force`` (all three are checked before any is
-    written). Returns ``{"html": path, "csv": path, "json": path}``.
+    written). ``rank_by`` and ``registry`` as in :func:`render_html`. Returns ``{"html": path, "csv": path, "json": path}``.
     """
     from ..io._atomic import check_destination
+    from ._summary import ranking_metric
 
+    ranking_metric(result, rank_by)  # a bad name fails before anything is written
     folder = check_report_folder(folder)
     if folder.is_dir():
         for name in REPORT_FILES:
             check_destination(folder / name, inputs=inputs, force=force)
     folder.mkdir(exist_ok=True)
-    page = render_html(result, title=title, max_bytes=max_bytes, max_frames=max_frames, max_vertices=max_vertices)
+    page = render_html(result, title=title, max_bytes=max_bytes, max_frames=max_frames, max_vertices=max_vertices, rank_by=rank_by, registry=registry)
     return {
         "html": atomic_write_text(folder / "report.html", page, force=force, inputs=inputs),
         "csv": result.to_csv(folder / "results.csv", force=force, inputs=inputs),

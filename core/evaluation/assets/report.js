@@ -230,9 +230,11 @@
   function buildKeyFrames(root, view) {
     if (!view.data.keyFrames.length) { root.appendChild(element("p", "note", "no ground truth: no key frames")); return; }
     var table = element("table", "keys"), head = element("tr");
-    var w = Math.max(90, Math.min(150, Math.floor(1150 / (view.panels.length + 0.6)))), h = Math.round(w * 7 / 6);
+    /* one column per panel, all within the section's width (a 1280 px window leaves about 1150 px) */
+    var avail = Math.max(root.clientWidth || 1150, 400) - 70;
+    var w = Math.max(40, Math.min(150, Math.floor(avail / view.panels.length) - 6)), h = Math.round(w * 7 / 6);
     head.appendChild(element("th", null, ""));
-    view.panels.forEach(function (p) { head.appendChild(element("th", null, p.label)); });
+    view.panels.forEach(function (p) { var th = element("th", null, p.label); th.style.maxWidth = (w + 4) + "px"; head.appendChild(th); });
     table.appendChild(head);
     view.data.keyFrames.forEach(function (f) {
       var tr = element("tr");
