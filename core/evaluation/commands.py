@@ -94,7 +94,10 @@ def _print_ranking(result, stream=None) -> None:
     from .report import _fmt
 
     stream = stream or sys.stdout
+    from ._summary import ranking_metric
+
     rows = result.ranking()
+    print(f"ranked by {ranking_metric(result)} (mean rank over the cases; the report explains each case)", file=stream)
     print(f"{'rank':>4}  {'method':<24} {'mean rank':>9} {'ok':>3} {'n/a':>3} {'fail':>4} {'vertex RMS %H':>13} {'time s':>8}", file=stream)
     for r in rows:
         print(

@@ -266,17 +266,21 @@ class ComparisonResult:
     def ranking(self, metrics: Sequence[str] | None = None) -> list[dict]:
         """Methods ordered by their mean rank over cases and metrics.
 
-        For each case and each metric (default :data:`~faceretarget.evaluation.metrics.RANKED_METRICS`
-        that are registered) with a value for at least two methods, methods get ranks
+        For each case and each metric (default: the report's one ranking metric,
+        :func:`faceretarget.evaluation._summary.ranking_metric`, RMS vertex error when computed,
+        so the console, ``results.json`` and the report agree) with a value for at least two methods, methods get ranks
         1..n (ties share the mean rank; "higher is better" metrics are ranked
         descending). A method's score is the mean of its ranks; methods with no rank
         (not applicable or failed everywhere) come last. Each row: ``rank, method,
         mean_rank, ranked_cases, not_applicable, failed`` and the mean over cases of
         ``vertex_error_rms`` and ``time_total``.
         """
-        from .metrics import RANKED_METRICS
+        from ._summary import ranking_metric
 
-        chosen = [m for m in (metrics or RANKED_METRICS) if m in self.metrics]
+        if metrics is None:
+            default = ranking_metric(self)
+            metrics = [] if default is None else [default]
+        chosen = [m for m in metrics if m in self.metrics]
         table: dict[tuple[str, str], dict[str, float]] = {}
         for row in self.rows:
             if row["status"] == OK and row["value"] is not None:

@@ -169,6 +169,17 @@ def _mean_ranks_by(result, metric):
     return {m: (float(np.mean(r)) if r else None) for m, r in ranks.items()}
 
 
+def test_console_and_json_rank_like_the_report(explained, capsys):
+    """result.ranking() (results.json) and the console table use the report's one metric."""
+    from faceretarget.evaluation.commands import _print_ranking
+
+    result, _ = explained
+    expected = _mean_ranks_by(result, "vertex_error_rms")
+    assert {r["method"]: r["mean_rank"] for r in result.ranking()} == pytest.approx(expected)
+    _print_ranking(result)
+    assert capsys.readouterr().out.startswith("ranked by vertex_error_rms")
+
+
 def test_ranking_metric_is_checked(explained, tmp_path):
     result, _ = explained
     assert ranking_metric(result) == "vertex_error_rms"
