@@ -174,7 +174,10 @@ def _parts(res: "PresetResult", parts: list[tuple[str, bool]], note: str = "") -
 
 
 def _num(v: float) -> str:
-    return f"{v:.3g}"
+    """Three significant digits, for people (``2.99×10⁻⁵``, never ``2.99e-05``)."""
+    from .report import format_number
+
+    return format_number(float(f"{v:.3g}"))
 
 
 class _Cases:

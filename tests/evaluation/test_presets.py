@@ -7,6 +7,7 @@ import pytest
 import faceretarget
 from faceretarget.errors import UnknownNameError
 from faceretarget.evaluation import presets
+from faceretarget.evaluation.presets import _num
 from faceretarget.evaluation.harness import resolve_case
 from faceretarget.evaluation.report import svg_plot
 
@@ -59,7 +60,7 @@ def test_seol_fig11(small_cases):
     added = {row["method"]: row["added over No Const"] for row in res.table}
     assert res.table[0]["weights in range"] < 1.0  # the stylized target: the range binds, as in the paper
     _consistent_verdict(res, [added["movement matching"] < added["Range PF"], added["movement matching"] < added["Prior PF"]])
-    assert f"{added['movement matching']:.3g}" in res.evidence and f"{added['Prior PF']:.3g}" in res.evidence
+    assert _num(added['movement matching']) in res.evidence and _num(added['Prior PF']) in res.evidence
     _plots_render(res)
 
 
@@ -160,7 +161,7 @@ def test_najung_table1_counts_per_mesh(dense):
         _consistent_verdict(res, [all(row["%"] < presets.NAJUNG_LIMIT_PERCENT for row in counted)])
         for row in counted:
             if row["%"] >= presets.NAJUNG_LIMIT_PERCENT:
-                assert f"{row['mesh']} {row['%']:.3g}%" in res.evidence  # the offending mesh, with its number
+                assert f"{row['mesh']} {_num(row['%'])}%" in res.evidence  # the offending mesh, with its number
 
 
 @pytest.mark.parametrize("name, method, ablation", [("xu_fig6", "coating", "coating without details"), ("najung_fig14", "normalmesh", "normalmesh without details")])
@@ -185,7 +186,7 @@ def test_detail_reproductions(dense, name, method, ablation):
         parts += [m["detail error (% face height)"] < off["detail error (% face height)"], m["detail error (% face height)"] < dt["detail error (% face height)"]]
         if name == "xu_fig6":
             parts.append(m["RMS error (% face height)"] <= dt["RMS error (% face height)"])
-        assert f"{m['detail error (% face height)']:.3g}%" in res.evidence and f"{dt['detail error (% face height)']:.3g}%" in res.evidence
+        assert _num(m['detail error (% face height)']) + "%" in res.evidence and _num(dt['detail error (% face height)']) + "%" in res.evidence
     _consistent_verdict(res, parts)
     assert res.plots[0].kind == "bar" and len(res.plots[0].series) == 6
     _plots_render(res)
