@@ -698,31 +698,33 @@ class _Channel:
 
 
 def _channels(doc: _Doc, node: int) -> dict[str, _Channel]:
-    """The first animation's channels targeting ``node``: path -> keys."""
+    """The animation channels targeting ``node``: path -> keys. Every animation of the file
+    counts, the first one animating a path wins: Blender writes an object's motion and its
+    shape-key weights as two animations ("FaceAction", "KeyAction") that play together."""
     out: dict[str, _Channel] = {}
-    if doc.count("animations") == 0:
-        return out
-    anim = doc.item("animations", 0, "the file")
-    samplers = doc.get(anim, "samplers", list, "animations[0]")
-    for c, ch in enumerate(doc.get(anim, "channels", list, "animations[0]")):
-        cw = f"animations[0].channels[{c}]"
-        if not isinstance(ch, dict):
-            raise doc.fail(f"{cw} must be an object")
-        target = doc.get(ch, "target", dict, cw)
-        if target.get("node") != node:
-            continue
-        s = doc.get(ch, "sampler", int, cw)
-        if not 0 <= s < len(samplers) or not isinstance(samplers[s], dict):
-            raise doc.fail(f"{cw} refers to sampler {s} but the animation has {len(samplers)}")
-        sw = f"animations[0].samplers[{s}]"
-        times = doc.accessor(doc.get(samplers[s], "input", int, sw), f"{sw}.input").ravel()
-        if times.size > 1 and np.any(np.diff(times) <= 0):
-            raise doc.fail(f"{sw}.input: key times must be strictly increasing")
-        interp = doc.get(samplers[s], "interpolation", str, sw, "LINEAR")
-        if interp not in ("LINEAR", "STEP", "CUBICSPLINE"):
-            raise doc.fail(f"{sw}.interpolation {interp!r:.20} is not LINEAR, STEP or CUBICSPLINE")
-        values = doc.accessor(doc.get(samplers[s], "output", int, sw), f"{sw}.output")
-        out[str(doc.get(target, "path", str, cw))] = _Channel(times, values, interp)
+    for a in range(doc.count("animations")):
+        anim = doc.item("animations", a, "the file")
+        samplers = doc.get(anim, "samplers", list, f"animations[{a}]")
+        for c, ch in enumerate(doc.get(anim, "channels", list, f"animations[{a}]")):
+            cw = f"animations[{a}].channels[{c}]"
+            if not isinstance(ch, dict):
+                raise doc.fail(f"{cw} must be an object")
+            target = doc.get(ch, "target", dict, cw)
+            path = str(doc.get(target, "path", str, cw))
+            if target.get("node") != node or path in out:
+                continue
+            s = doc.get(ch, "sampler", int, cw)
+            if not 0 <= s < len(samplers) or not isinstance(samplers[s], dict):
+                raise doc.fail(f"{cw} refers to sampler {s} but the animation has {len(samplers)}")
+            sw = f"animations[{a}].samplers[{s}]"
+            times = doc.accessor(doc.get(samplers[s], "input", int, sw), f"{sw}.input").ravel()
+            if times.size > 1 and np.any(np.diff(times) <= 0):
+                raise doc.fail(f"{sw}.input: key times must be strictly increasing")
+            interp = doc.get(samplers[s], "interpolation", str, sw, "LINEAR")
+            if interp not in ("LINEAR", "STEP", "CUBICSPLINE"):
+                raise doc.fail(f"{sw}.interpolation {interp!r:.20} is not LINEAR, STEP or CUBICSPLINE")
+            values = doc.accessor(doc.get(samplers[s], "output", int, sw), f"{sw}.output")
+            out[path] = _Channel(times, values, interp)
     return out
 
 
@@ -804,9 +806,10 @@ def _animation_from(doc: _Doc, mesh_option, fps_option) -> Animation:
         )
     # a weight animation over morph targets
     index = doc.choose_mesh(mesh_option, with_targets=True)
-    rig = _rig_from(doc, index)
     node = _node_of_mesh(doc, index)
     channels = _channels(doc, node) if node is not None else {}
+    moving = "translation" in channels or "rotation" in channels
+    rig, parent, rest = _animated_rig(doc, index, node, moving)
     if "weights" not in channels:
         raise doc.fail("has no animation of morph-target weights (read it as a rig: kind='rig')")
     ch = channels["weights"]
@@ -839,8 +842,8 @@ def _animation_from(doc: _Doc, mesh_option, fps_option) -> Animation:
         exact_w = doc.raw_view(exact["weights"], "weights")
         if exact_w.shape == weights.shape:
             weights = exact_w
-    if head is None and ("translation" in channels or "rotation" in channels):
-        head = np.tile(np.eye(4), (grid.size, 1, 1))
+    if head is None and moving:
+        head = np.tile(rest, (grid.size, 1, 1))  # a channel not animated keeps the node's own value
         if "rotation" in channels:
             rc = channels["rotation"]
             q = _sample_keys(rc.times, _channel_values(doc, rc, 4, "the rotation channel"), grid, rc.interpolation == "STEP")
@@ -848,8 +851,28 @@ def _animation_from(doc: _Doc, mesh_option, fps_option) -> Animation:
         if "translation" in channels:
             tc = channels["translation"]
             head[:, :3, 3] = _sample_keys(tc.times, _channel_values(doc, tc, 3, "the translation channel"), grid, tc.interpolation == "STEP")
+        if not np.array_equal(parent, np.eye(4)):  # in scene space: parent @ [R T](t) @ parent^-1
+            head = parent[None] @ head @ np.linalg.inv(parent)[None]
     names = info.get("weight_names") if isinstance(info.get("weight_names"), list) else None
     return Animation(weights=weights, rig=rig, head_motion=head, fps=fps, weight_names=names, provenance=provenance, extras=extras)
+
+
+def _animated_rig(doc: _Doc, index: int, node: int | None, moving: bool) -> tuple[BlendshapeRig, np.ndarray, np.ndarray]:
+    """The rig of a weight animation in scene space, the node's parent transform and its rest
+    rigid transform ``[R T]`` (4, 4).
+
+    A node without rotation/translation channels: its whole world transform is applied to the
+    rig (as ``kind='rig'`` reads it). A moving node (head motion): the rig gets the parents'
+    transforms and the node's own scale; rotation and translation become the head motion.
+    """
+    world = next((w for n, _, w in _instances(doc) if n == node), np.eye(4)) if node is not None else np.eye(4)
+    if not moving:
+        return _rig_from(doc, index, world), np.eye(4), np.eye(4)
+    item = doc.item("nodes", node, "the file")
+    rest = _local_matrix(doc, {k: item[k] for k in ("translation", "rotation") if k in item}, f"nodes[{node}]")
+    scale = np.diag(np.append(np.asarray(item.get("scale", [1.0, 1.0, 1.0]), dtype=np.float64), 1.0)) if "matrix" not in item else np.eye(4)
+    parent = world @ np.linalg.inv(_local_matrix(doc, item, f"nodes[{node}]")) if "matrix" not in item else np.eye(4)
+    return _rig_from(doc, index, parent @ scale), parent, rest
 
 
 @guarded_reader
