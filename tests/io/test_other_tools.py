@@ -1,4 +1,4 @@
-"""Files written by other tools (Blender 3.4.1's exporters, Gmsh 4.8.4) read to what those
+"""Files written by other tools (Blender 3.4.1's exporters, ezc3d 1.7.2, Gmsh 4.8.4) read to what those
 tools say they hold. How the files were made: tests/io/data/other_tools/README.md."""
 import json
 import warnings
@@ -88,3 +88,12 @@ def test_gmsh_msh41_plate_reads_as_its_triangles():
     v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
     area = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1).sum()
     assert area == pytest.approx(2.0) and np.all(v[:, 2] == 0.0) and len(t) > 20
+
+
+def test_ezc3d_markers_names_rate_and_occlusions():
+    t = json.loads((DATA / "ezc3d_face.truth.json").read_text())
+    expected = np.array([[[np.nan if c is None else c for c in m] for m in f] for f in t["points"]], dtype=float)
+    markers = io.load(DATA / "ezc3d_face.c3d")
+    assert list(markers.names) == t["labels"] and markers.fps == t["rate"]
+    np.testing.assert_array_equal(np.isnan(markers.positions), np.isnan(expected))  # residual < 0: missing
+    np.testing.assert_allclose(markers.positions, expected, atol=1e-4, equal_nan=True)
