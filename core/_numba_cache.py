@@ -61,9 +61,56 @@ def _patch(caching) -> None:
             _notice_compiling(getattr(self, "_py_func", None))
         return found
 
+    init = cache.__init__
+
+    def __init__(self, py_func):
+        init(self, py_func)
+        cache_file = getattr(self, "_cache_file", None)
+        if cache_file is not None and _ours(py_func):
+            cache_file._source_stamp = (cache_file._source_stamp, kernel_stamp())
+
     save_overload.__doc__, load_overload.__doc__ = save.__doc__, load.__doc__
-    cache.save_overload, cache.load_overload = save_overload, load_overload
+    cache.save_overload, cache.load_overload, cache.__init__ = save_overload, load_overload, __init__
     setattr(cache, _MARK, True)
+
+
+def _ours(py_func) -> bool:
+    return (getattr(py_func, "__module__", "") or "").startswith("faceretarget")
+
+
+def _kernel_files() -> list[str]:
+    """Every numba kernel module of faceretarget and its built-in plugins (``_*kernels.py``)."""
+    roots = [os.path.dirname(os.path.abspath(__file__))]
+    spec = importlib.util.find_spec("faceretarget.plugins")
+    roots += list(spec.submodule_search_locations or []) if spec is not None else []
+    found = set()
+    for root in roots:
+        for folder, _, files in os.walk(root):
+            found.update(os.path.join(folder, f) for f in files if f.startswith("_") and f.endswith("kernels.py"))
+    return sorted(found)
+
+
+_stamp: tuple | None = None
+
+
+def kernel_stamp() -> tuple:
+    """(name, mtime, size) of every kernel module, added to each of our kernels' cache stamp.
+
+    numba keys a cached kernel on its own file only, so a kernel that calls a shared one
+    (spacetime's block solve -> ``geometry._nnls_kernels.cholesky``) would keep the old
+    callee after that file changes; with this stamp any kernel file's change recompiles all.
+    """
+    global _stamp
+    if _stamp is None:
+        entries = []
+        for path in _kernel_files():
+            try:
+                st = os.stat(path)
+            except OSError:
+                continue
+            entries.append((path, st.st_mtime, st.st_size))
+        _stamp = tuple(entries)
+    return _stamp
 
 
 #: Printed on stderr when the first of our kernels is not in the cache: once per process,
@@ -81,8 +128,7 @@ _noticed = False
 
 def _notice_compiling(py_func) -> None:
     global _noticed
-    module = getattr(py_func, "__module__", "") or ""
-    if _noticed or not module.startswith("faceretarget"):
+    if _noticed or not _ours(py_func):
         return
     _noticed = True
     try:

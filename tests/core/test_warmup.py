@@ -79,3 +79,33 @@ def test_warmup_runs_a_method_on_every_case_it_applies_to():
     line = next(l for l in done.stdout.splitlines() if l.startswith("spacetime"))
     assert int(line.split()[1]) >= 4  # synthetic x2, ict, cross_rig markers and mesh (not the mesh-only target)
     assert "warm in" in done.stdout
+
+
+def test_a_shared_kernel_file_is_part_of_every_kernel_cache_stamp(monkeypatch, tmp_path):
+    """numba keys a cached kernel on its own file only; a caller of a shared kernel (spacetime's
+    block solve -> geometry._nnls_kernels.cholesky) must not keep the old callee after that file
+    changes: every kernel module's stamp is part of each of our kernels' cache stamp."""
+    shared = tmp_path / "_shared_kernels.py"
+    shared.write_text("x = 1\n")
+    monkeypatch.setattr(_numba_cache, "_kernel_files", lambda: [str(shared)])
+    monkeypatch.setattr(_numba_cache, "_stamp", None)
+
+    class Cache:
+        def __init__(self, py_func):
+            self._py_func = py_func
+            self._cache_file = types.SimpleNamespace(_source_stamp=(1.0, 10))
+
+        def save_overload(self, sig, data):
+            return None
+
+        def load_overload(self, sig, target_context):
+            return None
+
+    caching = types.SimpleNamespace(Cache=Cache)
+    _numba_cache._patch(caching)
+    before = caching.Cache(ours)._cache_file._source_stamp
+    assert before[0] == (1.0, 10) and str(shared) in str(before[1])
+    assert caching.Cache(theirs)._cache_file._source_stamp == (1.0, 10)  # somebody else's kernels: untouched
+    shared.write_text("x = 22\n")  # the shared file changes (size here; mtime too)
+    monkeypatch.setattr(_numba_cache, "_stamp", None)  # a new process
+    assert caching.Cache(ours)._cache_file._source_stamp != before
