@@ -32,7 +32,9 @@ import _common as C  # noqa: E402
 import faceretarget as fr  # noqa: E402
 from faceretarget.plugins.spacetime.prior import fit_prior  # noqa: E402
 from faceretarget.plugins.spacetime.retargeter import SpacetimeRetargeter  # noqa: E402
-from faceretarget.plugins.spacetime.solver import System, solve_movement, solve_movement_bounded  # noqa: E402
+from faceretarget.plugins.spacetime.solver import (  # noqa: E402
+    System, solve_bounded, solve_movement, solve_movement_bounded, solve_per_frame,
+)
 from naive import spacetime as naive  # noqa: E402
 
 N_MARKERS, N_SHAPES = 54, 50
@@ -137,6 +139,19 @@ def main(argv=None) -> dict:
                             box["median_s"] / free["median_s"], 10.0, "x", "lower", n=n, source="issue 13 item 2",
                             note=f"bounded min {C.fmt(box['min_s'], 's')}, unconstrained min {C.fmt(free['min_s'], 's')}",
                             baseline={"name": "unconstrained solve", "min_s": free["min_s"], "median_s": free["median_s"], "n": n}))
+
+    # ---- per-frame bounded least squares ("Range PF", active set), 1,500 frames ---------------
+    # complete markers (one Gram for every frame), then 10% of frames missing 3 markers each
+    # (that frame's Gram is updated); against the unconstrained per-frame solve ("No Const")
+    holes = d.copy()
+    rng = np.random.default_rng(5)
+    for t in rng.choice(1500, 150, replace=False):
+        holes[t, rng.choice(N_MARKERS, 3, replace=False)] = np.nan
+    for label, data in (("", d), (", 10% of frames missing 3 markers", holes)):
+        rangepf = C.timeit(lambda: solve_bounded(s, data, lo, hi), n)
+        noconst = C.timeit(lambda: solve_per_frame(s, data, use_prior=False), n)
+        rows.append(C.time_row(f"Range PF per-frame bounded solve, weights in [0, 1], 1,500 frames{label}", rangepf, None,
+                               baseline=("per-frame least squares (No Const)", noconst), source="bench (issue 18 item 5)"))
 
     # ---- retarget() end to end: 1,500 and 10,000 frames -----------------------------------
     for frames, goal in ((1500, 0.005), (10_000, 0.050)):

@@ -18,6 +18,11 @@ RANK_RTOL = 1e-10
 #: rank deficient (duplicate blendshapes, coincident RBF centres).
 RIDGE_EPS = 1e-9
 
+#: A Cholesky pivot at or below this fraction of the matrix's largest diagonal entry counts
+#: as (numerically) singular: the system then gets the fallback ridge (``RIDGE_EPS``-sized;
+#: spacetime's frame blocks with unseen shapes, ``geometry.nnls.bounded_lsq_frames``).
+PIVOT_RTOL = 1e-13
+
 #: Head-motion estimation (``geometry.head_motion``): rigidity weights ``1 / (eps^2 + m_i^2)``
 #: of the markers, ``m_i`` = RMS displacement of marker i over the expression basis, with
 #: ``eps`` this fraction of the face size (RMS radius of the neutral markers; 0.02 = 1.2 mm

@@ -1,15 +1,25 @@
-"""numba kernels for small dense quadratic programs (compiled lazily, cached).
+"""numba kernels for small dense SPD systems and quadratic programs (compiled lazily, cached).
 
-One primal active-set method (Lawson & Hanson 1974, ch. 23, generalised to two-sided
-bounds and to "sum to s" groups) serves :mod:`faceretarget.geometry.nnls` (NNLS and
-bounded least squares on the Gram matrix) and :mod:`faceretarget.geometry.simplex`
-(quadratic programs over products of probability simplices)::
+The one place for these jobs; plugins import them rather than keep their own copies:
+
+- dense Cholesky (:func:`cholesky`, with a pivot test and an optional ridge; :func:`factor`
+  escalates the ridge until it succeeds) and the triangular solves (:func:`forward`,
+  :func:`backward`, :func:`chol_solve`), on the leading ``n x n`` block of preallocated
+  arrays so callers in loops allocate nothing;
+- one primal active-set method (Lawson & Hanson 1974, ch. 23, generalised to two-sided
+  bounds and to "sum to s" groups), :func:`active_set_qp`, which serves
+  :mod:`faceretarget.geometry.nnls` (NNLS and bounded least squares on the Gram matrix) and
+  :mod:`faceretarget.geometry.simplex` (quadratic programs over products of probability
+  simplices)::
 
     minimise 1/2 x^T G x - c^T x
     subject to lo <= x <= hi,  sum_{i in group g} x_i = s_g  (groups optional)
 
-Groups are only used with ``lo = 0, hi = inf`` (simplices), so every group keeps at
-least one free variable and its multiplier is defined by the free ones.
+  Groups are only used with ``lo = 0, hi = inf`` (simplices), so every group keeps at
+  least one free variable and its multiplier is defined by the free ones;
+- two loops over it: :func:`active_set_qp_many` (one ``G``, many right-hand sides) and
+  :func:`active_set_qp_frames` (a sequence of frames, each warm-started from the previous
+  solution, with ``G`` downdated at frames where some row blocks are missing).
 """
 from __future__ import annotations
 
@@ -24,14 +34,16 @@ _RIDGE_START = 1e-13  # relative ridge tried first when a free block is singular
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _cholesky(a, n, ridge, out):
-    """Lower Cholesky factor of ``a[:n, :n] + ridge * I`` into ``out``; False if not PD."""
+def cholesky(a, n, ridge, pivot_min, out):
+    """Lower Cholesky factor of ``a[:n, :n] + ridge * I`` into ``out[:n, :n]`` (upper part
+    untouched). False, with ``out`` partly written, if a pivot is not above ``pivot_min``
+    (0: not positive definite; ``rtol * max(diag)``: numerically singular) or is NaN."""
     for j in range(n):
         rj = out[j]
         s = a[j, j] + ridge
         for k in range(j):
             s -= rj[k] * rj[k]
-        if s <= 0.0:
+        if not s > pivot_min:
             return False
         d = np.sqrt(s)
         out[j, j] = d
@@ -45,7 +57,7 @@ def _cholesky(a, n, ridge, out):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _forward(fac, n, rhs):
+def forward(fac, n, rhs):
     """``rhs <- L^-1 rhs`` for the lower factor ``L = fac[:n, :n]`` (in place)."""
     for i in range(n):
         fi = fac[i]
@@ -56,7 +68,7 @@ def _forward(fac, n, rhs):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _backward(fac, n, rhs):
+def backward(fac, n, rhs):
     """``rhs <- L^-T rhs`` (in place), reading L by rows."""
     for i in range(n - 1, -1, -1):
         fi = fac[i]
@@ -67,18 +79,18 @@ def _backward(fac, n, rhs):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _chol_solve(fac, n, rhs):
+def chol_solve(fac, n, rhs):
     """Solve ``fac fac^T y = rhs`` in place (first ``n`` entries)."""
-    _forward(fac, n, rhs)
-    _backward(fac, n, rhs)
+    forward(fac, n, rhs)
+    backward(fac, n, rhs)
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _factor(a, n, scale, out):
+def factor(a, n, scale, out):
     """Cholesky with an escalating ridge (relative to ``scale``) for singular blocks."""
     ridge = 0.0
     for _ in range(40):
-        if _cholesky(a, n, ridge, out):
+        if cholesky(a, n, ridge, 0.0, out):
             return
         ridge = _RIDGE_START * scale if ridge == 0.0 else ridge * 10.0
 
@@ -135,8 +147,8 @@ def active_set_qp(G, c, lo, hi, group, sums, x, max_iter, tol):
                 z[a] = s
                 for b in range(nf):
                     gf[a, b] = G[ia, free[b]]
-            _factor(gf, nf, scale, fac)
-            _forward(fac, nf, z)  # z = L^-1 r
+            factor(gf, nf, scale, fac)
+            forward(fac, nf, z)  # z = L^-1 r
             if n_groups > 0:
                 # Schur complement on the group sums with V = L^-1 E (G = L L^T):
                 # S = V^T V, S mu = V^T z - target, then z <- L^-T (z - V mu)
@@ -154,7 +166,7 @@ def active_set_qp(G, c, lo, hi, group, sums, x, max_iter, tol):
                     for a in range(nf):
                         yg[a] = 1.0 if group[free[a]] == g else 0.0
                     if has_free[g]:
-                        _forward(fac, nf, yg)
+                        forward(fac, nf, yg)
                 for g in range(n_groups):
                     yg = y[g]
                     for h in range(n_groups):
@@ -174,14 +186,14 @@ def active_set_qp(G, c, lo, hi, group, sums, x, max_iter, tol):
                 sscale = 0.0
                 for g in range(n_groups):
                     sscale = max(sscale, abs(schur[g, g]))
-                _factor(schur, n_groups, sscale if sscale > 0.0 else 1.0, sfac)
-                _chol_solve(sfac, n_groups, mu)
+                factor(schur, n_groups, sscale if sscale > 0.0 else 1.0, sfac)
+                chol_solve(sfac, n_groups, mu)
                 for g in range(n_groups):
                     if has_free[g]:
                         yg = y[g]
                         for a in range(nf):
                             z[a] -= yg[a] * mu[g]
-            _backward(fac, nf, z)
+            backward(fac, nf, z)
             # feasibility of the subproblem's solution
             step = 1.0
             blocking = -1
@@ -270,3 +282,43 @@ def active_set_qp_many(G, C, lo, hi, group, sums, X, max_iter, tol, iterations):
     """:func:`active_set_qp` for each row of ``C : (k, n)`` (one shared ``G``), in place on ``X``."""
     for r in range(C.shape[0]):
         iterations[r] = active_set_qp(G, C[r], lo, hi, group, sums, X[r], max_iter, tol)
+
+
+@nb.njit(cache=True)
+def active_set_qp_frames(G, block_grams, dropped, C, lo, hi, x0, ridge, pivot_rtol, X, max_iter, tol, iterations):
+    """:func:`active_set_qp` without groups for each frame ``t`` (row ``C[t]``), in order,
+    each warm-started from the previous frame's solution (frame 0 from ``x0``), into ``X[t]``.
+
+    ``G : (n, n)`` is the Gram of all row blocks; at a frame where some blocks are missing
+    (``dropped[t, b]``) their Grams ``block_grams[b] : (n, n)`` are subtracted, and if that
+    leaves a matrix whose Cholesky pivots fall to ``pivot_rtol`` times its largest diagonal
+    entry, ``ridge`` is added to its diagonal (shapes unseen at this frame go to the bound
+    nearest zero instead of anywhere). ``iterations[t]`` as :func:`active_set_qp`.
+    """
+    n_frames, n = C.shape
+    n_blocks = dropped.shape[1]
+    no_group = np.full(n, -1, np.int64)
+    no_sums = np.zeros(0)
+    H = np.empty((n, n))
+    fac = np.empty((n, n))
+    for t in range(n_frames):
+        x = X[t]
+        for i in range(n):
+            x[i] = x0[i] if t == 0 else X[t - 1, i]
+        any_dropped = False
+        for b in range(n_blocks):
+            any_dropped = any_dropped or dropped[t, b]
+        if not any_dropped:
+            iterations[t] = active_set_qp(G, C[t], lo, hi, no_group, no_sums, x, max_iter, tol)
+            continue
+        H[:, :] = G
+        for b in range(n_blocks):
+            if dropped[t, b]:
+                H -= block_grams[b]
+        top = 0.0
+        for i in range(n):
+            top = max(top, H[i, i])
+        if not cholesky(H, n, 0.0, pivot_rtol * top, fac):
+            for i in range(n):
+                H[i, i] += ridge
+        iterations[t] = active_set_qp(H, C[t], lo, hi, no_group, no_sums, x, max_iter, tol)

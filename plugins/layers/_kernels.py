@@ -37,7 +37,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from faceretarget.geometry._nnls_kernels import FASTMATH, _factor, _forward, active_set_qp
+from faceretarget.geometry._nnls_kernels import FASTMATH, active_set_qp, factor, forward
 
 _QP_TOL = 1e-13
 _QP_MAX_ITER = 400
@@ -222,13 +222,13 @@ def _rigid_frame(miss, any_miss, Jr, JtJ, Uraw, qraw, Bt, Mc, Lf, Uf, Lt, JtJ_t,
         for i in range(nr):
             jscale = max(jscale, JtJ[i, i])
         Lt[:] = 0.0
-        _factor(JtJ_t, nr, jscale, Lt)
+        factor(JtJ_t, nr, jscale, Lt)
         col = np.empty(nr)
         for l in range(m):
             for a in range(K):
                 for i in range(nr):
                     col[i] = Ut[i, l, a]
-                _forward(Lt, nr, col)
+                forward(Lt, nr, col)
                 for i in range(nr):
                     Ut[i, l, a] = col[i]
         U = Ut
@@ -238,7 +238,7 @@ def _rigid_frame(miss, any_miss, Jr, JtJ, Uraw, qraw, Bt, Mc, Lf, Uf, Lt, JtJ_t,
         L = Lf
     for i in range(nr):
         q[i] = qraw[i]
-    _forward(L, nr, q)
+    forward(L, nr, q)
     return U
 
 
@@ -355,12 +355,12 @@ def solve_frames(H, used, Bt, Mc, g, xx, miss, any_miss, c_d, c_b, c_s, layer_of
         jscale = 0.0
         for i in range(nr):
             jscale = max(jscale, JtJ[i, i])
-        _factor(JtJ, nr, jscale, Lf)
+        factor(JtJ, nr, jscale, Lf)
         for l in range(m):
             for a in range(K):
                 for i in range(nr):
                     q[i] = Uraw[i, l, a]
-                _forward(Lf, nr, q)
+                forward(Lf, nr, q)
                 for i in range(nr):
                     Uf[i, l, a] = q[i]
     beta = np.empty((m, K))

@@ -6,17 +6,21 @@ Imported only inside the functions that call them, never at plugin import time.
   eigendecomposition (``solver.System.modal``) the normal equations of Eq. 4 split into one
   tridiagonal system in time per mode; this projects the data, runs all of them in one
   Thomas sweep and maps back to weights.
+- :func:`admm_box`: movement matching with box bounds and an L1 term (ADMM whose w-step
+  is the same sweep).
 - :func:`block_thomas`: the exact general solve (block tridiagonal in time) used when
   frames differ (missing markers, per-frame Sobolev weights).
-- :func:`box_qp_frames`: per-frame bounded least squares ("Range PF") by a primal
-  active-set method with warm starts.
+
+Dense Cholesky and the per-frame bounded least squares ("Range PF") are not here: they are
+the shared kernels of :mod:`faceretarget.geometry._nnls_kernels` (through
+``geometry.nnls.bounded_lsq_frames`` for the latter).
 """
 from __future__ import annotations
 
 import numba as nb
 import numpy as np
 
-from .solver import PIVOT_RTOL
+from faceretarget.geometry._nnls_kernels import chol_solve, cholesky
 
 
 @nb.njit(cache=True)
@@ -217,52 +221,7 @@ def _edge_gram(gram, marker_grams, miss_a, miss_b):
 
 
 @nb.njit(cache=True)
-def _cholesky(a):
-    """Lower Cholesky factor of SPD ``a`` (m, m) in a new array; NaN-filled if (numerically) singular.
-
-    Plain loops (no LAPACK call) keep the numba compile time short.
-    """
-    m = a.shape[0]
-    low = np.zeros((m, m))
-    scale = 0.0
-    for j in range(m):
-        scale = max(scale, a[j, j])
-    for j in range(m):
-        d = a[j, j]
-        for k in range(j):
-            d -= low[j, k] * low[j, k]
-        if not d > PIVOT_RTOL * scale:
-            low[:, :] = np.nan
-            return low
-        d = np.sqrt(d)
-        low[j, j] = d
-        for i in range(j + 1, m):
-            v = a[i, j]
-            for k in range(j):
-                v -= low[i, k] * low[j, k]
-            low[i, j] = v / d
-    return low
-
-
-@nb.njit(cache=True)
-def _cho_solve(low, rhs):
-    """Solve ``L L^T x = rhs`` for ``rhs`` (m, k) in place."""
-    m, k = rhs.shape
-    for c in range(k):
-        for i in range(m):
-            v = rhs[i, c]
-            for j in range(i):
-                v -= low[i, j] * rhs[j, c]
-            rhs[i, c] = v / low[i, i]
-        for i in range(m - 1, -1, -1):
-            v = rhs[i, c]
-            for j in range(i + 1, m):
-                v -= low[j, i] * rhs[j, c]
-            rhs[i, c] = v / low[i, i]
-
-
-@nb.njit(cache=True)
-def block_thomas(gram, marker_grams, k0, missing, pos_weights, use_pos, rhs, known, wk, ridge, out, coupling):
+def block_thomas(gram, marker_grams, k0, missing, pos_weights, use_pos, rhs, known, wk, ridge, pivot_rtol, out, coupling):
     """Exact block-tridiagonal solve of the movement-matching normal equations.
 
     Parameters
@@ -276,6 +235,8 @@ def block_thomas(gram, marker_grams, k0, missing, pos_weights, use_pos, rhs, kno
     rhs : (F, m)               normal-equation right-hand side (original coordinates)
     known : (F,) bool, wk : (F, m)   constrained frames and their values
     ridge : float              added to the diagonal of a block that is singular
+    pivot_rtol : float         a Cholesky pivot below this times the block's largest diagonal
+                               entry counts as singular (``config.PIVOT_RTOL``)
     out : (F, m)               receives the weights
     coupling : (F, m, m)       work memory, F m^2 doubles
 
@@ -287,7 +248,8 @@ def block_thomas(gram, marker_grams, k0, missing, pos_weights, use_pos, rhs, kno
     """
     n_frames, m = rhs.shape
     n_markers = marker_grams.shape[0]
-    ext = np.empty((m, m + 1))
+    ext = np.empty((m + 1, m))  # rows: the columns of -A[t, t+1] = -g_next, then the right-hand side
+    fac = np.empty((m, m))
     g_prev = np.zeros((m, m))
     for t in range(n_frames):
         has_next = t < n_frames - 1
@@ -314,31 +276,33 @@ def block_thomas(gram, marker_grams, k0, missing, pos_weights, use_pos, rhs, kno
                         for b in range(m):
                             block[a, b] += p * marker_grams[i, a, b]
         for a in range(m):
-            ext[a, m] = rhs[t, a]
+            ext[m, a] = rhs[t, a]
         if t > 0:
             # lower coupling A[t, t-1] = -g_prev: S_t = A_tt - A[t, t-1] X_{t-1}, y_t = r_t - A[t, t-1] x_{t-1}
             for a in range(m):
                 for c in range(m):
                     ga = g_prev[a, c]
                     if ga != 0.0:
-                        ext[a, m] += ga * out[t - 1, c]
+                        ext[m, a] += ga * out[t - 1, c]
                         for b in range(m):
                             block[a, b] += ga * coupling[t - 1, c, b]
         for a in range(m):
             for b in range(m):
-                ext[a, b] = -g_next[a, b]
-        low = _cholesky(block)
-        if not np.isfinite(low[0, 0]):
+                ext[b, a] = -g_next[a, b]
+        top = 0.0
+        for a in range(m):
+            top = max(top, block[a, a])
+        if not cholesky(block, m, 0.0, pivot_rtol * top, fac):
             for a in range(m):
                 block[a, a] += ridge
-            low = _cholesky(block)
-            if not np.isfinite(low[0, 0]):
+            if not cholesky(block, m, 0.0, pivot_rtol * (top + ridge), fac):
                 return False
-        _cho_solve(low, ext)
+        for r in range(m + 1):
+            chol_solve(fac, m, ext[r])
         for a in range(m):
             for b in range(m):
-                coupling[t, a, b] = ext[a, b]
-            out[t, a] = ext[a, m]
+                coupling[t, a, b] = ext[b, a]
+            out[t, a] = ext[m, a]
         g_prev = g_next
     for t in range(n_frames - 2, -1, -1):
         if not known[t]:
@@ -348,130 +312,3 @@ def block_thomas(gram, marker_grams, k0, missing, pos_weights, use_pos, rhs, kno
                     v += coupling[t, a, b] * out[t + 1, b]
                 out[t, a] -= v
     return True
-
-
-@nb.njit(cache=True)
-def _solve_free(h, g, x, status, free_idx):
-    """Solve the equality-constrained QP on the free set; returns the free-variable solution."""
-    nf = free_idx.shape[0]
-    sub = np.empty((nf, nf))
-    rhs = np.empty((nf, 1))
-    m = x.shape[0]
-    for a in range(nf):
-        ia = free_idx[a]
-        rhs[a, 0] = g[ia]
-        for k in range(m):
-            if status[k] != 0:
-                rhs[a, 0] -= h[ia, k] * x[k]
-        for b in range(nf):
-            sub[a, b] = h[ia, free_idx[b]]
-    _cho_solve(_cholesky(sub), rhs)
-    return rhs[:, 0]
-
-
-@nb.njit(cache=True)
-def box_qp(h, g, lo, hi, x, max_iter):
-    """Minimize ``1/2 x^T h x - g^T x`` subject to ``lo <= x <= hi`` (h SPD), in place.
-
-    Primal active-set method: ``x`` must enter feasible (warm start); variables at a bound
-    form the working set. Each iteration solves the free subproblem; if it is infeasible it
-    steps to the first blocking bound, otherwise it releases the bound with the most
-    negative multiplier. Returns the number of iterations, or -1 without convergence.
-    """
-    m = x.shape[0]
-    status = np.zeros(m, np.int64)  # -1 at lower, +1 at upper, 0 free
-    for i in range(m):
-        if x[i] <= lo[i]:
-            x[i] = lo[i]
-            status[i] = -1
-        elif x[i] >= hi[i]:
-            x[i] = hi[i]
-            status[i] = 1
-    scale = 1.0
-    for i in range(m):
-        scale = max(scale, abs(g[i]))
-        for k in range(m):
-            scale = max(scale, abs(h[i, k]) * max(abs(lo[k]), abs(hi[k])))
-    tol = 1e-12 * scale
-    for it in range(max_iter):
-        nf = 0
-        for i in range(m):
-            if status[i] == 0:
-                nf += 1
-        free_idx = np.empty(nf, np.int64)
-        nf = 0
-        for i in range(m):
-            if status[i] == 0:
-                free_idx[nf] = i
-                nf += 1
-        if nf > 0:
-            target = _solve_free(h, g, x, status, free_idx)
-            step = 1.0
-            block = -1
-            block_status = 0
-            for a in range(nf):
-                i = free_idx[a]
-                d = target[a] - x[i]
-                if target[a] < lo[i] and d < 0.0:
-                    s = (lo[i] - x[i]) / d
-                    if s < step:
-                        step, block, block_status = s, i, -1
-                elif target[a] > hi[i] and d > 0.0:
-                    s = (hi[i] - x[i]) / d
-                    if s < step:
-                        step, block, block_status = s, i, 1
-            for a in range(nf):
-                i = free_idx[a]
-                x[i] += step * (target[a] - x[i])
-            if block >= 0:
-                # blocked: the variable joins the working set at its bound
-                x[block] = lo[block] if block_status == -1 else hi[block]
-                status[block] = block_status
-                continue
-        # free subproblem solved and feasible: check the multipliers of the bound variables
-        worst = -1
-        worst_val = tol
-        for i in range(m):
-            if status[i] == 0:
-                continue
-            grad = -g[i]
-            for k in range(m):
-                grad += h[i, k] * x[k]
-            violation = -grad if status[i] == -1 else grad
-            if violation > worst_val:
-                worst_val = violation
-                worst = i
-        if worst < 0:
-            return it + 1
-        status[worst] = 0
-    return -1
-
-
-@nb.njit(cache=True)
-def box_qp_frames(gram, marker_grams, missing, g, lo, hi, x0, ridge, out, max_iter):
-    """``box_qp`` for every frame, warm-started from the previous frame's solution.
-
-    gram : (m, m) regularized B^T B; marker_grams : (N, m, m); missing : (F, N) bool;
-    g : (F, m) right-hand sides B^T s_t (missing rows dropped); lo, hi : (m,);
-    x0 : (m,) start for frame 0; ridge : diagonal added when missing markers make a
-    frame's matrix singular; out : (F, m). Returns the first frame that did not
-    converge, or -1.
-    """
-    n_frames, m = g.shape
-    n_markers = missing.shape[1]
-    x = np.empty(m)
-    for a in range(m):
-        x[a] = x0[a]
-    for t in range(n_frames):
-        h = _edge_gram(gram, marker_grams, missing[t], missing[t])
-        any_missing = False
-        for i in range(n_markers):
-            any_missing = any_missing or missing[t, i]
-        if any_missing and not np.isfinite(_cholesky(h)[0, 0]):
-            for a in range(m):
-                h[a, a] += ridge
-        if box_qp(h, g[t], lo, hi, x, max_iter) < 0:
-            return t
-        for a in range(m):
-            out[t, a] = x[a]
-    return -1

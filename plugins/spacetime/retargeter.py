@@ -7,13 +7,13 @@ space, an optional Sobolev position term, and spacetime editing (:meth:`edit`).
 
 The per-frame baselines of the paper's comparisons (fig. 7, 9, 11) are the modes
 ``"noconst"``, ``"rangepf"`` and ``"priorpf"``, also registered as ``spacetime_noconst``,
-``spacetime_rangepf`` and ``spacetime_priorpf`` (the same class with another default
-``mode``; ``spacetime_priorpf`` defaults to the paper's ``alpha = 0.5``).
+``spacetime_rangepf`` and ``spacetime_priorpf``; ``spacetime_paper`` is the method with the paper's settings. These
+four are plain subclasses that change only defaults (their ``mode``, the paper's settings
+:data:`PAPER`, and the paper's ``alpha = 0.5`` for ``spacetime_priorpf``).
 """
 from __future__ import annotations
 
 import dataclasses
-import inspect
 from collections.abc import Mapping
 from typing import ClassVar
 
@@ -721,49 +721,87 @@ def _float_array(value, name: str, valid: str) -> np.ndarray:
     raise ShapeError(f"spacetime: {name}: expected {valid}, got {short_repr(value)}")
 
 
-def _with_defaults(base: type, name: str, summary: str, capabilities: Capabilities, **defaults) -> type:
-    """A registered variant of ``base`` whose constructor differs only in some defaults."""
-    signature = inspect.signature(base.__init__)
-    params = [p.replace(default=defaults[p.name]) if p.name in defaults else p for p in signature.parameters.values()]
-
-    def __init__(self, **params_):
-        bound = __init__.__signature__.bind(self, **params_)
-        bound.apply_defaults()
-        base.__init__(self, **{k: v for k, v in bound.arguments.items() if k != "self"})
-
-    __init__.__signature__ = signature.replace(parameters=params)
-    doc = f"{summary}\n\nSame parameters as :class:`{base.__name__}`; defaults changed: " + ", ".join(f"{k}={v!r}" for k, v in defaults.items())
-    cls_name = "".join(part.capitalize() for part in name.split("_"))
-    return type(cls_name, (base,), {"__init__": __init__, "__doc__": doc, "__module__": __name__, "name": name, "summary": summary, "capabilities": capabilities})
-
-
 _PER_FRAME_CAPABILITIES = dataclasses.replace(SpacetimeRetargeter.capabilities, edit=False)
 #: The paper's own choices, where the default differs (see docs/methods/spacetime.md for why and
 #: the measured effect of each): no weight bounds in the whole-sequence solve, no position
 #: or L1 term, boundary values from per-frame solves, scale-proportion matching by the RBF
-#: warp on the landmarks only.
-PAPER = dict(bounds=None, beta=0.0, sparsity=0.0, boundary="per_frame", transfer="rbf", samples="landmarks", example_weight=0.0)
+#: warp on the landmarks only. The variants below spell these defaults out in their
+#: signatures (registry.toml repeats them; the registry checks that both agree).
+PAPER = dict(bounds=None, beta=0.0, sparsity=0.0, boundary="per_frame", transfer="rbf", samples="landmarks",
+             example_weight=0.0)
 
-SpacetimePaper = _with_defaults(
-    SpacetimeRetargeter, "spacetime_paper",
-    "Seol et al. 2012 as published: movement matching with the PCA prior, no weight bounds, RBF "
-    "scale-proportion matching on the landmarks (prior centred at the neutral; prior_center='mean' for Eq. 3 as printed)",
-    SpacetimeRetargeter.capabilities, **PAPER,
-)
-SpacetimeNoconst = _with_defaults(
-    SpacetimeRetargeter, "spacetime_noconst",
-    "Seol et al. 2012 baseline 'No Const': per-frame unconstrained least-squares blendshape weights",
-    _PER_FRAME_CAPABILITIES, mode="noconst", **PAPER,
-)
-SpacetimeRangepf = _with_defaults(
-    SpacetimeRetargeter, "spacetime_rangepf",
-    "Seol et al. 2012 baseline 'Range PF': per-frame bounded least squares (weights in [lower, upper], own active-set solver)",
-    _PER_FRAME_CAPABILITIES, mode="rangepf", **PAPER,
-)
-SpacetimePriorpf = _with_defaults(
-    SpacetimeRetargeter, "spacetime_priorpf",
-    "Seol et al. 2012 baseline 'Prior PF': per-frame least squares with the PCA prior",
-    _PER_FRAME_CAPABILITIES, mode="priorpf", alpha=0.5, **PAPER,
-)
+
+def _arguments(local_vars: dict) -> dict:
+    """A variant's constructor arguments (its ``locals()``) for ``SpacetimeRetargeter.__init__``."""
+    return {k: v for k, v in local_vars.items() if k not in ("self", "__class__")}
+
+
+class SpacetimePaper(SpacetimeRetargeter):
+    """Seol et al. 2012 as published: :class:`SpacetimeRetargeter` with the defaults :data:`PAPER`."""
+
+    name: ClassVar[str] = "spacetime_paper"
+    summary: ClassVar[str] = (
+        "Seol et al. 2012 as published: movement matching with the PCA prior, no weight bounds, RBF "
+        "scale-proportion matching on the landmarks (prior centred at the neutral; "
+        "prior_center='mean' for Eq. 3 as printed)"
+    )
+
+    def __init__(self, *, mode="movement", alpha=0.01, scale_alpha=True, beta=0.0, marker_weights=None,
+                 prior_shapes=None, prior_animations=None, prior_center="neutral", boundary="per_frame",
+                 constraints=None, remove_head_motion=True, head_motion_refinement=0, rbf_kernel="linear",
+                 lower=-0.5, upper=1.5, bounds=None, sparsity=0.0, transfer="rbf", samples="landmarks",
+                 max_samples=1000, example_weight=0.0):
+        super().__init__(**_arguments(locals()))
+
+
+class SpacetimeNoconst(SpacetimeRetargeter):
+    """The paper's baseline "No Const": ``mode="noconst"`` with the defaults :data:`PAPER`."""
+
+    name: ClassVar[str] = "spacetime_noconst"
+    summary: ClassVar[str] = (
+        "Seol et al. 2012 baseline 'No Const': per-frame unconstrained least-squares blendshape weights"
+    )
+    capabilities: ClassVar[Capabilities] = _PER_FRAME_CAPABILITIES
+
+    def __init__(self, *, mode="noconst", alpha=0.01, scale_alpha=True, beta=0.0, marker_weights=None,
+                 prior_shapes=None, prior_animations=None, prior_center="neutral", boundary="per_frame",
+                 constraints=None, remove_head_motion=True, head_motion_refinement=0, rbf_kernel="linear",
+                 lower=-0.5, upper=1.5, bounds=None, sparsity=0.0, transfer="rbf", samples="landmarks",
+                 max_samples=1000, example_weight=0.0):
+        super().__init__(**_arguments(locals()))
+
+
+class SpacetimeRangepf(SpacetimeRetargeter):
+    """The paper's baseline "Range PF": ``mode="rangepf"`` with the defaults :data:`PAPER`."""
+
+    name: ClassVar[str] = "spacetime_rangepf"
+    summary: ClassVar[str] = (
+        "Seol et al. 2012 baseline 'Range PF': per-frame bounded least squares "
+        "(weights in [lower, upper], own active-set solver)"
+    )
+    capabilities: ClassVar[Capabilities] = _PER_FRAME_CAPABILITIES
+
+    def __init__(self, *, mode="rangepf", alpha=0.01, scale_alpha=True, beta=0.0, marker_weights=None,
+                 prior_shapes=None, prior_animations=None, prior_center="neutral", boundary="per_frame",
+                 constraints=None, remove_head_motion=True, head_motion_refinement=0, rbf_kernel="linear",
+                 lower=-0.5, upper=1.5, bounds=None, sparsity=0.0, transfer="rbf", samples="landmarks",
+                 max_samples=1000, example_weight=0.0):
+        super().__init__(**_arguments(locals()))
+
+
+class SpacetimePriorpf(SpacetimeRetargeter):
+    """The paper's baseline "Prior PF": ``mode="priorpf"``, ``alpha=0.5`` and the defaults :data:`PAPER`."""
+
+    name: ClassVar[str] = "spacetime_priorpf"
+    summary: ClassVar[str] = "Seol et al. 2012 baseline 'Prior PF': per-frame least squares with the PCA prior"
+    capabilities: ClassVar[Capabilities] = _PER_FRAME_CAPABILITIES
+
+    def __init__(self, *, mode="priorpf", alpha=0.5, scale_alpha=True, beta=0.0, marker_weights=None,
+                 prior_shapes=None, prior_animations=None, prior_center="neutral", boundary="per_frame",
+                 constraints=None, remove_head_motion=True, head_motion_refinement=0, rbf_kernel="linear",
+                 lower=-0.5, upper=1.5, bounds=None, sparsity=0.0, transfer="rbf", samples="landmarks",
+                 max_samples=1000, example_weight=0.0):
+        super().__init__(**_arguments(locals()))
+
 
 RETARGETERS = [SpacetimeRetargeter, SpacetimePaper, SpacetimeNoconst, SpacetimeRangepf, SpacetimePriorpf]

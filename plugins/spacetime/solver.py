@@ -40,13 +40,6 @@ from faceretarget import config
 from faceretarget._threads import blas_single_threaded
 from faceretarget.errors import DegenerateGeometryError, NumericalError
 
-#: Iteration cap of the per-frame active-set solver, per frame: ACTIVE_SET_ITER_PER_SHAPE * M + 50.
-ACTIVE_SET_ITER_PER_SHAPE = 10
-#: A Cholesky pivot below PIVOT_RTOL times the largest diagonal entry counts as singular
-#: (the block then gets the fallback ridge ``eps I``); also used by the kernels in ``_kernels``.
-PIVOT_RTOL = 1e-13
-
-
 @dataclass
 class System:
     """Precomputed matrices of the energy for one calibration.
@@ -454,6 +447,7 @@ def _solve_general(system, s, missing, known, wk, frame_weights, prior_vector=No
         known,
         wk,
         system.ridge,
+        config.PIVOT_RTOL,
         out,
         coupling,
     )
@@ -505,7 +499,7 @@ def _factor(mat: np.ndarray, ridge: float):
         except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
             continue
         pivots = np.diag(factor[0]) ** 2
-        if pivots.min() > PIVOT_RTOL * np.diag(mat).max():
+        if pivots.min() > config.PIVOT_RTOL * np.diag(mat).max():
             return factor
     raise NumericalError("spacetime: a per-frame system is singular even after regularization")
 
@@ -514,32 +508,26 @@ def solve_bounded(system: System, deltas: np.ndarray, lower: np.ndarray, upper: 
     """Per-frame bounded least squares "Range PF": ``min ||B w - s_t||^2, lower <= w <= upper``
     (plus the prior with ``use_prior``: the boundary values of bounded movement matching).
 
-    A primal active-set method (numba), warm-started from the previous frame, on the
-    normal equations (with the null-space ridge so duplicate shapes stay well posed).
-    Returns (F, M).
+    The shared active-set solver (``geometry.nnls.bounded_lsq_frames``), warm-started from
+    the previous frame, on the normal equations (with the null-space ridge so duplicate
+    shapes stay well posed); a frame with missing markers drops their Grams, and gets the
+    ridge ``eps I`` if that leaves a shape unseen. Returns (F, M).
     """
-    from ._kernels import box_qp_frames
+    from faceretarget.geometry.nnls import bounded_lsq_frames
 
     s = flatten_deltas(deltas)
-    missing = np.ascontiguousarray(np.isnan(s[:, 0::3]))
-    m = system.n_shapes
+    missing = np.isnan(s[:, 0::3])
     rhs = _masked_rhs(system, s, ~missing)
     if use_prior:
         rhs += system.prior_vector
-    rhs = np.ascontiguousarray(rhs)
-    lo = np.ascontiguousarray(np.broadcast_to(np.asarray(lower, dtype=np.float64), (m,)))
-    hi = np.ascontiguousarray(np.broadcast_to(np.asarray(upper, dtype=np.float64), (m,)))
     gram = system.gram + (system.position_matrix if use_prior else system.ridge_matrix)
-    out = np.empty((s.shape[0], m))
-    x0 = np.clip(np.zeros(m), lo, hi)
-    max_iter = ACTIVE_SET_ITER_PER_SHAPE * m + 50
-    bad = box_qp_frames(gram, system.marker_grams, missing, rhs, lo, hi, x0, system.ridge, out, max_iter)
-    if bad >= 0:
+    try:
+        return bounded_lsq_frames(gram, rhs, lower, upper, dropped=missing, block_grams=system.marker_grams,
+                                  ridge=system.ridge)
+    except NumericalError as exc:
         raise NumericalError(
-            f"spacetime: the bounded per-frame solve did not converge at frame {bad} within {max_iter} "
-            "active-set iterations; check for (near-)duplicate blendshapes"
-        )
-    return out
+            f"spacetime: the bounded per-frame solve failed ({exc}); check for (near-)duplicate blendshapes"
+        ) from None
 
 
 #: Frames per block of the velocity residuals in :func:`energy_terms` (bounds its scratch).

@@ -4,7 +4,7 @@ import pytest
 import scipy.optimize
 
 from faceretarget.errors import InputError, NonFiniteError, ShapeError
-from faceretarget.geometry.nnls import bounded_lsq, bounded_lsq_gram, nnls, nnls_gram
+from faceretarget.geometry.nnls import bounded_lsq, bounded_lsq_frames, bounded_lsq_gram, nnls, nnls_gram
 
 
 def _cost(A, x, b):
@@ -74,3 +74,73 @@ def test_nnls_rejects_bad_input():
         nnls_gram(np.array([[1.0, 2.0], [0.0, 1.0]]), np.ones(2))
     with pytest.raises(InputError):
         bounded_lsq_gram(np.eye(2), np.ones(2), [1.0, 0.0], [0.0, 1.0])
+
+
+def _blocks_problem(seed, n_frames=12, n_blocks=8, n=6):
+    """Row blocks of 3 rows (markers), their Grams, and per-frame data with some blocks missing."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(3 * n_blocks, n))
+    X = np.cumsum(rng.normal(0.0, 0.3, (n_frames, n)), axis=0)  # smooth: warm starts matter
+    Y = X @ A.T + 0.1 * rng.normal(size=(n_frames, 3 * n_blocks))
+    dropped = rng.random((n_frames, n_blocks)) < 0.2
+    dropped[0] = False
+    grams = np.einsum("bki,bkj->bij", A.reshape(n_blocks, 3, n), A.reshape(n_blocks, 3, n))
+    seen = np.repeat(~dropped, 3, axis=1)
+    Atb = np.where(seen, Y, 0.0) @ A
+    return A, Y, dropped, grams, seen, Atb
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_bounded_lsq_frames_matches_each_frame_solved_alone(seed):
+    """Every frame is the bounded least squares of its own rows (missing blocks left out),
+    whatever the warm start from the frame before: against scipy's BVLS frame by frame."""
+    A, Y, dropped, grams, seen, Atb = _blocks_problem(seed)
+    lo, hi = -0.4, 0.6
+    got = bounded_lsq_frames(A.T @ A, Atb, lo, hi, dropped=dropped, block_grams=grams)
+    assert dropped.any() and got.shape == Y.shape[:1] + A.shape[1:]
+    for t in range(len(Y)):
+        rows = A[seen[t]]
+        ref = scipy.optimize.lsq_linear(rows, Y[t, seen[t]], bounds=(lo, hi), method="bvls", tol=1e-14).x
+        assert np.all(got[t] >= lo) and np.all(got[t] <= hi)
+        assert _cost(rows, got[t], Y[t, seen[t]]) <= _cost(rows, ref, Y[t, seen[t]]) * (1 + 1e-9) + 1e-12
+        np.testing.assert_allclose(got[t], ref, atol=1e-7)
+    # no missing blocks: the same as one batch of independent problems
+    full = bounded_lsq_frames(A.T @ A, Y @ A, lo, hi)
+    np.testing.assert_allclose(full, bounded_lsq_gram(A.T @ A, Y @ A, lo, hi), atol=1e-10)
+
+
+def test_bounded_lsq_frames_ridges_a_frame_that_leaves_a_variable_unseen():
+    """A variable seen by one block only: at frames without that block the ridge decides it
+    (pulled to 0, or to the bound nearest 0), the other variables are the data's."""
+    rng = np.random.default_rng(7)
+    n_blocks, n = 5, 4
+    A = rng.normal(size=(3 * n_blocks, n))
+    A[3:, 3] = 0.0  # variable 3 moves block 0 only
+    grams = np.einsum("bki,bkj->bij", A.reshape(n_blocks, 3, n), A.reshape(n_blocks, 3, n))
+    Y = rng.normal(size=(3, 3 * n_blocks))
+    dropped = np.zeros((3, n_blocks), bool)
+    dropped[1:, 0] = True
+    seen = np.repeat(~dropped, 3, axis=1)
+    Atb = np.where(seen, Y, 0.0) @ A
+    ridge = 1e-6
+    for lower, unseen in ((-1.0, 0.0), ([-1.0, -1.0, -1.0, 0.2], 0.2)):  # zero, or the bound nearest zero
+        got = bounded_lsq_frames(A.T @ A, Atb, lower, 1.0, dropped=dropped, block_grams=grams, ridge=ridge,
+                                 x0=np.full(n, 0.9))
+        np.testing.assert_allclose(got[1:, 3], unseen, atol=1e-9)
+        for t in (1, 2):
+            H = A[seen[t]].T @ A[seen[t]] + ridge * np.eye(n)
+            np.testing.assert_allclose(got[t], bounded_lsq_gram(H, Atb[t], lower, 1.0), atol=1e-9)
+
+
+def test_bounded_lsq_frames_rejects_bad_input():
+    A, Y, dropped, grams, seen, Atb = _blocks_problem(0)
+    with pytest.raises(InputError):
+        bounded_lsq_frames(A.T @ A, Atb, 0.0, 1.0, dropped=dropped)  # no block Grams
+    with pytest.raises(ShapeError):
+        bounded_lsq_frames(A.T @ A, Atb, 0.0, 1.0, dropped=dropped[:, 1:], block_grams=grams)
+    with pytest.raises(ShapeError):
+        bounded_lsq_frames(A.T @ A, Atb[0], 0.0, 1.0)
+    with pytest.raises(InputError):
+        bounded_lsq_frames(A.T @ A, Atb, 0.0, 1.0, ridge=-1.0)
+    with pytest.raises(NonFiniteError):
+        bounded_lsq_frames(A.T @ A, np.where(seen, Y, np.nan) @ A, 0.0, 1.0)
