@@ -2,7 +2,8 @@
 
     import faceretarget as fr
     case = fr.cases.synthetic(seed=0)
-    anim = fr.get("spacetime").fit(case.source, case.target).retarget(case.source)
+    name = fr.available()[0]["name"]      # any name `faceretarget list` shows
+    anim = fr.get(name).fit(case.source, case.target).retarget(case.source)
 
 Public API: :func:`available`, :func:`get`, the model types, :class:`Retargeter`,
 :class:`Capabilities`, :data:`hookimpl`, the error types (``faceretarget.errors``)
@@ -13,14 +14,14 @@ from __future__ import annotations
 from importlib import import_module
 from typing import Any
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 from . import _numba_cache  # noqa: E402
 
 _numba_cache.install()  # concurrent processes sharing numba's cache never fail a call (numba is not imported here)
 
 from .errors import CapabilityError, FaceRetargetError, NotFittedError, UnknownNameError  # noqa: E402
-from .hookspecs import Metric, Reader, Writer, hookimpl, hookspec  # noqa: E402
+from .hookspecs import Metric, Preset, Reader, Writer, hookimpl, hookspec  # noqa: E402
 from .model import (  # noqa: E402
     Animation,
     BlendshapeRig,
@@ -54,6 +55,7 @@ __all__ = [
     "MeshSequence",
     "Metric",
     "NotFittedError",
+    "Preset",
     "Reader",
     "Retargeter",
     "Source",

@@ -97,7 +97,7 @@ def kernel_stamp() -> tuple:
     """(name, mtime, size) of every kernel module, added to each of our kernels' cache stamp.
 
     numba keys a cached kernel on its own file only, so a kernel that calls a shared one
-    (spacetime's block solve -> ``geometry._nnls_kernels.cholesky``) would keep the old
+    (a plugin's solver calling ``geometry._nnls_kernels.cholesky``) would keep the old
     callee after that file changes; with this stamp any kernel file's change recompiles all.
     """
     global _stamp

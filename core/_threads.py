@@ -1,6 +1,6 @@
 """Threading policy for BLAS/LAPACK.
 
-Per-frame and iterative paths (a spacetime ADMM iteration, a layers frame) make many small
+Per-frame and iterative paths (an ADMM iteration, one frame's solve) make many small
 dense products, ``(F, M) x (M, M)`` or smaller; OpenBLAS's worker threads cost more than
 they save there and, interleaved with numba kernels, make timings 3-20x slower and noisy
 (``benchmarks/bench_spacetime.py`` prints the bounded solve both ways). Those paths run

@@ -6,7 +6,7 @@ A :class:`Case` holds a :class:`~faceretarget.model.Source`, a
 true weights, with the same rigid head motion), so that::
 
     case = faceretarget.cases.synthetic()
-    anim = faceretarget.get("spacetime").fit(case.source, case.target).retarget(case.source)
+    anim = faceretarget.get(name).fit(case.source, case.target).retarget(case.source)
     error = anim.vertices - case.truth.vertices
 
 Four generators:

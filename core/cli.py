@@ -13,15 +13,16 @@ shows the traceback.
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import sys
 import time
 from importlib import import_module
 from pathlib import Path
 
-from . import __version__
-from .errors import CapabilityError, FaceRetargetError, FileFormatError, InputError, PluginError
+from ._args import parse_sets
+from ._json import jsonable
+from ._version import __version__
+from .errors import CapabilityError, FaceRetargetError, FileFormatError, InputError, PluginError, PluginOutputError
 from .hookspecs import DATA_KINDS
 
 EXIT_FAILED = 1  # the command ran to its end, but some of its runs or jobs failed (see --keep-going)
@@ -131,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
         "info", help="describe one retargeter: paper, capabilities, parameters",
         description="Describe one retargeter: its paper, the sources it takes and what it needs (landmarks, feature "
         "lines, examples, layers: the `run` options that give them), and every parameter with its default and meaning.",
-        epilog="example: faceretarget info spacetime",
+        epilog="example: faceretarget info NAME (a name or alias from faceretarget list)",
     )
     p.add_argument("name", help="retargeter name or alias (see `faceretarget list`)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
@@ -145,7 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
         "`faceretarget cases export NAME DIR` for a complete set of files to try). A faceretarget bundle (.npz "
         "holding a source, target or whole case) can stand for --source or --target; the options below replace "
         "its parts.",
-        epilog="example: faceretarget run spacetime --source shot.c3d --target hero.glb --landmarks hero_landmarks.json --out shot_hero.glb",
+        epilog="example: faceretarget run NAME --source shot.c3d --target hero.glb --landmarks hero_landmarks.json --out shot_hero.glb",
     )
     p.add_argument("name", help="retargeter name or alias (see `faceretarget list`)")
     src = p.add_argument_group("source (the performance)")
@@ -155,8 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--source-neutral", metavar="MESH", help="the actor's neutral (rest) mesh of a mesh-sequence source, same vertex order (default: frame 0); also gives its triangles")
     src.add_argument("--fps", type=float, help="frame rate of a source format that does not store it")
     src.add_argument("--source-landmarks", metavar="FILE", help="landmark vertex ids on the source mesh, in the order of the target's (json/txt); markers need none")
-    src.add_argument("--source-feature-lines", metavar="JSON", help="feature lines on the source mesh: {line name: [vertex ids]} (coating)")
-    src.add_argument("--source-examples", metavar="FILE", help="source example poses: npz (examples (M, V, 3), example_names) or a folder of meshes (normalmesh)")
+    src.add_argument("--source-feature-lines", metavar="JSON", help="feature lines on the source mesh: {line name: [vertex ids]}")
+    src.add_argument("--source-examples", metavar="FILE", help="source example poses: npz (examples (M, V, 3), example_names) or a folder of meshes")
     src.add_argument("--source-rig", metavar="FILE", help="the actor's own blendshape rig, needed with a weight-curve source")
     src.add_argument("--source-head-motion", metavar="NPY", help="(F, 4, 4) head motion of the source, when it is known")
     src.add_argument("--actor-layers", metavar="NPZ", help="the actor's layered poses, a faceretarget layers .npz (layers)")
@@ -164,8 +165,8 @@ def build_parser() -> argparse.ArgumentParser:
     tgt.add_argument("--target", required=True, help="character: glb/gltf with morph targets, folder of OBJs, a mesh, or a target/case bundle .npz")
     tgt.add_argument("--target-kind", choices=DATA_KINDS, help="what to read --target as, e.g. rig for a glb that also holds an animation")
     tgt.add_argument("--landmarks", metavar="FILE", help="target landmark vertex ids (json/txt/file.npz:KEY), when the target file has none")
-    tgt.add_argument("--feature-lines", metavar="JSON", help="feature lines on the target mesh: {line name: [vertex ids]} (coating)")
-    tgt.add_argument("--examples", metavar="FILE", help="target example poses, paired with the source's by name: npz or folder of meshes (normalmesh)")
+    tgt.add_argument("--feature-lines", metavar="JSON", help="feature lines on the target mesh: {line name: [vertex ids]}")
+    tgt.add_argument("--examples", metavar="FILE", help="target example poses, paired with the source's by name: npz or folder of meshes")
     tgt.add_argument("--layers", metavar="NPZ", help="the character's layered poses and region masks, a faceretarget layers .npz (layers)")
     out = p.add_argument_group("output")
     out.add_argument("--out", required=True, help="output file (.glb, .npz, .pc2, .csv, or a folder for an OBJ sequence)")
@@ -191,7 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
         "compare", help="compare retargeters on evaluation cases",
         description="Run retargeters on built-in cases with a known answer, print the ranking, and optionally write the "
         "report and tables (see docs/evaluation.md).",
-        epilog="example: faceretarget compare --cases synthetic ict --methods spacetime layers --out report/",
+        epilog="example: faceretarget compare --cases synthetic ict --methods NAME NAME --out report/",
     )
     _attach(p, "faceretarget.evaluation.commands", "compare")
     p = sub.add_parser(
@@ -275,7 +276,7 @@ def cmd_info(args) -> int:
     params = entry.parameters
     if args.json:
         data = entry.as_dict()
-        data["parameters"] = {k: {"default": _jsonable(p.default), "valid": p.valid, "doc": p.doc} for k, p in params.items()}
+        data["parameters"] = {k: {"default": jsonable(p.default), "valid": p.valid, "doc": p.doc} for k, p in params.items()}
         print(json.dumps(data, indent=2))
         return 0
     caps = entry.capabilities
@@ -306,7 +307,10 @@ def cmd_formats(args) -> int:
     for direction, title in (("read", "readers:"), ("write", "writers:")):
         print(title)
         for row in sorted((r for r in rows if r["direction"] == direction), key=lambda r: r["name"]):
-            origin = "" if row["builtin"] else f" [{row['origin']}, priority {row['priority']:g}]"
+            if not row["builtin"]:
+                origin = f" [{row['origin']}, priority {row['priority']:g}]"
+            else:  # a built-in below (or above) the others says so: the meshio formats are at -1
+                origin = f" [priority {row['priority']:g}]" if row["priority"] else ""
             print(f"  {row['name']:<14} {row['kind']:<14} {' '.join(row['extensions']):<20} {row['description']}{origin}")
             note = shadow_note(row)
             if note:
@@ -419,7 +423,7 @@ def cmd_run(args) -> int:
     from . import get, io
     from .registry import registry
 
-    params = parse_params(args.params)
+    params = parse_sets(args.params)
     retargeter = get(args.name, **params)
     inputs = _run_inputs(args)
     _check_output_path(args.out, inputs, args.force)  # before any slow work
@@ -439,8 +443,7 @@ def cmd_run(args) -> int:
     _plugin_call(who, "fit", retargeter.fit, source, target)
     steps.update()
     steps.set_postfix_str("retargeting")
-    animation = _plugin_call(who, "retarget", retargeter.retarget, source)
-    _plugin_call(who, "output", _validate_output, animation, source, target)
+    animation = _plugin_call(who, "retarget", retargeter.retarget, source)  # checked by Retargeter.check_output
     steps.update()
     steps.set_postfix_str("writing")
     io.save(animation, args.out, force=args.force, inputs=inputs)
@@ -460,25 +463,16 @@ def _check_output_path(out: str, inputs: list[str], force: bool) -> None:
     check_destination(out, inputs=inputs, force=force, folder=not Path(out).suffix or out.endswith(("/", "\\")))
 
 
-def _validate_output(animation, source, target) -> None:
-    """Shape and finiteness of a retargeter's result, checked before anything is written."""
-    from types import SimpleNamespace
-
-    from .evaluation.harness import validate_output
-
-    validate_output(animation, SimpleNamespace(source=source, target=target, truth=None), "the retargeter")
-
-
 def _plugin_call(who, stage: str, call, *args):
     """``call(*args)`` for ``who = (retargeter name, PluginInfo)``: a failure of a third-party
     plugin (or an invalid output of any) is reported with the plugin's name and distribution."""
     name, plugin = who
     where = f"{name} (plugin {plugin.name!r}, distribution {plugin.origin})"
-    ours = plugin.builtin and stage != "output"  # a built-in's errors are shown as they are
+    ours = plugin.builtin  # a built-in's errors are shown as they are, except an invalid output
     try:
         return call(*args)
     except FaceRetargetError as exc:
-        if ours:
+        if ours and not isinstance(exc, PluginOutputError):
             raise
         try:
             renamed = type(exc)(f"{where}, {stage}: {exc}")
@@ -496,30 +490,6 @@ def _plugin_call(who, stage: str, call, *args):
             f"{where} ended the program in {stage} with {type(exc).__name__}({_exit_arg(exc)}) instead of returning "
             "or raising an error; nothing was written (report this to the plugin's author)"
         ) from exc
-
-
-def parse_params(pairs: list[str]) -> dict:
-    """``["alpha=0.1", "mode=range"]`` -> ``{"alpha": 0.1, "mode": "range"}`` (Python literals, else strings)."""
-    out = {}
-    for pair in pairs:
-        if "=" not in pair:
-            raise InputError(f"--set {pair!r}: expected KEY=VALUE, e.g. --set alpha=0.05")
-        key, value = pair.split("=", 1)
-        key = key.strip()
-        try:
-            out[key] = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            lowered = value.strip().lower()
-            out[key] = {"true": True, "false": False, "none": None}.get(lowered, value)
-    return out
-
-
-def _jsonable(value):
-    try:
-        json.dumps(value)
-        return value
-    except TypeError:
-        return repr(value)
 
 
 if __name__ == "__main__":  # pragma: no cover

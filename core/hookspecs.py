@@ -50,6 +50,14 @@ class Reader:
         (``faceretarget formats`` lists the readers it shadows or is shadowed by)
     accepts : optional ``accepts(path) -> bool``, asked before ``read``: False declines the
         file (cheaply, e.g. by its first bytes) and the next reader is tried
+    sniff : optional ``sniff(path) -> kind or None``: what the file holds (one of
+        ``DATA_KINDS``), found by looking inside cheaply; None when it cannot tell. Where
+        readers of several kinds share an extension (``.npz``, ``.glb``, ``.csv``,
+        folders), ``load`` without ``kind=`` reads the file as the kind the sniffers name.
+        Readers of one format family share one sniffer object (it is asked once per file)
+    magic : byte strings a file of this format starts with (e.g. ``(b"ply",)``): a file
+        with another extension that starts with one is named as this format in errors
+        ("it starts like a PLY file"); files are never refused for lacking it
     """
 
     name: str
@@ -59,6 +67,8 @@ class Reader:
     description: str = ""
     priority: int = 0
     accepts: Callable[..., bool] | None = None
+    sniff: Callable[..., str | None] | None = None
+    magic: tuple[bytes, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -100,6 +110,30 @@ class Metric:
     why_not: Callable[..., str | None] | None = None
 
 
+@dataclass(frozen=True)
+class Preset:
+    """A paper reproduction shown in the report (``faceretarget compare --presets``, ``demo``).
+
+    run : ``run(cases, result)``: ``cases(name)`` returns a case by name or case spec (the
+        comparison's own, else built); ``result`` is the
+        :class:`~faceretarget.evaluation.presets.PresetResult` to fill (``table``, ``plots``,
+        ``agrees`` and ``evidence``). Helpers: :mod:`faceretarget.evaluation.reproduction`.
+        A missing retargeter (``UnknownNameError``, ``CapabilityError``) makes the preset
+        "not applicable", any other exception an "error"; neither stops the report
+    title, paper : one line each; description : what is run and plotted
+    claim : the paper's claim, one sentence; setting : the paper's setting as reproduced,
+        and what differs
+    """
+
+    name: str
+    title: str
+    paper: str
+    description: str
+    run: Callable[..., Any]
+    claim: str = ""
+    setting: str = ""
+
+
 class FaceRetargetSpec:
     """Hook specifications."""
 
@@ -122,6 +156,11 @@ class FaceRetargetSpec:
     @hookspec
     def faceretarget_metrics(self) -> "list[Metric]":
         """Return :class:`Metric` records for the evaluation harness."""
+
+    @hookspec
+    def faceretarget_presets(self) -> "list[Preset]":
+        """Return :class:`Preset` records: paper reproductions for the report. Import heavy
+        code inside ``run``, not when building the records."""
 
 
 HOOK_NAMES = tuple(n for n in vars(FaceRetargetSpec) if n.startswith("faceretarget_"))

@@ -7,6 +7,7 @@ A manifest is TOML with one table per retargeter::
     aliases = ["..."]              other names accepted by faceretarget.get()
     paper = "..."                  citation
     summary = "..."                one line for `faceretarget list`
+    baseline_of = ["..."]          optional: the methods this one is the papers' baseline of
     [retargeters.NAME.capabilities] sources, needs, outputs, stream, edit, same_topology
     [retargeters.NAME.parameters]  PARAM = { default = ..., type = ..., range = ..., choices = [...], doc = "..." }
 
@@ -63,6 +64,8 @@ class Manifest:
     capabilities: Capabilities = Capabilities()
     parameters: dict[str, Parameter] = field(default_factory=dict)
     origin: str = ""
+    #: The (paper) methods this one is a baseline of, as in their papers' comparisons.
+    baseline_of: tuple[str, ...] = ()
 
     @property
     def defaults(self) -> dict[str, Any]:
@@ -76,7 +79,7 @@ class Manifest:
             for p, spec in entry["parameters"].items()
         }
         return cls(name, entry["entry_point"], entry["summary"], entry["paper"], tuple(entry["aliases"]),
-                   Capabilities.from_dict(entry["capabilities"]), params, origin)
+                   Capabilities.from_dict(entry["capabilities"]), params, origin, tuple(entry["baseline_of"]))
 
 
 def parse(text: str, origin: str, defaults: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
@@ -100,9 +103,10 @@ def parse(text: str, origin: str, defaults: dict[str, Any] | None = None) -> dic
         for key in ("entry_point", "summary", "paper"):
             if not isinstance(entry.get(key), str):
                 raise ConfigError(f"{origin}: [retargeters.{name}] needs a string {key!r}")
-        aliases = entry.get("aliases", [])
-        if not isinstance(aliases, list) or not all(isinstance(a, str) for a in aliases):
-            raise ConfigError(f"{origin}: [retargeters.{name}].aliases must be a list of strings")
+        aliases, baseline_of = entry.get("aliases", []), entry.get("baseline_of", [])
+        for key, value in (("aliases", aliases), ("baseline_of", baseline_of)):
+            if not isinstance(value, list) or not all(isinstance(a, str) for a in value):
+                raise ConfigError(f"{origin}: [retargeters.{name}].{key} must be a list of strings")
         params = entry.get("parameters", {})
         if not isinstance(params, dict) or not all(isinstance(v, dict) and isinstance(v.get("doc"), str) for v in params.values()):
             raise ConfigError(f"{origin}: [retargeters.{name}.parameters] entries must be tables with a 'doc' string (and 'default')")
@@ -112,7 +116,7 @@ def parse(text: str, origin: str, defaults: dict[str, Any] | None = None) -> dic
         if not isinstance(caps, dict):
             raise ConfigError(f"{origin}: [retargeters.{name}.capabilities] must be a table")
         _check_capabilities(caps, f"{origin}: [retargeters.{name}.capabilities]")
-        out[name] = {**entry, "aliases": aliases, "parameters": params, "capabilities": caps}
+        out[name] = {**entry, "aliases": aliases, "baseline_of": baseline_of, "parameters": params, "capabilities": caps}
     return out
 
 
@@ -187,7 +191,7 @@ def find_package_manifest(module: str) -> Path | None:
 
 def from_class(cls: type, entry_point: str = "") -> Manifest:
     """The manifest a class declares on itself: ``name``, ``summary`` (else its docstring's
-    first line), ``paper``, ``aliases``, ``capabilities``, ``parameter_docs``,
+    first line), ``paper``, ``aliases``, ``baseline_of``, ``capabilities``, ``parameter_docs``,
     ``parameter_constraints`` and its ``__init__`` defaults."""
     declared = validation.constraints_of(cls)
     docs = dict(getattr(cls, "parameter_docs", {}) or {})
@@ -197,7 +201,8 @@ def from_class(cls: type, entry_point: str = "") -> Manifest:
     }
     summary = getattr(cls, "summary", "") or (cls.__doc__ or "").strip().split("\n")[0]
     return Manifest(cls.name, entry_point, summary, getattr(cls, "paper", "") or "", tuple(getattr(cls, "aliases", ()) or ()),
-                    cls.capabilities, params, f"class {cls.__module__}.{cls.__qualname__}")
+                    cls.capabilities, params, f"class {cls.__module__}.{cls.__qualname__}",
+                    tuple(getattr(cls, "baseline_of", ()) or ()))
 
 
 def disagreements(cls: type, manifest: Manifest) -> list[str]:

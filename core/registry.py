@@ -37,7 +37,7 @@ from . import config
 from ._validate import did_you_mean
 from ._deadline import DeadlineExpired, deadline, grace_for, watchdog_process
 from .errors import ConfigError, DuplicatePluginError, PluginError, PluginLoadError, PluginTimeoutError, UnknownNameError
-from .hookspecs import DATA_KINDS, PROJECT, FaceRetargetSpec, Metric, Reader, Writer
+from .hookspecs import DATA_KINDS, PROJECT, FaceRetargetSpec, Metric, Preset, Reader, Writer
 from .manifest import PACKAGE_MANIFEST, Manifest, builtin_text, disagreements, find_package_manifest, from_class
 from .manifest import parse as parse_manifest
 from .retargeter import Capabilities, Retargeter
@@ -78,6 +78,7 @@ class RetargeterInfo:
     aliases = property(lambda self: self.manifest.aliases)
     summary = property(lambda self: self.manifest.summary)
     paper = property(lambda self: self.manifest.paper)
+    baseline_of = property(lambda self: self.manifest.baseline_of)
     capabilities = property(lambda self: self.manifest.capabilities)
     parameters = property(lambda self: self.manifest.parameters, doc="name -> Parameter (default, constraints, doc)")
     defaults = property(lambda self: self.manifest.defaults)
@@ -128,6 +129,7 @@ class Registry:
         self.readers: list[tuple[Reader, PluginInfo]] = []
         self.writers: list[tuple[Writer, PluginInfo]] = []
         self.metrics: dict[str, tuple[Metric, PluginInfo]] = {}
+        self.presets: dict[str, tuple[Preset, PluginInfo]] = {}
         self.catalogue = read_catalogue()
         self.manifests = {name: Manifest.from_entry(name, entry, "registry.toml") for name, entry in self.catalogue.items()}
 
@@ -256,11 +258,12 @@ class Registry:
                 self._fail(info, _too_slow(info, limit, "calling its registration hooks"), fatal=False)
 
     def _snapshot(self) -> tuple:
-        return (dict(self.retargeters), dict(self.aliases), len(self.readers), len(self.writers), dict(self.metrics), len(self.plugins), len(self.failures))
+        return (dict(self.retargeters), dict(self.aliases), len(self.readers), len(self.writers), dict(self.metrics), dict(self.presets),
+                len(self.plugins), len(self.failures))
 
     def _restore(self, snapshot: tuple) -> None:
-        retargeters, aliases, n_readers, n_writers, metrics, n_plugins, n_failures = snapshot
-        self.retargeters, self.aliases, self.metrics = retargeters, aliases, metrics
+        retargeters, aliases, n_readers, n_writers, metrics, presets, n_plugins, n_failures = snapshot
+        self.retargeters, self.aliases, self.metrics, self.presets = retargeters, aliases, metrics, presets
         del self.readers[n_readers:], self.writers[n_writers:], self.plugins[n_plugins:], self.failures[n_failures:]
 
     def _register(self, module: Any, info: PluginInfo, *, fatal: bool) -> None:
@@ -274,7 +277,7 @@ class Registry:
             return
         others = [p for p in self.pm.get_plugins() if p is not module]
         staged: dict[str, list] = {}
-        for hook in ("faceretarget_retargeters", "faceretarget_readers", "faceretarget_writers", "faceretarget_metrics"):
+        for hook in ("faceretarget_retargeters", "faceretarget_readers", "faceretarget_writers", "faceretarget_metrics", "faceretarget_presets"):
             caller = self.pm.subset_hook_caller(hook, remove_plugins=others)
             try:
                 results = caller()
@@ -302,7 +305,8 @@ class Registry:
             readers = [self._validate_record(r, Reader, "faceretarget_readers", info) for r in staged["faceretarget_readers"]]
             writers = [self._validate_record(w, Writer, "faceretarget_writers", info) for w in staged["faceretarget_writers"]]
             metrics = [self._validate_record(m, Metric, "faceretarget_metrics", info) for m in staged["faceretarget_metrics"]]
-            self._check_duplicates(entries, metrics, info)
+            presets = [self._validate_record(p, Preset, "faceretarget_presets", info) for p in staged["faceretarget_presets"]]
+            self._check_duplicates(entries, metrics, info, presets)
             unprovided = sorted(set(info.manifests) - {e.name for e in entries})
             if unprovided:
                 raise PluginLoadError(
@@ -325,6 +329,8 @@ class Registry:
         self.writers.extend((w, info) for w in writers)
         for m in metrics:
             self.metrics[m.name] = (m, info)
+        for p in presets:
+            self.presets[p.name] = (p, info)
         self.plugins.append(info)
 
     def _fail(self, info: PluginInfo, message: str, fatal: bool, exc: Exception | None = None) -> None:
@@ -379,7 +385,7 @@ class Registry:
             raise PluginLoadError(f"{where}: returned {record!r}, not a faceretarget.{kind.__name__}")
         if not isinstance(record.name, str) or not record.name.strip():
             raise PluginLoadError(f"{where}: a {kind.__name__} needs a non-empty string name, got {record.name!r}")
-        call = {Reader: "read", Writer: "write", Metric: "compute"}[kind]
+        call = {Reader: "read", Writer: "write", Metric: "compute", Preset: "run"}[kind]
         if not callable(getattr(record, call, None)):
             raise PluginLoadError(f"{where}: {record.name!r} has no callable {call}")
         if not isinstance(record.description, str):
@@ -389,6 +395,11 @@ class Registry:
                 raise PluginLoadError(f"{where}: metric {record.name!r}: better must be \"lower\", \"higher\" or \"none\" and unit a string")
             if record.why_not is not None and not callable(record.why_not):
                 raise PluginLoadError(f"{where}: metric {record.name!r}: why_not must be callable or None")
+        elif kind is Preset:
+            texts = {k: getattr(record, k) for k in ("title", "paper", "claim", "setting")}
+            wrong = [k for k, v in texts.items() if not isinstance(v, str)]
+            if wrong:
+                raise PluginLoadError(f"{where}: preset {record.name!r}: {', '.join(wrong)} must be strings")
         else:
             if record.kind not in DATA_KINDS:
                 raise PluginLoadError(f"{where}: {record.name!r}: kind must be one of {', '.join(DATA_KINDS)}, got {record.kind!r}")
@@ -401,9 +412,16 @@ class Registry:
             accepts = getattr(record, "accepts", None)
             if accepts is not None and not callable(accepts):
                 raise PluginLoadError(f"{where}: {record.name!r}: accepts must be a callable accepts(path) -> bool or None, got {accepts!r}")
+            sniff = getattr(record, "sniff", None)
+            if sniff is not None and not callable(sniff):
+                raise PluginLoadError(f"{where}: {record.name!r}: sniff must be a callable sniff(path) -> kind or None, got {sniff!r}")
+            magic = getattr(record, "magic", ())
+            if not isinstance(magic, (tuple, list)) or not all(isinstance(m, bytes) and m for m in magic):
+                raise PluginLoadError(f"{where}: {record.name!r}: magic must be a tuple of non-empty byte strings like (b\"ply\",), got {magic!r}")
         return record
 
-    def _check_duplicates(self, entries: list[RetargeterInfo], metrics: list[Metric], info: PluginInfo) -> None:
+    def _check_duplicates(self, entries: list[RetargeterInfo], metrics: list[Metric], info: PluginInfo,
+                          presets: list[Preset] = ()) -> None:
         seen = {}
         for entry in entries:
             for key in (entry.name, *entry.aliases):
@@ -423,6 +441,13 @@ class Registry:
                 other = self.metrics[m.name][1]
                 raise DuplicatePluginError(
                     f"metric {m.name!r} from plugin {info.name!r} ({info.origin}) is already registered by "
+                    f"plugin {other.name!r} ({other.origin})"
+                )
+        for p in presets:
+            if p.name in self.presets:
+                other = self.presets[p.name][1]
+                raise DuplicatePluginError(
+                    f"preset {p.name!r} from plugin {info.name!r} ({info.origin}) is already registered by "
                     f"plugin {other.name!r} ({other.origin})"
                 )
 

@@ -8,7 +8,7 @@
 - ``retarget(source)`` returns an :class:`~faceretarget.model.Animation` and never
   mutates its inputs.
 - Optional protocols, declared in :attr:`Retargeter.capabilities`: ``stream(frames)``
-  (online, frame by frame) and ``edit(animation, ...)`` (spacetime editing).
+  (online, frame by frame) and ``edit(animation, ...)`` (constraints on a result, over space and time).
 
 A subclass implements ``_fit`` and ``_retarget``; the base class does the checks.
 """
@@ -22,6 +22,7 @@ from typing import Any, ClassVar, Iterable, Iterator
 
 import numpy as np
 
+from ._json import jsonable
 from .errors import CapabilityError, InputError, NotFittedError, PluginOutputError
 from .model import Animation, Source, TargetRig
 
@@ -271,26 +272,38 @@ class Retargeter:
     def _retarget(self, source: Source) -> Animation:  # pragma: no cover - abstract
         raise CapabilityError(f"{type(self).__name__} must implement _retarget(source)")
 
-    def _stamp(self, animation: Animation, seconds: float, source: Source | None = None) -> Animation:
-        """Validate the output (type; one frame per source frame; the target's vertex
-        count) and fill its provenance."""
+    def check_output(self, animation: Any, source: Source | None = None) -> None:
+        """The one check of a result (``retarget`` makes it before returning; the command line,
+        the harness and batch rely on it): an :class:`Animation`, one frame per ``source``
+        frame, the fitted target's vertex count, no NaN or infinite value. Raises
+        :class:`PluginOutputError` naming the method."""
+        who = self.name or type(self).__name__
         if not isinstance(animation, Animation):
-            raise PluginOutputError(f"{self.name}: _retarget returned {type(animation).__name__}, not an Animation")
+            raise PluginOutputError(f"{who}: _retarget returned {type(animation).__name__}, not an Animation")
         if source is not None and animation.n_frames != source.n_frames:
-            raise PluginOutputError(f"{self.name}: returned {animation.n_frames} frames for a source of {source.n_frames}; expected one per source frame")
+            raise PluginOutputError(f"{who}: returned {animation.n_frames} frames for a source of {source.n_frames}; expected one per source frame")
         target = getattr(self, "target_", None)
         n_vertices = animation._vertices.shape[1] if animation._vertices is not None else animation.rig.neutral.n_vertices
         if isinstance(target, TargetRig) and n_vertices != target.neutral.n_vertices:
             raise PluginOutputError(
-                f"{self.name}: returned {n_vertices} vertices per frame but the target has {target.neutral.n_vertices}; "
+                f"{who}: returned {n_vertices} vertices per frame but the target has {target.neutral.n_vertices}; "
                 "results must be on the target's own vertices"
             )
-        from . import __version__
+        for what, values in (("weights", animation.weights), ("head motion", animation.head_motion)):
+            if values is not None and not np.isfinite(values).all():
+                raise PluginOutputError(f"{who} returned NaN or infinite {what}")
+        if not _finite_vertices(animation):
+            raise PluginOutputError(f"{who} returned NaN or infinite vertex coordinates")
+
+    def _stamp(self, animation: Animation, seconds: float, source: Source | None = None) -> Animation:
+        """:meth:`check_output`, then fill the provenance."""
+        self.check_output(animation, source)
+        from ._version import __version__
 
         prov = animation.provenance
         prov.setdefault("method", self.name)
         prov.setdefault("version", __version__)
-        prov.setdefault("parameters", _jsonable(self.get_params()))
+        prov.setdefault("parameters", jsonable(self.get_params()))
         timings = prov.setdefault("timings", {})
         timings.setdefault("fit_s", getattr(self, "fit_seconds_", None))
         timings.setdefault("retarget_s", seconds)
@@ -310,18 +323,24 @@ def _same(a, b) -> bool:
         return a is b
 
 
-def _jsonable(value):
-    """``value`` as plain JSON data: numpy arrays and scalars unpacked, NaN/inf -> None, others repr'd."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, (np.floating, np.integer, np.bool_)):
-        return _jsonable(value.item())
-    if isinstance(value, float):
-        return value if np.isfinite(value) else None
-    if value is None or isinstance(value, (str, int, bool)):
-        return value
-    return repr(value)
+def _finite_vertices(animation: Animation, chunk: int = 64) -> bool:
+    """Whether every vertex coordinate is finite, frames a chunk at a time (a memory-mapped
+    result is not loaded whole; vertices a rig computes from weights are not kept)."""
+    from .model import apply_head_motion
+
+    stored = animation._vertices
+    if stored is not None:
+        return all(np.isfinite(stored[i:i + chunk]).all() for i in range(0, stored.shape[0], chunk))
+    rig, weights, motion = animation.rig, np.asarray(animation.weights, dtype=np.float64), animation.head_motion
+    with np.errstate(over="ignore", invalid="ignore"):
+        # weights and head motion are finite here: a bound on |vertex| far from overflow proves it
+        largest = np.abs(rig.deltas).max(axis=(1, 2), initial=0.0)
+        bound = np.abs(rig.neutral.vertices).max(initial=0.0) + (np.abs(weights) @ largest).max(initial=0.0)
+        if motion is not None:
+            bound = bound * 3.0 * np.abs(motion[:, :3, :3]).max(initial=0.0) + np.abs(motion[:, :3, 3]).max(initial=0.0)
+        if bound < 1e300:
+            return True
+        return all(
+            np.isfinite(apply_head_motion(None if motion is None else motion[i:i + chunk], rig.evaluate(weights[i:i + chunk]))).all()
+            for i in range(0, weights.shape[0], chunk)
+        )

@@ -24,15 +24,6 @@ __all__ = ["MethodRole", "method_roles", "ranking_metric", "case_summary", "DEFA
 #: The metric the report ranks by unless told otherwise: distance to the ground truth.
 DEFAULT_RANKING_METRIC = "vertex_error_rms"
 
-#: Built-in baselines -> the paper methods they are a baseline of (the papers' own comparisons:
-#: Xu et al. 2014 against deformation transfer, Seol et al. 2012 against per-frame solves).
-BUILTIN_BASELINES = {
-    "deformation_transfer": ("coating",),
-    "spacetime_noconst": ("spacetime", "spacetime_paper"),
-    "spacetime_rangepf": ("spacetime", "spacetime_paper"),
-    "spacetime_priorpf": ("spacetime", "spacetime_paper"),
-}
-
 PAPER, BASELINE, OTHER = "paper method", "baseline", "other"
 
 #: Metrics named in the "also best on" clause, in this order (accuracy and motion fidelity).
@@ -56,7 +47,7 @@ class MethodRole:
 
     @property
     def label(self) -> str:
-        """``"paper method, Xu et al. 2014"``, ``"baseline of coating"``, ``"other"``."""
+        """``"paper method, Xu et al. 2014"``, ``"baseline of NAME"``, ``"other"``."""
         if self.kind == BASELINE and self.baseline_of:
             return f"baseline of {' / '.join(self.baseline_of)}"
         return f"{self.kind}, {self.citation}" if self.citation and self.kind == PAPER else self.kind
@@ -76,15 +67,16 @@ def short_citation(paper: str) -> str:
 
 def method_roles(methods, registry=None) -> dict[str, MethodRole]:
     """The :class:`MethodRole` of each method name, from the registry's catalogue (default the
-    process-wide registry): a built-in baseline, or a method whose summary calls it a baseline,
-    is a baseline; one with a paper citation is a paper method; the rest are "other"."""
+    process-wide registry): a method whose manifest declares ``baseline_of``, or whose summary
+    calls it a baseline, is a baseline; one with a paper citation is a paper method; the rest
+    are "other"."""
     infos = _registry_infos(registry)
     roles = {}
     for name in methods:
         info = infos.get(name)
         citation, cls = short_citation(getattr(info, "paper", "") or ""), _class_of(info)
-        if name in BUILTIN_BASELINES:
-            roles[name] = MethodRole(BASELINE, citation, BUILTIN_BASELINES[name], cls)
+        if getattr(info, "baseline_of", ()):
+            roles[name] = MethodRole(BASELINE, citation, tuple(info.baseline_of), cls)
         elif info is not None and re.search(r"\bbaseline\b", info.summary or "", re.I):
             roles[name] = MethodRole(BASELINE, citation, (), cls)
         elif citation:
@@ -228,7 +220,7 @@ def _reason(result: ComparisonResult, case: str, metric: str) -> str:
 
 
 def _other_winners(result: ComparisonResult, case: str, metric: str, winner: str) -> str:
-    """"It is also best on a, b; spacetime is best on c." over :data:`CLAUSE_METRICS`."""
+    """"It is also best on a, b; METHOD is best on c." over :data:`CLAUSE_METRICS`."""
     also, elsewhere = [], {}
     for m in CLAUSE_METRICS:
         if m == metric or m not in result.metrics:
@@ -285,7 +277,7 @@ def _why(result: ComparisonResult, case: str, winner: str, runner: str | None, r
 
 
 def _behind_baseline(values: Mapping[str, float], better: str, metric: str, roles: Mapping[str, MethodRole]) -> list[str]:
-    """"Note: coating (paper method) is behind its baseline deformation_transfer on ..." per pair."""
+    """"Note: the paper method P is behind its baseline B on ..." per pair."""
     notes = []
     for base, role in roles.items():
         if role.kind != BASELINE or base not in values:

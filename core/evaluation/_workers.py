@@ -66,7 +66,8 @@ class Task:
     """``fn(*args)`` to run in a worker; ``fn`` and ``args`` must pickle.
 
     key : identifies the task in its :class:`Outcome`
-    timeout : seconds allowed once the worker has loaded the task (None: no limit)
+    timeout : seconds allowed once the worker has loaded the task (None or 0: no limit;
+        :func:`faceretarget.config.check_timeout`)
     owner : who is answerable for the task (e.g. the plugin module); a worker never
         runs tasks of two owners
     """
@@ -76,6 +77,9 @@ class Task:
     args: tuple = ()
     timeout: float | None = None
     owner: Hashable = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "timeout", config.check_timeout(self.timeout, f"task {self.key!r}: timeout"))
 
 
 @dataclass
@@ -323,10 +327,6 @@ class _Worker:
 def _check(workers: int, tasks: list[deque[Task]]) -> None:
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"run_supervised: workers must be an integer >= 1, got {workers!r}")
-    for group in tasks:
-        for task in group:
-            if task.timeout is not None and not (0 < task.timeout < float("inf")):
-                raise ConfigError(f"task {task.key!r}: timeout must be None (no limit) or a positive number of seconds, got {task.timeout!r}")
 
 
 def run_supervised(

@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+from .._args import parse_sets
 from ..errors import ConfigError, OutputError
 
 __all__ = [
@@ -31,20 +32,6 @@ DEMO_CASES = {
     "synthetic-stylized": "synthetic-stylized?resolution=1500&n_frames=60",
     "ict": "ict?n_frames=60",
 }
-
-
-def _parse_sets(pairs: list[str]) -> dict[str, dict]:
-    """``["spacetime.alpha=0.1"]`` -> ``{"spacetime": {"alpha": 0.1}}`` (values: Python literals, else strings)."""
-    from .harness import literal
-
-    out: dict[str, dict] = {}
-    for pair in pairs or []:
-        key, sep, value = pair.partition("=")
-        method, dot, param = key.strip().rpartition(".")
-        if not sep or not dot or not method or not param:
-            raise ConfigError(f"--set {pair!r}: expected METHOD.PARAM=VALUE, e.g. --set spacetime.alpha=0.05")
-        out.setdefault(method, {})[param] = literal(value)
-    return out
 
 
 def _add_timeout_argument(parser: argparse.ArgumentParser, what: str) -> None:
@@ -134,9 +121,9 @@ def add_compare_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("cases", nargs="*", metavar="CASE", help="case names (synthetic, synthetic-human, synthetic-stylized, ict, cross_rig, cross_topology; keywords as 'NAME?k=v&k=v'); default: synthetic-human synthetic-stylized ict")
     parser.add_argument("--cases", dest="case_options", nargs="+", default=[], metavar="CASE", help="the same cases as an option (added to any given before the options)")
     parser.add_argument("--methods", nargs="+", metavar="NAME", help="retargeters to compare (default: every registered one)")
-    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="METHOD.PARAM=VALUE", help="a constructor parameter, e.g. spacetime.alpha=0.05 (repeatable)")
+    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="METHOD.PARAM=VALUE", help="a constructor parameter of one method, e.g. METHOD.alpha=0.05 (repeatable)")
     parser.add_argument("--metrics", nargs="+", metavar="NAME", help="metrics to compute (default: every registered one)")
-    parser.add_argument("--presets", nargs="*", metavar="NAME", help="also run paper reproductions (all when no name is given): seol_fig11 kholgade_fig8 najung_table1 xu_fig4")
+    parser.add_argument("--presets", nargs="*", metavar="NAME", help="also run the paper reproductions the plugins register (all when no name is given)")
     parser.add_argument("--out", type=Path, metavar="FOLDER", help="write report.html, results.csv and results.json into FOLDER")
     parser.add_argument("--csv", type=Path, metavar="FILE", help="write the tidy table as CSV")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the tidy table, ranking and runs as JSON")
@@ -178,7 +165,7 @@ def run_compare(args) -> int:
     result = compare(
         cases or None,
         methods=args.methods,
-        params=_parse_sets(args.sets) or None,
+        params=parse_sets(args.sets, per_method=True) or None,
         metrics=args.metrics,
         progress=not args.quiet,
         n_jobs=_jobs(args.jobs, 1),

@@ -21,7 +21,6 @@ For each (case, method) the harness
 """
 from __future__ import annotations
 
-import ast
 import csv
 import io
 import json
@@ -40,14 +39,14 @@ import numpy as np
 from ..errors import (
     CapabilityError,
     ConfigError,
-    FaceRetargetError,
-    PluginOutputError,
     UnknownNameError,
 )
+from .._args import literal
+from .._json import jsonable
 from .._validate import did_you_mean
 from ..hookspecs import Metric
 from ..model import Animation
-from ..retargeter import Retargeter, _jsonable
+from ..retargeter import Retargeter
 
 __all__ = [
     "ComparisonResult",
@@ -118,14 +117,6 @@ def parse_case_spec(spec: str) -> tuple[str, dict[str, Any]]:
             raise ConfigError(f"case {spec!r}: {pair!r} is not key=value (e.g. ict?n_frames=40)")
         kwargs[key.strip()] = literal(value)
     return name, kwargs
-
-
-def literal(text: str):
-    """A Python literal (number, bool, None, string, tuple ...) from ``text``, else the text itself."""
-    try:
-        return ast.literal_eval(text.strip())
-    except (ValueError, SyntaxError):
-        return {"true": True, "false": False, "none": None}.get(text.strip().lower(), text.strip())
 
 
 def case_name(case, index: int) -> str:
@@ -213,7 +204,7 @@ class Run:
             "plugin": self.plugin,
             "distribution": self.distribution,
             "version": self.version,
-            "parameters": _jsonable(self.parameters),
+            "parameters": jsonable(self.parameters),
             "fit_s": self.fit_s,
             "retarget_s": self.retarget_s,
             "compile_s": self.compile_s,
@@ -332,7 +323,7 @@ class ComparisonResult:
     def as_dict(self) -> dict:
         return {
             "columns": list(COLUMNS),
-            "rows": [{k: _json_number(row[k]) for k in COLUMNS} for row in self.rows],
+            "rows": [{k: jsonable(row[k]) for k in COLUMNS} for row in self.rows],
             "ranking": self.ranking(),
             "runs": [r.as_dict() for r in self.runs],
             "metrics": {
@@ -344,7 +335,7 @@ class ComparisonResult:
     def to_json(self, path, *, force: bool = False, inputs=()) -> Path:
         """Write rows, ranking, runs (with errors), metric definitions and presets as JSON
         (atomically; an existing file only with ``force``, never an input)."""
-        return atomic_write_text(path, json.dumps(_jsonable(self.as_dict()), indent=1, allow_nan=False) + "\n", force=force, inputs=inputs)
+        return atomic_write_text(path, json.dumps(jsonable(self.as_dict()), indent=1, allow_nan=False) + "\n", force=force, inputs=inputs)
 
     def __repr__(self) -> str:
         counts = {s: sum(r.status == s for r in self.runs) for s in (OK, NOT_APPLICABLE, ERROR)}
@@ -364,12 +355,6 @@ def _mean_ranks(values: np.ndarray) -> np.ndarray:
 def _fmt_csv(value):
     if isinstance(value, float):
         return repr(value)
-    return value
-
-
-def _json_number(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
     return value
 
 
@@ -408,27 +393,6 @@ def _failed(run: Run, exc: BaseException, method: _Method, stage: str) -> Run:
         f"(plugin {method.plugin!r}, distribution {method.distribution} {method.version})"
     )
     return run
-
-
-def validate_output(animation, case, method_name: str) -> None:
-    """Raise :class:`PluginOutputError` unless ``animation`` is usable for the metrics."""
-    if not isinstance(animation, Animation):
-        raise PluginOutputError(f"{method_name} returned {type(animation).__name__}, not a faceretarget.Animation")
-    try:
-        with np.errstate(over="ignore", invalid="ignore"):  # reported below as non-finite output
-            vertices = animation.vertices
-    except FaceRetargetError as exc:
-        raise PluginOutputError(f"{method_name}: its result has no vertices ({exc})") from None
-    shape = tuple(np.shape(vertices))
-    truth = getattr(case, "truth", None)
-    expected = tuple(np.shape(truth.vertices)) if truth is not None else (case.source.n_frames, case.target.neutral.n_vertices, 3)
-    if shape != expected:
-        what = "ground truth" if truth is not None else "source frames x target vertices"
-        raise PluginOutputError(f"{method_name} returned vertices of shape {shape}; the {what} is {expected}")
-    if not np.isfinite(vertices).all():
-        raise PluginOutputError(f"{method_name} returned NaN or infinite vertex coordinates")
-    if animation.weights is not None and not np.isfinite(animation.weights).all():
-        raise PluginOutputError(f"{method_name} returned NaN or infinite weights")
 
 
 @contextmanager
@@ -473,9 +437,7 @@ def _run_one(case, cname: str, method: _Method, params: dict) -> Run:
             t2 = time.perf_counter()
         run.fit_s, run.retarget_s, run.compile_s = t1 - t0, t2 - t1, compiling()
         run.peak_memory_mib = max(0, tracemalloc.get_traced_memory()[1] - base) / 2**20
-        stage = "validate"
-        validate_output(animation, case, method.name)
-        run.animation = animation
+        run.animation = animation  # checked by Retargeter.check_output
     except CapabilityError as exc:
         run.status, run.reason = NOT_APPLICABLE, " ".join(str(exc).split())
     except Exception as exc:  # a failing plugin must not stop the others

@@ -52,7 +52,7 @@ Conventions shared by the definitions:
   lip contours, a jaw crease at the mouth corners). On the synthetic cases at 1,500 vertices
   that part of the truth's motion is larger than the wrinkles' (0.031% vs 0.018% of H) and
   it makes up most of every dense method's detail error (the wrinkle-free twin gives 97-99%
-  of the value for deformation_transfer and coating). To see the wrinkles alone, compare
+  of the value for the built-in dense methods). To see the wrinkles alone, compare
   against the case built without them (the detail presets' "wrinkle transfer error").
 """
 from __future__ import annotations

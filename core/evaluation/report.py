@@ -798,7 +798,7 @@ def render_html(result: ComparisonResult, *, title: str = "faceretarget comparis
     ``rank_by``: the metric that ranks the methods (default ``vertex_error_rms``); ``registry``:
     where the methods' papers and roles are looked up (default the process-wide registry).
     """
-    from .. import __version__
+    from .._version import __version__
     from ._summary import case_summary, method_roles, ranking_metric
 
     esc = html.escape

@@ -1,4 +1,4 @@
-"""Per-vertex local frames (normal + projected edge tangent), as used by coating transfer.
+"""Per-vertex local frames (normal + projected edge tangent), as used to transfer a Laplacian coating.
 
 The frame of vertex ``i`` is the orthonormal matrix ``F_i = [t_i, b_i, n_i]`` (columns):
 ``n_i`` the area-weighted vertex normal, ``t_i`` the edge from ``i`` to a fixed

@@ -557,6 +557,8 @@ _MAGIC: tuple[tuple[bytes, str, str, str], ...] = (
     (b"RIFF", "riff", "a RIFF file (WAV audio or AVI video)", ".wav"),
     (b"OggS", "ogg", "an Ogg audio/video file", ".ogg"),
     (b"ID3", "mp3", "an MP3 audio file", ".mp3"),
+    (b"# vtk DataFile", "vtk", "a VTK legacy file", ".vtk"),
+    (b"$MeshFormat", "msh", "a Gmsh mesh", ".msh"),
 )
 
 #: extension -> (what the extension promises, families whose content fits it). A family
@@ -578,6 +580,9 @@ EXPECTED: dict[str, tuple[str, frozenset[str]]] = {
     ".csv": ("a CSV file", frozenset({"text", "csv", "trc"})),
     ".json": ("a JSON file", frozenset({"json"})),
     ".txt": ("a text file", frozenset({"text", "csv", "json", "obj", "off", "trc"})),
+    ".vtk": ("a VTK legacy file", frozenset({"vtk"})),
+    ".vtu": ("a VTK XML file", frozenset({"vtu"})),
+    ".msh": ("a Gmsh mesh", frozenset({"msh", "text"})),
 }
 
 #: families that are text: a text file where a binary format is expected is a mismatch
@@ -653,6 +658,8 @@ def sniff(path) -> tuple[str, str, str] | None:
                 kind = {b"WAVE": ("a WAV audio file", ".wav"), b"AVI ": ("an AVI video", ".avi"), b"WEBP": ("a WebP image", ".webp")}[head[8:12]]
                 return family, kind[0], kind[1]
             return family, what, ext
+    if b"<VTKFile" in head[:1024]:  # XML, possibly followed by raw appended data
+        return "vtu", "a VTK XML file", ".vtu"
     if head[4:8] == b"ftyp":
         return "mp4", "an MP4/MOV video (or HEIC image)", ".mp4"
     if len(head) >= 2 and 1 <= head[0] < 32 and head[1] == 0x50 and size >= 512:

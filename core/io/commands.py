@@ -20,6 +20,7 @@ import argparse
 import os
 from pathlib import Path
 
+from .._json import jsonable
 from ..errors import OutputError
 from ..hookspecs import DATA_KINDS
 
@@ -71,19 +72,13 @@ def run_convert(args: argparse.Namespace) -> int:
 EXPORT_METHODS = ("spacetime", "layers", "normalmesh", "coating", "deformation_transfer")
 
 
-def _json_ids(values) -> list:
-    import numpy as np
-
-    return np.asarray(values).tolist()
-
-
 def _landmarks_json(lm) -> dict:
     data: dict = {}
     if lm.vertex_ids is not None:
-        data["vertex_ids"] = _json_ids(lm.vertex_ids)
+        data["vertex_ids"] = jsonable(lm.vertex_ids)
     else:
-        data["triangle_ids"] = _json_ids(lm.triangle_ids)
-        data["barycentric"] = _json_ids(lm.barycentric)
+        data["triangle_ids"] = jsonable(lm.triangle_ids)
+        data["barycentric"] = jsonable(lm.barycentric)
     if lm.names is not None:
         data["names"] = [str(n) for n in lm.names]
     return data
@@ -163,7 +158,7 @@ def export_case(case, folder, *, force: bool = False) -> dict[str, Path]:
         if obj.landmarks is not None:
             put_json(f"{side}_landmarks", f"{side}_landmarks.json", _landmarks_json(obj.landmarks))
         if obj.feature_lines:
-            put_json(f"{side}_feature_lines", f"{side}_feature_lines.json", {str(k): _json_ids(v) for k, v in obj.feature_lines.items()})
+            put_json(f"{side}_feature_lines", f"{side}_feature_lines.json", {str(k): jsonable(v) for k, v in obj.feature_lines.items()})
         if obj.examples is not None:
             put_examples(f"{side}_examples", f"{side}_examples.npz", obj.examples, obj.example_names)
         layers = obj.actor_layers if side == "source" else obj.layers

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from .._json import jsonable
 from ..errors import InputError, OutputError
 from ..model import Animation, BlendshapeRig, Mesh, MeshSequence
 from ._atomic import note_input, write_bytes
@@ -925,8 +926,7 @@ class _Builder:
         if offset:
             acc["byteOffset"] = offset
         if minmax:
-            acc["min"] = [_json_number(v) for v in arr.min(axis=0)]
-            acc["max"] = [_json_number(v) for v in arr.max(axis=0)]
+            acc["min"], acc["max"] = jsonable(arr.min(axis=0)), jsonable(arr.max(axis=0))
         self.accessors.append(acc)
         return len(self.accessors) - 1
 
@@ -938,11 +938,6 @@ class _Builder:
         if arr.size == 0:  # glTF buffer views hold at least one byte: an empty array is its shape alone
             return {"dtype": dtype, "shape": list(arr.shape)}
         return {"bufferView": self.view(arr.tobytes(), align=8), "dtype": dtype, "shape": list(arr.shape)}
-
-
-def _json_number(v) -> float | int:
-    v = v.item() if hasattr(v, "item") else v
-    return v
 
 
 def _frame_times(n_frames: int, fps: float) -> np.ndarray:
@@ -980,7 +975,7 @@ def _head_channels(b: _Builder, head: np.ndarray, time_acc: int, node: int, samp
 
 def glb_document(obj, *, name: str = "faceretarget") -> tuple[dict, bytes]:
     """The glTF JSON and binary buffer for a Mesh, BlendshapeRig, MeshSequence or Animation."""
-    from .. import __version__
+    from .._version import __version__
 
     if isinstance(obj, MeshSequence):
         obj = Animation(vertices=obj.vertices, triangles=obj.triangles, fps=obj.fps)

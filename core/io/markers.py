@@ -25,7 +25,7 @@ from ..model import MarkerSequence
 from ._atomic import atomic_file, write_bytes
 from ._common import CHUNK_BYTES, chunk_work, TEXT_TOKEN_FACTOR, TextRows, bad, check_budget, fmt_float, fps_from_times, guarded_reader, iter_chunks, open_regular, parse_float, read_text, to_float32
 
-__all__ = ["read_c3d", "read_trc", "read_marker_csv", "write_c3d", "write_trc", "write_marker_csv", "csv_rows", "is_marker_header", "META_COLUMNS"]
+__all__ = ["read_c3d", "read_trc", "read_marker_csv", "write_c3d", "write_trc", "write_marker_csv", "csv_rows", "csv_kind", "is_marker_header", "META_COLUMNS"]
 
 _DEFAULT_FPS = 30.0
 _AXIS = re.compile(r"^(?P<name>.+?)(?:[_.:/\s-])(?P<axis>[xyzXYZ])$")
@@ -242,6 +242,16 @@ def _marker_columns(header: list[str]) -> tuple[list[str], list[list[int]], list
 
 def is_marker_header(header: list[str]) -> bool:
     return _marker_columns(header) is not None
+
+
+def csv_kind(path: Path) -> str | None:
+    """The sniffer of the CSV readers: ``"markers"`` for NAME_x, NAME_y, NAME_z columns,
+    else ``"weights"`` (None when the header cannot be read); reads the first row only."""
+    try:
+        header = csv_header(Path(path))
+    except Exception:
+        return None
+    return "markers" if is_marker_header(header) else "weights"
 
 
 @guarded_reader

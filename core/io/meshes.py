@@ -386,7 +386,7 @@ def _as_mesh(obj, what: str) -> Mesh:
 def write_obj(mesh: Mesh, path, *, force: bool = False, inputs=(), **options) -> None:
     """Write a :class:`Mesh` as OBJ (atomic)."""
     mesh = _as_mesh(mesh, "the OBJ writer")
-    from .. import __version__
+    from .._version import __version__
 
     write_bytes(path, obj_text(mesh.vertices, mesh.triangles, f"faceretarget {__version__}").encode(), inputs=inputs, force=force)
 
@@ -797,7 +797,7 @@ def _ply_faces(path, vertices: np.ndarray, faces) -> tuple[np.ndarray, np.ndarra
 
 
 def ply_bytes(vertices: np.ndarray, triangles: np.ndarray) -> bytes:
-    from .. import __version__
+    from .._version import __version__
 
     n_v, n_t = len(vertices), len(triangles)
     header = (

@@ -66,6 +66,7 @@ class MeshioFormat:
     description : one line for ``faceretarget formats``
     write_options : keyword arguments for the meshio writer
     writable : whether a writer is registered too
+    magic : byte strings its files start with (``Reader.magic``: names the format in errors)
     """
 
     name: str
@@ -74,6 +75,7 @@ class MeshioFormat:
     description: str
     write_options: dict = field(default_factory=dict)
     writable: bool = True
+    magic: tuple[bytes, ...] = ()
 
 
 #: the meshio 5.3 formats that read and write triangle surfaces with meshio's own
@@ -85,10 +87,10 @@ class MeshioFormat:
 #: triangles in meshio 5.3.5),
 #: Tecplot (.dat: triangles become degenerate quads), Dolfin XML/WKT/SVG/TetGen.
 FORMATS: tuple[MeshioFormat, ...] = (
-    MeshioFormat("vtk", "vtk", (".vtk",), "VTK legacy unstructured grid, ASCII or binary (written binary)"),
+    MeshioFormat("vtk", "vtk", (".vtk",), "VTK legacy unstructured grid, ASCII or binary (written binary)", magic=(b"# vtk DataFile",)),
     MeshioFormat("vtu", "vtu", (".vtu",), "VTK XML unstructured grid (written binary, zlib)"),
-    MeshioFormat("gmsh", "gmsh", (".msh",), "Gmsh MSH 2.2/4.0/4.1, ASCII or binary (written 4.1 binary)"),
-    MeshioFormat("medit", "medit", (".mesh", ".meshb"), "Medit / INRIA mesh, ASCII (.mesh) or binary (.meshb)"),
+    MeshioFormat("gmsh", "gmsh", (".msh",), "Gmsh MSH 2.2/4.0/4.1, ASCII or binary (written 4.1 binary)", magic=(b"$MeshFormat",)),
+    MeshioFormat("medit", "medit", (".mesh", ".meshb"), "Medit / INRIA mesh, ASCII (.mesh) or binary (.meshb)", magic=(b"MeshVersionFormatted",)),
     MeshioFormat("abaqus", "abaqus", (".inp",), "Abaqus input file"),
     # meshio 5.3.5's Nastran writer fails (AssertionError) on many float64 coordinates: read only
     MeshioFormat("nastran", "nastran", (".bdf", ".fem", ".nas"), "Nastran bulk data; read only", writable=False),
@@ -113,7 +115,7 @@ def meshio_writers() -> list[Writer]:
 
 def reader_record(fmt: MeshioFormat) -> Reader:
     """The registry record reading ``fmt`` through meshio, with ``priority`` :data:`PRIORITY`."""
-    return Reader(fmt.name, "mesh", fmt.extensions, _reader(fmt), f"{fmt.description}; via meshio", priority=PRIORITY)
+    return Reader(fmt.name, "mesh", fmt.extensions, _reader(fmt), f"{fmt.description}; via meshio", priority=PRIORITY, magic=fmt.magic)
 
 
 def writer_record(fmt: MeshioFormat) -> Writer:

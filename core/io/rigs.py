@@ -22,10 +22,18 @@ from ._common import bad, check_budget, guarded_reader
 from .meshes import obj_text
 from .sequences import _load_mesh, _sidecar, folder_mesh_files, frame_arrays
 
-__all__ = ["read_rig_folder", "write_rig_folder", "NEUTRAL_NAMES", "RIG_SIDECAR", "exact_positions"]
+__all__ = ["read_rig_folder", "write_rig_folder", "folder_kind", "NEUTRAL_NAMES", "RIG_SIDECAR", "exact_positions"]
 
 NEUTRAL_NAMES = ("neutral", "base", "basis", "rest", "default")
 RIG_SIDECAR = "rig.json"
+
+
+def folder_kind(path: Path) -> str:
+    """The sniffer of the folder readers: ``"rig"`` for a folder with ``rig.json`` or a
+    neutral mesh (neutral/base/basis/rest/default), else ``"mesh_sequence"``."""
+    path = Path(path)
+    names = {p.stem.lower() for p in path.iterdir() if p.is_file()}
+    return "rig" if (path / RIG_SIDECAR).is_file() or names & set(NEUTRAL_NAMES) else "mesh_sequence"
 
 
 def _neutral_file(path: Path, files: list[Path], neutral) -> Path:

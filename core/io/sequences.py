@@ -55,15 +55,15 @@ _WRITE_CHUNK = 1 << 22  # floats per chunk when streaming a (memory-mapped) sequ
 
 def mesh_extensions() -> tuple[str, ...]:
     """Extensions of every registered single-mesh reader (built-in and plugins)."""
-    from ..registry import registry
+    from .dispatch import table
 
-    return tuple(sorted({e for r, _ in registry().readers if r.kind == "mesh" for e in r.extensions if e != "/"}))
+    return tuple(e for e in table().extensions("read", "mesh") if e != "/")
 
 
 def _load_mesh(path: Path) -> Mesh:
-    from . import load
+    from .dispatch import read
 
-    return load(path, kind="mesh")
+    return read(path, kind="mesh")
 
 
 def frame_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -21,6 +21,13 @@ def faceretarget_retargeters():
     return [CoatingRetargeter, DeformationTransferRetargeter]
 
 
+@hookimpl
+def faceretarget_presets():
+    from .presets import PRESETS  # the report's reproductions of the paper; imports no solver
+
+    return list(PRESETS)
+
+
 def __getattr__(name):
     if name == "DetailEdit":
         from .details import DetailEdit

@@ -17,6 +17,13 @@ def faceretarget_retargeters():
     return [LayersRetargeter]
 
 
+@hookimpl
+def faceretarget_presets():
+    from .presets import PRESETS  # the report's reproductions of the paper; imports no solver
+
+    return list(PRESETS)
+
+
 def __getattr__(name):
     if name in ("actor_layers_from_frames", "layered_rig_from_blendshapes", "default_masks"):
         from . import build

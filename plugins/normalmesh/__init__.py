@@ -8,3 +8,10 @@ def faceretarget_retargeters():
     from .retargeter import NormalMeshRetargeter  # numba kernels stay out of import time
 
     return [NormalMeshRetargeter]
+
+
+@hookimpl
+def faceretarget_presets():
+    from .presets import PRESETS  # the report's reproductions of the paper; imports no solver
+
+    return list(PRESETS)

@@ -13,3 +13,10 @@ def faceretarget_retargeters():
     from .retargeter import RETARGETERS
 
     return list(RETARGETERS)
+
+
+@hookimpl
+def faceretarget_presets():
+    from .presets import PRESETS  # the report's reproductions of the paper; imports no solver
+
+    return list(PRESETS)

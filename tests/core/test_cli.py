@@ -6,7 +6,8 @@ import sys
 import pytest
 
 from faceretarget import __version__, errors
-from faceretarget.cli import main, parse_params
+from faceretarget._args import parse_sets as parse_params
+from faceretarget.cli import main
 
 
 def run(*args):

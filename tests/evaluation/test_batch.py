@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from faceretarget.errors import ConfigError, UnknownNameError
-from faceretarget.evaluation.batch import load_manifest, run_batch
+from faceretarget.evaluation.batch import RUN_DEFAULT, load_manifest, run_batch
 
 import fake_retargeters as fakes
 
@@ -83,10 +83,10 @@ def test_manifest_resolves_paths_and_merges_defaults(tmp_path, fake_registry):
     a, b = load_manifest(path, registry=fake_registry)
     assert a.params == {"delay": 0.5} and a.character == SHOT and a.out == str(tmp_path.resolve() / "out/a.fnpz") and a.name == "out/a.fnpz"
     assert b.name == "second" and b.shot == str(tmp_path.resolve() / "shots/s.c3d") and b.cls is fakes.NeutralFake
-    assert a.timeout is None and b.timeout is None  # the run's default applies
+    assert a.timeout == b.timeout == RUN_DEFAULT  # the run's time limit applies
     path.write_text(path.read_text().replace('name = "second"', 'name = "second"\ntimeout = 0').replace("[defaults]", "[defaults]\ntimeout = 90"))
     a, b = load_manifest(path, registry=fake_registry)
-    assert a.timeout == 90.0 and b.timeout == 0.0  # 0: explicitly no limit
+    assert a.timeout == 90.0 and b.timeout is None  # 0: no limit, as everywhere (even when the run has one)
 
 
 def test_local_pool_reports_failures_and_skips_finished(tmp_path, fake_registry):

@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 
 from faceretarget.cli import main
-from faceretarget.evaluation.commands import _new_folder, _parse_sets, demo_cases
+from faceretarget._args import parse_sets
+from faceretarget.evaluation.commands import _new_folder, demo_cases
 from faceretarget.errors import ConfigError, OutputError
 
 SMALL = "synthetic?resolution=200&n_frames=6"
@@ -29,7 +30,7 @@ def test_compare_writes_tables_and_report(tmp_path, capsys):
 def test_compare_errors_are_one_line(capsys):
     assert main(["compare", SMALL, "--set", "alpha=1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["faceretarget: error: --set 'alpha=1': expected METHOD.PARAM=VALUE, e.g. --set spacetime.alpha=0.05"]
+    assert err == ["faceretarget: error: --set 'alpha=1': expected METHOD.PARAM=VALUE, e.g. --set METHOD.alpha=0.05"]
     assert main(["compare", "nosuchcase"]) == 2
     assert "valid cases" in capsys.readouterr().err
 
@@ -60,7 +61,7 @@ def test_demo_folder_is_always_new(tmp_path, monkeypatch):
     assert demo_cases(10)["ict"] == "ict?n_frames=10"
     with pytest.raises(ConfigError):
         demo_cases(1)
-    assert _parse_sets(["a.b=1", "a.c=x", "d.e=[1, 2]"]) == {"a": {"b": 1, "c": "x"}, "d": {"e": [1, 2]}}
+    assert parse_sets(["a.b=1", "a.c=x", "d.e=[1, 2]"], per_method=True) == {"a": {"b": 1, "c": "x"}, "d": {"e": [1, 2]}}
 
 
 def test_batch_command(tmp_path, capsys):

@@ -2,7 +2,6 @@
 import csv
 import json
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -147,18 +146,23 @@ def test_case_names_and_duplicates(tiny):
         resolve_case(42)
 
 
-def test_validation_catches_non_finite_and_non_animation(tiny):
+def test_the_output_check_catches_non_finite_and_non_animation(tiny):
+    """The one output check (Retargeter.check_output, made by retarget) that the harness, batch
+    and the command line rely on."""
     from faceretarget.errors import PluginOutputError
-    from faceretarget.evaluation.harness import validate_output
 
-    with pytest.raises(PluginOutputError, match="not a faceretarget.Animation"):
-        validate_output(np.zeros((12, 81, 3)), tiny, "x")
+    method = fakes.TransferFake().fit(tiny.source, tiny.target)
+    with pytest.raises(PluginOutputError, match="not an Animation"):
+        method.check_output(np.zeros((12, 81, 3)), tiny.source)
     rig = fakes.BlendshapeRig(tiny.target.neutral, np.full((2, 81, 3), 10.0), ["a", "b"])
     big = fakes.Animation(weights=np.full((12, 2), 1e308), rig=rig)  # finite weights, vertices overflow to inf
-    with pytest.raises(PluginOutputError, match="NaN or infinite"):
-        validate_output(big, tiny, "x")
-    no_truth = SimpleNamespace(source=tiny.source, target=tiny.target, truth=None)
-    validate_output(tiny.truth, no_truth, "x")
+    with pytest.raises(PluginOutputError, match="NaN or infinite vertex"):
+        method.check_output(big, tiny.source)
+    assert big._vertices is None  # checked a chunk at a time, not kept
+    with pytest.raises(PluginOutputError, match="frames for a source"):
+        method.check_output(fakes.Animation(vertices=tiny.truth.vertices[:5]), tiny.source)
+    method.check_output(tiny.truth, tiny.source)
+    method.check_output(fakes.Animation(weights=np.ones((12, 2)), rig=rig), tiny.source)
 
 
 def test_builtin_retargeters_on_synthetic_and_ict():

@@ -6,10 +6,14 @@ import pytest
 
 import faceretarget
 from faceretarget.errors import UnknownNameError
-from faceretarget.evaluation import presets
-from faceretarget.evaluation.presets import _num
+from faceretarget import Preset
+from faceretarget.evaluation import presets, reproduction
 from faceretarget.evaluation.harness import resolve_case
 from faceretarget.evaluation.report import svg_plot
+from faceretarget.evaluation.reproduction import num as _num
+from faceretarget.plugins.coating import presets as xu
+from faceretarget.plugins.normalmesh import presets as najung
+from faceretarget.plugins.spacetime import presets as seol
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +34,7 @@ DENSE = ("najung_table1", "xu_fig4", "xu_fig6", "najung_fig14")
 def dense(small_cases):
     """The dense methods' reproductions, run once: name -> PresetResult."""
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(presets, "DETAIL_CASES", SMALL_DETAIL_CASES)
+        mp.setattr(reproduction, "DETAIL_CASES", SMALL_DETAIL_CASES)
         return {name: presets.run_preset(name, small_cases) for name in DENSE}
 
 
@@ -95,7 +99,7 @@ def test_seol_head_motion_is_the_papers_procrustes(small_cases):
     Y^T X), given to every method as a known head motion."""
     from naive import spacetime as naive
 
-    source, sigma = presets._noisy_markers(small_cases["synthetic-stylized"].source, procrustes=True)
+    source, sigma = reproduction.noisy_markers(small_cases["synthetic-stylized"].source, procrustes=True)
     markers, reference = source.performance.positions, source.performance.reference
     assert sigma > 0 and source.head_motion is not None
     for f in (0, 7, 19):
@@ -106,9 +110,9 @@ def test_seol_head_motion_is_the_papers_procrustes(small_cases):
 
 def test_paper_params_keeps_only_accepted_parameters():
     known = faceretarget.get("spacetime").get_params()
-    out = presets.paper_params("spacetime", {"alpha": 0.01, "no_such_parameter": 1, "beta": 0.0})
+    out = reproduction.paper_params("spacetime", {"alpha": 0.01, "no_such_parameter": 1, "beta": 0.0})
     assert out == {"alpha": 0.01, "beta": 0.0}
-    assert set(presets.seol_params("spacetime")) <= set(known)
+    assert set(seol.seol_params("spacetime")) <= set(known)
 
 
 def test_kholgade_fig8(small_cases):
@@ -137,7 +141,7 @@ def test_xu_fig4(dense):
     assert rows["bases only"]["mean change outside window"] > 0.0  # fig. 4b: similar expressions change too
     assert "updating the weights only does not change frames outside the window" in res.claim
     b, j, w = rows["bases only"], rows["bases and weights"], rows["weights only"]
-    limit = 100 * presets.XU_CONSTRAINT_TOLERANCE * presets.XU_EDIT
+    limit = 100 * xu.XU_CONSTRAINT_TOLERANCE * xu.XU_EDIT
     _consistent_verdict(res, [
         all(r["constraint error (% face height)"] <= limit for r in rows.values()),
         b["change of similar frames outside"] > b["change of dissimilar frames outside"],
@@ -158,9 +162,9 @@ def test_najung_table1_counts_per_mesh(dense):
         assert row["%"] == pytest.approx(100 * row["vertices with piercing error"] / row["vertices"])
     assert "under 0.1% on every mesh" in res.claim
     if counted:
-        _consistent_verdict(res, [all(row["%"] < presets.NAJUNG_LIMIT_PERCENT for row in counted)])
+        _consistent_verdict(res, [all(row["%"] < najung.NAJUNG_LIMIT_PERCENT for row in counted)])
         for row in counted:
-            if row["%"] >= presets.NAJUNG_LIMIT_PERCENT:
+            if row["%"] >= najung.NAJUNG_LIMIT_PERCENT:
                 assert f"{row['mesh']} {_num(row['%'])}%" in res.evidence  # the offending mesh, with its number
 
 
@@ -172,7 +176,7 @@ def test_detail_reproductions(dense, name, method, ablation):
     assert res.status == "ok", res.reason
     rows = {(row["case"], row["retargeter"]): row for row in res.table}
     assert sorted(rows) == sorted((case, m) for case, _ in SMALL_DETAIL_CASES for m in (method, ablation, "deformation_transfer"))
-    assert all(row["wrinkle fine-scale motion (% face height)"] > presets.DETAIL_MIN_WRINKLE for row in res.table)
+    assert all(row["wrinkle fine-scale motion (% face height)"] > reproduction.DETAIL_MIN_WRINKLE for row in res.table)
     # the wrinkles' own contribution, apart from the fine-scale error of the large-scale motion
     for row in res.table:
         assert row["detail error without wrinkles (% face height)"] > 0 and row["wrinkle transfer error (% face height)"] >= 0
@@ -194,7 +198,7 @@ def test_detail_reproductions(dense, name, method, ablation):
 
 def test_detail_reproductions_need_active_wrinkles(small_cases, monkeypatch):
     """20 frames of the synthetic performance hold no wrinkle shape: nothing to decide, nothing run."""
-    monkeypatch.setattr(presets, "DETAIL_CASES", (("human", "synthetic-human?resolution=300&n_frames=20"),))
+    monkeypatch.setattr(reproduction, "DETAIL_CASES", (("human", "synthetic-human?resolution=300&n_frames=20"),))
     monkeypatch.setattr(faceretarget, "get", lambda name, **params: pytest.fail(f"{name} run on a case without wrinkles"))
     res = presets.run_preset("xu_fig6", small_cases)
     assert res.status == "ok" and res.agrees is None and res.verdict == "undecided"
@@ -251,9 +255,8 @@ def test_missing_or_failing_retargeters_are_reported(small_cases, monkeypatch):
         res.agrees, res.evidence = True, "agrees: something"
         raise RuntimeError("late failure")
 
-    monkeypatch.setitem(presets.PRESETS, "late", ("Late", "paper", "description", decides_then_fails))
-    monkeypatch.setitem(presets.CLAIMS, "late", ("A claim.", "A setting."))
-    res = presets.run_preset("late", small_cases)
+    late = Preset("late", "Late", "paper", "description", decides_then_fails, claim="A claim.", setting="A setting.")
+    res = presets.run_preset(late, small_cases)
     assert res.status == "error" and res.agrees is None and "did not run" in res.evidence  # a failed run decides nothing
     assert (res.claim, res.setting) == ("A claim.", "A setting.")
 
@@ -278,4 +281,4 @@ def test_preset_claims_are_in_the_json(small_cases, tmp_path):
     for res, entry in zip(out, data):
         assert entry["claim"] == res.claim and entry["setting"] == res.setting and entry["evidence"] == res.evidence
         assert entry["agrees"] is res.agrees and entry["verdict"] == res.verdict
-    assert all(name in presets.CLAIMS and all(presets.CLAIMS[name]) for name in presets.PRESETS)
+    assert all(p.claim and p.setting for p in presets.available_presets().values())

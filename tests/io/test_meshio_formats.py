@@ -23,6 +23,7 @@ from faceretarget.errors import (
     FileFormatError,
     OutputError,
 )
+from faceretarget.io import builtin
 from faceretarget.io import meshio_formats as mf
 from faceretarget.model import Mesh
 
@@ -33,7 +34,7 @@ READ_ONLY = [f.name for f in mf.FORMATS if not f.writable]
 
 
 def _native_readers():
-    return [r for r in fio.builtin_readers() if r.priority == 0]
+    return [r for r in builtin.builtin_readers() if r.priority == 0]
 
 
 # ---------------------------------------------------------------------------------------
@@ -163,8 +164,12 @@ def test_surface_cells_are_kept_and_volume_cells_skipped_with_a_warning(tmp_path
 def test_a_damaged_file_is_a_typed_error_naming_it_not_an_exit(tmp_path):
     path = tmp_path / "photo.msh"
     path.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(200))
-    with pytest.raises(FileFormatError, match="photo.msh: not a readable gmsh file.*looks like a PNG image"):
+    with pytest.raises(FileFormatError, match="photo.msh: this looks like a PNG image, not a Gmsh mesh"):
         fio.load(path)  # meshio.read() itself would sys.exit(1)
+    photo = tmp_path / "photo.inp"  # an extension without an expected content: meshio's own error, and what it looks like
+    photo.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(200))
+    with pytest.raises(FileFormatError, match="photo.inp: not a readable abaqus file.*looks like a PNG image"):
+        fio.load(photo)
     empty = tmp_path / "empty.vtk"
     empty.write_bytes(b"")
     with pytest.raises(FileFormatError, match="empty.vtk"):
@@ -192,7 +197,7 @@ def test_writers_never_overwrite_without_force(mesh, tmp_path):
     with pytest.raises(OutputError, match="already exists"):
         fio.save(moved, path)
     assert path.read_bytes() == before
-    writer = next(w for w in fio.builtin_writers() if w.name == "vtu")
+    writer = next(w for w in builtin.builtin_writers() if w.name == "vtu")
     with pytest.raises(OutputError, match="already exists"):
         writer.write(moved, path)  # called directly, without save(): still atomic and checked
     assert path.read_bytes() == before
@@ -281,4 +286,4 @@ def test_faceretarget_formats_says_which_formats_come_from_meshio(capsys):
     out = capsys.readouterr().out
     for name in ("vtk", "vtu", "gmsh", "medit", "abaqus"):
         line = next(ln for ln in out.splitlines() if ln.split()[:1] == [name])
-        assert line.rstrip().endswith("via meshio"), line
+        assert line.rstrip().endswith("via meshio [priority -1]"), line  # below the native formats, and says so

@@ -21,7 +21,7 @@ from reliability import samples  # noqa: E402
 def find_writer(name: str, builtin: bool):
     """The writer called ``name`` (built-ins without loading every plugin: faster)."""
     if builtin:
-        from faceretarget.io import builtin_writers
+        from faceretarget.io.builtin import builtin_writers
 
         return next(w for w in builtin_writers() if w.name == name)
     from faceretarget.registry import registry

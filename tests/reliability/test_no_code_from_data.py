@@ -48,7 +48,7 @@ DANGEROUS_METHODS = {"load_setuptools_entrypoints": "loads every entry point, un
 REVIEWED = {
     ("core/__init__.py", "importlib.import_module"): "lazy submodules from the fixed _LAZY table",
     ("core/evaluation/__init__.py", "importlib.import_module"): "lazy exports from the fixed _EXPORTS table",
-    ("core/io/__init__.py", "importlib.import_module"): "lazy format modules named by literals in builtin_readers/writers",
+    ("core/io/builtin.py", "importlib.import_module"): "lazy format modules named by literals in builtin_readers/writers",
     ("core/cli.py", "importlib.import_module"): "sub-command modules named by literals in build_parser",
     ("core/testing.py", "pickle.loads"): "round trip of a retargeter pickled one line above (check_clone_pickle)",
     ("core/evaluation/_workers.py", "multiprocessing.reduction.ForkingPickler.loads"): (
