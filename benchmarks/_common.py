@@ -15,6 +15,7 @@ Every script's ``main(argv)`` returns a dict ``{"script", "machine", "rows", "sc
 With ``--json`` a script prints that dict as the last line of its output, prefixed
 with ``BENCH_JSON ``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,6 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # ---- machine ----------------------------------------------------------------------------
 
+
 def load_average() -> list[float]:
     try:
         return [round(x, 2) for x in os.getloadavg()]
@@ -48,17 +50,25 @@ def blas_info() -> list[dict]:
         import scipy.linalg  # noqa: F401
         from threadpoolctl import threadpool_info
     except ImportError:
-        return [{"user_api": "?", "internal_api": "threadpoolctl not installed", "num_threads": None}]
+        return [
+            {"user_api": "?", "internal_api": "threadpoolctl not installed", "num_threads": None}
+        ]
     return [
-        {k: i.get(k) for k in ("user_api", "internal_api", "num_threads", "version", "threading_layer")}
+        {
+            k: i.get(k)
+            for k in ("user_api", "internal_api", "num_threads", "version", "threading_layer")
+        }
         for i in threadpool_info()
     ]
 
 
 def blas_threads_text(info: list[dict] | None = None) -> str:
     info = blas_info() if info is None else info
-    parts = [f"{i['internal_api']} {i.get('version') or ''} x{i['num_threads']}".replace("  ", " ") for i in info
-             if i.get("user_api") == "blas"]
+    parts = [
+        f"{i['internal_api']} {i.get('version') or ''} x{i['num_threads']}".replace("  ", " ")
+        for i in info
+        if i.get("user_api") == "blas"
+    ]
     return ", ".join(parts) or "no BLAS found by threadpoolctl"
 
 
@@ -97,24 +107,37 @@ def machine() -> dict:
         "load_average": load_average(),
         "blas": blas_info(),
         "versions": versions(),
-        "env_threads": {k: os.environ[k] for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS",
-                                                   "NUMBA_NUM_THREADS") if k in os.environ},
+        "env_threads": {
+            k: os.environ[k]
+            for k in (
+                "OPENBLAS_NUM_THREADS",
+                "OMP_NUM_THREADS",
+                "MKL_NUM_THREADS",
+                "NUMBA_NUM_THREADS",
+            )
+            if k in os.environ
+        },
     }
 
 
 def print_machine(title: str) -> dict:
     m = machine()
     print(f"== {title}")
-    print(f"machine: {m['cpu_count']} CPUs ({m['cpu']}), load average {m['load_average'][0]:.2f} / "
-          f"{m['load_average'][1]:.2f} / {m['load_average'][2]:.2f} (1 / 5 / 15 min); "
-          f"BLAS: {blas_threads_text(m['blas'])}"
-          + (f"; environment {m['env_threads']}" if m["env_threads"] else ""))
-    print("wall times: min and median of the repeats (warm: one untimed call first); CPU time only where stated")
+    print(
+        f"machine: {m['cpu_count']} CPUs ({m['cpu']}), load average {m['load_average'][0]:.2f} / "
+        f"{m['load_average'][1]:.2f} / {m['load_average'][2]:.2f} (1 / 5 / 15 min); "
+        f"BLAS: {blas_threads_text(m['blas'])}"
+        + (f"; environment {m['env_threads']}" if m["env_threads"] else "")
+    )
+    print(
+        "wall times: min and median of the repeats (warm: one untimed call first); CPU time only where stated"
+    )
     sys.stdout.flush()
     return m
 
 
 # ---- timing -----------------------------------------------------------------------------
+
 
 def timeit(fn, repeat: int, *, warmup: int = 1, cpu: bool = False) -> dict:
     """Wall time of ``fn()`` over ``repeat`` calls after ``warmup`` untimed calls:
@@ -128,7 +151,12 @@ def timeit(fn, repeat: int, *, warmup: int = 1, cpu: bool = False) -> dict:
         out = fn()
         walls.append(time.perf_counter() - t0)
         cpus.append(time.process_time() - c0)
-    res = {"min_s": min(walls), "median_s": statistics.median(walls), "times_s": walls, "result": out}
+    res = {
+        "min_s": min(walls),
+        "median_s": statistics.median(walls),
+        "times_s": walls,
+        "result": out,
+    }
     if cpu:
         res["cpu_min_s"], res["cpu_median_s"] = min(cpus), statistics.median(cpus)
     return res
@@ -170,54 +198,135 @@ def fit_exponent(sizes, values) -> float:
 
 # ---- rows -------------------------------------------------------------------------------
 
-def time_row(name: str, t: dict, goal_s: float | None, *, per: float = 1.0, baseline: tuple[str, dict] | None = None,
-             source: str = "", note: str = "", unit: str = "s") -> dict:
+
+def time_row(
+    name: str,
+    t: dict,
+    goal_s: float | None,
+    *,
+    per: float = 1.0,
+    baseline: tuple[str, dict] | None = None,
+    source: str = "",
+    note: str = "",
+    unit: str = "s",
+) -> dict:
     """A lower-is-better time row; ``per`` divides the times (e.g. frames, for a per-frame cost)."""
-    row = {"name": name, "unit": unit, "better": "lower", "goal": goal_s,
-           "best": t["min_s"] / per, "median": t["median_s"] / per, "n": len(t["times_s"]),
-           "source": source, "note": note}
+    row = {
+        "name": name,
+        "unit": unit,
+        "better": "lower",
+        "goal": goal_s,
+        "best": t["min_s"] / per,
+        "median": t["median_s"] / per,
+        "n": len(t["times_s"]),
+        "source": source,
+        "note": note,
+    }
     if "cpu_min_s" in t:
         row["cpu_best"], row["cpu_median"] = t["cpu_min_s"] / per, t["cpu_median_s"] / per
     if baseline is not None:
-        row["baseline"] = {"name": baseline[0], "min_s": baseline[1]["min_s"] / per,
-                           "median_s": baseline[1]["median_s"] / per, "n": len(baseline[1]["times_s"])}
+        row["baseline"] = {
+            "name": baseline[0],
+            "min_s": baseline[1]["min_s"] / per,
+            "median_s": baseline[1]["median_s"] / per,
+            "n": len(baseline[1]["times_s"]),
+        }
     return row
 
 
-def rate_row(name: str, count: float, t: dict, goal: float | None, *, unit: str = "frames/s",
-             baseline: tuple[str, dict] | None = None, baseline_count: float | None = None,
-             source: str = "", note: str = "") -> dict:
+def rate_row(
+    name: str,
+    count: float,
+    t: dict,
+    goal: float | None,
+    *,
+    unit: str = "frames/s",
+    baseline: tuple[str, dict] | None = None,
+    baseline_count: float | None = None,
+    source: str = "",
+    note: str = "",
+) -> dict:
     """A higher-is-better rate ``count / time`` (best from the min time, median from the median)."""
-    row = {"name": name, "unit": unit, "better": "higher", "goal": goal,
-           "best": count / t["min_s"], "median": count / t["median_s"], "n": len(t["times_s"]),
-           "source": source, "note": note}
+    row = {
+        "name": name,
+        "unit": unit,
+        "better": "higher",
+        "goal": goal,
+        "best": count / t["min_s"],
+        "median": count / t["median_s"],
+        "n": len(t["times_s"]),
+        "source": source,
+        "note": note,
+    }
     if "cpu_min_s" in t:
         row["cpu_best"], row["cpu_median"] = count / t["cpu_min_s"], count / t["cpu_median_s"]
     if baseline is not None:
         c = baseline_count if baseline_count is not None else count
-        row["baseline"] = {"name": baseline[0], "min_s": baseline[1]["min_s"] / c,
-                           "median_s": baseline[1]["median_s"] / c, "n": len(baseline[1]["times_s"]),
-                           "per": "per item"}
+        row["baseline"] = {
+            "name": baseline[0],
+            "min_s": baseline[1]["min_s"] / c,
+            "median_s": baseline[1]["median_s"] / c,
+            "n": len(baseline[1]["times_s"]),
+            "per": "per item",
+        }
     return row
 
 
-def value_row(name: str, best: float, median: float, goal: float | None, unit: str, better: str = "lower", *,
-              n: int = 1, source: str = "", note: str = "", baseline: dict | None = None) -> dict:
-    row = {"name": name, "unit": unit, "better": better, "goal": goal, "best": best, "median": median, "n": n,
-           "source": source, "note": note}
+def value_row(
+    name: str,
+    best: float,
+    median: float,
+    goal: float | None,
+    unit: str,
+    better: str = "lower",
+    *,
+    n: int = 1,
+    source: str = "",
+    note: str = "",
+    baseline: dict | None = None,
+) -> dict:
+    row = {
+        "name": name,
+        "unit": unit,
+        "better": better,
+        "goal": goal,
+        "best": best,
+        "median": median,
+        "n": n,
+        "source": source,
+        "note": note,
+    }
     if baseline is not None:
         row["baseline"] = baseline
     return row
 
 
-def scaling_entry(name: str, size_label: str, sizes, timings: list[dict], peaks: list[int], *, per_label: str = "",
-                  note: str = "", extra: dict | None = None) -> dict:
+def scaling_entry(
+    name: str,
+    size_label: str,
+    sizes,
+    timings: list[dict],
+    peaks: list[int],
+    *,
+    per_label: str = "",
+    note: str = "",
+    extra: dict | None = None,
+) -> dict:
     mins = [t["min_s"] for t in timings]
     meds = [t["median_s"] for t in timings]
-    entry = {"name": name, "size_label": size_label, "sizes": list(sizes), "min_s": mins, "median_s": meds,
-             "n": [len(t["times_s"]) for t in timings], "peak_bytes": list(peaks),
-             "exponent_min": fit_exponent(sizes, mins), "exponent_median": fit_exponent(sizes, meds),
-             "memory_exponent": fit_exponent(sizes, peaks), "note": note}
+    entry = {
+        "name": name,
+        "size_label": size_label,
+        "sizes": list(sizes),
+        "min_s": mins,
+        "median_s": meds,
+        "n": [len(t["times_s"]) for t in timings],
+        "peak_bytes": list(peaks),
+        "exponent_min": fit_exponent(sizes, mins),
+        "exponent_median": fit_exponent(sizes, meds),
+        "memory_exponent": fit_exponent(sizes, peaks),
+        "note": note,
+    }
     if extra:
         entry.update(extra)
     return entry
@@ -238,10 +347,14 @@ def print_rows(rows: list[dict]) -> None:
 
 
 def print_scaling(entry: dict) -> None:
-    print(f"  scaling of {entry['name']} ({entry['size_label']}): exponent {entry['exponent_min']:.2f} (min times), "
-          f"{entry['exponent_median']:.2f} (medians), memory exponent {entry['memory_exponent']:.2f}")
+    print(
+        f"  scaling of {entry['name']} ({entry['size_label']}): exponent {entry['exponent_min']:.2f} (min times), "
+        f"{entry['exponent_median']:.2f} (medians), memory exponent {entry['memory_exponent']:.2f}"
+    )
     for s, a, b, p in zip(entry["sizes"], entry["min_s"], entry["median_s"], entry["peak_bytes"]):
-        print(f"    {s:>9,}: min {fmt(a, 's')}, median {fmt(b, 's')}, peak memory {p / 2**20:,.1f} MiB")
+        print(
+            f"    {s:>9,}: min {fmt(a, 's')}, median {fmt(b, 's')}, peak memory {p / 2**20:,.1f} MiB"
+        )
     sys.stdout.flush()
 
 
@@ -267,11 +380,25 @@ def fmt(value: float | None, unit: str) -> str:
 
 # ---- command line -----------------------------------------------------------------------
 
+
 def parser(doc: str | None) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=(doc or "").strip().splitlines()[0] if doc else None)
-    p.add_argument("--quick", action="store_true", help="fewer sizes, frames and repeats (what run_all.py --quick uses)")
-    p.add_argument("--json", action="store_true", help=f"print the results as one last line starting with {JSON_PREFIX!r}")
-    p.add_argument("--repeat", type=int, default=None, help="timed repeats per figure (at least 5; default 5, 7 without --quick)")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="fewer sizes, frames and repeats (what run_all.py --quick uses)",
+    )
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help=f"print the results as one last line starting with {JSON_PREFIX!r}",
+    )
+    p.add_argument(
+        "--repeat",
+        type=int,
+        default=None,
+        help="timed repeats per figure (at least 5; default 5, 7 without --quick)",
+    )
     return p
 
 
@@ -281,6 +408,7 @@ def repeats(args) -> int:
 
 def finish(result: dict, args) -> dict:
     if args.json:
+
         def clean(o):
             if isinstance(o, float) and (math.isnan(o) or math.isinf(o)):
                 return None

@@ -17,6 +17,7 @@ and median of >= 5 repeats:
 
     python benchmarks/bench_coating.py [--quick] [--json] [--frames 1300] [--resolution 80000] [--clip 130]
 """
+
 from __future__ import annotations
 
 import shutil
@@ -48,28 +49,54 @@ def scaling(sizes, frames: int, repeat: int) -> list[dict]:
     fits = {"coating": [], "deformation_transfer": []}
     for res in sizes:
         case = fr.cases.synthetic(seed=0, resolution=res, n_frames=frames)
-        for name, cls in (("coating", CoatingRetargeter), ("deformation_transfer", DeformationTransferRetargeter)):
+        for name, cls in (
+            ("coating", CoatingRetargeter),
+            ("deformation_transfer", DeformationTransferRetargeter),
+        ):
             r = cls()
             t0 = time.perf_counter()
             r.fit(case.source, case.target)
             fits[name].append(time.perf_counter() - t0)
-            t = C.timeit(lambda: np.asarray(r.retarget(case.source).vertices), repeat)
-            t = {k: (v / frames if k != "times_s" else [x / frames for x in v]) for k, v in t.items() if k != "result"}
-            peak, _ = C.peak_memory(lambda: np.asarray(cls().fit(case.source, case.target).retarget(case.source).vertices))
+            t = C.timeit(
+                lambda case=case, r=r: np.asarray(r.retarget(case.source).vertices), repeat
+            )
+            t = {
+                k: (v / frames if k != "times_s" else [x / frames for x in v])
+                for k, v in t.items()
+                if k != "result"
+            }
+            peak, _ = C.peak_memory(
+                lambda case=case, cls=cls: np.asarray(
+                    cls().fit(case.source, case.target).retarget(case.source).vertices
+                )
+            )
             out[name][0].append(t)
             out[name][1].append(peak)
-            print(f"  {case.target.neutral.n_vertices:>7,} vertices, {name}: fit {C.fmt(fits[name][-1], 's')}, retarget per frame "
-                  f"min {C.fmt(t['min_s'], 's')}, median {C.fmt(t['median_s'], 's')}; peak traced memory of fit + retarget "
-                  f"{peak / 2**20:,.0f} MiB", flush=True)
+            print(
+                f"  {case.target.neutral.n_vertices:>7,} vertices, {name}: fit {C.fmt(fits[name][-1], 's')}, retarget per frame "
+                f"min {C.fmt(t['min_s'], 's')}, median {C.fmt(t['median_s'], 's')}; peak traced memory of fit + retarget "
+                f"{peak / 2**20:,.0f} MiB",
+                flush=True,
+            )
         del case
     entries = []
     for name, (t, p) in out.items():
-        e = C.scaling_entry(f"{name} retarget() per frame ({frames} frames; fit once)", "vertices (resolution)", sizes, t, p,
-                            extra={"fit_s": fits[name], "fit_exponent": C.fit_exponent(sizes, fits[name])},
-                            note="peak memory: tracemalloc over fit + retarget")
+        e = C.scaling_entry(
+            f"{name} retarget() per frame ({frames} frames; fit once)",
+            "vertices (resolution)",
+            sizes,
+            t,
+            p,
+            extra={"fit_s": fits[name], "fit_exponent": C.fit_exponent(sizes, fits[name])},
+            note="peak memory: tracemalloc over fit + retarget",
+        )
         entries.append(e)
         C.print_scaling(e)
-        print(f"    fit (one run each): " + ", ".join(C.fmt(x, "s") for x in fits[name]) + f"; exponent {e['fit_exponent']:.2f}")
+        print(
+            "    fit (one run each): "
+            + ", ".join(C.fmt(x, "s") for x in fits[name])
+            + f"; exponent {e['fit_exponent']:.2f}"
+        )
     return entries
 
 
@@ -77,33 +104,51 @@ def main(argv=None) -> dict:
     ap = C.parser(__doc__)
     ap.add_argument("--frames", type=int, default=None, help="default 1300 (130 with --quick)")
     ap.add_argument("--resolution", type=int, default=80000)
-    ap.add_argument("--clip", type=int, default=130, help="frames generated, then tiled to --frames")
+    ap.add_argument(
+        "--clip", type=int, default=130, help="frames generated, then tiled to --frames"
+    )
     ap.add_argument("--bases", type=int, default=28)
-    ap.add_argument("--baseline-frames", type=int, default=None, help="frames of the deformation_transfer baseline (default 96, 32 with --quick)")
+    ap.add_argument(
+        "--baseline-frames",
+        type=int,
+        default=None,
+        help="frames of the deformation_transfer baseline (default 96, 32 with --quick)",
+    )
     ap.add_argument("--skip-scaling", action="store_true")
     args = ap.parse_args(argv)
     repeat = C.repeats(args)
     n = args.frames or (130 if args.quick else 1300)
     m = args.baseline_frames or (32 if args.quick else 96)
-    result = {"script": "bench_coating", "machine": C.print_machine("bench_coating"), "rows": [], "scaling": []}
+    result = {
+        "script": "bench_coating",
+        "machine": C.print_machine("bench_coating"),
+        "rows": [],
+        "scaling": [],
+    }
 
     t0 = time.perf_counter()
     clip = min(args.clip, n)
     case = fr.cases.synthetic(seed=0, resolution=args.resolution, n_frames=clip)
     perf = case.source.performance
-    print(f"case: {perf.n_vertices} vertices, {perf.triangles.shape[0]} triangles; generated {clip} frames in {time.perf_counter() - t0:.1f} s")
+    print(
+        f"case: {perf.n_vertices} vertices, {perf.triangles.shape[0]} triangles; generated {clip} frames in {time.perf_counter() - t0:.1f} s"
+    )
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_coating_"))
     try:
         path = tmp / "source.npy"
-        mm = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(n, perf.n_vertices, 3))
+        mm = np.lib.format.open_memmap(
+            path, mode="w+", dtype=np.float32, shape=(n, perf.n_vertices, 3)
+        )
         for start in range(0, n, clip):
             stop = min(n, start + clip)
             mm[start:stop] = perf.vertices[: stop - start]
         mm.flush()
         del mm
-        source = fr.Source(fr.MeshSequence(np.load(path, mmap_mode="r"), perf.triangles, reference=perf.reference),
-                           feature_lines=case.source.feature_lines)
+        source = fr.Source(
+            fr.MeshSequence(np.load(path, mmap_mode="r"), perf.triangles, reference=perf.reference),
+            feature_lines=case.source.feature_lines,
+        )
         print(f"source: {n} frames, float32 memory-mapped")
 
         tiny = fr.cases.synthetic(resolution=300, n_frames=4)  # numba: compile or load the cache
@@ -130,11 +175,17 @@ def main(argv=None) -> dict:
             rets.append(ret_s)
             amortized.append((fit_s + ret_s - one_time) / n)
         fits, rets, amortized = fits[1:], rets[1:], amortized[1:]
-        print(f"coating fit {', '.join(f'{x:.2f}' for x in fits)} s; retarget {', '.join(f'{x:.2f}' for x in rets)} s; "
-              f"last setup (factorizations) {r.timings_['setup_s']:.2f} s")
+        print(
+            f"coating fit {', '.join(f'{x:.2f}' for x in fits)} s; retarget {', '.join(f'{x:.2f}' for x in rets)} s; "
+            f"last setup (factorizations) {r.timings_['setup_s']:.2f} s"
+        )
 
         # ---- deformation_transfer baseline ----------------------------------------------------
-        short = fr.Source(fr.MeshSequence(source.performance.vertices[:m], perf.triangles, reference=perf.reference))
+        short = fr.Source(
+            fr.MeshSequence(
+                source.performance.vertices[:m], perf.triangles, reference=perf.reference
+            )
+        )
         base = []
         for _ in range(repeat + 1):
             b = DeformationTransferRetargeter()
@@ -145,12 +196,24 @@ def main(argv=None) -> dict:
             b.retarget(short)
             base.append((b_fit - b.timings_["setup_s"] + time.perf_counter() - t) / m)
         base = base[1:]
-        result["rows"].append(C.time_row(
-            f"coating per frame amortized (source decomposition included), {perf.n_vertices:,} vertices, {n:,} frames",
-            stats(amortized), 0.040, baseline=(f"deformation_transfer per frame ({m} frames)", stats(base)),
-            source="issue 16 item 4", note="paper: ~127 ms on 8 cores"))
-        result["rows"].append(C.time_row(f"coating fit(), {perf.n_vertices:,} vertices, {n:,} frames", stats(fits), 4.0,
-                                         source="issue 16 item 4"))
+        result["rows"].append(
+            C.time_row(
+                f"coating per frame amortized (source decomposition included), {perf.n_vertices:,} vertices, {n:,} frames",
+                stats(amortized),
+                0.040,
+                baseline=(f"deformation_transfer per frame ({m} frames)", stats(base)),
+                source="issue 16 item 4",
+                note="paper: ~127 ms on 8 cores",
+            )
+        )
+        result["rows"].append(
+            C.time_row(
+                f"coating fit(), {perf.n_vertices:,} vertices, {n:,} frames",
+                stats(fits),
+                4.0,
+                source="issue 16 item 4",
+            )
+        )
 
         # ---- edit over the whole sequence -------------------------------------------------
         names = list(case.target.landmarks.names)
@@ -158,36 +221,71 @@ def main(argv=None) -> dict:
         h = case.target.neutral.height
         key = int(np.argmax(anim.extras["weights"][:, 1:].sum(axis=1)))
         goal = np.asarray(anim.vertices[key, corner]) + np.array([0.0, 0.02 * h, 0.0])
-        edit = C.timeit(lambda: r.edit(anim, points=[(key, corner, goal)], window=(0, n - 1), mode="both"), repeat)
+        edit = C.timeit(
+            lambda anim=anim, r=r: r.edit(
+                anim, points=[(key, corner, goal)], window=(0, n - 1), mode="both"
+            ),
+            repeat,
+        )
         d = edit["result"].provenance["diagnostics"]["last_edit"]
-        edit_peak, _ = C.peak_memory(lambda: r.edit(anim, points=[(key, corner, goal)], window=(0, n - 1), mode="both"))
-        print(f"edit(): propagation {1e3 * d['solve_s']:.0f} ms, re-synthesis {d.get('synthesis_s', float('nan')):.2f} s "
-              f"of {d.get('changed_frames')} changed frames (last call); peak traced memory {edit_peak / 2**20:,.0f} MiB")
-        result["rows"].append(C.time_row(f"coating edit() (large-scale, bases + weights), {n:,} frames", edit, 1.0,
-                                         source="issue 16 item 4",
-                                         note=f"goal stated for 1,300 frames; paper 4.5 s; peak traced {edit_peak / 2**20:,.0f} MiB"))
+        edit_peak, _ = C.peak_memory(
+            lambda anim=anim, r=r: r.edit(
+                anim, points=[(key, corner, goal)], window=(0, n - 1), mode="both"
+            )
+        )
+        print(
+            f"edit(): propagation {1e3 * d['solve_s']:.0f} ms, re-synthesis {d.get('synthesis_s', float('nan')):.2f} s "
+            f"of {d.get('changed_frames')} changed frames (last call); peak traced memory {edit_peak / 2**20:,.0f} MiB"
+        )
+        result["rows"].append(
+            C.time_row(
+                f"coating edit() (large-scale, bases + weights), {n:,} frames",
+                edit,
+                1.0,
+                source="issue 16 item 4",
+                note=f"goal stated for 1,300 frames; paper 4.5 s; peak traced {edit_peak / 2**20:,.0f} MiB",
+            )
+        )
         del edit
 
         # ---- memory of the chunked path ---------------------------------------------------------
         peaks = []
         for count in (n // 2, n):
-            part = fr.Source(fr.MeshSequence(source.performance.vertices[:count], perf.triangles, reference=perf.reference),
-                             feature_lines=case.source.feature_lines)
-            out = np.lib.format.open_memmap(tmp / "target.npy", mode="w+", dtype=np.float32,
-                                            shape=(count, case.target.neutral.n_vertices, 3))
+            part = fr.Source(
+                fr.MeshSequence(
+                    source.performance.vertices[:count], perf.triangles, reference=perf.reference
+                ),
+                feature_lines=case.source.feature_lines,
+            )
+            out = np.lib.format.open_memmap(
+                tmp / "target.npy",
+                mode="w+",
+                dtype=np.float32,
+                shape=(count, case.target.neutral.n_vertices, 3),
+            )
 
-            def run():
+            def run(out=out, part=part, r=r):
                 for sl, vertices in r.iter_retarget(part):
                     out[sl] = vertices
 
             peaks.append(C.peak_memory(run)[0])
             del out
-            print(f"chunked iter_retarget into a .npy, {count} frames: peak traced memory {peaks[-1] / 2**20:,.0f} MiB "
-                  f"(chunk_frames={r.chunk_frames})")
-        result["rows"].append(C.value_row(
-            f"coating iter_retarget peak memory, {n:,} frames / {n // 2:,} frames", peaks[1] / peaks[0], peaks[1] / peaks[0],
-            1.1, "x", "lower", source="issue 16 item 4 (bounded by the chunk)",
-            note=f"{peaks[0] / 2**20:,.0f} and {peaks[1] / 2**20:,.0f} MiB traced"))
+            print(
+                f"chunked iter_retarget into a .npy, {count} frames: peak traced memory {peaks[-1] / 2**20:,.0f} MiB "
+                f"(chunk_frames={r.chunk_frames})"
+            )
+        result["rows"].append(
+            C.value_row(
+                f"coating iter_retarget peak memory, {n:,} frames / {n // 2:,} frames",
+                peaks[1] / peaks[0],
+                peaks[1] / peaks[0],
+                1.1,
+                "x",
+                "lower",
+                source="issue 16 item 4 (bounded by the chunk)",
+                note=f"{peaks[0] / 2**20:,.0f} and {peaks[1] / 2**20:,.0f} MiB traced",
+            )
+        )
         del anim, r, source
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -195,8 +293,9 @@ def main(argv=None) -> dict:
 
     if not args.skip_scaling:
         print("scaling (synthetic cases, 10K to 160K vertices):")
-        result["scaling"] = scaling(SCALING_QUICK if args.quick else SCALING_FULL, 8 if args.quick else 16,
-                                    repeat)
+        result["scaling"] = scaling(
+            SCALING_QUICK if args.quick else SCALING_FULL, 8 if args.quick else 16, repeat
+        )
     return C.finish(result, args)
 
 

@@ -19,6 +19,7 @@ same product written as one numpy matmul.
 
 Run: ``python benchmarks/bench_cross_rig.py [--quick] [--json] [--repeat N] [--frames 300 1200] [--seeds 0 1 2] [--fidelity]``.
 """
+
 from __future__ import annotations
 
 import statistics
@@ -61,12 +62,24 @@ def measure(case, name, params, repeat, timings=None):
     got, want = np.asarray(anim.vertices), np.asarray(case.truth.vertices)
     height = np.ptp(want[0][:, 1])
     rms = 100 * np.sqrt(np.mean(np.sum((got - want) ** 2, axis=-1))) / height
-    vel = 100 * np.sqrt(np.mean(np.sum((np.diff(got, axis=0) - np.diff(want, axis=0)) ** 2, axis=-1))) / height
+    vel = (
+        100
+        * np.sqrt(np.mean(np.sum((np.diff(got, axis=0) - np.diff(want, axis=0)) ** 2, axis=-1)))
+        / height
+    )
     w = anim.weights
     outside = float(np.mean((w < -1e-9) | (w > 1 + 1e-9))) if w is not None else float("nan")
     if timings is not None and times:
-        timings["retarget"] = {"min_s": min(times), "median_s": statistics.median(times), "times_s": times}
-        timings["vertices"] = {"min_s": min(vertex_times), "median_s": statistics.median(vertex_times), "times_s": vertex_times}
+        timings["retarget"] = {
+            "min_s": min(times),
+            "median_s": statistics.median(times),
+            "times_s": times,
+        }
+        timings["vertices"] = {
+            "min_s": min(vertex_times),
+            "median_s": statistics.median(vertex_times),
+            "times_s": vertex_times,
+        }
         timings["anim"] = anim
     if not times:
         return rms, vel, outside, float("nan"), float("nan"), float("nan")
@@ -76,21 +89,36 @@ def measure(case, name, params, repeat, timings=None):
 def fidelity(frames: list[int], seeds: list[int]) -> None:
     """Per seed: bounded per-frame fit (markers) and default spacetime / layers, RMS % and the
     reduction against the bounded per-frame fit."""
-    print(f"{'frames':>6s} {'seed':>4s} {'bounded pf':>10s} {'st markers':>15s} {'st dense':>15s} {'layers':>15s}")
+    print(
+        f"{'frames':>6s} {'seed':>4s} {'bounded pf':>10s} {'st markers':>15s} {'st dense':>15s} {'layers':>15s}"
+    )
     for n in frames:
         for seed in seeds:
-            cases = {kind: fr.cases.cross_rig(seed=seed, n_frames=n, source_kind=kind) for kind in ("markers", "mesh")}
-            base = measure(cases["markers"], "spacetime_rangepf", {"lower": 0.0, "upper": 1.0}, 0)[0]
+            cases = {
+                kind: fr.cases.cross_rig(seed=seed, n_frames=n, source_kind=kind)
+                for kind in ("markers", "mesh")
+            }
+            base = measure(cases["markers"], "spacetime_rangepf", {"lower": 0.0, "upper": 1.0}, 0)[
+                0
+            ]
             row = []
-            for kind, name in (("markers", "spacetime"), ("mesh", "spacetime"), ("markers", "layers")):
+            for kind, name in (
+                ("markers", "spacetime"),
+                ("mesh", "spacetime"),
+                ("markers", "layers"),
+            ):
                 rms = measure(cases[kind], name, {}, 0)[0]
                 row.append(f"{rms:6.3f} ({100 * (1 - rms / base):+4.0f}%)")
-            print(f"{n:6d} {seed:4d} {base:10.3f} " + " ".join(f"{r:>15s}" for r in row), flush=True)
+            print(
+                f"{n:6d} {seed:4d} {base:10.3f} " + " ".join(f"{r:>15s}" for r in row), flush=True
+            )
 
 
 def main(argv=None) -> dict:
     parser = C.parser(__doc__)
-    parser.add_argument("--frames", type=int, nargs="+", default=None, help="default 300 1200 (300 with --quick)")
+    parser.add_argument(
+        "--frames", type=int, nargs="+", default=None, help="default 300 1200 (300 with --quick)"
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--fidelity", action="store_true", help="errors only, one row per seed")
     args = parser.parse_args(argv)
@@ -99,35 +127,65 @@ def main(argv=None) -> dict:
         fidelity(frames, args.seeds)
         return {}
     repeat = C.repeats(args)
-    result = {"script": "bench_cross_rig", "machine": C.print_machine("bench_cross_rig"), "rows": [], "scaling": []}
-    print(f"retarget() wall time, min / median of {repeat} warm runs; .vertices (evaluated lazily) timed apart")
+    result = {
+        "script": "bench_cross_rig",
+        "machine": C.print_machine("bench_cross_rig"),
+        "rows": [],
+        "scaling": [],
+    }
+    print(
+        f"retarget() wall time, min / median of {repeat} warm runs; .vertices (evaluated lazily) timed apart"
+    )
     kinds = ("markers",) if args.quick else ("markers", "mesh")
     for n, seed, kind in ((n, seed, kind) for n in frames for seed in args.seeds for kind in kinds):
         case = fr.cases.cross_rig(seed=seed, n_frames=n, source_kind=kind)
         print(f"\ncross_rig, seed {seed}, {n} frames, {kind} source")
-        print(f"{'method':40s} {'RMS %':>7s} {'vel %/fr':>9s} {'outside':>8s} {'min ms':>8s} {'med ms':>8s} {'.vertices med ms':>17s}")
+        print(
+            f"{'method':40s} {'RMS %':>7s} {'vel %/fr':>9s} {'outside':>8s} {'min ms':>8s} {'med ms':>8s} {'.vertices med ms':>17s}"
+        )
         got = {}
         for name, params, label in METHODS:
             timings = {}
             rms, vel, outside, tmin, tmed, tvert = measure(case, name, params, repeat, timings)
             got[label] = timings
-            print(f"{label:40s} {rms:7.3f} {vel:9.4f} {100 * outside:7.1f}% {1e3 * tmin:8.1f} {1e3 * tmed:8.1f} {1e3 * tvert:17.1f}", flush=True)
+            print(
+                f"{label:40s} {rms:7.3f} {vel:9.4f} {100 * outside:7.1f}% {1e3 * tmin:8.1f} {1e3 * tmed:8.1f} {1e3 * tvert:17.1f}",
+                flush=True,
+            )
         if (n, seed, kind) == (frames[0], args.seeds[0], "markers") and n == 300:
             ours, base = got["spacetime default"], got["bounded per-frame [0, 1] (baseline)"]
-            result["rows"].append(C.time_row(
-                "spacetime retarget(), cross_rig markers (68 landmarks), 300 frames", ours["retarget"], 0.010,
-                baseline=("bounded per-frame fit (spacetime_rangepf) retarget()", base["retarget"]), source="issue 13"))
+            result["rows"].append(
+                C.time_row(
+                    "spacetime retarget(), cross_rig markers (68 landmarks), 300 frames",
+                    ours["retarget"],
+                    0.010,
+                    baseline=(
+                        "bounded per-frame fit (spacetime_rangepf) retarget()",
+                        base["retarget"],
+                    ),
+                    source="issue 13",
+                )
+            )
             anim = ours["anim"]
             rig = case.target.blendshapes
             w = np.asarray(anim.weights, dtype=np.float64)
             flat = np.asarray(rig.deltas, dtype=np.float64).reshape(len(rig.names), -1)
             neutral = np.asarray(case.target.neutral.vertices, dtype=np.float64).ravel()
-            plain = C.timeit(lambda: (w @ flat + neutral).reshape(len(w), -1, 3), repeat)
+            plain = C.timeit(
+                lambda flat=flat, neutral=neutral, w=w: (w @ flat + neutral).reshape(len(w), -1, 3),
+                repeat,
+            )
             n_vertices = case.target.neutral.n_vertices
-            result["rows"].append(C.time_row(
-                f"Animation.vertices of a blendshape result, {len(w)} frames x {n_vertices:,} vertices", ours["vertices"], 0.020,
-                baseline=("numpy weights @ deltas + neutral (no head motion)", plain), source="issue 16 item 5",
-                note="spacetime default on cross_rig markers"))
+            result["rows"].append(
+                C.time_row(
+                    f"Animation.vertices of a blendshape result, {len(w)} frames x {n_vertices:,} vertices",
+                    ours["vertices"],
+                    0.020,
+                    baseline=("numpy weights @ deltas + neutral (no head motion)", plain),
+                    source="issue 16 item 5",
+                    note="spacetime default on cross_rig markers",
+                )
+            )
     C.print_rows(result["rows"])
     return C.finish(result, args)
 

@@ -12,7 +12,7 @@ does not run it. Prints tables (no pass/fail, no timing), each with the figure i
 - **units**: the cross-topology pair with the source or the target scaled by 0.01, 100 and
   1000; the result, in the target's units, must equal the unscaled run to 1e-6 relative.
 - **detail**: ``detail_error`` / ``detail_correlation`` on the wrinkled synthetic cases (the
-  presets' :data:`~faceretarget.evaluation.presets.DETAIL_CASES`), with the ratio to
+  presets' :data:`~faceretarget.evaluation.reproduction.DETAIL_CASES`), with the ratio to
   deformation transfer (goal <= 0.7) and the same measurement on the wrinkle-free twin (what
   the metric sees that is not wrinkles).
 - **cross-detail**: the same on the wrinkled cross-topology case (``cases.cross_topology(wrinkles=True)``:
@@ -24,6 +24,7 @@ does not run it. Prints tables (no pass/fail, no timing), each with the figure i
 - **piercing**: ``normalmesh``'s piercing-error share on ICT (goal < 0.5% of the normal-mesh
   vertices) and its coverage.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,9 +35,9 @@ from pathlib import Path
 import numpy as np
 
 import faceretarget as fr
-from faceretarget.evaluation.metrics import METRICS, normal_detail, to_head_frame
-from faceretarget.evaluation.presets import DETAIL_CASES
 from faceretarget.evaluation.harness import resolve_case
+from faceretarget.evaluation.metrics import METRICS, normal_detail, to_head_frame
+from faceretarget.evaluation.reproduction import DETAIL_CASES
 from faceretarget.testing import _Affine, _moved_source, _moved_target, _static_source
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -74,8 +75,18 @@ def cross_topology(frames: int) -> None:
     for m in METHODS:
         rest = rms_percent(run(m, still, target).vertices, neutral, height)
         rms[m] = rms_percent(run(m, case.source, target).vertices, case.truth.vertices, height)
-        rows.append((m, f"{rest:.5f}", "yes" if rest < 0.01 else "NO", f"{rms[m]:.4f}", f"{rms[m] / rms['deformation_transfer']:.2f}"))
-    print(f"cross-topology ({case.source.performance.reference.n_vertices} -> {target.neutral.n_vertices} vertices, {frames} frames)")
+        rows.append(
+            (
+                m,
+                f"{rest:.5f}",
+                "yes" if rest < 0.01 else "NO",
+                f"{rms[m]:.4f}",
+                f"{rms[m] / rms['deformation_transfer']:.2f}",
+            )
+        )
+    print(
+        f"cross-topology ({case.source.performance.reference.n_vertices} -> {target.neutral.n_vertices} vertices, {frames} frames)"
+    )
     table(rows, ("method", "neutral-in error (% H)", "< 0.01%", "RMS error (% H)", "RMS / DT"))
 
 
@@ -96,7 +107,9 @@ def units(frames: int) -> None:
             worst.append((f"target x{s:g}", rms_percent(got, base, height) / 100.0))
         label, err = max(worst, key=lambda x: x[1])
         rows.append((m, f"{err:.2e}", label, "yes" if err <= 1e-6 else "NO"))
-    print("unit-scaled runs (cross-topology pair; largest RMS difference / face height over x0.01, x100, x1000 of either side)")
+    print(
+        "unit-scaled runs (cross-topology pair; largest RMS difference / face height over x0.01, x100, x1000 of either side)"
+    )
     table(rows, ("method", "largest difference", "at", "<= 1e-6"))
 
 
@@ -120,9 +133,34 @@ def detail(resolution: int | None) -> None:
             )
         dt = got["deformation_transfer"]
         for m, (rms, de, corr, de_twin) in got.items():
-            rows.append((label, m, f"{rms:.4f}", f"{de:.5f}", f"{de / dt[1]:.2f}", f"{corr:.3f}", f"{de_twin:.5f}", f"{de_twin / dt[3]:.2f}"))
-    print(f"detail (wrinkled synthetic cases{'' if resolution is None else f', resolution {resolution}'}; goal: detail_error ratio to DT <= 0.7)")
-    table(rows, ("case", "method", "RMS (% H)", "detail_error (% H)", "ratio to DT", "detail corr.", "wrinkle-free twin", "twin ratio"))
+            rows.append(
+                (
+                    label,
+                    m,
+                    f"{rms:.4f}",
+                    f"{de:.5f}",
+                    f"{de / dt[1]:.2f}",
+                    f"{corr:.3f}",
+                    f"{de_twin:.5f}",
+                    f"{de_twin / dt[3]:.2f}",
+                )
+            )
+    print(
+        f"detail (wrinkled synthetic cases{'' if resolution is None else f', resolution {resolution}'}; goal: detail_error ratio to DT <= 0.7)"
+    )
+    table(
+        rows,
+        (
+            "case",
+            "method",
+            "RMS (% H)",
+            "detail_error (% H)",
+            "ratio to DT",
+            "detail corr.",
+            "wrinkle-free twin",
+            "twin ratio",
+        ),
+    )
 
 
 def wrinkle_response(animations, cases):
@@ -130,7 +168,10 @@ def wrinkle_response(animations, cases):
     are (wrinkled, twin) pairs of results or of cases (their truths)."""
     case = cases[0]
     neutral = np.asarray(case.target.neutral.vertices, dtype=np.float64)
-    local = [to_head_frame(np.asarray(a.vertices, dtype=np.float64), c.truth.head_motion) for a, c in zip(animations, cases)]
+    local = [
+        to_head_frame(np.asarray(a.vertices, dtype=np.float64), c.truth.head_motion)
+        for a, c in zip(animations, cases)
+    ]
     return normal_detail(local[0] - local[1], case.target.neutral.triangles, neutral)
 
 
@@ -159,15 +200,54 @@ def cross_detail(frames: int, params: dict | None = None) -> None:
         }
     dt = got["deformation_transfer"]
     for m, g in got.items():
-        rows.append((m, "yes", f"{g['rms']:.4f}", f"{g['de']:.5f}", f"{g['corr']:.3f}", f"{g['de'] / dt['de']:.2f}",
-                     f"{g['w_err']:.5f}", f"{g['w_err'] / dt['w_err']:.2f}", f"{g['w_gain']:.2f}", f"{g['w_corr']:.3f}"))
-        rows.append((m, "no", f"{g['rms_twin']:.4f}", f"{g['de_twin']:.5f}", f"{g['corr_twin']:.3f}", f"{g['de_twin'] / dt['de_twin']:.2f}",
-                     "", "", "", ""))
+        rows.append(
+            (
+                m,
+                "yes",
+                f"{g['rms']:.4f}",
+                f"{g['de']:.5f}",
+                f"{g['corr']:.3f}",
+                f"{g['de'] / dt['de']:.2f}",
+                f"{g['w_err']:.5f}",
+                f"{g['w_err'] / dt['w_err']:.2f}",
+                f"{g['w_gain']:.2f}",
+                f"{g['w_corr']:.3f}",
+            )
+        )
+        rows.append(
+            (
+                m,
+                "no",
+                f"{g['rms_twin']:.4f}",
+                f"{g['de_twin']:.5f}",
+                f"{g['corr_twin']:.3f}",
+                f"{g['de_twin'] / dt['de_twin']:.2f}",
+                "",
+                "",
+                "",
+                "",
+            )
+        )
     wrinkle = 100.0 * float(np.sqrt(np.mean(truth**2))) / height
-    print(f"cross-topology detail ({case.source.performance.reference.n_vertices} -> {case.target.neutral.n_vertices} vertices, {frames} frames; "
-          f"the wrinkles' own fine-scale motion in the truth: {wrinkle:.5f}% H; goal: detail_error ratio to DT <= 0.7)")
-    table(rows, ("method", "wrinkles", "RMS (% H)", "detail_error (% H)", "detail corr.", "ratio to DT",
-                 "wrinkle error (% H)", "w. err. / DT", "wrinkle gain", "wrinkle corr."))
+    print(
+        f"cross-topology detail ({case.source.performance.reference.n_vertices} -> {case.target.neutral.n_vertices} vertices, {frames} frames; "
+        f"the wrinkles' own fine-scale motion in the truth: {wrinkle:.5f}% H; goal: detail_error ratio to DT <= 0.7)"
+    )
+    table(
+        rows,
+        (
+            "method",
+            "wrinkles",
+            "RMS (% H)",
+            "detail_error (% H)",
+            "detail corr.",
+            "ratio to DT",
+            "wrinkle error (% H)",
+            "w. err. / DT",
+            "wrinkle gain",
+            "wrinkle corr.",
+        ),
+    )
 
 
 def piercing(frames: int) -> None:
@@ -183,17 +263,46 @@ def piercing(frames: int) -> None:
         cov = anim.provenance["diagnostics"]["coverage"]
         rms = rms_percent(anim.vertices, case.truth.vertices, float(case.target.neutral.height))
         per_frame = float(p["source_share_per_frame"])
-        rows.append((levels, r.levels_, p["normal_mesh_vertices"], f"{100 * p['target_share']:.3f}", f"{100 * per_frame:.3f}",
-                     f"{100 * cov['covered']:.1f}", f"{rms:.4f}"))
+        rows.append(
+            (
+                levels,
+                r.levels_,
+                p["normal_mesh_vertices"],
+                f"{100 * p['target_share']:.3f}",
+                f"{100 * per_frame:.3f}",
+                f"{100 * cov['covered']:.1f}",
+                f"{rms:.4f}",
+            )
+        )
     print("normalmesh piercing errors on ICT (goal < 0.5% of the normal-mesh vertices)")
-    table(rows, ("levels", "used", "normal-mesh vertices", "target share (%)", "source mean per frame (%)", "covered (%)", "RMS (% H)"))
+    table(
+        rows,
+        (
+            "levels",
+            "used",
+            "normal-mesh vertices",
+            "target share (%)",
+            "source mean per frame (%)",
+            "covered (%)",
+            "RMS (% H)",
+        ),
+    )
 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=60)
-    ap.add_argument("--detail-resolution", type=int, default=None, help="resolution of the detail cases (default: the presets')")
-    ap.add_argument("--skip", default="", help="comma-separated parts to skip: cross, units, detail, cross-detail, piercing")
+    ap.add_argument(
+        "--detail-resolution",
+        type=int,
+        default=None,
+        help="resolution of the detail cases (default: the presets')",
+    )
+    ap.add_argument(
+        "--skip",
+        default="",
+        help="comma-separated parts to skip: cross, units, detail, cross-detail, piercing",
+    )
     args = ap.parse_args(argv)
     C.print_machine("bench_dense_fidelity (errors only, no timings)")
     skip = set(filter(None, args.skip.split(",")))

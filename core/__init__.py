@@ -9,14 +9,14 @@ Public API: :func:`available`, :func:`get`, the model types, :class:`Retargeter`
 :class:`Capabilities`, :data:`hookimpl`, the error types (``faceretarget.errors``)
 and the readers/writers (``faceretarget.load``, ``faceretarget.save``).
 """
+
 from __future__ import annotations
 
 from importlib import import_module
 from typing import Any
 
-from ._version import __version__
-
 from . import _numba_cache  # noqa: E402
+from ._version import __version__
 
 _numba_cache.install()  # concurrent processes sharing numba's cache never fail a call (numba is not imported here)
 
@@ -25,8 +25,8 @@ from .hookspecs import Metric, Preset, Reader, Writer, hookimpl, hookspec  # noq
 from .model import (  # noqa: E402
     Animation,
     BlendshapeRig,
-    LayeredRig,
     Landmarks,
+    LayeredRig,
     MarkerSequence,
     Mesh,
     MeshSequence,
@@ -113,7 +113,20 @@ def save(obj, path, **options):
     return _save(obj, path, **options)
 
 
-_LAZY = {"cases": ".cases", "testing": ".testing", "evaluation": ".evaluation", "correspond": ".correspond", "io": ".io", "geometry": ".geometry", "registry": ".registry", "validation": ".validation", "manifest": ".manifest", "errors": ".errors", "model": ".model", "naming": ".naming"}
+_LAZY = {
+    "cases": ".cases",
+    "testing": ".testing",
+    "evaluation": ".evaluation",
+    "correspond": ".correspond",
+    "io": ".io",
+    "geometry": ".geometry",
+    "registry": ".registry",
+    "validation": ".validation",
+    "manifest": ".manifest",
+    "errors": ".errors",
+    "model": ".model",
+    "naming": ".naming",
+}
 
 
 def __getattr__(name: str):

@@ -1,4 +1,5 @@
 """Values typed on the command line: Python literals and ``--set`` pairs (every command alike)."""
+
 from __future__ import annotations
 
 import ast
@@ -29,7 +30,9 @@ def parse_sets(pairs: list[str] | None, *, per_method: bool = False) -> dict[str
         if per_method:
             method, dot, param = key.rpartition(".")
             if not sep or not dot or not method or not param:
-                raise ParameterError(f"--set {pair!r}: expected METHOD.PARAM=VALUE, e.g. --set METHOD.alpha=0.05")
+                raise ParameterError(
+                    f"--set {pair!r}: expected METHOD.PARAM=VALUE, e.g. --set METHOD.alpha=0.05"
+                )
             out.setdefault(method, {})[param] = literal(value)
         else:
             if not sep or not key:

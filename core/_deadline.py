@@ -25,6 +25,7 @@ still defeat them on purpose (killing the watchdog process, ``ctypes``): the onl
 complete isolation is a process of its own, as for runs of methods, which are limited by
 killing their worker (:mod:`faceretarget.evaluation._workers`).
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -34,8 +35,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 __all__ = ["deadline", "watchdog_process", "DeadlineExpired", "HARD_EXIT_STATUS", "grace_for"]
 
@@ -69,7 +70,8 @@ def _alarm_usable() -> bool:
     return (
         hasattr(signal, "setitimer")
         and threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGALRM) is not None  # None: installed from C, cannot be restored
+        and signal.getsignal(signal.SIGALRM)
+        is not None  # None: installed from C, cannot be restored
     )
 
 
@@ -85,7 +87,9 @@ def _wake_usable() -> bool:
 def _inject(thread_id: int, exc: type | None) -> None:
     """Raise ``exc`` in thread ``thread_id`` at its next bytecode (None: cancel a pending one)."""
     try:
-        ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(thread_id), ctypes.py_object(exc) if exc else None)
+        ctypes.pythonapi.PyThreadState_SetAsyncExc(
+            ctypes.c_ulong(thread_id), ctypes.py_object(exc) if exc else None
+        )
     except (AttributeError, ctypes.ArgumentError):  # not CPython
         pass
 
@@ -100,7 +104,9 @@ def watchdog_process() -> Iterator[None]:
         if not outer:
             try:
                 _process = subprocess.Popen(
-                    [sys.executable, "-I", _WATCHDOG_SCRIPT, str(os.getpid())], stdin=subprocess.PIPE, stdout=subprocess.DEVNULL
+                    [sys.executable, "-I", _WATCHDOG_SCRIPT, str(os.getpid())],
+                    stdin=subprocess.PIPE,
+                    stdout=subprocess.DEVNULL,
                 )
             except OSError:  # cannot start processes here: layers 1-3 only
                 _process = None
@@ -134,7 +140,9 @@ def _tell_process(line: str) -> None:
 
 
 @contextmanager
-def deadline(seconds: float | None, *, hard: str | None = None, grace: float | None = None) -> Iterator[None]:
+def deadline(
+    seconds: float | None, *, hard: str | None = None, grace: float | None = None
+) -> Iterator[None]:
     """Raise :class:`DeadlineExpired` inside the block if it is still running after
     ``seconds`` (None or 0: no limit). With ``hard``, a block that cannot be interrupted
     ends the process ``grace`` seconds later (default :func:`grace_for`), printing ``hard``."""
@@ -188,7 +196,9 @@ def deadline(seconds: float | None, *, hard: str | None = None, grace: float | N
     try:
         if alarm:
             signal.signal(signal.SIGALRM, expired)
-            previous_delay, previous_interval = signal.setitimer(signal.ITIMER_REAL, seconds, _REPEAT)
+            previous_delay, previous_interval = signal.setitimer(
+                signal.ITIMER_REAL, seconds, _REPEAT
+            )
         if wake:
             signal.signal(_WAKE, expired)
         if hard:
@@ -200,7 +210,9 @@ def deadline(seconds: float | None, *, hard: str | None = None, grace: float | N
         while True:  # a DeadlineExpired arriving while this runs must not leave anything armed
             try:
                 with lock:
-                    state["armed"] = False  # an alarm or injection from here on is ignored / cancelled
+                    state["armed"] = (
+                        False  # an alarm or injection from here on is ignored / cancelled
+                    )
                     done.set()
                     _inject(target, None)
                 if hard:
@@ -216,5 +228,7 @@ def deadline(seconds: float | None, *, hard: str | None = None, grace: float | N
                 break
             except DeadlineExpired:
                 continue
-    if completed and state["fired"]:  # the block caught every DeadlineExpired and went on: still too slow
+    if (
+        completed and state["fired"]
+    ):  # the block caught every DeadlineExpired and went on: still too slow
         raise DeadlineExpired(f"ran past {seconds:g} s")

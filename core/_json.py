@@ -1,4 +1,5 @@
 """The one conversion of Python/numpy values to plain JSON data (provenance, results, ``--json``)."""
+
 from __future__ import annotations
 
 from typing import Any

@@ -17,6 +17,7 @@ processes of one run).
 or at once if it already is; it never imports numba itself. Other errors, and any
 error of a kernel's compilation, are raised as before.
 """
+
 from __future__ import annotations
 
 import importlib.abc
@@ -35,7 +36,9 @@ _LOCK = threading.Lock()
 
 
 def _is_save_race(exc: BaseException) -> bool:
-    return isinstance(exc, OSError) or (isinstance(exc, RuntimeError) and "no compiled object" in str(exc))
+    return isinstance(exc, OSError) or (
+        isinstance(exc, RuntimeError) and "no compiled object" in str(exc)
+    )
 
 
 def _patch(caching) -> None:
@@ -55,7 +58,9 @@ def _patch(caching) -> None:
     def load_overload(self, sig, target_context):
         try:
             found = load(self, sig, target_context)
-        except Exception:  # an entry half-replaced by another process, or unreadable: compile instead
+        except (
+            Exception
+        ):  # an entry half-replaced by another process, or unreadable: compile instead
             found = None
         if found is None:
             _notice_compiling(getattr(self, "_py_func", None))
@@ -70,7 +75,11 @@ def _patch(caching) -> None:
             cache_file._source_stamp = (cache_file._source_stamp, kernel_stamp())
 
     save_overload.__doc__, load_overload.__doc__ = save.__doc__, load.__doc__
-    cache.save_overload, cache.load_overload, cache.__init__ = save_overload, load_overload, __init__
+    cache.save_overload, cache.load_overload, cache.__init__ = (
+        save_overload,
+        load_overload,
+        __init__,
+    )
     setattr(cache, _MARK, True)
 
 
@@ -83,10 +92,14 @@ def _kernel_files() -> list[str]:
     roots = [os.path.dirname(os.path.abspath(__file__))]
     spec = importlib.util.find_spec("faceretarget.plugins")
     roots += list(spec.submodule_search_locations or []) if spec is not None else []
-    found = set()
+    found: set[str] = set()
     for root in roots:
         for folder, _, files in os.walk(root):
-            found.update(os.path.join(folder, f) for f in files if f.startswith("_") and f.endswith("kernels.py"))
+            found.update(
+                os.path.join(folder, f)
+                for f in files
+                if f.startswith("_") and f.endswith("kernels.py")
+            )
     return sorted(found)
 
 
@@ -122,7 +135,9 @@ COMPILE_NOTICE = (
 )
 #: Another process's notice younger than this (seconds) silences this one.
 NOTICE_QUIET_SECONDS = 600.0
-_MARKER = os.path.join(tempfile.gettempdir(), f"faceretarget-compile-notice-{getattr(os, 'getuid', lambda: 0)()}")
+_MARKER = os.path.join(
+    tempfile.gettempdir(), f"faceretarget-compile-notice-{getattr(os, 'getuid', lambda: 0)()}"
+)
 _noticed = False
 
 
@@ -163,10 +178,11 @@ class _Finder(importlib.abc.MetaPathFinder):
         if loader is None or not hasattr(loader, "exec_module"):
             return spec
         original = loader.exec_module
+        real = loader
 
         class Loader(importlib.abc.Loader):
             def create_module(self, spec):
-                return loader.create_module(spec)
+                return real.create_module(spec)
 
             def exec_module(self, module):
                 original(module)

@@ -8,6 +8,7 @@ inside :func:`single_threaded_blas`; large factorizations elsewhere keep their t
 large product inside such a path takes them back with :func:`default_threaded_blas`.
 Results are identical: only the number of BLAS threads changes.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -31,7 +32,9 @@ def _get_controller():
                 _controller = False
             else:
                 _controller = ThreadpoolController()
-                blas = [lib.num_threads for lib in _controller.lib_controllers if lib.user_api == "blas"]
+                blas = [
+                    lib.num_threads for lib in _controller.lib_controllers if lib.user_api == "blas"
+                ]
                 _default_threads = max(blas, default=1)
     return _controller
 

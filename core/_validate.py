@@ -4,9 +4,10 @@ Each helper returns a *read-only view or copy* of the array (never the caller's
 array with its flags changed) and raises a typed error whose message names the
 argument, what was wrong and how to fix it.
 """
+
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -28,7 +29,9 @@ def as_array(value, name: str) -> np.ndarray:
     try:
         return np.asarray(value)
     except Exception as exc:
-        raise ShapeError(f"{name}: could not read as an array ({exc}); pass a rectangular numpy array") from None
+        raise ShapeError(
+            f"{name}: could not read as an array ({exc}); pass a rectangular numpy array"
+        ) from None
 
 
 def as_float_array(
@@ -48,7 +51,9 @@ def as_float_array(
     """
     arr = as_array(value, name)
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
-        raise ShapeError(f"{name}: expected numbers, got dtype {arr.dtype}; pass a float array of shape {_fmt(shape)}")
+        raise ShapeError(
+            f"{name}: expected numbers, got dtype {arr.dtype}; pass a float array of shape {_fmt(shape)}"
+        )
     if np.iscomplexobj(arr):
         raise ShapeError(f"{name}: complex values are not supported; pass real coordinates")
     check_shape(arr, name, shape)
@@ -60,7 +65,9 @@ def as_float_array(
     return readonly(arr)
 
 
-def as_index_array(value, name: str, shape: Sequence[int | None], upper: int | None = None) -> np.ndarray:
+def as_index_array(
+    value, name: str, shape: Sequence[int | None], upper: int | None = None
+) -> np.ndarray:
     """Validate an integer index array with every entry in ``[0, upper)``."""
     arr = as_array(value, name)
     if arr.size == 0 and arr.dtype.kind not in "iu":
@@ -75,7 +82,9 @@ def as_index_array(value, name: str, shape: Sequence[int | None], upper: int | N
     if arr.size:
         lo, hi = int(arr.min()), int(arr.max())
         if lo < 0:
-            raise IndexRangeError(f"{name}: negative index {lo}; indices are 0-based and must be >= 0")
+            raise IndexRangeError(
+                f"{name}: negative index {lo}; indices are 0-based and must be >= 0"
+            )
         if upper is not None and hi >= upper:
             raise IndexRangeError(
                 f"{name}: index {hi} out of range for {upper} items (valid 0..{upper - 1}); "
@@ -104,7 +113,9 @@ def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False) -> None
         raise NonFiniteError(f"{name}: {int(bad.sum())} {what}, first at index {first}{hint}")
 
 
-def as_names(value, name: str, count: int | None = None, *, default_prefix: str | None = None) -> tuple[str, ...]:
+def as_names(
+    value, name: str, count: int | None = None, *, default_prefix: str | None = None
+) -> tuple[str, ...]:
     """Validate a sequence of unique, non-empty string names (optionally of a given count)."""
     if value is None:
         if default_prefix is None or count is None:
@@ -118,7 +129,9 @@ def as_names(value, name: str, count: int | None = None, *, default_prefix: str 
         try:
             items = list(value)
         except Exception:
-            raise InputError(f"{name}: expected a sequence of names, got {type(value).__name__}") from None
+            raise InputError(
+                f"{name}: expected a sequence of names, got {type(value).__name__}"
+            ) from None
     for v in items:
         if not isinstance(v, str):
             raise InputError(f"{name}: names must be strings, got {v!r} ({type(v).__name__})")
@@ -131,7 +144,9 @@ def as_names(value, name: str, count: int | None = None, *, default_prefix: str 
     seen: dict[str, int] = {}
     for i, n in enumerate(names):
         if n in seen:
-            raise InputError(f"{name}: duplicate name {n!r} at positions {seen[n]} and {i}; names must be unique")
+            raise InputError(
+                f"{name}: duplicate name {n!r} at positions {seen[n]} and {i}; names must be unique"
+            )
         seen[n] = i
     return names
 
@@ -140,7 +155,9 @@ def as_fps(value, name: str = "fps") -> float:
     try:
         fps = float(value)
     except (TypeError, ValueError, OverflowError):
-        raise InputError(f"{name}: expected a positive number of frames per second, got {value!r}") from None
+        raise InputError(
+            f"{name}: expected a positive number of frames per second, got {value!r}"
+        ) from None
     if not np.isfinite(fps) or fps <= 0:
         raise InputError(f"{name}: expected a positive number of frames per second, got {value!r}")
     return fps
@@ -156,11 +173,25 @@ def short_repr(value, limit: int = 60) -> str:
 
 
 def _fmt(shape: Sequence[int | None]) -> str:
-    return "(" + ", ".join("*" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+    return (
+        "("
+        + ", ".join("*" if s is None else str(s) for s in shape)
+        + ("," if len(shape) == 1 else "")
+        + ")"
+    )
 
 
-def check_number(value, name: str, *, integer: bool = False, low: float | None = None, high: float | None = None,
-                 open_low: bool = False, allow_none: bool = False, choices: Sequence[str] = ()):
+def check_number(
+    value,
+    name: str,
+    *,
+    integer: bool = False,
+    low: float | None = None,
+    high: float | None = None,
+    open_low: bool = False,
+    allow_none: bool = False,
+    choices: Sequence[str] = (),
+):
     """A numeric parameter (of a retargeter, reader...) checked for type, finiteness and range.
 
     Returns the value as ``int`` or ``float`` (None passes when ``allow_none``, and one of the
@@ -174,9 +205,13 @@ def check_number(value, name: str, *, integer: bool = False, low: float | None =
     want = "a whole number" if integer else "a finite number"
     if choices:
         want = f"{', '.join(map(repr, choices))} or {want}"
-    limits = ([f"{'>' if open_low else '>='} {low}"] if low is not None else []) + ([f"<= {high}"] if high is not None else [])
+    limits = ([f"{'>' if open_low else '>='} {low}"] if low is not None else []) + (
+        [f"<= {high}"] if high is not None else []
+    )
     message = f"{name}: expected {want}{' ' + ' and '.join(limits) if limits else ''}, got {short_repr(value)}"
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(
+        value, (int, float, np.integer, np.floating)
+    ):
         raise InputError(message)
     try:
         as_float = float(value)
@@ -185,7 +220,9 @@ def check_number(value, name: str, *, integer: bool = False, low: float | None =
     if not np.isfinite(as_float) or (integer and not as_float.is_integer()):
         raise InputError(message)
     number = int(value) if integer else as_float
-    if (low is not None and (number < low or (open_low and number == low))) or (high is not None and number > high):
+    if (low is not None and (number < low or (open_low and number == low))) or (
+        high is not None and number > high
+    ):
         raise InputError(message)
     return number
 
@@ -212,7 +249,9 @@ def did_you_mean(name, choices, *, n: int = 3, cutoff: float = 0.6) -> str:
     for key in keys:
         if key in lowered and key != name:
             found.append(lowered[key])
-        found.extend(lowered[m] for m in difflib.get_close_matches(key, list(lowered), n=n, cutoff=cutoff))
+        found.extend(
+            lowered[m] for m in difflib.get_close_matches(key, list(lowered), n=n, cutoff=cutoff)
+        )
     found = [f for f in dict.fromkeys(found) if f != name][:n]
     if not found:
         return ""
@@ -222,7 +261,9 @@ def did_you_mean(name, choices, *, n: int = 3, cutoff: float = 0.6) -> str:
 def check_choice(value, name: str, choices: Sequence[str]) -> str:
     """A string parameter that must be one of ``choices`` (InputError listing them otherwise)."""
     if not isinstance(value, str) or value not in choices:
-        raise InputError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {short_repr(value)}{did_you_mean(value, choices)}")
+        raise InputError(
+            f"{name}: expected one of {', '.join(map(repr, choices))}, got {short_repr(value)}{did_you_mean(value, choices)}"
+        )
     return value
 
 

@@ -9,6 +9,7 @@ target. End of input (the target closed the pipe, or exited) ends it. It runs in
 of its own, so nothing in the target (a plugin that ignores or blocks every signal, or
 compiled code that never releases the GIL) can keep it from firing.
 """
+
 from __future__ import annotations
 
 import os
@@ -45,7 +46,10 @@ def main(target: int) -> None:
             line, pending = pending.split(b"\n", 1)
             if line.startswith(b"arm "):
                 _, seconds, text = line.split(b" ", 2)
-                deadline, message = time.monotonic() + float(seconds), bytes.fromhex(text.decode("ascii"))
+                deadline, message = (
+                    time.monotonic() + float(seconds),
+                    bytes.fromhex(text.decode("ascii")),
+                )
             elif line == b"disarm":
                 deadline = None
 

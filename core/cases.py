@@ -35,6 +35,7 @@ layered model of :mod:`faceretarget.recipes` (per frame a convex emotion mix + a
 viseme mix + a blink), so the layered description is exact; :func:`cross_rig` gives its
 own animation-like curves, which the layers only approximate.
 """
+
 from __future__ import annotations
 
 import copy
@@ -46,8 +47,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from . import recipes
-from .correspond.topology import boundary_loops
 from ._validate import as_fps
+from .correspond.topology import boundary_loops
 from .errors import InputError, UnknownNameError
 from .model import (
     Animation,
@@ -62,7 +63,21 @@ from .model import (
     apply_head_motion,
 )
 
-__all__ = ["Case", "synthetic", "ict", "cross_rig", "cross_topology", "face_surface", "CASES", "get_case", "MARKER_LAYOUT", "EMOTION_LAYER", "SPEECH_LAYER", "BLINK_LAYER", "EXAMPLES"]
+__all__ = [
+    "Case",
+    "synthetic",
+    "ict",
+    "cross_rig",
+    "cross_topology",
+    "face_surface",
+    "CASES",
+    "get_case",
+    "MARKER_LAYOUT",
+    "EMOTION_LAYER",
+    "SPEECH_LAYER",
+    "BLINK_LAYER",
+    "EXAMPLES",
+]
 
 #: Poses of the three layers (names of recipes in :mod:`faceretarget.recipes`).
 EMOTION_LAYER = ("neutral", "happiness", "sadness", "anger", "surprise", "disgust")
@@ -148,7 +163,9 @@ def _cycling_choice(rng: np.random.Generator, choices: int, count: int) -> np.nd
     return np.concatenate([rng.permutation(choices) for _ in range(reps)])[:count]
 
 
-def _layer_curves(rng: np.random.Generator, n_frames: int, fps: float, n_emotions: int, n_visemes: int):
+def _layer_curves(
+    rng: np.random.Generator, n_frames: int, fps: float, n_emotions: int, n_visemes: int
+):
     """Layer coefficients: emotion (F, Ke) and speech (F, Ks) convex, blink (F, 2) convex."""
     # emotion: a key every 0.8-1.6 s, starting neutral; each key mixes one emotion with neutral
     times = [0.0]
@@ -197,7 +214,11 @@ def _layer_curves(rng: np.random.Generator, n_frames: int, fps: float, n_emotion
         x = (frames - start) / unit
         closing = np.clip(x / 3.0, 0.0, 1.0)
         opening = np.clip((x - 4.0) / 5.0, 0.0, 1.0)
-        pulse = np.where(x < 4.0, closing * closing * (3 - 2 * closing), 1.0 - opening * opening * (3 - 2 * opening))
+        pulse = np.where(
+            x < 4.0,
+            closing * closing * (3 - 2 * closing),
+            1.0 - opening * opening * (3 - 2 * opening),
+        )
         blink = np.maximum(blink, depth * np.where((x >= 0) & (x <= 9.0), pulse, 0.0))
         start += rng.uniform(1.5, 3.5) * fps
     blinks = np.stack([1.0 - blink, blink], axis=1)
@@ -222,10 +243,19 @@ def _layer_recipe_matrices(names) -> tuple[dict[str, np.ndarray], list[str]]:
 
 def _example_weights(names) -> np.ndarray:
     tables = {"emotion": recipes.EMOTIONS, "viseme": recipes.VISEMES, "blink": recipes.BLINKS}
-    return np.stack([recipes.resolve(tables[t][r], names, on_unmapped="ignore") for _, t, r in EXAMPLES])
+    return np.stack(
+        [recipes.resolve(tables[t][r], names, on_unmapped="ignore") for _, t, r in EXAMPLES]
+    )
 
 
-def _head_motion(rng: np.random.Generator, n_frames: int, fps: float, pivot: np.ndarray, height: float, enabled: bool) -> np.ndarray:
+def _head_motion(
+    rng: np.random.Generator,
+    n_frames: int,
+    fps: float,
+    pivot: np.ndarray,
+    height: float,
+    enabled: bool,
+) -> np.ndarray:
     """(F, 4, 4) smooth rigid motion about ``pivot`` (the neck), identity at frame 0."""
     out = np.tile(np.eye(4), (n_frames, 1, 1))
     if not enabled:
@@ -236,12 +266,18 @@ def _head_motion(rng: np.random.Generator, n_frames: int, fps: float, pivot: np.
         freqs = rng.uniform(0.08, 0.6, 3)
         phases = rng.uniform(0.0, 2 * np.pi, 3)
         amps = rng.uniform(0.4, 1.0, 3)
-        c = (amps[:, None] * np.sin(2 * np.pi * freqs[:, None] * t[None] + phases[:, None])).sum(axis=0)
+        c = (amps[:, None] * np.sin(2 * np.pi * freqs[:, None] * t[None] + phases[:, None])).sum(
+            axis=0
+        )
         c -= c[0]
         return amplitude * c / max(np.abs(c).max(), 1e-12)
 
-    angles = np.deg2rad([smooth_curve(_HEAD_ROTATION_DEG * f) for f in (0.6, 1.0, 0.4)])  # pitch, yaw, roll
-    trans = np.stack([smooth_curve(_HEAD_TRANSLATION * height * f) for f in (1.0, 0.6, 0.8)], axis=1)
+    angles = np.deg2rad(
+        [smooth_curve(_HEAD_ROTATION_DEG * f) for f in (0.6, 1.0, 0.4)]
+    )  # pitch, yaw, roll
+    trans = np.stack(
+        [smooth_curve(_HEAD_TRANSLATION * height * f) for f in (1.0, 0.6, 0.8)], axis=1
+    )
     cx, sx = np.cos(angles[0]), np.sin(angles[0])
     cy, sy = np.cos(angles[1]), np.sin(angles[1])
     cz, sz = np.cos(angles[2]), np.sin(angles[2])
@@ -255,7 +291,9 @@ def _head_motion(rng: np.random.Generator, n_frames: int, fps: float, pivot: np.
     return out
 
 
-def _region_masks(height_coord: np.ndarray, upper_cut: float, lower_cut: float, softness: float) -> np.ndarray:
+def _region_masks(
+    height_coord: np.ndarray, upper_cut: float, lower_cut: float, softness: float
+) -> np.ndarray:
     """(3, P) smooth nonnegative masks summing to 1: above ``upper_cut``, between, below ``lower_cut``."""
     upper = _sigmoid((height_coord - upper_cut) / softness)
     lower = _sigmoid((lower_cut - height_coord) / softness)
@@ -273,9 +311,21 @@ class _Side(NamedTuple):
     masks: np.ndarray
 
 
-def _assemble(name: str, src: _Side, tgt: _Side, *, n_frames: int, fps: float, seed: int, head_motion: bool,
-              pivot: np.ndarray, meta: dict, weights: np.ndarray | None = None, source_kind: str = "mesh",
-              unit_scale: float = 1.0) -> Case:
+def _assemble(
+    name: str,
+    src: _Side,
+    tgt: _Side,
+    *,
+    n_frames: int,
+    fps: float,
+    seed: int,
+    head_motion: bool,
+    pivot: np.ndarray,
+    meta: dict,
+    weights: np.ndarray | None = None,
+    source_kind: str = "mesh",
+    unit_scale: float = 1.0,
+) -> Case:
     """Build the Source, TargetRig and truth from two parallel rigs (shared by the generators).
 
     ``weights`` (F, M): the weight curves to use (default: generated from the layered
@@ -311,7 +361,9 @@ def _assemble(name: str, src: _Side, tgt: _Side, *, n_frames: int, fps: float, s
 
     if source_kind == "markers":  # the rig sampled at the markers, not the whole mesh
         lm_deltas = at_landmarks(source_rig.deltas)
-        local = at_landmarks(source_neutral.vertices) + (weights @ lm_deltas.reshape(len(lm_deltas), -1)).reshape(len(weights), -1, 3)
+        local = at_landmarks(source_neutral.vertices) + (
+            weights @ lm_deltas.reshape(len(lm_deltas), -1)
+        ).reshape(len(weights), -1, 3)
     else:
         local = source_rig.evaluate(weights)
     # identity motion leaves the points bit-identical: skip the (F, V, 3) product
@@ -324,16 +376,36 @@ def _assemble(name: str, src: _Side, tgt: _Side, *, n_frames: int, fps: float, s
             out[layer] = at_landmarks(p) if on_landmarks else p
         return out
 
-    pose_names = {"emotion": list(EMOTION_LAYER), "speech": list(SPEECH_LAYER), "blink": list(BLINK_LAYER)}
+    pose_names = {
+        "emotion": list(EMOTION_LAYER),
+        "speech": list(SPEECH_LAYER),
+        "blink": list(BLINK_LAYER),
+    }
     landmark_masks = at_landmarks(src.masks[:, :, None])[:, :, 0]
-    actor_layers = LayeredRig(poses(source_rig, True), landmark_masks, pose_names=pose_names, region_names=REGION_NAMES)
+    actor_layers = LayeredRig(
+        poses(source_rig, True), landmark_masks, pose_names=pose_names, region_names=REGION_NAMES
+    )
     if source_kind == "markers":
-        performance = MarkerSequence(world, names=src.landmarks.names, fps=fps,
-                                     reference=at_landmarks(source_neutral.vertices))
+        performance = MarkerSequence(
+            world,
+            names=src.landmarks.names,
+            fps=fps,
+            reference=at_landmarks(source_neutral.vertices),
+        )
         parts = dict(examples=at_landmarks(source_rig.evaluate(ex_w)))
     else:
-        performance = MeshSequence(world, source_neutral.triangles, fps=fps, reference=source_neutral, name=f"{name} source")
-        parts = dict(landmarks=src.landmarks, feature_lines=src.feature_lines, examples=source_rig.evaluate(ex_w))
+        performance = MeshSequence(
+            world,
+            source_neutral.triangles,
+            fps=fps,
+            reference=source_neutral,
+            name=f"{name} source",
+        )
+        parts = dict(
+            landmarks=src.landmarks,
+            feature_lines=src.feature_lines,
+            examples=source_rig.evaluate(ex_w),
+        )
     source = Source(
         performance,
         **parts,
@@ -345,14 +417,22 @@ def _assemble(name: str, src: _Side, tgt: _Side, *, n_frames: int, fps: float, s
     target = TargetRig(
         target_rig.neutral,
         blendshapes=target_rig,
-        layers=LayeredRig(poses(target_rig), tgt.masks, pose_names=pose_names, region_names=REGION_NAMES),
+        layers=LayeredRig(
+            poses(target_rig), tgt.masks, pose_names=pose_names, region_names=REGION_NAMES
+        ),
         landmarks=tgt.landmarks,
         feature_lines=tgt.feature_lines,
         examples=target_rig.evaluate(_example_weights(target_rig.names)),
         example_names=ex_names,
         name=f"{name} target",
     )
-    truth = Animation(weights=weights, rig=target_rig, head_motion=target_motion, fps=fps, provenance={"method": "ground truth"})
+    truth = Animation(
+        weights=weights,
+        rig=target_rig,
+        head_motion=target_motion,
+        fps=fps,
+        provenance={"method": "ground truth"},
+    )
     meta = dict(meta)
     meta.update(
         weights=weights,
@@ -387,17 +467,67 @@ _WRINKLE_WAVELENGTH = 0.1
 #: Face proportions (cm; y up, looking along +z). ``eye_zoom`` and ``mouth_widen``
 #: magnify the parameter domain around the eyes / mouth (stylized faces).
 _FACES = {
-    "actor": dict(sx=8.0, sy=8.0, taper=0.08, depth=6.0, curve_u=0.55, curve_v=0.18, nose=2.2, brow=0.5,
-                  socket=0.8, lips=0.6, chin=0.6, cheek=0.5, snout=0.0, eye_zoom=0.0, mouth_widen=0.0),
-    "human": dict(sx=8.9, sy=8.5, taper=0.02, depth=7.0, curve_u=0.6, curve_v=0.22, nose=2.7, brow=0.7,
-                  socket=1.0, lips=0.8, chin=0.9, cheek=0.7, snout=0.0, eye_zoom=0.08, mouth_widen=0.05),
-    "stylized": dict(sx=9.6, sy=7.2, taper=-0.06, depth=5.0, curve_u=0.5, curve_v=0.15, nose=1.4, brow=0.3,
-                     socket=0.6, lips=0.5, chin=0.4, cheek=0.9, snout=3.2, eye_zoom=0.7, mouth_widen=0.35),
+    "actor": dict(
+        sx=8.0,
+        sy=8.0,
+        taper=0.08,
+        depth=6.0,
+        curve_u=0.55,
+        curve_v=0.18,
+        nose=2.2,
+        brow=0.5,
+        socket=0.8,
+        lips=0.6,
+        chin=0.6,
+        cheek=0.5,
+        snout=0.0,
+        eye_zoom=0.0,
+        mouth_widen=0.0,
+    ),
+    "human": dict(
+        sx=8.9,
+        sy=8.5,
+        taper=0.02,
+        depth=7.0,
+        curve_u=0.6,
+        curve_v=0.22,
+        nose=2.7,
+        brow=0.7,
+        socket=1.0,
+        lips=0.8,
+        chin=0.9,
+        cheek=0.7,
+        snout=0.0,
+        eye_zoom=0.08,
+        mouth_widen=0.05,
+    ),
+    "stylized": dict(
+        sx=9.6,
+        sy=7.2,
+        taper=-0.06,
+        depth=5.0,
+        curve_u=0.5,
+        curve_v=0.15,
+        nose=1.4,
+        brow=0.3,
+        socket=0.6,
+        lips=0.5,
+        chin=0.4,
+        cheek=0.9,
+        snout=3.2,
+        eye_zoom=0.7,
+        mouth_widen=0.35,
+    ),
 }
+
 
 #: The 54-marker layout: name -> (u, v) on the parameter domain ("_L" = character's left, +u).
 def _marker_layout() -> dict[str, tuple[float, float]]:
-    out: dict[str, tuple[float, float]] = {"forehead_L": (0.35, 0.85), "forehead_C": (0.0, 0.92), "forehead_R": (-0.35, 0.85)}
+    out: dict[str, tuple[float, float]] = {
+        "forehead_L": (0.35, 0.85),
+        "forehead_C": (0.0, 0.92),
+        "forehead_R": (-0.35, 0.85),
+    }
     for side, sg in (("L", 1.0), ("R", -1.0)):
         for i, (u, v) in enumerate(((0.15, 0.50), (0.30, 0.53), (0.45, 0.52), (0.60, 0.47)), 1):
             out[f"brow_{side}_{i}"] = (sg * u, v)
@@ -407,7 +537,15 @@ def _marker_layout() -> dict[str, tuple[float, float]]:
         out[f"eye_{side}_outer"] = (cu + sg * _EYE_A, cv)
         out[f"eye_{side}_upper"] = (cu, cv + _EYE_B)
         out[f"eye_{side}_lower"] = (cu, cv - _EYE_B)
-    out.update({"nose_bridge": (0.0, 0.2), "nose_tip": (0.0, -0.28), "nose_L": (0.13, -0.3), "nose_R": (-0.13, -0.3), "nose_base": (0.0, -0.42)})
+    out.update(
+        {
+            "nose_bridge": (0.0, 0.2),
+            "nose_tip": (0.0, -0.28),
+            "nose_L": (0.13, -0.3),
+            "nose_R": (-0.13, -0.3),
+            "nose_base": (0.0, -0.42),
+        }
+    )
     for side, sg in (("L", 1.0), ("R", -1.0)):
         for i, (u, v) in enumerate(((0.45, 0.1), (0.7, 0.05), (0.5, -0.25), (0.75, -0.4)), 1):
             out[f"cheek_{side}_{i}"] = (sg * u, v)
@@ -513,7 +651,9 @@ def _warp(uv: np.ndarray, face: dict) -> np.ndarray:
             dv_total += dv * g
         u, v = u + du_total, v + dv_total
     if face["mouth_widen"]:
-        u = u + face["mouth_widen"] * u * np.exp(-((u / 0.5) ** 2) - (((v - _MOUTH_C[1]) / 0.28) ** 2))
+        u = u + face["mouth_widen"] * u * np.exp(
+            -((u / 0.5) ** 2) - (((v - _MOUTH_C[1]) / 0.28) ** 2)
+        )
     return np.stack([u, v], axis=1)
 
 
@@ -535,7 +675,9 @@ def _features(p: np.ndarray, face: dict) -> np.ndarray:
     u, v = p[:, 0], p[:, 1]
     z = face["nose"] * (_g(u, v, 0.0, -0.12, 0.11, 0.26) + 0.5 * _g(u, v, 0.0, -0.3, 0.16, 0.1))
     z += face["brow"] * np.exp(-(((v - 0.5) / 0.1) ** 2) - (u / 0.8) ** 4)
-    z -= face["socket"] * (_g(u, v, _EYE_C[0], _EYE_C[1], 0.22, 0.14) + _g(u, v, -_EYE_C[0], _EYE_C[1], 0.22, 0.14))
+    z -= face["socket"] * (
+        _g(u, v, _EYE_C[0], _EYE_C[1], 0.22, 0.14) + _g(u, v, -_EYE_C[0], _EYE_C[1], 0.22, 0.14)
+    )
     z += face["lips"] * _g(u, v, 0.0, _MOUTH_C[1], 0.36, 0.12)
     z += face["chin"] * _g(u, v, 0.0, -1.05, 0.3, 0.15)
     z += face["cheek"] * (_g(np.abs(u), v, 0.5, -0.05, 0.2, 0.2))
@@ -552,7 +694,9 @@ def face_surface(uv, face: str = "actor") -> np.ndarray:
     synthetic case hold the vertices' parameters).
     """
     if face not in _FACES:
-        raise UnknownNameError(f"face_surface: face must be one of {', '.join(_FACES)}, got {face!r}")
+        raise UnknownNameError(
+            f"face_surface: face must be one of {', '.join(_FACES)}, got {face!r}"
+        )
     uv = np.asarray(uv, dtype=np.float64)
     if uv.ndim != 2 or uv.shape[1] != 2:
         raise InputError(f"face_surface: uv must be (P, 2), got {uv.shape}")
@@ -587,7 +731,9 @@ def _segment_distance(u, v, a, b):
     return np.hypot(u - a[0] - t * ab[0], v - a[1] - t * ab[1]), t
 
 
-def _shape_fields(uv: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+def _shape_fields(
+    uv: np.ndarray,
+) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """The expression recipes on the parameter domain.
 
     For every shape of :data:`recipes.RECIPE_SHAPES`: ``(du, dv, dn, wrinkle)``, each (P,):
@@ -611,13 +757,22 @@ def _shape_fields(uv: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.
     out["mouthClose"] = (zero, 0.025 * lip * mid * (lower - upper), 0.05 * lip, zero)
     out["mouthFunnel"] = (-0.12 * u * lip, 0.05 * lip * mid * (upper - lower), 0.5 * lip, zero)
     out["mouthPucker"] = (-0.3 * u * lip, 0.015 * lip * mid * (lower - upper), 0.7 * lip, zero)
-    out["mouthRollLower"] = (zero, 0.025 * _g(u, v, 0.0, -0.68, 0.3, 0.07) * lower, -0.4 * _g(u, v, 0.0, -0.68, 0.3, 0.07) * lower, zero)
+    out["mouthRollLower"] = (
+        zero,
+        0.025 * _g(u, v, 0.0, -0.68, 0.3, 0.07) * lower,
+        -0.4 * _g(u, v, 0.0, -0.68, 0.3, 0.07) * lower,
+        zero,
+    )
 
     # forehead furrows (brow raise), glabella lines (brow lower), crow's feet, nasolabial fold
     furrows = np.sin(2 * np.pi * (v - 0.62) / lam)
     inner_brow = _g(np.abs(u), v, 0.16, 0.52, 0.2, 0.2)
-    out["browInnerUp"] = (zero, 0.07 * inner_brow + 0.03 * _g(u, v, 0.0, 0.8, 0.4, 0.3), zero,
-                          0.08 * _g(u, v, 0.0, 0.8, 0.35, 0.2) * furrows)
+    out["browInnerUp"] = (
+        zero,
+        0.07 * inner_brow + 0.03 * _g(u, v, 0.0, 0.8, 0.4, 0.3),
+        zero,
+        0.08 * _g(u, v, 0.0, 0.8, 0.35, 0.2) * furrows,
+    )
 
     for side, sg in (("Left", 1.0), ("Right", -1.0)):
         su = sg * u  # mirrored coordinate: the recipe is written for the left side
@@ -628,9 +783,17 @@ def _shape_fields(uv: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.
         fold = -0.12 * np.exp(-((fold_d / 0.025) ** 2)) * np.sin(np.pi * fold_t) ** 0.5
         ec = (_EYE_C[0] + _EYE_A + 0.04, _EYE_C[1])
         r = np.hypot(su - ec[0], v - ec[1])
-        crow = np.exp(-(((r - 0.09) / 0.06) ** 2)) * _sigmoid((su - ec[0] + 0.02) / 0.02) * np.sin(12.0 * np.arctan2(v - ec[1], su - ec[0]))
-        out[f"mouthSmile{side}"] = (sg * 0.08 * corner, 0.07 * corner, -0.05 * corner + 0.3 * _g(su, v, 0.48, -0.3, 0.16, 0.15),
-                                    fold + 0.03 * crow)
+        crow = (
+            np.exp(-(((r - 0.09) / 0.06) ** 2))
+            * _sigmoid((su - ec[0] + 0.02) / 0.02)
+            * np.sin(12.0 * np.arctan2(v - ec[1], su - ec[0]))
+        )
+        out[f"mouthSmile{side}"] = (
+            sg * 0.08 * corner,
+            0.07 * corner,
+            -0.05 * corner + 0.3 * _g(su, v, 0.48, -0.3, 0.16, 0.15),
+            fold + 0.03 * crow,
+        )
         out[f"mouthFrown{side}"] = (sg * 0.02 * corner, -0.07 * corner, -0.05 * corner, zero)
         out[f"mouthStretch{side}"] = (sg * 0.07 * stretch, -0.025 * stretch, -0.1 * stretch, zero)
         out[f"mouthPress{side}"] = (zero, 0.02 * pside * mid * (lower - upper), -0.12 * pside, zero)
@@ -639,17 +802,30 @@ def _shape_fields(uv: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.
 
         x = (su - _EYE_C[0]) / _EYE_A
         # lid opening profile sqrt(1 - x^2), softened at the corners (finite slope there)
-        s = (np.sqrt(np.clip(1.0 - x * x, 0.0, 1.0) + 0.15**2) - 0.15) / (np.sqrt(1.0 + 0.15**2) - 0.15)
+        s = (np.sqrt(np.clip(1.0 - x * x, 0.0, 1.0) + 0.15**2) - 0.15) / (
+            np.sqrt(1.0 + 0.15**2) - 0.15
+        )
         above = _sigmoid((v - _EYE_C[1]) / 0.01)
         up_fall = np.exp(-((np.maximum(v - (_EYE_C[1] + _EYE_B * s), 0.0) / 0.10) ** 2)) * above
-        lo_fall = np.exp(-((np.maximum((_EYE_C[1] - _EYE_B * s) - v, 0.0) / 0.06) ** 2)) * (1.0 - above)
+        lo_fall = np.exp(-((np.maximum((_EYE_C[1] - _EYE_B * s) - v, 0.0) / 0.06) ** 2)) * (
+            1.0 - above
+        )
         lid = 2.0 * _EYE_B * s
-        out[f"eyeBlink{side}"] = (zero, 0.97 * lid * (-0.8 * up_fall + 0.2 * lo_fall), 0.08 * up_fall * s, zero)
+        out[f"eyeBlink{side}"] = (
+            zero,
+            0.97 * lid * (-0.8 * up_fall + 0.2 * lo_fall),
+            0.08 * up_fall * s,
+            zero,
+        )
         out[f"eyeWide{side}"] = (zero, lid * (0.25 * up_fall - 0.08 * lo_fall), zero, zero)
 
         outer_brow = _g(su, v, 0.55, 0.52, 0.2, 0.2)
-        out[f"browOuterUp{side}"] = (zero, 0.07 * outer_brow + 0.02 * _g(su, v, 0.5, 0.8, 0.3, 0.3), zero,
-                                     0.07 * _g(su, v, 0.45, 0.8, 0.28, 0.2) * furrows)
+        out[f"browOuterUp{side}"] = (
+            zero,
+            0.07 * outer_brow + 0.02 * _g(su, v, 0.5, 0.8, 0.3, 0.3),
+            zero,
+            0.07 * _g(su, v, 0.45, 0.8, 0.28, 0.2) * furrows,
+        )
         down = _g(su, v, 0.33, 0.5, 0.25, 0.14)
         glabella = _g(su, v, 0.07, 0.45, 0.08, 0.1) * np.sin(2 * np.pi * u / (0.8 * lam))
         out[f"browDown{side}"] = (-sg * 0.035 * down, -0.05 * down, 0.12 * down, 0.06 * glabella)
@@ -657,11 +833,18 @@ def _shape_fields(uv: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray, np.
         out[f"cheekSquint{side}"] = (zero, 0.045 * cheek, 0.25 * cheek, 0.07 * crow)
         sneer = _g(su, v, 0.1, -0.22, 0.09, 0.12)
         bunny = _g(su, v, 0.07, 0.08, 0.07, 0.08) * np.sin(2 * np.pi * v / (0.6 * lam))
-        out[f"noseSneer{side}"] = (zero, 0.04 * sneer + 0.02 * _g(su, v, 0.05, 0.0, 0.1, 0.15), 0.1 * sneer, 0.05 * bunny)
+        out[f"noseSneer{side}"] = (
+            zero,
+            0.04 * sneer + 0.02 * _g(su, v, 0.05, 0.0, 0.1, 0.15),
+            0.1 * sneer,
+            0.05 * bunny,
+        )
     return {k: out[k] for k in recipes.RECIPE_SHAPES}
 
 
-def _synthetic_rig(uv: np.ndarray, triangles: np.ndarray, face: dict, wrinkles: bool, name: str) -> BlendshapeRig:
+def _synthetic_rig(
+    uv: np.ndarray, triangles: np.ndarray, face: dict, wrinkles: bool, name: str
+) -> BlendshapeRig:
     """The blendshape rig of one face over the parameter mesh ``uv``."""
     neutral = Mesh(_embed(uv, face), triangles, name=name, _trusted=True)
     normal = _normals(uv, face)
@@ -756,8 +939,14 @@ def synthetic(
         seed=seed,
         head_motion=head_motion,
         pivot=np.array([0.0, -1.3 * src_face["sy"], -0.3 * src_face["depth"]]),
-        meta={"seed": seed, "target_kind": target, "wrinkles": wrinkles, "source_uv": uv, "target_uv": t_uv,
-              "boundary_loops": {"source": loops, "target": t_loops}},
+        meta={
+            "seed": seed,
+            "target_kind": target,
+            "wrinkles": wrinkles,
+            "source_uv": uv,
+            "target_uv": t_uv,
+            "boundary_loops": {"source": loops, "target": t_loops},
+        },
     )
 
 
@@ -775,7 +964,9 @@ def _check_counts(**values) -> None:
     if values.get("resolution") is not None and values["resolution"] < 60:
         raise InputError(f"resolution must be at least 60 vertices, got {values['resolution']}")
     if values.get("target_resolution") is not None and values["target_resolution"] < 60:
-        raise InputError(f"target_resolution must be at least 60 vertices, got {values['target_resolution']}")
+        raise InputError(
+            f"target_resolution must be at least 60 vertices, got {values['target_resolution']}"
+        )
 
 
 # =======================================================================================
@@ -788,10 +979,14 @@ ICT_TARGET_IDENTITY = (-1.5, 1.4, -0.9, 1.0, 0.8, -0.6, 0.7, -0.4, 0.5, -0.5)
 #: Names of the 68 Multi-PIE landmarks ("_L" = character's left, +x).
 ICT_LANDMARK_NAMES = tuple(
     [f"jaw_{i:02d}" for i in range(17)]
-    + [f"brow_R_{i}" for i in range(1, 6)] + [f"brow_L_{i}" for i in range(1, 6)]
-    + [f"nose_bridge_{i}" for i in range(1, 5)] + [f"nose_base_{i}" for i in range(1, 6)]
-    + [f"eye_R_{i}" for i in range(1, 7)] + [f"eye_L_{i}" for i in range(1, 7)]
-    + [f"lip_outer_{i:02d}" for i in range(1, 13)] + [f"lip_inner_{i}" for i in range(1, 9)]
+    + [f"brow_R_{i}" for i in range(1, 6)]
+    + [f"brow_L_{i}" for i in range(1, 6)]
+    + [f"nose_bridge_{i}" for i in range(1, 5)]
+    + [f"nose_base_{i}" for i in range(1, 6)]
+    + [f"eye_R_{i}" for i in range(1, 7)]
+    + [f"eye_L_{i}" for i in range(1, 7)]
+    + [f"lip_outer_{i:02d}" for i in range(1, 13)]
+    + [f"lip_inner_{i}" for i in range(1, 9)]
 )
 
 
@@ -799,8 +994,13 @@ def _load_ict_fixture() -> dict[str, np.ndarray]:
     path = resources.files("faceretarget") / "data" / _ICT_FIXTURE
     with resources.as_file(path) as p, np.load(p) as data:
         out = {k: data[k] for k in data.files}
-    deltas = out.pop("expression_deltas_q").astype(np.float64) * out.pop("expression_scales")[:, None, None]
-    ident = out.pop("identity_deltas_q").astype(np.float64) * out.pop("identity_scales")[:, None, None]
+    deltas = (
+        out.pop("expression_deltas_q").astype(np.float64)
+        * out.pop("expression_scales")[:, None, None]
+    )
+    ident = (
+        out.pop("identity_deltas_q").astype(np.float64) * out.pop("identity_scales")[:, None, None]
+    )
     out["expression_deltas"], out["identity_deltas"] = deltas, ident
     return out
 
@@ -810,8 +1010,12 @@ def _ict_identity(data: dict, coeffs, default, what: str, case: str = "ict") -> 
     n_modes = data["identity_deltas"].shape[0]
     c = np.asarray(default if coeffs is None else coeffs, dtype=np.float64)
     if c.ndim != 1 or c.shape[0] > n_modes or not np.isfinite(c).all():
-        raise InputError(f"{case}: {what} must be up to {n_modes} finite identity coefficients, got shape {c.shape}")
-    return data["neutral"].astype(np.float64) + np.tensordot(c, data["identity_deltas"][: c.shape[0]], axes=1)
+        raise InputError(
+            f"{case}: {what} must be up to {n_modes} finite identity coefficients, got shape {c.shape}"
+        )
+    return data["neutral"].astype(np.float64) + np.tensordot(
+        c, data["identity_deltas"][: c.shape[0]], axes=1
+    )
 
 
 @functools.lru_cache(maxsize=8)
@@ -824,7 +1028,9 @@ def _ict_transferred_deltas(coeffs: tuple) -> np.ndarray:
     tri = data["faces"].astype(np.int64)
     face = _ict_identity(data, coeffs, None, "identity")
     generic = data["neutral"].astype(np.float64)
-    out = DeformationTransfer(face, tri).transfer(generic, generic + data["expression_deltas"]) - face
+    out = (
+        DeformationTransfer(face, tri).transfer(generic, generic + data["expression_deltas"]) - face
+    )
     out.setflags(write=False)
     return out
 
@@ -867,23 +1073,41 @@ def ict(
     """
     _check_counts(n_frames=n_frames)
     if expressions not in ("same", "transferred"):
-        raise UnknownNameError(f"ict: expressions must be 'same' or 'transferred', got {expressions!r}")
+        raise UnknownNameError(
+            f"ict: expressions must be 'same' or 'transferred', got {expressions!r}"
+        )
     data = _load_ict_fixture()
 
     def identity(coeffs, default, what):
         return _ict_identity(data, coeffs, default, what)
 
     def key(coeffs, default) -> tuple:
-        return tuple(float(c) for c in np.asarray(default if coeffs is None else coeffs, dtype=np.float64))
+        return tuple(
+            float(c) for c in np.asarray(default if coeffs is None else coeffs, dtype=np.float64)
+        )
 
     tri = data["faces"].astype(np.int64)
     names = [str(n) for n in data["expression_names"]]
     deltas = data["expression_deltas"]
-    src = Mesh(identity(source_identity, ICT_SOURCE_IDENTITY, "source_identity"), tri, name="ICT source", _trusted=True)
-    tgt = Mesh(identity(target_identity, ICT_TARGET_IDENTITY, "target_identity"), tri, name="ICT target", _trusted=True)
+    src = Mesh(
+        identity(source_identity, ICT_SOURCE_IDENTITY, "source_identity"),
+        tri,
+        name="ICT source",
+        _trusted=True,
+    )
+    tgt = Mesh(
+        identity(target_identity, ICT_TARGET_IDENTITY, "target_identity"),
+        tri,
+        name="ICT target",
+        _trusted=True,
+    )
     if expressions == "transferred":
-        source_rig = BlendshapeRig(src, _ict_transferred_deltas(key(source_identity, ICT_SOURCE_IDENTITY)), names)
-        target_rig = BlendshapeRig(tgt, _ict_transferred_deltas(key(target_identity, ICT_TARGET_IDENTITY)), names)
+        source_rig = BlendshapeRig(
+            src, _ict_transferred_deltas(key(source_identity, ICT_SOURCE_IDENTITY)), names
+        )
+        target_rig = BlendshapeRig(
+            tgt, _ict_transferred_deltas(key(target_identity, ICT_TARGET_IDENTITY)), names
+        )
     else:
         source_rig = BlendshapeRig(src, deltas, names)
         target_rig = BlendshapeRig(tgt, deltas, names)
@@ -897,7 +1121,10 @@ def ict(
         "eye_R": base[lm_ids[36:42]].mean(axis=0),
         "mouth_inner": base[lm_ids[60:68]].mean(axis=0),
     }
-    lines = {k: min(loops, key=lambda lp: np.linalg.norm(base[lp].mean(axis=0) - c)) for k, c in centres.items()}
+    lines = {
+        k: min(loops, key=lambda lp: np.linalg.norm(base[lp].mean(axis=0) - c))
+        for k, c in centres.items()
+    }
     lines["mouth_outer"] = lm_ids[48:60]
 
     def masks(mesh: Mesh) -> np.ndarray:
@@ -924,12 +1151,34 @@ _CROSS_RIG_FIXTURE = "ict_cross_rig_fixture.npz"
 CROSS_RIG_SOURCE_SCALE = 0.01
 #: Expression-track accents: single actions an actor holds alone (ARKit names).
 _ACCENT_SHAPES = (
-    "browInnerUp", "browDownLeft", "browDownRight", "browOuterUpLeft", "browOuterUpRight",
-    "eyeSquintLeft", "eyeSquintRight", "eyeWideLeft", "eyeWideRight", "cheekSquintLeft",
-    "cheekSquintRight", "cheekPuff", "noseSneerLeft", "noseSneerRight", "mouthDimpleLeft",
-    "mouthDimpleRight", "mouthSmileLeft", "mouthSmileRight", "mouthLeft", "mouthRight",
-    "mouthShrugUpper", "mouthShrugLower", "mouthRollUpper", "mouthPressLeft", "mouthPressRight",
-    "jawLeft", "jawRight", "jawForward",
+    "browInnerUp",
+    "browDownLeft",
+    "browDownRight",
+    "browOuterUpLeft",
+    "browOuterUpRight",
+    "eyeSquintLeft",
+    "eyeSquintRight",
+    "eyeWideLeft",
+    "eyeWideRight",
+    "cheekSquintLeft",
+    "cheekSquintRight",
+    "cheekPuff",
+    "noseSneerLeft",
+    "noseSneerRight",
+    "mouthDimpleLeft",
+    "mouthDimpleRight",
+    "mouthSmileLeft",
+    "mouthSmileRight",
+    "mouthLeft",
+    "mouthRight",
+    "mouthShrugUpper",
+    "mouthShrugLower",
+    "mouthRollUpper",
+    "mouthPressLeft",
+    "mouthPressRight",
+    "jawLeft",
+    "jawRight",
+    "jawForward",
 )
 
 
@@ -995,8 +1244,19 @@ def _performance_weights(rng: np.random.Generator, n_frames: int, fps: float, na
     accents = [vec({a: 1.0}) for a in _ACCENT_SHAPES]
     accents = [a for a in accents if a.any()]
     visemes = {k: vec(r) for k, r in recipes.VISEMES.items()}
-    one = {n: vec({n: 1.0}) for n in ("jawOpen", "mouthClose", "mouthLowerDownLeft", "mouthLowerDownRight",
-                                       "mouthShrugUpper", "mouthRollUpper", "eyeBlinkLeft", "eyeBlinkRight")}
+    one = {
+        n: vec({n: 1.0})
+        for n in (
+            "jawOpen",
+            "mouthClose",
+            "mouthLowerDownLeft",
+            "mouthLowerDownRight",
+            "mouthShrugUpper",
+            "mouthRollUpper",
+            "eyeBlinkLeft",
+            "eyeBlinkRight",
+        )
+    }
     jaw = int(np.argmax(one["jawOpen"])) if one["jawOpen"].any() else None
 
     # expressions
@@ -1004,7 +1264,11 @@ def _performance_weights(rng: np.random.Generator, n_frames: int, fps: float, na
     time, current = float(rng.uniform(0.0, 0.8)), np.zeros(m)
     while time < t_end:
         if rng.random() < 0.65 and emotions:
-            pose = emotions[int(rng.integers(len(emotions)))] * rng.uniform(0.5, 1.0) * rng.uniform(0.85, 1.15, m)
+            pose = (
+                emotions[int(rng.integers(len(emotions)))]
+                * rng.uniform(0.5, 1.0)
+                * rng.uniform(0.85, 1.15, m)
+            )
             if accents and rng.random() < 0.35:
                 pose = pose + accents[int(rng.integers(len(accents)))] * rng.uniform(0.2, 0.6)
         else:
@@ -1044,9 +1308,15 @@ def _performance_weights(rng: np.random.Generator, n_frames: int, fps: float, na
             elif rng.random() < 0.25:
                 pose = pose + rng.uniform(0.3, 0.9) * open_ * one["mouthClose"]
             if rng.random() < 0.4:
-                pose = pose + rng.uniform(0.1, 0.4) * (one["mouthLowerDownLeft"] + one["mouthLowerDownRight"])
+                pose = pose + rng.uniform(0.1, 0.4) * (
+                    one["mouthLowerDownLeft"] + one["mouthLowerDownRight"]
+                )
             if rng.random() < 0.2:
-                pose = pose + rng.uniform(0.1, 0.3) * one[("mouthShrugUpper", "mouthRollUpper")[int(rng.integers(2))]]
+                pose = (
+                    pose
+                    + rng.uniform(0.1, 0.3)
+                    * one[("mouthShrugUpper", "mouthRollUpper")[int(rng.integers(2))]]
+                )
             speech.key(key_t, np.clip(pose, 0.0, 1.0))
         end = key_t + rng.uniform(0.1, 0.25)
         speech.key(end, np.zeros(m))
@@ -1058,8 +1328,15 @@ def _performance_weights(rng: np.random.Generator, n_frames: int, fps: float, na
     while time < t_end:
         for _ in range(2 if rng.random() < 0.1 else 1):
             depth = rng.uniform(0.85, 1.0)
-            pose = depth * (one["eyeBlinkLeft"] * rng.uniform(0.95, 1.0) + one["eyeBlinkRight"] * rng.uniform(0.95, 1.0))
-            close, shut, opening = rng.uniform(0.05, 0.07), rng.uniform(0.0, 0.03), rng.uniform(0.08, 0.12)
+            pose = depth * (
+                one["eyeBlinkLeft"] * rng.uniform(0.95, 1.0)
+                + one["eyeBlinkRight"] * rng.uniform(0.95, 1.0)
+            )
+            close, shut, opening = (
+                rng.uniform(0.05, 0.07),
+                rng.uniform(0.0, 0.03),
+                rng.uniform(0.08, 0.12),
+            )
             blink.key(time, np.zeros(m))
             blink.key(time + close, pose)
             blink.key(time + close + shut, pose)
@@ -1079,14 +1356,18 @@ def _random_rotation(rng: np.random.Generator, low_deg: float, high_deg: float) 
     return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
 
 
-def _gain_field(rng: np.random.Generator, points: np.ndarray, height: float, amplitude: float) -> np.ndarray:
+def _gain_field(
+    rng: np.random.Generator, points: np.ndarray, height: float, amplitude: float
+) -> np.ndarray:
     """(V,) smooth gains ``1 + amplitude * u``, ``u`` in [-1, 1] a sum of 3 plane waves (0.25-0.6 face heights)."""
     x = (points - points.mean(axis=0)) / height
     u = np.zeros(len(points))
     for _ in range(3):
         direction = rng.normal(size=3)
         direction /= np.linalg.norm(direction)
-        u += rng.uniform(0.5, 1.0) * np.sin(2 * np.pi * (x @ direction) / rng.uniform(0.25, 0.6) + rng.uniform(0, 2 * np.pi))
+        u += rng.uniform(0.5, 1.0) * np.sin(
+            2 * np.pi * (x @ direction) / rng.uniform(0.25, 0.6) + rng.uniform(0, 2 * np.pi)
+        )
     return 1.0 + amplitude * u / max(np.abs(u).max(), 1e-12)
 
 
@@ -1112,8 +1393,12 @@ def _cross_family_mix(rng: np.random.Generator, names) -> tuple[np.ndarray, dict
     mix[f, f], mix[f, p] = 1.0 + nu, -nu
     params["mouthFunnel/mouthPucker"] = {"mu": mu, "nu": nu}
     # a fraction of a neighbouring action baked into some mouth shapes (both sides alike)
-    for shape, other, low, high in (("mouthSmile", "cheekSquint", 0.15, 0.35), ("mouthStretch", "mouthLowerDown", 0.15, 0.35),
-                                    ("mouthUpperUp", "noseSneer", 0.15, 0.35), ("jawOpen", "mouthLowerDown", 0.1, 0.2)):
+    for shape, other, low, high in (
+        ("mouthSmile", "cheekSquint", 0.15, 0.35),
+        ("mouthStretch", "mouthLowerDown", 0.15, 0.35),
+        ("mouthUpperUp", "noseSneer", 0.15, 0.35),
+        ("jawOpen", "mouthLowerDown", 0.1, 0.2),
+    ):
         frac = rng.uniform(low, high)
         for side in ("_L", "_R"):
             row = ix[shape + side] if shape + side in ix else ix[shape]
@@ -1143,29 +1428,49 @@ def _cross_rig_pair(source_identity: tuple, target_identity: tuple, seed: int):
     def carry(values: np.ndarray) -> np.ndarray:
         return np.einsum("...skd,sk->...sd", values[..., corners, :], bary)
 
-    s_mesh = Mesh(scale * carry(_ict_identity(data, source_identity, None, "source_identity", "cross_rig")), s_tri,
-                  name="cross-rig source (m)", _trusted=True)
+    s_mesh = Mesh(
+        scale * carry(_ict_identity(data, source_identity, None, "source_identity", "cross_rig")),
+        s_tri,
+        name="cross-rig source (m)",
+        _trusted=True,
+    )
     source_rig = BlendshapeRig(s_mesh, scale * carry(data["expression_deltas"]), names)
-    s_landmarks = Landmarks(triangle_ids=fixture["landmark_triangles"].astype(np.int64),
-                            barycentric=fixture["landmark_barycentric"], names=ICT_LANDMARK_NAMES)
+    s_landmarks = Landmarks(
+        triangle_ids=fixture["landmark_triangles"].astype(np.int64),
+        barycentric=fixture["landmark_barycentric"],
+        names=ICT_LANDMARK_NAMES,
+    )
     s_points = s_landmarks.positions(s_mesh.vertices, s_tri)
 
     # target: the ICT face on the target identity, deformation-transferred deltas perturbed
-    t_mesh = Mesh(_ict_identity(data, target_identity, None, "target_identity", "cross_rig"), tri,
-                  name="cross-rig target (cm)", _trusted=True)
+    t_mesh = Mesh(
+        _ict_identity(data, target_identity, None, "target_identity", "cross_rig"),
+        tri,
+        name="cross-rig target (cm)",
+        _trusted=True,
+    )
     transferred = _ict_transferred_deltas(target_identity)
     rng = np.random.default_rng([seed, 7])
     mix, mix_params = _cross_family_mix(rng, names)
     mixed = np.tensordot(mix, transferred, axes=1)
-    gains = np.stack([_gain_field(rng, t_mesh.vertices, t_mesh.height, rng.uniform(0.2, 0.3)) for _ in names])
+    gains = np.stack(
+        [_gain_field(rng, t_mesh.vertices, t_mesh.height, rng.uniform(0.2, 0.3)) for _ in names]
+    )
     rotations = np.stack([_random_rotation(rng, 6.0, 12.0) for _ in names])
     deltas = gains[:, :, None] * np.einsum("mij,mvj->mvi", rotations, mixed)
     target_rig = BlendshapeRig(t_mesh, deltas, names)
 
     def lines(vertices: np.ndarray, triangles: np.ndarray, points: np.ndarray) -> dict:
         loops = boundary_loops(triangles)
-        centres = {"eye_L": points[42:48].mean(axis=0), "eye_R": points[36:42].mean(axis=0), "mouth_inner": points[60:68].mean(axis=0)}
-        out = {k: min(loops, key=lambda lp: np.linalg.norm(vertices[lp].mean(axis=0) - c)) for k, c in centres.items()}
+        centres = {
+            "eye_L": points[42:48].mean(axis=0),
+            "eye_R": points[36:42].mean(axis=0),
+            "mouth_inner": points[60:68].mean(axis=0),
+        }
+        out = {
+            k: min(loops, key=lambda lp: np.linalg.norm(vertices[lp].mean(axis=0) - c))
+            for k, c in centres.items()
+        }
         return out
 
     s_lines = lines(s_mesh.vertices, s_tri, s_points)
@@ -1175,12 +1480,23 @@ def _cross_rig_pair(source_identity: tuple, target_identity: tuple, seed: int):
     t_lines["mouth_outer"] = lm_ids[48:60]
 
     src = _Side(source_rig, s_landmarks, s_lines, _ict_masks(s_mesh, s_points))
-    tgt = _Side(target_rig, Landmarks(lm_ids, names=ICT_LANDMARK_NAMES), t_lines, _ict_masks(t_mesh, t_mesh.vertices[lm_ids]))
+    tgt = _Side(
+        target_rig,
+        Landmarks(lm_ids, names=ICT_LANDMARK_NAMES),
+        t_lines,
+        _ict_masks(t_mesh, t_mesh.vertices[lm_ids]),
+    )
     for arr in (on_ict, bary, mix, gains, rotations):
         arr.setflags(write=False)
     meta = {
         "source_correspondence": {"triangles": on_ict, "barycentric": bary},
-        "perturbation": {"transferred": transferred, "mix": mix, "mix_parameters": mix_params, "gain": gains, "rotation": rotations},
+        "perturbation": {
+            "transferred": transferred,
+            "mix": mix,
+            "mix_parameters": mix_params,
+            "gain": gains,
+            "rotation": rotations,
+        },
     }
     return src, tgt, meta
 
@@ -1189,7 +1505,9 @@ def _identity_key(coeffs, default, what: str, case: str) -> tuple:
     """Identity coefficients as a hashable key for the cached rig pairs (validated when given)."""
     if coeffs is not None:
         _ict_identity(_load_ict_fixture(), coeffs, default, what, case)
-    return tuple(float(c) for c in np.asarray(default if coeffs is None else coeffs, dtype=np.float64))
+    return tuple(
+        float(c) for c in np.asarray(default if coeffs is None else coeffs, dtype=np.float64)
+    )
 
 
 def cross_rig(
@@ -1269,11 +1587,18 @@ def cross_rig(
     """
     _check_counts(n_frames=n_frames)
     if source_kind not in ("mesh", "markers"):
-        raise UnknownNameError(f"cross_rig: source_kind must be 'mesh' or 'markers', got {source_kind!r}")
+        raise UnknownNameError(
+            f"cross_rig: source_kind must be 'mesh' or 'markers', got {source_kind!r}"
+        )
     fps = as_fps(fps)
-    src, tgt, pair_meta = _cross_rig_pair(_identity_key(source_identity, ICT_SOURCE_IDENTITY, "source_identity", "cross_rig"),
-                                          _identity_key(target_identity, ICT_TARGET_IDENTITY, "target_identity", "cross_rig"), int(seed))
-    weights = _performance_weights(np.random.default_rng([int(seed), 3]), int(n_frames), fps, src.rig.names)
+    src, tgt, pair_meta = _cross_rig_pair(
+        _identity_key(source_identity, ICT_SOURCE_IDENTITY, "source_identity", "cross_rig"),
+        _identity_key(target_identity, ICT_TARGET_IDENTITY, "target_identity", "cross_rig"),
+        int(seed),
+    )
+    weights = _performance_weights(
+        np.random.default_rng([int(seed), 3]), int(n_frames), fps, src.rig.names
+    )
     s_vertices = src.rig.neutral.vertices
     return _assemble(
         "cross-rig",
@@ -1284,9 +1609,16 @@ def cross_rig(
         seed=seed,
         head_motion=head_motion,
         pivot=np.array([0.0, s_vertices[:, 1].min(), s_vertices[:, 2].min()]),
-        meta={"seed": seed, "source_kind": source_kind, "unit_scale": 1.0 / CROSS_RIG_SOURCE_SCALE,
-              "source_correspondence": dict(pair_meta["source_correspondence"]),
-              "perturbation": {**pair_meta["perturbation"], "mix_parameters": copy.deepcopy(pair_meta["perturbation"]["mix_parameters"])}},
+        meta={
+            "seed": seed,
+            "source_kind": source_kind,
+            "unit_scale": 1.0 / CROSS_RIG_SOURCE_SCALE,
+            "source_correspondence": dict(pair_meta["source_correspondence"]),
+            "perturbation": {
+                **pair_meta["perturbation"],
+                "mix_parameters": copy.deepcopy(pair_meta["perturbation"]["mix_parameters"]),
+            },
+        },
         weights=weights,
         source_kind=source_kind,
         unit_scale=1.0 / CROSS_RIG_SOURCE_SCALE,
@@ -1327,7 +1659,15 @@ def _midpoint_subdivision(triangles: np.ndarray, n_vertices: int):
     mid = n_vertices + inverse.reshape(3, len(tri)).T  # (T, 3): ab, bc, ca
     a, b, c = tri.T
     ab, bc, ca = mid.T
-    children = np.stack([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1), np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)], 1)
+    children = np.stack(
+        [
+            np.stack([a, ab, ca], 1),
+            np.stack([ab, b, bc], 1),
+            np.stack([ca, bc, c], 1),
+            np.stack([ab, bc, ca], 1),
+        ],
+        1,
+    )
     n_new = n_vertices + len(edges)
     rows = np.concatenate([np.arange(n_vertices), np.repeat(np.arange(n_vertices, n_new), 2)])
     cols = np.concatenate([np.arange(n_vertices), edges.ravel()])
@@ -1343,14 +1683,16 @@ def _subdivided_landmarks(triangle_ids: np.ndarray, barycentric: np.ndarray):
     al, be, ga = bary.T
     child = np.full(len(bary), 3)
     out = np.stack([1.0 - 2.0 * ga, 1.0 - 2.0 * al, 1.0 - 2.0 * be], 1)  # middle child (ab, bc, ca)
-    for c, big in enumerate((al, be, ga)):  # a corner child holds the points with that corner's weight >= 1/2
+    for c, big in enumerate(
+        (al, be, ga)
+    ):  # a corner child holds the points with that corner's weight >= 1/2
         on = (big >= 0.5) & (child == 3)
         child[on] = c
-        if c == 0:    # (a, ab, ca): a, ab, ca weights
+        if c == 0:  # (a, ab, ca): a, ab, ca weights
             out[on] = np.stack([2 * al - 1, 2 * be, 2 * ga], 1)[on]
         elif c == 1:  # (ab, b, bc)
             out[on] = np.stack([2 * al, 2 * be - 1, 2 * ga], 1)[on]
-        else:         # (ca, bc, c)
+        else:  # (ca, bc, c)
             out[on] = np.stack([2 * al, 2 * be, 2 * ga - 1], 1)[on]
     return 4 * np.asarray(triangle_ids, dtype=np.int64) + child, out
 
@@ -1381,13 +1723,17 @@ def _cross_topology_wrinkle_fields(material: np.ndarray, names) -> dict[str, np.
         glabella = window(sg * 0.75, 5.0, 0.7, 0.9) * np.sin(k * x)
         procerus = 0.5 * window(0.0, 3.9, 0.9, 0.6) * np.sin(k * (y - 3.9))
         out[f"browDown_{side}"] = amp * (glabella + procerus)
-        out[f"mouthPress_{side}"] = amp * window(sg * 0.8, -6.2, 1.0, 0.9) * np.sin(k * x) * np.sin(k * (y + 6.2))
+        out[f"mouthPress_{side}"] = (
+            amp * window(sg * 0.8, -6.2, 1.0, 0.9) * np.sin(k * x) * np.sin(k * (y + 6.2))
+        )
     out["mouthPucker"] = amp * window(0.0, -1.9, 1.6, 0.45) * np.cos(k * x)
     return {n: f for n, f in out.items() if n in names}
 
 
 @functools.lru_cache(maxsize=4)
-def _cross_topology_pair(source_identity: tuple, target_identity: tuple, subdivisions: int = 0, wrinkles: bool = False):
+def _cross_topology_pair(
+    source_identity: tuple, target_identity: tuple, subdivisions: int = 0, wrinkles: bool = False
+):
     """The two sides of :func:`cross_topology` (cached) and the meta entries describing them."""
     import scipy.sparse as sp
 
@@ -1401,10 +1747,18 @@ def _cross_topology_pair(source_identity: tuple, target_identity: tuple, subdivi
     lm_ids = data["landmarks68"].astype(np.int64)
     s_tri = fixture["triangles"].astype(np.int64)
     region = fixture["region"].astype(np.int64)
-    w = sp.csr_matrix((fixture["w_data"], fixture["w_indices"], fixture["w_indptr"]), shape=(len(region), len(data["neutral"])))
+    w = sp.csr_matrix(
+        (fixture["w_data"], fixture["w_indices"], fixture["w_indptr"]),
+        shape=(len(region), len(data["neutral"])),
+    )
     offset = fixture["offset"]
-    lm_tri, lm_bary = fixture["landmark_triangles"].astype(np.int64), fixture["landmark_barycentric"]
-    for _ in range(subdivisions):  # a denser source: midpoints, exact in the construction (W and offset interpolated)
+    lm_tri, lm_bary = (
+        fixture["landmark_triangles"].astype(np.int64),
+        fixture["landmark_barycentric"],
+    )
+    for _ in range(
+        subdivisions
+    ):  # a denser source: midpoints, exact in the construction (W and offset interpolated)
         split, s_tri, edges = _midpoint_subdivision(s_tri, len(region))
         w, offset = (split @ w).tocsr(), split @ offset
         # a midpoint is a face vertex only between two face vertices
@@ -1416,7 +1770,9 @@ def _cross_topology_pair(source_identity: tuple, target_identity: tuple, subdivi
     s_identity = _ict_identity(data, source_identity, None, "source_identity", "cross_topology")
     s_face = s_identity + blink
     s_vertices = w @ s_face + offset
-    s_mesh = Mesh(s_vertices, s_tri, name="cross-topology source (closed eyes, mouth bag)", _trusted=True)
+    s_mesh = Mesh(
+        s_vertices, s_tri, name="cross-topology source (closed eyes, mouth bag)", _trusted=True
+    )
     s_deltas = np.stack([w @ d for d in deltas])
     s_landmarks = Landmarks(triangle_ids=lm_tri, barycentric=lm_bary, names=ICT_LANDMARK_NAMES)
     s_points = s_landmarks.positions(s_vertices, s_tri)
@@ -1449,9 +1805,15 @@ def _cross_topology_pair(source_identity: tuple, target_identity: tuple, subdivi
     # feature lines: the target's hole loops; on the source (no holes) the nearest vertex chains
     loops = boundary_loops(tri)
     base = data["neutral"]
-    centres = {"eye_L": base[lm_ids[42:48]].mean(axis=0), "eye_R": base[lm_ids[36:42]].mean(axis=0),
-               "mouth_inner": base[lm_ids[60:68]].mean(axis=0)}
-    t_lines = {k: min(loops, key=lambda lp: np.linalg.norm(base[lp].mean(axis=0) - c)) for k, c in centres.items()}
+    centres = {
+        "eye_L": base[lm_ids[42:48]].mean(axis=0),
+        "eye_R": base[lm_ids[36:42]].mean(axis=0),
+        "mouth_inner": base[lm_ids[60:68]].mean(axis=0),
+    }
+    t_lines = {
+        k: min(loops, key=lambda lp: np.linalg.norm(base[lp].mean(axis=0) - c))
+        for k, c in centres.items()
+    }
     t_lines["mouth_outer"] = lm_ids[48:60]
     from scipy.spatial import cKDTree
 
@@ -1463,11 +1825,20 @@ def _cross_topology_pair(source_identity: tuple, target_identity: tuple, subdivi
         _, first = np.unique(ids, return_index=True)
         return ids[np.sort(first)].astype(np.int64)
 
-    s_lines = {"eye_L": chain(s_points[42:48]), "eye_R": chain(s_points[36:42]), "mouth_outer": chain(s_points[48:60]),
-               "mouth_inner": chain(s_face[t_lines["mouth_inner"]])}
+    s_lines = {
+        "eye_L": chain(s_points[42:48]),
+        "eye_R": chain(s_points[36:42]),
+        "mouth_outer": chain(s_points[48:60]),
+        "mouth_inner": chain(s_face[t_lines["mouth_inner"]]),
+    }
 
     src = _Side(source_rig, s_landmarks, s_lines, _ict_masks(s_mesh, s_points))
-    tgt = _Side(target_rig, Landmarks(lm_ids, names=ICT_LANDMARK_NAMES), t_lines, _ict_masks(t_mesh, t_mesh.vertices[lm_ids]))
+    tgt = _Side(
+        target_rig,
+        Landmarks(lm_ids, names=ICT_LANDMARK_NAMES),
+        t_lines,
+        _ict_masks(t_mesh, t_mesh.vertices[lm_ids]),
+    )
     region.setflags(write=False)
     meta = {"source_region": region, "source_weights": w}
     return src, tgt, meta
@@ -1536,10 +1907,15 @@ def cross_topology(
     if source_subdivisions is None:
         source_subdivisions = 1 if wrinkles else 0
     if int(source_subdivisions) != source_subdivisions or not 0 <= source_subdivisions <= 2:
-        raise InputError(f"cross_topology: source_subdivisions must be 0, 1 or 2, got {source_subdivisions!r}")
-    src, tgt, pair_meta = _cross_topology_pair(_identity_key(source_identity, ICT_SOURCE_IDENTITY, "source_identity", "cross_topology"),
-                                               _identity_key(target_identity, ICT_TARGET_IDENTITY, "target_identity", "cross_topology"),
-                                               int(source_subdivisions), bool(wrinkles))
+        raise InputError(
+            f"cross_topology: source_subdivisions must be 0, 1 or 2, got {source_subdivisions!r}"
+        )
+    src, tgt, pair_meta = _cross_topology_pair(
+        _identity_key(source_identity, ICT_SOURCE_IDENTITY, "source_identity", "cross_topology"),
+        _identity_key(target_identity, ICT_TARGET_IDENTITY, "target_identity", "cross_topology"),
+        int(source_subdivisions),
+        bool(wrinkles),
+    )
     names = src.rig.names
     weights = _performance_weights(np.random.default_rng([int(seed), 5]), int(n_frames), fps, names)
     weights[:, [names.index(n) for n in _CLOSED_EYE_SHAPES]] = 0.0
@@ -1553,14 +1929,27 @@ def cross_topology(
         seed=seed,
         head_motion=head_motion,
         pivot=np.array([0.0, s_vertices[:, 1].min(), s_vertices[:, 2].min()]),
-        meta={"seed": seed, "source_region": pair_meta["source_region"], "source_weights": pair_meta["source_weights"].copy(),
-              **({"wrinkles": bool(wrinkles), "source_subdivisions": int(source_subdivisions)} if wrinkles or source_subdivisions else {})},
+        meta={
+            "seed": seed,
+            "source_region": pair_meta["source_region"],
+            "source_weights": pair_meta["source_weights"].copy(),
+            **(
+                {"wrinkles": bool(wrinkles), "source_subdivisions": int(source_subdivisions)}
+                if wrinkles or source_subdivisions
+                else {}
+            ),
+        },
         weights=weights,
     )
 
 
 #: Built-in case generators by name.
-CASES = {"synthetic": synthetic, "ict": ict, "cross_rig": cross_rig, "cross_topology": cross_topology}
+CASES = {
+    "synthetic": synthetic,
+    "ict": ict,
+    "cross_rig": cross_rig,
+    "cross_topology": cross_topology,
+}
 
 
 def get_case(name: str, **options: Any) -> Case:
@@ -1570,5 +1959,7 @@ def get_case(name: str, **options: Any) -> Case:
     except KeyError:
         from ._validate import did_you_mean
 
-        raise UnknownNameError(f"no case named {name!r}{did_you_mean(name, CASES)}; built-in cases: {', '.join(CASES)}") from None
+        raise UnknownNameError(
+            f"no case named {name!r}{did_you_mean(name, CASES)}; built-in cases: {', '.join(CASES)}"
+        ) from None
     return make(**options)

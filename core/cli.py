@@ -10,6 +10,7 @@
 Errors are printed as one line on stderr with a non-zero exit status; ``--debug``
 shows the traceback.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,10 +23,19 @@ from pathlib import Path
 from ._args import parse_sets
 from ._json import jsonable
 from ._version import __version__
-from .errors import CapabilityError, FaceRetargetError, FileFormatError, InputError, PluginError, PluginOutputError
+from .errors import (
+    CapabilityError,
+    FaceRetargetError,
+    FileFormatError,
+    InputError,
+    PluginError,
+    PluginOutputError,
+)
 from .hookspecs import DATA_KINDS
 
-EXIT_FAILED = 1  # the command ran to its end, but some of its runs or jobs failed (see --keep-going)
+EXIT_FAILED = (
+    1  # the command ran to its end, but some of its runs or jobs failed (see --keep-going)
+)
 EXIT_ERROR = 2
 EXIT_INTERNAL = 3
 
@@ -115,13 +125,20 @@ def _one_line(exc: BaseException) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="faceretarget", description="Facial animation retargeting.")
+    parser = argparse.ArgumentParser(
+        prog="faceretarget", description="Facial animation retargeting."
+    )
     parser.add_argument("--version", action="version", version=f"faceretarget {__version__}")
-    parser.add_argument("--debug", action="store_true", help="show the traceback of an error (the exit status stays the same)")
+    parser.add_argument(
+        "--debug",
+        action="store_true",
+        help="show the traceback of an error (the exit status stays the same)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser(
-        "list", help="list registered retargeters",
+        "list",
+        help="list registered retargeters",
         description="List every registered retargeter (built-in and from installed plugins) with the sources it takes, "
         "its output, whether it edits and streams, and its origin; then the plugins that failed to load.",
     )
@@ -129,7 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_list)
 
     p = sub.add_parser(
-        "info", help="describe one retargeter: paper, capabilities, parameters",
+        "info",
+        help="describe one retargeter: paper, capabilities, parameters",
         description="Describe one retargeter: its paper, the sources it takes and what it needs (landmarks, feature "
         "lines, examples, layers: the `run` options that give them), and every parameter with its default and meaning.",
         epilog="example: faceretarget info NAME (a name or alias from faceretarget list)",
@@ -139,7 +157,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_info)
 
     p = sub.add_parser(
-        "run", help="retarget a performance file onto a target rig file",
+        "run",
+        help="retarget a performance file onto a target rig file",
         description="Retarget a performance (--source) onto a character (--target) with one method and write the "
         "result (--out). Every part a method needs can come from ordinary files: landmarks, feature lines, example "
         "poses and layered poses for either side (see `faceretarget info NAME` for what a method needs, and "
@@ -150,32 +169,112 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("name", help="retargeter name or alias (see `faceretarget list`)")
     src = p.add_argument_group("source (the performance)")
-    src.add_argument("--source", required=True, help="performance: markers (c3d/trc/csv), mesh sequence (folder/npz/pc2/mdd/npy), weights csv, or a source/case bundle .npz")
-    src.add_argument("--source-kind", choices=DATA_KINDS, help="what to read --source as when its extension is ambiguous (e.g. a .glb)")
-    src.add_argument("--topology", metavar="MESH", help="mesh giving the triangles of a point cache (.pc2/.mdd/.npy) source, same vertex order")
-    src.add_argument("--source-neutral", metavar="MESH", help="the actor's neutral (rest) mesh of a mesh-sequence source, same vertex order (default: frame 0); also gives its triangles")
-    src.add_argument("--fps", type=float, help="frame rate of a source format that does not store it")
-    src.add_argument("--source-landmarks", metavar="FILE", help="landmark vertex ids on the source mesh, in the order of the target's (json/txt); markers need none")
-    src.add_argument("--source-feature-lines", metavar="JSON", help="feature lines on the source mesh: {line name: [vertex ids]}")
-    src.add_argument("--source-examples", metavar="FILE", help="source example poses: npz (examples (M, V, 3), example_names) or a folder of meshes")
-    src.add_argument("--source-rig", metavar="FILE", help="the actor's own blendshape rig, needed with a weight-curve source")
-    src.add_argument("--source-head-motion", metavar="NPY", help="(F, 4, 4) head motion of the source, when it is known")
-    src.add_argument("--actor-layers", metavar="NPZ", help="the actor's layered poses, a faceretarget layers .npz (layers)")
+    src.add_argument(
+        "--source",
+        required=True,
+        help="performance: markers (c3d/trc/csv), mesh sequence (folder/npz/pc2/mdd/npy), weights csv, or a source/case bundle .npz",
+    )
+    src.add_argument(
+        "--source-kind",
+        choices=DATA_KINDS,
+        help="what to read --source as when its extension is ambiguous (e.g. a .glb)",
+    )
+    src.add_argument(
+        "--topology",
+        metavar="MESH",
+        help="mesh giving the triangles of a point cache (.pc2/.mdd/.npy) source, same vertex order",
+    )
+    src.add_argument(
+        "--source-neutral",
+        metavar="MESH",
+        help="the actor's neutral (rest) mesh of a mesh-sequence source, same vertex order (default: frame 0); also gives its triangles",
+    )
+    src.add_argument(
+        "--fps", type=float, help="frame rate of a source format that does not store it"
+    )
+    src.add_argument(
+        "--source-landmarks",
+        metavar="FILE",
+        help="landmark vertex ids on the source mesh, in the order of the target's (json/txt); markers need none",
+    )
+    src.add_argument(
+        "--source-feature-lines",
+        metavar="JSON",
+        help="feature lines on the source mesh: {line name: [vertex ids]}",
+    )
+    src.add_argument(
+        "--source-examples",
+        metavar="FILE",
+        help="source example poses: npz (examples (M, V, 3), example_names) or a folder of meshes",
+    )
+    src.add_argument(
+        "--source-rig",
+        metavar="FILE",
+        help="the actor's own blendshape rig, needed with a weight-curve source",
+    )
+    src.add_argument(
+        "--source-head-motion",
+        metavar="NPY",
+        help="(F, 4, 4) head motion of the source, when it is known",
+    )
+    src.add_argument(
+        "--actor-layers",
+        metavar="NPZ",
+        help="the actor's layered poses, a faceretarget layers .npz (layers)",
+    )
     tgt = p.add_argument_group("target (the character)")
-    tgt.add_argument("--target", required=True, help="character: glb/gltf with morph targets, folder of OBJs, a mesh, or a target/case bundle .npz")
-    tgt.add_argument("--target-kind", choices=DATA_KINDS, help="what to read --target as, e.g. rig for a glb that also holds an animation")
-    tgt.add_argument("--landmarks", metavar="FILE", help="target landmark vertex ids (json/txt/file.npz:KEY), when the target file has none")
-    tgt.add_argument("--feature-lines", metavar="JSON", help="feature lines on the target mesh: {line name: [vertex ids]}")
-    tgt.add_argument("--examples", metavar="FILE", help="target example poses, paired with the source's by name: npz or folder of meshes")
-    tgt.add_argument("--layers", metavar="NPZ", help="the character's layered poses and region masks, a faceretarget layers .npz (layers)")
+    tgt.add_argument(
+        "--target",
+        required=True,
+        help="character: glb/gltf with morph targets, folder of OBJs, a mesh, or a target/case bundle .npz",
+    )
+    tgt.add_argument(
+        "--target-kind",
+        choices=DATA_KINDS,
+        help="what to read --target as, e.g. rig for a glb that also holds an animation",
+    )
+    tgt.add_argument(
+        "--landmarks",
+        metavar="FILE",
+        help="target landmark vertex ids (json/txt/file.npz:KEY), when the target file has none",
+    )
+    tgt.add_argument(
+        "--feature-lines",
+        metavar="JSON",
+        help="feature lines on the target mesh: {line name: [vertex ids]}",
+    )
+    tgt.add_argument(
+        "--examples",
+        metavar="FILE",
+        help="target example poses, paired with the source's by name: npz or folder of meshes",
+    )
+    tgt.add_argument(
+        "--layers",
+        metavar="NPZ",
+        help="the character's layered poses and region masks, a faceretarget layers .npz (layers)",
+    )
     out = p.add_argument_group("output")
-    out.add_argument("--out", required=True, help="output file (.glb, .npz, .pc2, .csv, or a folder for an OBJ sequence)")
-    out.add_argument("--set", dest="params", action="append", default=[], metavar="KEY=VALUE", help="retargeter parameter (repeatable), e.g. --set alpha=0.02")
-    out.add_argument("--force", action="store_true", help="overwrite an existing output (never an input)")
+    out.add_argument(
+        "--out",
+        required=True,
+        help="output file (.glb, .npz, .pc2, .csv, or a folder for an OBJ sequence)",
+    )
+    out.add_argument(
+        "--set",
+        dest="params",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="retargeter parameter (repeatable), e.g. --set alpha=0.02",
+    )
+    out.add_argument(
+        "--force", action="store_true", help="overwrite an existing output (never an input)"
+    )
     p.set_defaults(handler=cmd_run)
 
     p = sub.add_parser(
-        "formats", help="list file formats that can be read and written",
+        "formats",
+        help="list file formats that can be read and written",
         description="List every registered reader and writer: name, what it reads or writes, file extensions; "
         "for a plugin's format, its origin and priority, and where two share an extension and kind, which one wins "
         "(the other is shadowed: a reader then gets only the files the winner declines).",
@@ -183,39 +282,45 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_formats)
 
     p = sub.add_parser(
-        "demo", help="run every method on built-in cases and write a report (the main job)",
+        "demo",
+        help="run every method on built-in cases and write a report (the main job)",
         description="Build the synthetic human and stylized cases and the ICT-FaceKit case, run every registered method "
         "and the paper reproductions, and write report.html, results.csv/json and a GLB per (case, method) into a new folder.",
     )
     _attach(p, "faceretarget.evaluation.commands", "demo")
     p = sub.add_parser(
-        "compare", help="compare retargeters on evaluation cases",
+        "compare",
+        help="compare retargeters on evaluation cases",
         description="Run retargeters on built-in cases with a known answer, print the ranking, and optionally write the "
         "report and tables (see docs/evaluation.md).",
         epilog="example: faceretarget compare --cases synthetic ict --methods NAME NAME --out report/",
     )
     _attach(p, "faceretarget.evaluation.commands", "compare")
     p = sub.add_parser(
-        "batch", help="run a manifest of (shot, character, method) jobs",
+        "batch",
+        help="run a manifest of (shot, character, method) jobs",
         description="Run the [[job]] entries of a TOML manifest (shot, character, method, params, out) in parallel "
         "worker processes or on Dask; jobs whose output exists are skipped, so a stopped batch resumes.",
         epilog="example manifest: `faceretarget cases export synthetic-human take/` writes take/batch.toml",
     )
     _attach(p, "faceretarget.evaluation.commands", "batch")
     p = sub.add_parser(
-        "convert", help="convert between file formats",
+        "convert",
+        help="convert between file formats",
         description="Read IN with the reader for its extension (--kind chooses) and write OUT with the writer for its "
         "extension, atomically; never over an input.",
         epilog="example: faceretarget convert take.pc2 take.glb --topology actor.obj",
     )
     _attach(p, "faceretarget.io.commands", "convert")
     p = sub.add_parser(
-        "cases", help="list the built-in cases, or export one as ordinary files",
+        "cases",
+        help="list the built-in cases, or export one as ordinary files",
         description="The built-in evaluation cases: `cases list` names them, `cases export NAME DIR` writes one as ordinary files to try `run` and `batch` on.",
     )
     _attach(p, "faceretarget.io.commands", "cases")
     p = sub.add_parser(
-        "warmup", help="compile every numerical kernel ahead (once per machine), so the first real run does not wait",
+        "warmup",
+        help="compile every numerical kernel ahead (once per machine), so the first real run does not wait",
         description="Fit and retarget every built-in method on tiny built-in cases, which compiles and caches the numba "
         "kernels they use (the first run otherwise pauses for a few minutes while they compile); prints the time per method.",
     )
@@ -245,7 +350,10 @@ def cmd_list(args) -> int:
 
     reg = catalogue()  # manifests only: no plugin code imported
     rows = [entry.as_dict() for _, entry in sorted(reg.retargeters.items())]
-    failures = [{"plugin": f.name, "distribution": f.distribution, "version": f.version, "error": f.error} for f in reg.failures]
+    failures = [
+        {"plugin": f.name, "distribution": f.distribution, "version": f.version, "error": f.error}
+        for f in reg.failures
+    ]
     if args.json:
         print(json.dumps({"retargeters": rows, "failed_plugins": failures}, indent=2))
         return 0
@@ -276,7 +384,10 @@ def cmd_info(args) -> int:
     params = entry.parameters
     if args.json:
         data = entry.as_dict()
-        data["parameters"] = {k: {"default": jsonable(p.default), "valid": p.valid, "doc": p.doc} for k, p in params.items()}
+        data["parameters"] = {
+            k: {"default": jsonable(p.default), "valid": p.valid, "doc": p.doc}
+            for k, p in params.items()
+        }
         print(json.dumps(data, indent=2))
         return 0
     caps = entry.capabilities
@@ -306,12 +417,16 @@ def cmd_formats(args) -> int:
     rows = formats()
     for direction, title in (("read", "readers:"), ("write", "writers:")):
         print(title)
-        for row in sorted((r for r in rows if r["direction"] == direction), key=lambda r: r["name"]):
+        for row in sorted(
+            (r for r in rows if r["direction"] == direction), key=lambda r: r["name"]
+        ):
             if not row["builtin"]:
                 origin = f" [{row['origin']}, priority {row['priority']:g}]"
             else:  # a built-in below (or above) the others says so: the meshio formats are at -1
                 origin = f" [priority {row['priority']:g}]" if row["priority"] else ""
-            print(f"  {row['name']:<14} {row['kind']:<14} {' '.join(row['extensions']):<20} {row['description']}{origin}")
+            print(
+                f"  {row['name']:<14} {row['kind']:<14} {' '.join(row['extensions']):<20} {row['description']}{origin}"
+            )
             note = shadow_note(row)
             if note:
                 print(f"  {'':<14} {'':<14} {'':<20} -> {note}")
@@ -335,8 +450,22 @@ RUN_OPTIONS = {
 
 def _run_inputs(args) -> list[str]:
     """Every file ``run`` reads (the output may be none of them)."""
-    names = ("source", "target", "topology", "source_neutral", "source_landmarks", "source_feature_lines", "source_examples",
-             "source_rig", "source_head_motion", "actor_layers", "landmarks", "feature_lines", "examples", "layers")
+    names = (
+        "source",
+        "target",
+        "topology",
+        "source_neutral",
+        "source_landmarks",
+        "source_feature_lines",
+        "source_examples",
+        "source_rig",
+        "source_head_motion",
+        "actor_layers",
+        "landmarks",
+        "feature_lines",
+        "examples",
+        "layers",
+    )
     return [getattr(args, n) for n in names if getattr(args, n, None)]
 
 
@@ -346,7 +475,9 @@ def _read_layers(path: str, option: str):
 
     obj = read_npz_object(Path(path))
     if not isinstance(obj, LayeredRig):
-        raise FileFormatError(f"{path}: {option} needs a faceretarget layers .npz (faceretarget.io.save(layered_rig, 'x.npz')), this file holds a {type(obj).__name__}")
+        raise FileFormatError(
+            f"{path}: {option} needs a faceretarget layers .npz (faceretarget.io.save(layered_rig, 'x.npz')), this file holds a {type(obj).__name__}"
+        )
     return obj
 
 
@@ -366,10 +497,20 @@ def load_run_source(args):
     if neutral is not None:
         perf = source.performance
         if not isinstance(perf, MeshSequence):
-            raise InputError(f"--source-neutral is for mesh-sequence sources; {args.source} holds {source.kind}")
+            raise InputError(
+                f"--source-neutral is for mesh-sequence sources; {args.source} holds {source.kind}"
+            )
         if neutral.n_vertices != perf.n_vertices:
-            raise InputError(f"--source-neutral {args.source_neutral} has {neutral.n_vertices} vertices, the source {perf.n_vertices}; they must match one to one")
-        changes["performance"] = MeshSequence(perf.vertices, perf.triangles, fps=perf.fps, reference=Mesh(neutral.vertices, perf.triangles), name=perf.name)
+            raise InputError(
+                f"--source-neutral {args.source_neutral} has {neutral.n_vertices} vertices, the source {perf.n_vertices}; they must match one to one"
+            )
+        changes["performance"] = MeshSequence(
+            perf.vertices,
+            perf.triangles,
+            fps=perf.fps,
+            reference=Mesh(neutral.vertices, perf.triangles),
+            name=perf.name,
+        )
     if args.source_landmarks:
         changes["landmarks"] = io.read_landmarks(args.source_landmarks)
     if args.source_feature_lines:
@@ -395,7 +536,13 @@ def load_run_target(args):
     """The :class:`~faceretarget.model.TargetRig` of ``run``: --target with its parts from the options."""
     from . import io
 
-    target = io.load_target(args.target, landmarks=args.landmarks, feature_lines=args.feature_lines, examples=args.examples, kind=args.target_kind)
+    target = io.load_target(
+        args.target,
+        landmarks=args.landmarks,
+        feature_lines=args.feature_lines,
+        examples=args.examples,
+        kind=args.target_kind,
+    )
     if args.layers:
         target = target.replace(layers=_read_layers(args.layers, "--layers"))
     return target
@@ -443,13 +590,17 @@ def cmd_run(args) -> int:
     _plugin_call(who, "fit", retargeter.fit, source, target)
     steps.update()
     steps.set_postfix_str("retargeting")
-    animation = _plugin_call(who, "retarget", retargeter.retarget, source)  # checked by Retargeter.check_output
+    animation = _plugin_call(
+        who, "retarget", retargeter.retarget, source
+    )  # checked by Retargeter.check_output
     steps.update()
     steps.set_postfix_str("writing")
     io.save(animation, args.out, force=args.force, inputs=inputs)
     steps.update()
     steps.close()
-    print(f"wrote {args.out}: {animation.n_frames} frames by {retargeter.name} in {time.perf_counter() - t0:.2f} s")
+    print(
+        f"wrote {args.out}: {animation.n_frames} frames by {retargeter.name} in {time.perf_counter() - t0:.2f} s"
+    )
     return 0
 
 
@@ -460,7 +611,9 @@ def _check_output_path(out: str, inputs: list[str], force: bool) -> None:
 
     from .io._atomic import check_destination
 
-    check_destination(out, inputs=inputs, force=force, folder=not Path(out).suffix or out.endswith(("/", "\\")))
+    check_destination(
+        out, inputs=inputs, force=force, folder=not Path(out).suffix or out.endswith(("/", "\\"))
+    )
 
 
 def _plugin_call(who, stage: str, call, *args):
@@ -482,7 +635,9 @@ def _plugin_call(who, stage: str, call, *args):
     except Exception as exc:
         if ours:
             raise
-        raise PluginError(f"{where} failed in {stage}: {type(exc).__name__}: {_one_line(exc)}") from exc
+        raise PluginError(
+            f"{where} failed in {stage}: {type(exc).__name__}: {_one_line(exc)}"
+        ) from exc
     except KeyboardInterrupt:
         raise
     except BaseException as exc:  # sys.exit(0) in a plugin is not a success: nothing was written

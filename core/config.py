@@ -3,6 +3,7 @@
 Modules import the constants from here rather than hard-coding them, so a
 threshold is documented and changed once.
 """
+
 from __future__ import annotations
 
 import os
@@ -134,7 +135,9 @@ def seconds_setting(name: str, default: float) -> float | None:
     try:
         value = float(raw) if raw else float(default)
     except ValueError:
-        raise ConfigError(f"{name}={raw!r} is not a number of seconds; use e.g. {name}=600 (0 for no limit)") from None
+        raise ConfigError(
+            f"{name}={raw!r} is not a number of seconds; use e.g. {name}=600 (0 for no limit)"
+        ) from None
     return check_timeout(value, f"{name}={raw!r}")
 
 
@@ -144,9 +147,16 @@ def check_timeout(value, what: str = "timeout") -> float | None:
 
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= MAX_TIMEOUT:
-        raise ConfigError(f"{what} must be a number of seconds from 0 to {MAX_TIMEOUT:g} (30 days; 0 or None for no limit), got {value!r}")
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or not 0 <= value <= MAX_TIMEOUT
+    ):
+        raise ConfigError(
+            f"{what} must be a number of seconds from 0 to {MAX_TIMEOUT:g} (30 days; 0 or None for no limit), got {value!r}"
+        )
     return float(value) or None
+
 
 # ---------------------------------------------------------------------------------------
 # Cross-topology correspondence (``correspond.resample_to_topology`` and its QualityReport)

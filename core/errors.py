@@ -36,6 +36,7 @@ Warnings (``warnings.warn``; filter them with ``warnings.simplefilter``)::
     FaceRetargetWarning (UserWarning)
     └── CorrespondenceWarning              a cross-topology correspondence is poor somewhere
 """
+
 from __future__ import annotations
 
 __all__ = [

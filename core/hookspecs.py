@@ -13,10 +13,12 @@ Example::
     def faceretarget_retargeters():
         return [MyRetargeter]
 """
+
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Callable
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import pluggy
 
@@ -138,7 +140,7 @@ class FaceRetargetSpec:
     """Hook specifications."""
 
     @hookspec
-    def faceretarget_retargeters(self) -> "list[type[Retargeter]]":
+    def faceretarget_retargeters(self) -> list[type[Retargeter]]:
         """Return retargeter classes (subclasses of :class:`faceretarget.Retargeter`).
 
         Each class has a unique ``name``; names and aliases must not clash with any
@@ -146,19 +148,19 @@ class FaceRetargetSpec:
         """
 
     @hookspec
-    def faceretarget_readers(self) -> "list[Reader]":
+    def faceretarget_readers(self) -> list[Reader]:
         """Return :class:`Reader` records for the file formats this plugin reads."""
 
     @hookspec
-    def faceretarget_writers(self) -> "list[Writer]":
+    def faceretarget_writers(self) -> list[Writer]:
         """Return :class:`Writer` records for the file formats this plugin writes."""
 
     @hookspec
-    def faceretarget_metrics(self) -> "list[Metric]":
+    def faceretarget_metrics(self) -> list[Metric]:
         """Return :class:`Metric` records for the evaluation harness."""
 
     @hookspec
-    def faceretarget_presets(self) -> "list[Preset]":
+    def faceretarget_presets(self) -> list[Preset]:
         """Return :class:`Preset` records: paper reproductions for the report. Import heavy
         code inside ``run``, not when building the records."""
 

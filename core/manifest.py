@@ -17,6 +17,7 @@ plugin may ship one as ``faceretarget.toml`` in the package its entry point name
 left out there); one that does not is described by its class (:func:`from_class`). The
 registry checks that a class and its manifest agree (:func:`disagreements`).
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -31,7 +32,17 @@ from . import validation
 from .errors import ConfigError
 from .retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS, Capabilities
 
-__all__ = ["Manifest", "Parameter", "parse", "builtin", "builtin_text", "constraints", "find_package_manifest", "from_class", "disagreements"]
+__all__ = [
+    "Manifest",
+    "Parameter",
+    "parse",
+    "builtin",
+    "builtin_text",
+    "constraints",
+    "find_package_manifest",
+    "from_class",
+    "disagreements",
+]
 
 #: File name of a third-party plugin's manifest, next to its package's ``__init__.py``.
 PACKAGE_MANIFEST = "faceretarget.toml"
@@ -72,17 +83,33 @@ class Manifest:
         return {name: p.default for name, p in self.parameters.items()}
 
     @classmethod
-    def from_entry(cls, name: str, entry: dict[str, Any], origin: str) -> "Manifest":
+    def from_entry(cls, name: str, entry: dict[str, Any], origin: str) -> Manifest:
         """From one table of :func:`parse`'s result."""
         params = {
-            p: Parameter(p, spec.get("default"), tuple(validation.from_manifest(spec, f"{origin}: {name}.{p}")), spec["doc"])
+            p: Parameter(
+                p,
+                spec.get("default"),
+                tuple(validation.from_manifest(spec, f"{origin}: {name}.{p}")),
+                spec["doc"],
+            )
             for p, spec in entry["parameters"].items()
         }
-        return cls(name, entry["entry_point"], entry["summary"], entry["paper"], tuple(entry["aliases"]),
-                   Capabilities.from_dict(entry["capabilities"]), params, origin, tuple(entry["baseline_of"]))
+        return cls(
+            name,
+            entry["entry_point"],
+            entry["summary"],
+            entry["paper"],
+            tuple(entry["aliases"]),
+            Capabilities.from_dict(entry["capabilities"]),
+            params,
+            origin,
+            tuple(entry["baseline_of"]),
+        )
 
 
-def parse(text: str, origin: str, defaults: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+def parse(
+    text: str, origin: str, defaults: dict[str, Any] | None = None
+) -> dict[str, dict[str, Any]]:
     """Parse manifest TOML: name -> entry with keys ``entry_point``, ``aliases``, ``paper``,
     ``summary``, ``capabilities``, ``parameters``. ``defaults`` fills missing top-level keys
     (a package manifest's ``entry_point``). Raises :class:`ConfigError` naming ``origin``."""
@@ -108,15 +135,25 @@ def parse(text: str, origin: str, defaults: dict[str, Any] | None = None) -> dic
             if not isinstance(value, list) or not all(isinstance(a, str) for a in value):
                 raise ConfigError(f"{origin}: [retargeters.{name}].{key} must be a list of strings")
         params = entry.get("parameters", {})
-        if not isinstance(params, dict) or not all(isinstance(v, dict) and isinstance(v.get("doc"), str) for v in params.values()):
-            raise ConfigError(f"{origin}: [retargeters.{name}.parameters] entries must be tables with a 'doc' string (and 'default')")
+        if not isinstance(params, dict) or not all(
+            isinstance(v, dict) and isinstance(v.get("doc"), str) for v in params.values()
+        ):
+            raise ConfigError(
+                f"{origin}: [retargeters.{name}.parameters] entries must be tables with a 'doc' string (and 'default')"
+            )
         for p, spec in params.items():
             validation.from_manifest(spec, f"{origin}: [retargeters.{name}.parameters] {p}")
         caps = entry.get("capabilities", {})
         if not isinstance(caps, dict):
             raise ConfigError(f"{origin}: [retargeters.{name}.capabilities] must be a table")
         _check_capabilities(caps, f"{origin}: [retargeters.{name}.capabilities]")
-        out[name] = {**entry, "aliases": aliases, "baseline_of": baseline_of, "parameters": params, "capabilities": caps}
+        out[name] = {
+            **entry,
+            "aliases": aliases,
+            "baseline_of": baseline_of,
+            "parameters": params,
+            "capabilities": caps,
+        }
     return out
 
 
@@ -126,17 +163,22 @@ def _check_capabilities(caps: dict, where: str) -> None:
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))}")
     sources = caps.get("sources", ["markers"])
-    if not isinstance(sources, list) or not all(isinstance(s, str) and s in SOURCE_KINDS for s in sources):
+    if not isinstance(sources, list) or not all(
+        isinstance(s, str) and s in SOURCE_KINDS for s in sources
+    ):
         raise ConfigError(f"{where}: sources must be a list of {', '.join(SOURCE_KINDS)}")
     needs = caps.get("needs", [])
     valid = RIG_PARTS + SOURCE_EXTRAS
     if not isinstance(needs, list) or not all(
-        (isinstance(n, str) and n in valid) or (isinstance(n, list) and n and all(isinstance(o, str) and o in valid for o in n))
+        (isinstance(n, str) and n in valid)
+        or (isinstance(n, list) and n and all(isinstance(o, str) and o in valid for o in n))
         for n in needs
     ):
-        raise ConfigError(f"{where}: needs must be a list of {', '.join(valid)} (or lists of alternatives)")
+        raise ConfigError(
+            f"{where}: needs must be a list of {', '.join(valid)} (or lists of alternatives)"
+        )
     if caps.get("outputs", "vertices") not in ("weights", "vertices"):
-        raise ConfigError(f"{where}: outputs must be \"weights\" or \"vertices\"")
+        raise ConfigError(f'{where}: outputs must be "weights" or "vertices"')
     for key in ("stream", "edit", "same_topology"):
         if not isinstance(caps.get(key, False), bool):
             raise ConfigError(f"{where}: {key} must be true or false")
@@ -148,13 +190,18 @@ def builtin_text() -> str:
     try:
         return resources.files("faceretarget").joinpath("registry.toml").read_text(encoding="utf-8")
     except (FileNotFoundError, OSError) as exc:
-        raise ConfigError(f"registry.toml: not found inside the installed package ({exc}); reinstall faceretarget") from None
+        raise ConfigError(
+            f"registry.toml: not found inside the installed package ({exc}); reinstall faceretarget"
+        ) from None
 
 
 @lru_cache(maxsize=1)
 def builtin() -> dict[str, Manifest]:
     """The built-in retargeters' manifests (``registry.toml``), by name."""
-    return {name: Manifest.from_entry(name, entry, "registry.toml") for name, entry in parse(builtin_text(), "registry.toml").items()}
+    return {
+        name: Manifest.from_entry(name, entry, "registry.toml")
+        for name, entry in parse(builtin_text(), "registry.toml").items()
+    }
 
 
 def constraints(name: str) -> dict[str, list]:
@@ -200,9 +247,17 @@ def from_class(cls: type, entry_point: str = "") -> Manifest:
         for p, default in cls.default_params().items()
     }
     summary = getattr(cls, "summary", "") or (cls.__doc__ or "").strip().split("\n")[0]
-    return Manifest(cls.name, entry_point, summary, getattr(cls, "paper", "") or "", tuple(getattr(cls, "aliases", ()) or ()),
-                    cls.capabilities, params, f"class {cls.__module__}.{cls.__qualname__}",
-                    tuple(getattr(cls, "baseline_of", ()) or ()))
+    return Manifest(
+        cls.name,
+        entry_point,
+        summary,
+        getattr(cls, "paper", "") or "",
+        tuple(getattr(cls, "aliases", ()) or ()),
+        cls.capabilities,
+        params,
+        f"class {cls.__module__}.{cls.__qualname__}",
+        tuple(getattr(cls, "baseline_of", ()) or ()),
+    )
 
 
 def disagreements(cls: type, manifest: Manifest) -> list[str]:
@@ -210,7 +265,9 @@ def disagreements(cls: type, manifest: Manifest) -> list[str]:
     (when the class declares them) constraints. Empty when they agree."""
     out = []
     if cls.capabilities != manifest.capabilities:
-        out.append(f"capabilities: class {cls.capabilities.as_dict()}, manifest {manifest.capabilities.as_dict()}")
+        out.append(
+            f"capabilities: class {cls.capabilities.as_dict()}, manifest {manifest.capabilities.as_dict()}"
+        )
     defaults = cls.default_params()
     only_class = sorted(set(defaults) - set(manifest.parameters))
     only_manifest = sorted(set(manifest.parameters) - set(defaults))
@@ -222,15 +279,23 @@ def disagreements(cls: type, manifest: Manifest) -> list[str]:
     for p in sorted(set(defaults) & set(manifest.parameters)):
         spec = manifest.parameters[p]
         if not _same_default(defaults[p], spec.default):
-            out.append(f"parameter {p!r}: default {defaults[p]!r} in __init__, {spec.default!r} in the manifest")
+            out.append(
+                f"parameter {p!r}: default {defaults[p]!r} in __init__, {spec.default!r} in the manifest"
+            )
         if p in declared and set(declared[p]) != set(spec.constraints):
-            out.append(f"parameter {p!r}: class accepts {validation.describe(declared[p]) or 'anything'}, "
-                       f"the manifest {spec.valid or 'anything'}")
+            out.append(
+                f"parameter {p!r}: class accepts {validation.describe(declared[p]) or 'anything'}, "
+                f"the manifest {spec.valid or 'anything'}"
+            )
     return out
 
 
 def _same_default(a, b) -> bool:
-    numbers = (isinstance(a, (int, float)) and isinstance(b, (int, float)) and isinstance(a, bool) == isinstance(b, bool))
+    numbers = (
+        isinstance(a, (int, float))
+        and isinstance(b, (int, float))
+        and isinstance(a, bool) == isinstance(b, bool)
+    )
     if type(a) is not type(b) and not numbers:
         return False
     try:

@@ -11,15 +11,24 @@ and never modify their inputs: every stored array is a read-only view or copy.
 Derived operators (normals, adjacency) are computed on first use and cached
 read-only. This module knows nothing of plugins, files or the CLI.
 """
+
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from functools import cached_property
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from . import config
-from ._validate import as_array, as_float_array, as_fps, as_index_array, as_names, check_finite, readonly
+from ._validate import (
+    as_array,
+    as_float_array,
+    as_fps,
+    as_index_array,
+    as_names,
+    readonly,
+)
 from .errors import (
     DegenerateGeometryError,
     InputError,
@@ -80,15 +89,19 @@ class Mesh:
         else:
             n_vertices = self.vertices.shape[0]
             if n_vertices < 3:
-                raise ShapeError(f"Mesh.vertices: a mesh needs at least 3 vertices, got {n_vertices}")
-            self.triangles = as_index_array(triangles, "Mesh.triangles", (None, 3), upper=n_vertices)
+                raise ShapeError(
+                    f"Mesh.vertices: a mesh needs at least 3 vertices, got {n_vertices}"
+                )
+            self.triangles = as_index_array(
+                triangles, "Mesh.triangles", (None, 3), upper=n_vertices
+            )
             if self.triangles.shape[0] == 0:
                 raise ShapeError("Mesh.triangles: a mesh needs at least one triangle, got (0, 3)")
             _check_triangle_indices(self.triangles)
         self.name = name
 
     # construction helpers -------------------------------------------------------------
-    def with_vertices(self, vertices) -> "Mesh":
+    def with_vertices(self, vertices) -> Mesh:
         """A mesh with the same triangles and new ``vertices : (V, 3)``."""
         vertices = as_float_array(vertices, "vertices", (self.n_vertices, 3))
         return Mesh(vertices, self.triangles, name=self.name, _trusted=True)
@@ -179,10 +192,14 @@ class Mesh:
         return f"Mesh({self.n_vertices} vertices, {self.n_triangles} triangles{', ' + repr(self.name) if self.name else ''})"
 
     def __getstate__(self):
-        return {"vertices": np.array(self.vertices), "triangles": np.array(self.triangles), "name": self.name}
+        return {
+            "vertices": np.array(self.vertices),
+            "triangles": np.array(self.triangles),
+            "name": self.name,
+        }
 
     def __setstate__(self, state):
-        self.__init__(state["vertices"], state["triangles"], name=state["name"], _trusted=True)
+        self.__init__(state["vertices"], state["triangles"], name=state["name"], _trusted=True)  # type: ignore[misc]
 
 
 def _check_triangle_indices(triangles: np.ndarray) -> None:
@@ -220,7 +237,9 @@ class Landmarks:
 
     def __init__(self, vertex_ids=None, *, triangle_ids=None, barycentric=None, names=None):
         if (vertex_ids is None) == (triangle_ids is None):
-            raise InputError("Landmarks: give either vertex_ids, or triangle_ids with barycentric coordinates")
+            raise InputError(
+                "Landmarks: give either vertex_ids, or triangle_ids with barycentric coordinates"
+            )
         if vertex_ids is not None:
             self.vertex_ids = as_index_array(vertex_ids, "Landmarks.vertex_ids", (None,))
             self.triangle_ids = None
@@ -228,7 +247,9 @@ class Landmarks:
             count = self.vertex_ids.shape[0]
         else:
             if barycentric is None:
-                raise InputError("Landmarks: triangle_ids need barycentric coordinates of shape (N, 3)")
+                raise InputError(
+                    "Landmarks: triangle_ids need barycentric coordinates of shape (N, 3)"
+                )
             self.vertex_ids = None
             self.triangle_ids = as_index_array(triangle_ids, "Landmarks.triangle_ids", (None,))
             count = self.triangle_ids.shape[0]
@@ -242,12 +263,14 @@ class Landmarks:
     def __len__(self) -> int:
         return len(self.names)
 
-    def validate_for(self, mesh: Mesh, what: str = "landmarks") -> "Landmarks":
+    def validate_for(self, mesh: Mesh, what: str = "landmarks") -> Landmarks:
         """Check the ids fit ``mesh``; returns self."""
         if self.vertex_ids is not None:
             as_index_array(self.vertex_ids, f"{what}.vertex_ids", (None,), upper=mesh.n_vertices)
         else:
-            as_index_array(self.triangle_ids, f"{what}.triangle_ids", (None,), upper=mesh.n_triangles)
+            as_index_array(
+                self.triangle_ids, f"{what}.triangle_ids", (None,), upper=mesh.n_triangles
+            )
         return self
 
     def positions(self, vertices: np.ndarray, triangles: np.ndarray | None = None) -> np.ndarray:
@@ -294,10 +317,14 @@ class MarkerSequence:
                 f"MarkerSequence.positions: expected shape (F, N, 3) or (F, N, 2), got {tuple(np.shape(arr))}"
             )
         dim = arr.shape[-1]
-        self.positions = as_float_array(arr, "MarkerSequence.positions", (None, None, dim), allow_nan=True)
+        self.positions = as_float_array(
+            arr, "MarkerSequence.positions", (None, None, dim), allow_nan=True
+        )
         n_frames, n_markers = self.positions.shape[:2]
         if n_frames == 0 or n_markers == 0:
-            raise ShapeError(f"MarkerSequence.positions: needs at least one frame and one marker, got {self.positions.shape}")
+            raise ShapeError(
+                f"MarkerSequence.positions: needs at least one frame and one marker, got {self.positions.shape}"
+            )
         partial = np.isnan(self.positions).any(axis=-1) & ~np.isnan(self.positions).all(axis=-1)
         if partial.any():
             f, n = (int(i) for i in np.argwhere(partial)[0])
@@ -356,14 +383,18 @@ class MeshSequence:
 
     kind = "mesh"
 
-    def __init__(self, vertices, triangles, *, fps: float = 30.0, reference=None, name: str | None = None):
+    def __init__(
+        self, vertices, triangles, *, fps: float = 30.0, reference=None, name: str | None = None
+    ):
         arr = as_array(vertices, "MeshSequence.vertices")
         # 4- and 8-byte floats of either byte order are kept as given, so a memory-mapped
         # point cache (PC2 little-endian, MDD big-endian) stays on disk.
         keep = arr.dtype.kind == "f" and arr.dtype.itemsize in (4, 8)
         dtype = arr.dtype if keep else np.float64
         if arr.ndim != 3 or arr.shape[-1] != 3:
-            raise ShapeError(f"MeshSequence.vertices: expected shape (F, V, 3), got {tuple(arr.shape)}")
+            raise ShapeError(
+                f"MeshSequence.vertices: expected shape (F, V, 3), got {tuple(arr.shape)}"
+            )
         if arr.shape[0] == 0:
             raise ShapeError("MeshSequence.vertices: the sequence has no frames")
         if arr.dtype != dtype:
@@ -453,7 +484,9 @@ def _check_finite_chunked(arr: np.ndarray, name: str) -> None:
         block = np.asarray(flat[start : start + step])
         if not np.isfinite(block).all():
             f, k = (int(i) for i in np.argwhere(~np.isfinite(block))[0])
-            raise NonFiniteError(f"{name}: NaN or infinite coordinate at frame {start + f}, vertex {k // 3}")
+            raise NonFiniteError(
+                f"{name}: NaN or infinite coordinate at frame {start + f}, vertex {k // 3}"
+            )
 
 
 # ---------------------------------------------------------------------------------------
@@ -474,7 +507,9 @@ class BlendshapeRig:
 
     def __init__(self, neutral: Mesh, deltas, names, *, bounds=None):
         if not isinstance(neutral, Mesh):
-            raise InputError(f"BlendshapeRig.neutral: expected a Mesh, got {type(neutral).__name__}")
+            raise InputError(
+                f"BlendshapeRig.neutral: expected a Mesh, got {type(neutral).__name__}"
+            )
         self.neutral = neutral
         arr = as_array(deltas, "BlendshapeRig.deltas")
         if arr.ndim == 3 and arr.shape[1] != neutral.n_vertices:
@@ -488,7 +523,9 @@ class BlendshapeRig:
         if bounds is not None:
             bounds = as_float_array(bounds, "BlendshapeRig.bounds", (self.n_shapes, 2))
             if np.any(bounds[:, 0] > bounds[:, 1]):
-                raise InputError("BlendshapeRig.bounds: every lower bound must be <= its upper bound")
+                raise InputError(
+                    "BlendshapeRig.bounds: every lower bound must be <= its upper bound"
+                )
         self.bounds = bounds
 
     @property
@@ -504,7 +541,9 @@ class BlendshapeRig:
         """Vertices for ``weights : (M,) or (F, M)`` -> ``(V, 3)`` or ``(F, V, 3)``."""
         w = as_array(weights, "BlendshapeRig.evaluate: weights")
         if w.ndim not in (1, 2) or w.shape[-1] != self.n_shapes:
-            raise ShapeError(f"BlendshapeRig.evaluate: weights must be (M,) or (F, M) with M={self.n_shapes}, got {w.shape}")
+            raise ShapeError(
+                f"BlendshapeRig.evaluate: weights must be (M,) or (F, M) with M={self.n_shapes}, got {w.shape}"
+            )
         w = as_float_array(w, "BlendshapeRig.evaluate: weights", w.shape)
         flat = w.reshape(-1, self.n_shapes) @ self.deltas.reshape(self.n_shapes, -1)
         flat += self.neutral.vertices.reshape(-1)
@@ -519,8 +558,12 @@ class BlendshapeRig:
         try:
             return self.names.index(name)
         except ValueError:
-            listed = ", ".join(self.names[:60]) + (f" ... ({len(self.names)} in all)" if len(self.names) > 60 else "")
-            raise UnknownNameError(f"no blendshape named {name!r}{did_you_mean(name, self.names)}; this rig has: {listed}") from None
+            listed = ", ".join(self.names[:60]) + (
+                f" ... ({len(self.names)} in all)" if len(self.names) > 60 else ""
+            )
+            raise UnknownNameError(
+                f"no blendshape named {name!r}{did_you_mean(name, self.names)}; this rig has: {listed}"
+            ) from None
 
     def __repr__(self) -> str:
         return f"BlendshapeRig({self.n_shapes} shapes on {self.neutral!r})"
@@ -543,15 +586,26 @@ class LayeredRig:
     region_names : sequence of R str, optional
     """
 
-    def __init__(self, layers: Mapping[str, Any], masks, *, pose_names: Mapping[str, Sequence[str]] | None = None, region_names=None):
+    def __init__(
+        self,
+        layers: Mapping[str, Any],
+        masks,
+        *,
+        pose_names: Mapping[str, Sequence[str]] | None = None,
+        region_names=None,
+    ):
         if not isinstance(layers, Mapping) or not layers:
-            raise InputError("LayeredRig.layers: expected a non-empty mapping of layer name -> (K, P, D) poses")
+            raise InputError(
+                "LayeredRig.layers: expected a non-empty mapping of layer name -> (K, P, D) poses"
+            )
         items = {}
         shape = None
         for lname, poses in layers.items():
             arr = as_array(poses, f"LayeredRig.layers[{lname!r}]")
             if arr.ndim != 3 or arr.shape[-1] not in (2, 3):
-                raise ShapeError(f"LayeredRig.layers[{lname!r}]: expected (K, P, 3) or (K, P, 2), got {tuple(arr.shape)}")
+                raise ShapeError(
+                    f"LayeredRig.layers[{lname!r}]: expected (K, P, 3) or (K, P, 2), got {tuple(arr.shape)}"
+                )
             if shape is None:
                 shape = arr.shape[1:]
             elif arr.shape[1:] != shape:
@@ -560,7 +614,9 @@ class LayeredRig:
                 )
             if arr.shape[0] == 0:
                 raise ShapeError(f"LayeredRig.layers[{lname!r}]: a layer needs at least one pose")
-            items[str(lname)] = as_float_array(arr, f"LayeredRig.layers[{lname!r}]", (None,) + tuple(shape))
+            items[str(lname)] = as_float_array(
+                arr, f"LayeredRig.layers[{lname!r}]", (None,) + tuple(shape)
+            )
         as_names(list(items), "LayeredRig layer names")
         self.layers = items
         self.n_points, self.dim = int(shape[0]), int(shape[1])
@@ -569,11 +625,20 @@ class LayeredRig:
             raise ShapeError("LayeredRig.masks: at least one region is needed")
         if np.any(self.masks < 0):
             raise InputError("LayeredRig.masks: mask values must be >= 0")
-        self.region_names = as_names(region_names, "LayeredRig.region_names", self.masks.shape[0], default_prefix="region")
+        self.region_names = as_names(
+            region_names, "LayeredRig.region_names", self.masks.shape[0], default_prefix="region"
+        )
         if pose_names is not None and not isinstance(pose_names, Mapping):
-            raise InputError("LayeredRig.pose_names: expected a mapping of layer name -> pose names")
+            raise InputError(
+                "LayeredRig.pose_names: expected a mapping of layer name -> pose names"
+            )
         self.pose_names = {
-            lname: as_names((pose_names or {}).get(lname), f"LayeredRig.pose_names[{lname!r}]", poses.shape[0], default_prefix=f"{lname}")
+            lname: as_names(
+                (pose_names or {}).get(lname),
+                f"LayeredRig.pose_names[{lname!r}]",
+                poses.shape[0],
+                default_prefix=f"{lname}",
+            )
             for lname, poses in items.items()
         }
 
@@ -598,7 +663,9 @@ def _as_head_motion(value, n_frames: int, name: str) -> np.ndarray | None:
         return None
     arr = as_float_array(value, name, (n_frames, 4, 4))
     if np.any(np.abs(arr[:, 3, :] - [0.0, 0.0, 0.0, 1.0]) > 1e-6):
-        raise InputError(f"{name}: each transform must be a 4x4 rigid matrix with last row (0, 0, 0, 1)")
+        raise InputError(
+            f"{name}: each transform must be a 4x4 rigid matrix with last row (0, 0, 0, 1)"
+        )
     return arr
 
 
@@ -667,7 +734,9 @@ class Source:
         self.head_motion = _as_head_motion(head_motion, n_frames, "Source.head_motion")
         n_points = None
         if landmarks is not None and not isinstance(landmarks, Landmarks):
-            raise InputError(f"Source.landmarks: expected a faceretarget.Landmarks, got {type(landmarks).__name__}")
+            raise InputError(
+                f"Source.landmarks: expected a faceretarget.Landmarks, got {type(landmarks).__name__}"
+            )
         if isinstance(performance, MeshSequence):
             n_points = performance.n_vertices
             if landmarks is not None:
@@ -675,12 +744,19 @@ class Source:
         elif isinstance(performance, MarkerSequence):
             n_points = performance.n_markers
             if landmarks is not None:
-                raise InputError("Source.landmarks: only a MeshSequence source takes landmarks (markers already are points)")
+                raise InputError(
+                    "Source.landmarks: only a MeshSequence source takes landmarks (markers already are points)"
+                )
         self.landmarks = landmarks
         self.feature_lines = _as_feature_lines(feature_lines, n_points, "Source.feature_lines")
         if examples is not None:
             self.examples = as_float_array(examples, "Source.examples", (None, n_points, 3))
-            self.example_names = as_names(example_names, "Source.example_names", self.examples.shape[0], default_prefix="example")
+            self.example_names = as_names(
+                example_names,
+                "Source.example_names",
+                self.examples.shape[0],
+                default_prefix="example",
+            )
         else:
             self.examples, self.example_names = None, ()
         if rig is not None and not isinstance(rig, BlendshapeRig):
@@ -695,7 +771,10 @@ class Source:
         if actor_layers is not None:
             if not isinstance(actor_layers, LayeredRig):
                 raise InputError("Source.actor_layers: expected a LayeredRig over the markers")
-            if isinstance(performance, MarkerSequence) and (actor_layers.n_points, actor_layers.dim) != (
+            if isinstance(performance, MarkerSequence) and (
+                actor_layers.n_points,
+                actor_layers.dim,
+            ) != (
                 performance.n_markers,
                 performance.dim,
             ):
@@ -706,15 +785,19 @@ class Source:
         self.actor_layers = actor_layers
         if tracks2d is not None:
             if not isinstance(tracks2d, MarkerSequence) or tracks2d.dim != 2:
-                raise InputError("Source.tracks2d: expected a MarkerSequence of 2D points (F, N, 2)")
+                raise InputError(
+                    "Source.tracks2d: expected a MarkerSequence of 2D points (F, N, 2)"
+                )
             if tracks2d.n_frames != n_frames:
-                raise ShapeError(f"Source.tracks2d: {tracks2d.n_frames} frames but the performance has {n_frames}")
+                raise ShapeError(
+                    f"Source.tracks2d: {tracks2d.n_frames} frames but the performance has {n_frames}"
+                )
         self.tracks2d = tracks2d
         if actor_layers_2d is not None and tracks2d is None:
             raise InputError("Source.actor_layers_2d: given without tracks2d")
         self.actor_layers_2d = actor_layers_2d
 
-    def replace(self, **changes) -> "Source":
+    def replace(self, **changes) -> Source:
         """A new Source with some constructor arguments changed (validated again).
 
         Dropping ``examples`` (``examples=None``) drops their names too.
@@ -762,7 +845,9 @@ class Source:
             if self.landmarks is None:
                 from .errors import CapabilityError
 
-                raise CapabilityError("this source is a mesh sequence without landmarks; pass Source(..., landmarks=...)")
+                raise CapabilityError(
+                    "this source is a mesh sequence without landmarks; pass Source(..., landmarks=...)"
+                )
             return self.landmarks.positions(perf.vertices, perf.triangles)
         from .errors import CapabilityError
 
@@ -778,7 +863,9 @@ class Source:
         return self.marker_positions()[0]
 
     def __repr__(self) -> str:
-        return f"Source({self.performance!r}{', head motion' if self.head_motion is not None else ''})"
+        return (
+            f"Source({self.performance!r}{', head motion' if self.head_motion is not None else ''})"
+        )
 
 
 class TargetRig:
@@ -824,7 +911,9 @@ class TargetRig:
             if blendshapes.neutral.n_vertices != neutral.n_vertices or not np.array_equal(
                 blendshapes.neutral.triangles, neutral.triangles
             ):
-                raise TopologyMismatchError("TargetRig.blendshapes: the rig's neutral has a different topology from TargetRig.neutral")
+                raise TopologyMismatchError(
+                    "TargetRig.blendshapes: the rig's neutral has a different topology from TargetRig.neutral"
+                )
         self.blendshapes = blendshapes
         if layers is not None:
             if not isinstance(layers, LayeredRig):
@@ -839,14 +928,23 @@ class TargetRig:
                 raise InputError("TargetRig.landmarks: expected a Landmarks")
             landmarks.validate_for(neutral, "TargetRig.landmarks")
         self.landmarks = landmarks
-        self.feature_lines = _as_feature_lines(feature_lines, neutral.n_vertices, "TargetRig.feature_lines")
+        self.feature_lines = _as_feature_lines(
+            feature_lines, neutral.n_vertices, "TargetRig.feature_lines"
+        )
         if examples is not None:
-            self.examples = as_float_array(examples, "TargetRig.examples", (None, neutral.n_vertices, 3))
-            self.example_names = as_names(example_names, "TargetRig.example_names", self.examples.shape[0], default_prefix="example")
+            self.examples = as_float_array(
+                examples, "TargetRig.examples", (None, neutral.n_vertices, 3)
+            )
+            self.example_names = as_names(
+                example_names,
+                "TargetRig.example_names",
+                self.examples.shape[0],
+                default_prefix="example",
+            )
         else:
             self.examples, self.example_names = None, ()
 
-    def replace(self, **changes) -> "TargetRig":
+    def replace(self, **changes) -> TargetRig:
         """A new TargetRig with some constructor arguments changed (validated again).
 
         Dropping ``examples`` (``examples=None``) drops their names too.
@@ -926,7 +1024,9 @@ class Animation:
         extras: dict | None = None,
     ):
         if vertices is None and (weights is None or rig is None):
-            raise InputError("Animation: give vertices, or weights together with the rig that turns them into vertices")
+            raise InputError(
+                "Animation: give vertices, or weights together with the rig that turns them into vertices"
+            )
         if rig is not None and not isinstance(rig, BlendshapeRig):
             raise InputError(f"Animation.rig: expected a BlendshapeRig, got {type(rig).__name__}")
         for label, value in (("provenance", provenance), ("extras", extras)):
@@ -953,21 +1053,40 @@ class Animation:
         self.rig = rig
         self.weights = None
         if weights is not None:
-            self.weights = as_float_array(weights, "Animation.weights", (None, rig.n_shapes if rig is not None else None))
+            self.weights = as_float_array(
+                weights, "Animation.weights", (None, rig.n_shapes if rig is not None else None)
+            )
         n_frames = self._vertices.shape[0] if self._vertices is not None else self.weights.shape[0]
-        if self._vertices is not None and self.weights is not None and self.weights.shape[0] != n_frames:
-            raise ShapeError(f"Animation: {self.weights.shape[0]} weight frames but {n_frames} vertex frames")
+        if (
+            self._vertices is not None
+            and self.weights is not None
+            and self.weights.shape[0] != n_frames
+        ):
+            raise ShapeError(
+                f"Animation: {self.weights.shape[0]} weight frames but {n_frames} vertex frames"
+            )
         if n_frames == 0:
             raise ShapeError("Animation: no frames")
         self.head_motion = _as_head_motion(head_motion, n_frames, "Animation.head_motion")
         if triangles is None and rig is not None:
             triangles = rig.neutral.triangles
-        n_vertices = self._vertices.shape[1] if self._vertices is not None else rig.neutral.n_vertices
-        self.triangles = None if triangles is None else as_index_array(triangles, "Animation.triangles", (None, 3), upper=n_vertices)
+        n_vertices = (
+            self._vertices.shape[1] if self._vertices is not None else rig.neutral.n_vertices
+        )
+        self.triangles = (
+            None
+            if triangles is None
+            else as_index_array(triangles, "Animation.triangles", (None, 3), upper=n_vertices)
+        )
         self.fps = as_fps(fps)
         if self.weights is not None:
             default = rig.names if rig is not None else None
-            self.weight_names = as_names(weight_names if weight_names is not None else default, "Animation.weight_names", self.weights.shape[1], default_prefix="shape")
+            self.weight_names = as_names(
+                weight_names if weight_names is not None else default,
+                "Animation.weight_names",
+                self.weights.shape[1],
+                default_prefix="shape",
+            )
         else:
             self.weight_names = ()
         self.provenance = dict(provenance or {})
@@ -1003,9 +1122,11 @@ class Animation:
         """Frame ``frame`` as a :class:`Mesh` (needs triangles)."""
         if self.triangles is None:
             raise InputError("Animation.mesh: this animation has no triangles")
-        return Mesh(np.asarray(self.vertices[frame], dtype=np.float64), self.triangles, _trusted=True)
+        return Mesh(
+            np.asarray(self.vertices[frame], dtype=np.float64), self.triangles, _trusted=True
+        )
 
-    def replace(self, **changes) -> "Animation":
+    def replace(self, **changes) -> Animation:
         """A copy with some constructor arguments changed (e.g. ``weights=...``)."""
         args = dict(
             vertices=self._vertices if not self.is_blendshape_based else None,
@@ -1026,7 +1147,11 @@ class Animation:
         if self.weights is not None:
             what.append(f"{self.weights.shape[1]} weights")
         if self._vertices is not None or self.rig is not None:
-            n_vertices = self._vertices.shape[1] if self._vertices is not None else self.rig.neutral.n_vertices
+            n_vertices = (
+                self._vertices.shape[1]
+                if self._vertices is not None
+                else self.rig.neutral.n_vertices
+            )
             what.append(f"{n_vertices} vertices")
         method = self.provenance.get("method")
         return f"Animation({self.n_frames} frames, {', '.join(what)}{', by ' + method if method else ''})"

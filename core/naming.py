@@ -27,6 +27,7 @@ User mapping files (:func:`load_mapping`): TOML or JSON objects ``{from = "to"}`
 of targets for one-to-many, ``""`` to ignore a name), or a two-column CSV ``from,to``
 (optional header, repeated rows for one-to-many).
 """
+
 from __future__ import annotations
 
 import csv
@@ -34,9 +35,9 @@ import io
 import json
 import re
 import tomllib
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -57,20 +58,75 @@ __all__ = [
 
 #: the 52 ARKit blendshape locations, in Apple's documentation order
 ARKIT_NAMES = (
-    "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft", "eyeSquintLeft", "eyeWideLeft",
-    "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight", "eyeLookOutRight", "eyeLookUpRight", "eyeSquintRight", "eyeWideRight",
-    "jawForward", "jawLeft", "jawRight", "jawOpen",
-    "mouthClose", "mouthFunnel", "mouthPucker", "mouthLeft", "mouthRight", "mouthSmileLeft", "mouthSmileRight",
-    "mouthFrownLeft", "mouthFrownRight", "mouthDimpleLeft", "mouthDimpleRight", "mouthStretchLeft", "mouthStretchRight",
-    "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthPressLeft", "mouthPressRight",
-    "mouthLowerDownLeft", "mouthLowerDownRight", "mouthUpperUpLeft", "mouthUpperUpRight",
-    "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight",
-    "cheekPuff", "cheekSquintLeft", "cheekSquintRight", "noseSneerLeft", "noseSneerRight", "tongueOut",
+    "eyeBlinkLeft",
+    "eyeLookDownLeft",
+    "eyeLookInLeft",
+    "eyeLookOutLeft",
+    "eyeLookUpLeft",
+    "eyeSquintLeft",
+    "eyeWideLeft",
+    "eyeBlinkRight",
+    "eyeLookDownRight",
+    "eyeLookInRight",
+    "eyeLookOutRight",
+    "eyeLookUpRight",
+    "eyeSquintRight",
+    "eyeWideRight",
+    "jawForward",
+    "jawLeft",
+    "jawRight",
+    "jawOpen",
+    "mouthClose",
+    "mouthFunnel",
+    "mouthPucker",
+    "mouthLeft",
+    "mouthRight",
+    "mouthSmileLeft",
+    "mouthSmileRight",
+    "mouthFrownLeft",
+    "mouthFrownRight",
+    "mouthDimpleLeft",
+    "mouthDimpleRight",
+    "mouthStretchLeft",
+    "mouthStretchRight",
+    "mouthRollLower",
+    "mouthRollUpper",
+    "mouthShrugLower",
+    "mouthShrugUpper",
+    "mouthPressLeft",
+    "mouthPressRight",
+    "mouthLowerDownLeft",
+    "mouthLowerDownRight",
+    "mouthUpperUpLeft",
+    "mouthUpperUpRight",
+    "browDownLeft",
+    "browDownRight",
+    "browInnerUp",
+    "browOuterUpLeft",
+    "browOuterUpRight",
+    "cheekPuff",
+    "cheekSquintLeft",
+    "cheekSquintRight",
+    "noseSneerLeft",
+    "noseSneerRight",
+    "tongueOut",
 )
 
 #: Live Link Face CSV columns after Timecode and BlendShapeCount
-LIVE_LINK_NAMES = tuple(n[0].upper() + n[1:] for n in ARKIT_NAMES if not n.startswith("tongue")) + ("TongueOut",) + (
-    "HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll", "RightEyeYaw", "RightEyePitch", "RightEyeRoll",
+LIVE_LINK_NAMES = (
+    tuple(n[0].upper() + n[1:] for n in ARKIT_NAMES if not n.startswith("tongue"))
+    + ("TongueOut",)
+    + (
+        "HeadYaw",
+        "HeadPitch",
+        "HeadRoll",
+        "LeftEyeYaw",
+        "LeftEyePitch",
+        "LeftEyeRoll",
+        "RightEyeYaw",
+        "RightEyePitch",
+        "RightEyeRoll",
+    )
 )
 
 
@@ -190,7 +246,9 @@ class Mapping:
     @property
     def unmapped(self) -> tuple[str, ...]:
         """From-names that map to nothing (and are not explicitly ignored)."""
-        return tuple(n for n in self.from_names if not self.targets.get(n) and n not in self.ignored)
+        return tuple(
+            n for n in self.from_names if not self.targets.get(n) and n not in self.ignored
+        )
 
     @property
     def missing(self) -> tuple[str, ...]:
@@ -210,7 +268,9 @@ class Mapping:
         if name not in self.targets:
             from ._validate import did_you_mean
 
-            raise UnknownNameError(f"{name!r} is not one of the mapped names{did_you_mean(name, self.targets)}")
+            raise UnknownNameError(
+                f"{name!r} is not one of the mapped names{did_you_mean(name, self.targets)}"
+            )
         return self.targets[name]
 
     def matrix(self) -> np.ndarray:
@@ -239,16 +299,22 @@ class Mapping:
 
         if isinstance(weights, WeightSequence):
             if tuple(weights.names) != self.from_names:
-                raise InputError("Mapping.apply: the weight curves' names differ from the mapping's from_names")
+                raise InputError(
+                    "Mapping.apply: the weight curves' names differ from the mapping's from_names"
+                )
             return WeightSequence(self.apply(weights.weights), self.to_names, fps=weights.fps)
         w = np.asarray(weights, dtype=np.float64)
         if w.shape[-1] != len(self.from_names) or w.ndim not in (1, 2):
-            raise InputError(f"Mapping.apply: expected (F, {len(self.from_names)}) weights, got {w.shape}")
+            raise InputError(
+                f"Mapping.apply: expected (F, {len(self.from_names)}) weights, got {w.shape}"
+            )
         return w @ self.matrix().T
 
     def report(self) -> str:
         """A readable summary: how many mapped, by which rule, and every unmapped name."""
-        lines = [f"{len(self.from_names) - len(self.unmapped) - len(self.ignored)} of {len(self.from_names)} names mapped onto {len(self.to_names)}"]
+        lines = [
+            f"{len(self.from_names) - len(self.unmapped) - len(self.ignored)} of {len(self.from_names)} names mapped onto {len(self.to_names)}"
+        ]
         by_rule: dict[str, int] = {}
         for r in self.rules.values():
             by_rule[r] = by_rule.get(r, 0) + 1
@@ -264,7 +330,7 @@ class Mapping:
             lines.append("mapping entries for absent names: " + ", ".join(self.unused_rules))
         return "\n".join(lines)
 
-    def require_complete(self, what: str = "names") -> "Mapping":
+    def require_complete(self, what: str = "names") -> Mapping:
         """Raise :class:`UnknownNameError` unless every from-name is mapped (or ignored)."""
         if self.unmapped:
             raise UnknownNameError(
@@ -281,7 +347,9 @@ def _as_names(names, what: str) -> tuple[str, ...]:
     try:
         out = tuple(names)
     except TypeError:
-        raise InputError(f"{what}: expected a sequence of names or a set name ('arkit', 'livelink', 'ict')") from None
+        raise InputError(
+            f"{what}: expected a sequence of names or a set name ('arkit', 'livelink', 'ict')"
+        ) from None
     if not all(isinstance(n, str) and n.strip() for n in out):
         raise InputError(f"{what}: every name must be a non-empty string")
     if len(set(out)) != len(out):
@@ -309,7 +377,11 @@ def map_names(from_names, to_names, preset: str = "auto", mapping=None) -> Mappi
     dst = _as_names(to_names, "map_names to_names")
     if preset not in PRESETS:
         raise UnknownNameError(f"no name-mapping preset {preset!r}; presets: {', '.join(PRESETS)}")
-    explicit = load_mapping(mapping) if isinstance(mapping, (str, Path)) else _normalize_mapping(mapping or {}, "mapping")
+    explicit = (
+        load_mapping(mapping)
+        if isinstance(mapping, (str, Path))
+        else _normalize_mapping(mapping or {}, "mapping")
+    )
     dst_set = set(dst)
     for f, ts in explicit.items():
         unknown = [t for t in ts if t not in dst_set]
@@ -317,7 +389,9 @@ def map_names(from_names, to_names, preset: str = "auto", mapping=None) -> Mappi
             from ._validate import did_you_mean
 
             hints = "".join(did_you_mean(t, dst) for t in unknown)
-            raise UnknownNameError(f"mapping: {f!r} -> {unknown} names no target shape{hints}; targets are: {', '.join(dst[:60])}")
+            raise UnknownNameError(
+                f"mapping: {f!r} -> {unknown} names no target shape{hints}; targets are: {', '.join(dst[:60])}"
+            )
     targets: dict[str, tuple[str, ...]] = {}
     rules: dict[str, str] = {}
     ignored = []
@@ -338,7 +412,8 @@ def map_names(from_names, to_names, preset: str = "auto", mapping=None) -> Mappi
     for f in src:
         if f in targets:
             continue
-        found, rule = (), None
+        found: tuple[str, ...] = ()
+        rule: str | None = None
         if f in dst_set:
             found, rule = (f,), "exact"
         elif "case" in steps and len(by_case.get(f.casefold(), [])) == 1:
@@ -351,7 +426,11 @@ def map_names(from_names, to_names, preset: str = "auto", mapping=None) -> Mappi
                 left, right = by_key.get((stem, "L"), []), by_key.get((stem, "R"), [])
                 if len(left) == 1 and len(right) == 1:
                     found, rule = (left[0], right[0]), "split"
-            elif side is not None and len(by_key.get((stem, None), [])) == 1 and not by_key.get((stem, side)):
+            elif (
+                side is not None
+                and len(by_key.get((stem, None), [])) == 1
+                and not by_key.get((stem, side))
+            ):
                 found, rule = tuple(by_key[(stem, None)]), "merge"
         targets[f] = found
         if rule:
@@ -361,7 +440,9 @@ def map_names(from_names, to_names, preset: str = "auto", mapping=None) -> Mappi
 
 def _normalize_mapping(data, origin: str) -> dict[str, tuple[str, ...]]:
     if not isinstance(data, dict):
-        raise ConfigError(f"{origin}: a name mapping must be a table/object of from-name -> to-name(s)")
+        raise ConfigError(
+            f"{origin}: a name mapping must be a table/object of from-name -> to-name(s)"
+        )
     out: dict[str, tuple[str, ...]] = {}
     for key, value in data.items():
         if not isinstance(key, str) or not key.strip():
@@ -373,7 +454,9 @@ def _normalize_mapping(data, origin: str) -> dict[str, tuple[str, ...]]:
         elif isinstance(value, (list, tuple)) and all(isinstance(v, str) and v for v in value):
             out[key] = tuple(value)
         else:
-            raise ConfigError(f"{origin}: {key!r} must map to a name, a list of names or \"\" (ignore), got {value!r}")
+            raise ConfigError(
+                f'{origin}: {key!r} must map to a name, a list of names or "" (ignore), got {value!r}'
+            )
     return out
 
 
@@ -409,7 +492,11 @@ def load_mapping(path) -> dict[str, tuple[str, ...]]:
         return _normalize_mapping(data, str(p))
     if suffix in (".csv", ".txt", ".tsv"):
         delimiter = "\t" if suffix == ".tsv" or ("\t" in text and "," not in text) else ","
-        rows = [[c.strip() for c in r] for r in csv.reader(io.StringIO(text), delimiter=delimiter) if any(c.strip() for c in r)]
+        rows = [
+            [c.strip() for c in r]
+            for r in csv.reader(io.StringIO(text), delimiter=delimiter)
+            if any(c.strip() for c in r)
+        ]
         if rows and [c.lower() for c in rows[0][:2]] in (["from", "to"], ["source", "target"]):
             rows = rows[1:]
         return _pairs_to_mapping(rows, str(p))
@@ -419,7 +506,11 @@ def load_mapping(path) -> dict[str, tuple[str, ...]]:
 def _pairs_to_mapping(rows: Sequence, origin: str) -> dict[str, tuple[str, ...]]:
     out: dict[str, list[str]] = {}
     for i, row in enumerate(rows, 1):
-        if not isinstance(row, (list, tuple)) or len(row) not in (1, 2) or not all(isinstance(c, str) for c in row):
+        if (
+            not isinstance(row, (list, tuple))
+            or len(row) not in (1, 2)
+            or not all(isinstance(c, str) for c in row)
+        ):
             raise ConfigError(f"{origin}: entry {i} must be two names (from, to); got {row!r:.60}")
         src = row[0].strip()
         if not src:

@@ -22,11 +22,12 @@ case-insensitively and through the usual spellings (``eyeBlink_L``, ``EyeBlinkLe
 ``eye_blink_left``); split or merged left/right shapes are handled, and names the rig
 lacks are reported (warning, error or list, as asked), never dropped silently.
 """
+
 from __future__ import annotations
 
 import re
 import warnings
-from typing import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -47,29 +48,90 @@ __all__ = [
 
 #: The 52 ARKit blendshape names (Apple ``ARFaceAnchor.BlendShapeLocation``).
 ARKIT_NAMES: tuple[str, ...] = (
-    "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight",
-    "cheekPuff", "cheekSquintLeft", "cheekSquintRight",
-    "eyeBlinkLeft", "eyeBlinkRight", "eyeLookDownLeft", "eyeLookDownRight", "eyeLookInLeft",
-    "eyeLookInRight", "eyeLookOutLeft", "eyeLookOutRight", "eyeLookUpLeft", "eyeLookUpRight",
-    "eyeSquintLeft", "eyeSquintRight", "eyeWideLeft", "eyeWideRight",
-    "jawForward", "jawLeft", "jawOpen", "jawRight",
-    "mouthClose", "mouthDimpleLeft", "mouthDimpleRight", "mouthFrownLeft", "mouthFrownRight",
-    "mouthFunnel", "mouthLeft", "mouthLowerDownLeft", "mouthLowerDownRight", "mouthPressLeft",
-    "mouthPressRight", "mouthPucker", "mouthRight", "mouthRollLower", "mouthRollUpper",
-    "mouthShrugLower", "mouthShrugUpper", "mouthSmileLeft", "mouthSmileRight",
-    "mouthStretchLeft", "mouthStretchRight", "mouthUpperUpLeft", "mouthUpperUpRight",
-    "noseSneerLeft", "noseSneerRight", "tongueOut",
+    "browDownLeft",
+    "browDownRight",
+    "browInnerUp",
+    "browOuterUpLeft",
+    "browOuterUpRight",
+    "cheekPuff",
+    "cheekSquintLeft",
+    "cheekSquintRight",
+    "eyeBlinkLeft",
+    "eyeBlinkRight",
+    "eyeLookDownLeft",
+    "eyeLookDownRight",
+    "eyeLookInLeft",
+    "eyeLookInRight",
+    "eyeLookOutLeft",
+    "eyeLookOutRight",
+    "eyeLookUpLeft",
+    "eyeLookUpRight",
+    "eyeSquintLeft",
+    "eyeSquintRight",
+    "eyeWideLeft",
+    "eyeWideRight",
+    "jawForward",
+    "jawLeft",
+    "jawOpen",
+    "jawRight",
+    "mouthClose",
+    "mouthDimpleLeft",
+    "mouthDimpleRight",
+    "mouthFrownLeft",
+    "mouthFrownRight",
+    "mouthFunnel",
+    "mouthLeft",
+    "mouthLowerDownLeft",
+    "mouthLowerDownRight",
+    "mouthPressLeft",
+    "mouthPressRight",
+    "mouthPucker",
+    "mouthRight",
+    "mouthRollLower",
+    "mouthRollUpper",
+    "mouthShrugLower",
+    "mouthShrugUpper",
+    "mouthSmileLeft",
+    "mouthSmileRight",
+    "mouthStretchLeft",
+    "mouthStretchRight",
+    "mouthUpperUpLeft",
+    "mouthUpperUpRight",
+    "noseSneerLeft",
+    "noseSneerRight",
+    "tongueOut",
 )
 
 #: The shapes the recipes below use (the synthetic rigs of ``faceretarget.cases`` have all).
 RECIPE_SHAPES: tuple[str, ...] = (
-    "jawOpen", "mouthClose", "mouthFunnel", "mouthPucker",
-    "mouthSmileLeft", "mouthSmileRight", "mouthFrownLeft", "mouthFrownRight",
-    "mouthStretchLeft", "mouthStretchRight", "mouthPressLeft", "mouthPressRight",
-    "mouthUpperUpLeft", "mouthUpperUpRight", "mouthRollLower",
-    "eyeBlinkLeft", "eyeBlinkRight", "eyeWideLeft", "eyeWideRight",
-    "browInnerUp", "browOuterUpLeft", "browOuterUpRight", "browDownLeft", "browDownRight",
-    "cheekSquintLeft", "cheekSquintRight", "noseSneerLeft", "noseSneerRight",
+    "jawOpen",
+    "mouthClose",
+    "mouthFunnel",
+    "mouthPucker",
+    "mouthSmileLeft",
+    "mouthSmileRight",
+    "mouthFrownLeft",
+    "mouthFrownRight",
+    "mouthStretchLeft",
+    "mouthStretchRight",
+    "mouthPressLeft",
+    "mouthPressRight",
+    "mouthUpperUpLeft",
+    "mouthUpperUpRight",
+    "mouthRollLower",
+    "eyeBlinkLeft",
+    "eyeBlinkRight",
+    "eyeWideLeft",
+    "eyeWideRight",
+    "browInnerUp",
+    "browOuterUpLeft",
+    "browOuterUpRight",
+    "browDownLeft",
+    "browDownRight",
+    "cheekSquintLeft",
+    "cheekSquintRight",
+    "noseSneerLeft",
+    "noseSneerRight",
 )
 
 
@@ -85,14 +147,35 @@ EMOTIONS: dict[str, dict[str, float]] = {
     # AU1 + AU4 + AU15
     "sadness": {"browInnerUp": 0.7, **_both("browDown", 0.25), **_both("mouthFrown", 0.6)},
     # AU4 + AU5 + AU7 + AU24 (lid tightening read as a light cheek raise)
-    "anger": {**_both("browDown", 0.8), **_both("eyeWide", 0.25), **_both("mouthPress", 0.5), **_both("noseSneer", 0.2)},
+    "anger": {
+        **_both("browDown", 0.8),
+        **_both("eyeWide", 0.25),
+        **_both("mouthPress", 0.5),
+        **_both("noseSneer", 0.2),
+    },
     # AU1 + AU2 + AU5 + AU26
-    "surprise": {"browInnerUp": 0.7, **_both("browOuterUp", 0.8), **_both("eyeWide", 0.7), "jawOpen": 0.3},
+    "surprise": {
+        "browInnerUp": 0.7,
+        **_both("browOuterUp", 0.8),
+        **_both("eyeWide", 0.7),
+        "jawOpen": 0.3,
+    },
     # AU1 + AU2 + AU4 + AU5 + AU20 + AU26
-    "fear": {"browInnerUp": 0.8, **_both("browOuterUp", 0.35), **_both("browDown", 0.2), **_both("eyeWide", 0.75),
-             **_both("mouthStretch", 0.5), "jawOpen": 0.2},
+    "fear": {
+        "browInnerUp": 0.8,
+        **_both("browOuterUp", 0.35),
+        **_both("browDown", 0.2),
+        **_both("eyeWide", 0.75),
+        **_both("mouthStretch", 0.5),
+        "jawOpen": 0.2,
+    },
     # AU9 + AU10 + AU15
-    "disgust": {**_both("noseSneer", 0.8), **_both("mouthUpperUp", 0.5), **_both("mouthFrown", 0.3), **_both("cheekSquint", 0.3)},
+    "disgust": {
+        **_both("noseSneer", 0.8),
+        **_both("mouthUpperUp", 0.5),
+        **_both("mouthFrown", 0.3),
+        **_both("cheekSquint", 0.3),
+    },
     # unilateral AU12 + AU14 (left side)
     "contempt": {"mouthSmileLeft": 0.45, "mouthStretchLeft": 0.2, "cheekSquintLeft": 0.2},
 }
@@ -131,7 +214,12 @@ class RecipeWarning(UserWarning):
 _SIDES = {"left": "Left", "right": "Right", "l": "Left", "r": "Right", "lf": "Left", "rt": "Right"}
 _ARKIT_KEY = {n.lower(): n for n in ARKIT_NAMES}
 _UNSIDED = {n.lower(): n for n in ARKIT_NAMES if not n.endswith(("Left", "Right"))}
-_SIDED_BASE = {n[: -len(s)].lower(): n[: -len(s)] for n in ARKIT_NAMES for s in ("Left", "Right") if n.endswith(s)}
+_SIDED_BASE = {
+    n[: -len(s)].lower(): n[: -len(s)]
+    for n in ARKIT_NAMES
+    for s in ("Left", "Right")
+    if n.endswith(s)
+}
 
 
 def normalize_shape_name(name: str) -> str | None:
@@ -212,7 +300,9 @@ def unmapped_names(recipe: Mapping[str, float], rig_names: Sequence[str]) -> lis
     return [n for n in recipe if _targets(normalize_shape_name(n) or n, index) is None]
 
 
-def resolve(recipe: Mapping[str, float], rig_names: Sequence[str], *, on_unmapped: str = "warn") -> np.ndarray:
+def resolve(
+    recipe: Mapping[str, float], rig_names: Sequence[str], *, on_unmapped: str = "warn"
+) -> np.ndarray:
     """The weight vector ``(M,)`` float64 of a recipe on a rig with shapes ``rig_names``.
 
     Parameters
@@ -226,7 +316,9 @@ def resolve(recipe: Mapping[str, float], rig_names: Sequence[str], *, on_unmappe
         :func:`unmapped_names` to list them yourself).
     """
     if on_unmapped not in ("warn", "raise", "ignore"):
-        raise UnknownNameError(f"resolve: on_unmapped must be 'warn', 'raise' or 'ignore', got {on_unmapped!r}")
+        raise UnknownNameError(
+            f"resolve: on_unmapped must be 'warn', 'raise' or 'ignore', got {on_unmapped!r}"
+        )
     names = list(rig_names)
     index = _rig_index(names)
     out = np.zeros(len(names))
@@ -250,11 +342,20 @@ def resolve(recipe: Mapping[str, float], rig_names: Sequence[str], *, on_unmappe
     return out
 
 
-def resolve_all(recipes: Mapping[str, Mapping[str, float]], rig_names: Sequence[str], *, names: Iterable[str] | None = None,
-                on_unmapped: str = "warn") -> np.ndarray:
+def resolve_all(
+    recipes: Mapping[str, Mapping[str, float]],
+    rig_names: Sequence[str],
+    *,
+    names: Iterable[str] | None = None,
+    on_unmapped: str = "warn",
+) -> np.ndarray:
     """Weight vectors of several recipes stacked ``(K, M)`` (``names`` picks and orders them)."""
     keys = list(recipes) if names is None else list(names)
     unknown = [k for k in keys if k not in recipes]
     if unknown:
         raise UnknownNameError(f"no recipe named {', '.join(unknown)}; known: {', '.join(recipes)}")
-    return np.stack([resolve(recipes[k], rig_names, on_unmapped=on_unmapped) for k in keys]) if keys else np.zeros((0, len(rig_names)))
+    return (
+        np.stack([resolve(recipes[k], rig_names, on_unmapped=on_unmapped) for k in keys])
+        if keys
+        else np.zeros((0, len(rig_names)))
+    )

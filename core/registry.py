@@ -22,6 +22,7 @@ against its manifest (capabilities, parameter names, defaults, constraints): a m
 is a :class:`PluginLoadError` naming the plugin, the hook and the difference.
 ``FACERETARGET_TRACE=1`` prints every hook call.
 """
+
 from __future__ import annotations
 
 import importlib.metadata as md
@@ -34,16 +35,38 @@ from typing import Any
 import pluggy
 
 from . import config
-from ._validate import did_you_mean
 from ._deadline import DeadlineExpired, deadline, grace_for, watchdog_process
-from .errors import ConfigError, DuplicatePluginError, PluginError, PluginLoadError, PluginTimeoutError, UnknownNameError
+from ._validate import did_you_mean
+from .errors import (
+    ConfigError,
+    DuplicatePluginError,
+    PluginError,
+    PluginLoadError,
+    PluginTimeoutError,
+    UnknownNameError,
+)
 from .hookspecs import DATA_KINDS, PROJECT, FaceRetargetSpec, Metric, Preset, Reader, Writer
-from .manifest import PACKAGE_MANIFEST, Manifest, builtin_text, disagreements, find_package_manifest, from_class
+from .manifest import (
+    PACKAGE_MANIFEST,
+    Manifest,
+    builtin_text,
+    disagreements,
+    find_package_manifest,
+    from_class,
+)
 from .manifest import parse as parse_manifest
 from .retargeter import Capabilities, Retargeter
 from .validation import constraints_of, describe
 
-__all__ = ["Registry", "PluginInfo", "RetargeterInfo", "registry", "catalogue", "reload", "read_catalogue"]
+__all__ = [
+    "Registry",
+    "PluginInfo",
+    "RetargeterInfo",
+    "registry",
+    "catalogue",
+    "reload",
+    "read_catalogue",
+]
 
 DISTRIBUTION = "faceretarget"
 
@@ -80,9 +103,13 @@ class RetargeterInfo:
     paper = property(lambda self: self.manifest.paper)
     baseline_of = property(lambda self: self.manifest.baseline_of)
     capabilities = property(lambda self: self.manifest.capabilities)
-    parameters = property(lambda self: self.manifest.parameters, doc="name -> Parameter (default, constraints, doc)")
+    parameters = property(
+        lambda self: self.manifest.parameters, doc="name -> Parameter (default, constraints, doc)"
+    )
     defaults = property(lambda self: self.manifest.defaults)
-    parameter_docs = property(lambda self: {p: spec.doc for p, spec in self.manifest.parameters.items()})
+    parameter_docs = property(
+        lambda self: {p: spec.doc for p, spec in self.manifest.parameters.items()}
+    )
 
     @property
     def cls(self) -> type:
@@ -107,7 +134,9 @@ class RetargeterInfo:
         return f"<RetargeterInfo {self.name!r} from {self.plugin.name!r} ({self.plugin.origin})>"
 
 
-def read_catalogue(text: str | None = None, origin: str = "registry.toml") -> dict[str, dict[str, Any]]:
+def read_catalogue(
+    text: str | None = None, origin: str = "registry.toml"
+) -> dict[str, dict[str, Any]]:
     """Parse ``registry.toml`` (the packaged copy unless ``text`` is given): see
     :func:`faceretarget.manifest.parse`. Raises :class:`ConfigError` on any malformation."""
     return parse_manifest(builtin_text() if text is None else text, origin)
@@ -131,10 +160,13 @@ class Registry:
         self.metrics: dict[str, tuple[Metric, PluginInfo]] = {}
         self.presets: dict[str, tuple[Preset, PluginInfo]] = {}
         self.catalogue = read_catalogue()
-        self.manifests = {name: Manifest.from_entry(name, entry, "registry.toml") for name, entry in self.catalogue.items()}
+        self.manifests = {
+            name: Manifest.from_entry(name, entry, "registry.toml")
+            for name, entry in self.catalogue.items()
+        }
 
     # -- loading ---------------------------------------------------------------------
-    def index(self) -> "Registry":
+    def index(self) -> Registry:
         """The retargeters as their manifests describe them, importing no plugin that has one
         (``faceretarget list`` / ``info``, :func:`faceretarget.available`): the built-ins from
         ``registry.toml``, third-party plugins from their package's ``faceretarget.toml``.
@@ -148,13 +180,21 @@ class Registry:
                 raise ConfigError(
                     f"registry.toml lists retargeter {name!r} (entry point {manifest.entry_point!r}) but no built-in plugin provides it"
                 )
-            self._add([RetargeterInfo(manifest, PluginInfo(ep.name, DISTRIBUTION, _dist_version(ep), builtin=True))])
+            self._add(
+                [
+                    RetargeterInfo(
+                        manifest, PluginInfo(ep.name, DISTRIBUTION, _dist_version(ep), builtin=True)
+                    )
+                ]
+            )
         if config.env_flag(config.ENV_DISABLE_PLUGINS):
             return self
         allow = {a.strip() for a in _env(config.ENV_PLUGIN_ALLOWLIST).split(",") if a.strip()}
         unindexed = []
         for ep in (ep for ep in eps if _dist_name(ep) != DISTRIBUTION):
-            info = PluginInfo(ep.name, _dist_name(ep) or "unknown", _dist_version(ep), builtin=False)
+            info = PluginInfo(
+                ep.name, _dist_name(ep) or "unknown", _dist_version(ep), builtin=False
+            )
             if allow and ep.name not in allow and info.distribution not in allow:
                 continue
             try:
@@ -191,7 +231,9 @@ class Registry:
         except (OSError, UnicodeError) as exc:
             raise ConfigError(f"{origin}: cannot be read ({exc})") from None
         entries = parse_manifest(text, origin, defaults={"entry_point": ep.name, "paper": ""})
-        info.manifests = {name: Manifest.from_entry(name, entry, origin) for name, entry in entries.items()}
+        info.manifests = {
+            name: Manifest.from_entry(name, entry, origin) for name, entry in entries.items()
+        }
         return info.manifests
 
     def _add(self, entries: list[RetargeterInfo]) -> None:
@@ -200,7 +242,7 @@ class Registry:
             for alias in entry.aliases:
                 self.aliases[alias.lower()] = entry.name
 
-    def load(self, extra: list[tuple[str, Any]] | None = None) -> "Registry":
+    def load(self, extra: list[tuple[str, Any]] | None = None) -> Registry:
         """Load built-in then third-party entry points (and ``extra`` (name, module) pairs)."""
         eps = sorted(md.entry_points(group=PROJECT), key=lambda ep: ep.name)
         builtin = [ep for ep in eps if _dist_name(ep) == DISTRIBUTION]
@@ -210,7 +252,9 @@ class Registry:
             try:
                 module = ep.load()
             except Exception as exc:
-                raise PluginLoadError(f"built-in plugin {ep.name!r} ({ep.value}) failed to import: {exc!r}") from exc
+                raise PluginLoadError(
+                    f"built-in plugin {ep.name!r} ({ep.value}) failed to import: {exc!r}"
+                ) from exc
             self._register(module, info, fatal=True)
         if not config.env_flag(config.ENV_DISABLE_PLUGINS):
             allow = {a.strip() for a in _env(config.ENV_PLUGIN_ALLOWLIST).split(",") if a.strip()}
@@ -227,7 +271,9 @@ class Registry:
         that overruns ``limit`` is skipped, one that cannot even be interrupted ends the
         program with a message naming it (:mod:`faceretarget._deadline`, layers 3-4)."""
         for ep in external:
-            info = PluginInfo(ep.name, _dist_name(ep) or "unknown", _dist_version(ep), builtin=False)
+            info = PluginInfo(
+                ep.name, _dist_name(ep) or "unknown", _dist_version(ep), builtin=False
+            )
             if allow and ep.name not in allow and info.distribution not in allow:
                 continue
             try:  # read before importing: the class is checked against it at registration
@@ -255,16 +301,38 @@ class Registry:
                 self._restore(before)
                 if self.pm.is_registered(module):
                     self.pm.unregister(module)
-                self._fail(info, _too_slow(info, limit, "calling its registration hooks"), fatal=False)
+                self._fail(
+                    info, _too_slow(info, limit, "calling its registration hooks"), fatal=False
+                )
 
     def _snapshot(self) -> tuple:
-        return (dict(self.retargeters), dict(self.aliases), len(self.readers), len(self.writers), dict(self.metrics), dict(self.presets),
-                len(self.plugins), len(self.failures))
+        return (
+            dict(self.retargeters),
+            dict(self.aliases),
+            len(self.readers),
+            len(self.writers),
+            dict(self.metrics),
+            dict(self.presets),
+            len(self.plugins),
+            len(self.failures),
+        )
 
     def _restore(self, snapshot: tuple) -> None:
-        retargeters, aliases, n_readers, n_writers, metrics, presets, n_plugins, n_failures = snapshot
-        self.retargeters, self.aliases, self.metrics, self.presets = retargeters, aliases, metrics, presets
-        del self.readers[n_readers:], self.writers[n_writers:], self.plugins[n_plugins:], self.failures[n_failures:]
+        retargeters, aliases, n_readers, n_writers, metrics, presets, n_plugins, n_failures = (
+            snapshot
+        )
+        self.retargeters, self.aliases, self.metrics, self.presets = (
+            retargeters,
+            aliases,
+            metrics,
+            presets,
+        )
+        del (
+            self.readers[n_readers:],
+            self.writers[n_writers:],
+            self.plugins[n_plugins:],
+            self.failures[n_failures:],
+        )
 
     def _register(self, module: Any, info: PluginInfo, *, fatal: bool) -> None:
         try:
@@ -277,7 +345,13 @@ class Registry:
             return
         others = [p for p in self.pm.get_plugins() if p is not module]
         staged: dict[str, list] = {}
-        for hook in ("faceretarget_retargeters", "faceretarget_readers", "faceretarget_writers", "faceretarget_metrics", "faceretarget_presets"):
+        for hook in (
+            "faceretarget_retargeters",
+            "faceretarget_readers",
+            "faceretarget_writers",
+            "faceretarget_metrics",
+            "faceretarget_presets",
+        ):
             caller = self.pm.subset_hook_caller(hook, remove_plugins=others)
             try:
                 results = caller()
@@ -297,15 +371,31 @@ class Registry:
                 raise
             except BaseException as exc:  # a result whose iteration or repr raises
                 self.pm.unregister(module)
-                error = PluginLoadError(f"plugin {info.name!r} ({info.origin}), hook {hook}: its result cannot be read: {type(exc).__name__}: {exc}")
+                error = PluginLoadError(
+                    f"plugin {info.name!r} ({info.origin}), hook {hook}: its result cannot be read: {type(exc).__name__}: {exc}"
+                )
                 self._fail(info, str(error), fatal, error)
                 return
         try:
-            entries = [self._validate_retargeter(cls, info) for cls in staged["faceretarget_retargeters"]]
-            readers = [self._validate_record(r, Reader, "faceretarget_readers", info) for r in staged["faceretarget_readers"]]
-            writers = [self._validate_record(w, Writer, "faceretarget_writers", info) for w in staged["faceretarget_writers"]]
-            metrics = [self._validate_record(m, Metric, "faceretarget_metrics", info) for m in staged["faceretarget_metrics"]]
-            presets = [self._validate_record(p, Preset, "faceretarget_presets", info) for p in staged["faceretarget_presets"]]
+            entries = [
+                self._validate_retargeter(cls, info) for cls in staged["faceretarget_retargeters"]
+            ]
+            readers = [
+                self._validate_record(r, Reader, "faceretarget_readers", info)
+                for r in staged["faceretarget_readers"]
+            ]
+            writers = [
+                self._validate_record(w, Writer, "faceretarget_writers", info)
+                for w in staged["faceretarget_writers"]
+            ]
+            metrics = [
+                self._validate_record(m, Metric, "faceretarget_metrics", info)
+                for m in staged["faceretarget_metrics"]
+            ]
+            presets = [
+                self._validate_record(p, Preset, "faceretarget_presets", info)
+                for p in staged["faceretarget_presets"]
+            ]
             self._check_duplicates(entries, metrics, info, presets)
             unprovided = sorted(set(info.manifests) - {e.name for e in entries})
             if unprovided:
@@ -319,9 +409,13 @@ class Registry:
             return
         except (KeyboardInterrupt, DeadlineExpired):
             raise
-        except BaseException as exc:  # a class attribute of the plugin's that raises or has the wrong type
+        except (
+            BaseException
+        ) as exc:  # a class attribute of the plugin's that raises or has the wrong type
             self.pm.unregister(module)
-            error = PluginLoadError(f"plugin {info.name!r} ({info.origin}): what its hooks returned is invalid: {type(exc).__name__}: {exc}")
+            error = PluginLoadError(
+                f"plugin {info.name!r} ({info.origin}): what its hooks returned is invalid: {type(exc).__name__}: {exc}"
+            )
             self._fail(info, str(error), fatal, error)
             return
         self._add(entries)
@@ -333,7 +427,9 @@ class Registry:
             self.presets[p.name] = (p, info)
         self.plugins.append(info)
 
-    def _fail(self, info: PluginInfo, message: str, fatal: bool, exc: Exception | None = None) -> None:
+    def _fail(
+        self, info: PluginInfo, message: str, fatal: bool, exc: Exception | None = None
+    ) -> None:
         info.error = message
         if fatal:
             if isinstance(exc, PluginError):
@@ -344,11 +440,15 @@ class Registry:
     def _validate_retargeter(self, cls: Any, info: PluginInfo) -> RetargeterInfo:
         where = f"plugin {info.name!r} ({info.origin}), hook faceretarget_retargeters"
         if not (inspect.isclass(cls) and issubclass(cls, Retargeter)):
-            raise PluginLoadError(f"{where}: returned {cls!r}, which is not a faceretarget.Retargeter subclass")
+            raise PluginLoadError(
+                f"{where}: returned {cls!r}, which is not a faceretarget.Retargeter subclass"
+            )
         if not isinstance(cls.name, str) or not cls.name.strip() or cls.name != cls.name.strip():
             raise PluginLoadError(f"{where}: {cls.__name__} has no valid `name` class attribute")
         if not isinstance(cls.capabilities, Capabilities):
-            raise PluginLoadError(f"{where}: {cls.__name__}.capabilities must be a faceretarget.Capabilities")
+            raise PluginLoadError(
+                f"{where}: {cls.__name__}.capabilities must be a faceretarget.Capabilities"
+            )
         init = cls.__init__
         sig = inspect.signature(init) if init is not object.__init__ else inspect.Signature()
         for p in sig.parameters.values():
@@ -365,16 +465,21 @@ class Registry:
         defaults = cls.default_params()
         for p, allowed in constraints.items():
             if p not in defaults:
-                raise PluginLoadError(f"{where}: {cls.__name__}.parameter_constraints names {p!r}, which __init__ does not take")
+                raise PluginLoadError(
+                    f"{where}: {cls.__name__}.parameter_constraints names {p!r}, which __init__ does not take"
+                )
             if allowed and not any(c.accepts(defaults[p]) for c in allowed):
-                raise PluginLoadError(f"{where}: {cls.__name__}: the default {p}={defaults[p]!r} is not {describe(allowed)}")
+                raise PluginLoadError(
+                    f"{where}: {cls.__name__}: the default {p}={defaults[p]!r} is not {describe(allowed)}"
+                )
         declared = self.manifests.get(cls.name) if info.builtin else info.manifests.get(cls.name)
         if declared is None:
             return RetargeterInfo(from_class(cls, info.name), info, cls)
         mismatches = disagreements(cls, declared)
         if mismatches:
             raise PluginLoadError(
-                f"{where}: {cls.__name__} ({cls.name!r}) and its manifest {declared.origin} disagree: " + "; ".join(mismatches)
+                f"{where}: {cls.__name__} ({cls.name!r}) and its manifest {declared.origin} disagree: "
+                + "; ".join(mismatches)
             )
         return RetargeterInfo(declared, info, cls)
 
@@ -382,53 +487,94 @@ class Registry:
     def _validate_record(record: Any, kind: type, hook: str, info: PluginInfo):
         where = f"plugin {info.name!r} ({info.origin}), hook {hook}"
         if not isinstance(record, kind):
-            raise PluginLoadError(f"{where}: returned {record!r}, not a faceretarget.{kind.__name__}")
+            raise PluginLoadError(
+                f"{where}: returned {record!r}, not a faceretarget.{kind.__name__}"
+            )
         if not isinstance(record.name, str) or not record.name.strip():
-            raise PluginLoadError(f"{where}: a {kind.__name__} needs a non-empty string name, got {record.name!r}")
+            raise PluginLoadError(
+                f"{where}: a {kind.__name__} needs a non-empty string name, got {record.name!r}"
+            )
         call = {Reader: "read", Writer: "write", Metric: "compute", Preset: "run"}[kind]
         if not callable(getattr(record, call, None)):
             raise PluginLoadError(f"{where}: {record.name!r} has no callable {call}")
         if not isinstance(record.description, str):
-            raise PluginLoadError(f"{where}: {record.name!r}: description must be a string, got {record.description!r}")
+            raise PluginLoadError(
+                f"{where}: {record.name!r}: description must be a string, got {record.description!r}"
+            )
         if kind is Metric:
             if record.better not in ("lower", "higher", "none") or not isinstance(record.unit, str):
-                raise PluginLoadError(f"{where}: metric {record.name!r}: better must be \"lower\", \"higher\" or \"none\" and unit a string")
+                raise PluginLoadError(
+                    f'{where}: metric {record.name!r}: better must be "lower", "higher" or "none" and unit a string'
+                )
             if record.why_not is not None and not callable(record.why_not):
-                raise PluginLoadError(f"{where}: metric {record.name!r}: why_not must be callable or None")
+                raise PluginLoadError(
+                    f"{where}: metric {record.name!r}: why_not must be callable or None"
+                )
         elif kind is Preset:
             texts = {k: getattr(record, k) for k in ("title", "paper", "claim", "setting")}
             wrong = [k for k, v in texts.items() if not isinstance(v, str)]
             if wrong:
-                raise PluginLoadError(f"{where}: preset {record.name!r}: {', '.join(wrong)} must be strings")
+                raise PluginLoadError(
+                    f"{where}: preset {record.name!r}: {', '.join(wrong)} must be strings"
+                )
         else:
             if record.kind not in DATA_KINDS:
-                raise PluginLoadError(f"{where}: {record.name!r}: kind must be one of {', '.join(DATA_KINDS)}, got {record.kind!r}")
+                raise PluginLoadError(
+                    f"{where}: {record.name!r}: kind must be one of {', '.join(DATA_KINDS)}, got {record.kind!r}"
+                )
             exts = record.extensions
-            if not isinstance(exts, (tuple, list)) or not exts or not all(isinstance(e, str) and e for e in exts):
-                raise PluginLoadError(f"{where}: {record.name!r}: extensions must be a non-empty tuple of strings like (\".obj\",), got {exts!r}")
+            if (
+                not isinstance(exts, (tuple, list))
+                or not exts
+                or not all(isinstance(e, str) and e for e in exts)
+            ):
+                raise PluginLoadError(
+                    f'{where}: {record.name!r}: extensions must be a non-empty tuple of strings like (".obj",), got {exts!r}'
+                )
             priority = getattr(record, "priority", 0)
-            if isinstance(priority, bool) or not isinstance(priority, (int, float)) or priority != priority:
-                raise PluginLoadError(f"{where}: {record.name!r}: priority must be a number (higher wins; built-ins have 0), got {priority!r}")
+            if (
+                isinstance(priority, bool)
+                or not isinstance(priority, (int, float))
+                or priority != priority
+            ):
+                raise PluginLoadError(
+                    f"{where}: {record.name!r}: priority must be a number (higher wins; built-ins have 0), got {priority!r}"
+                )
             accepts = getattr(record, "accepts", None)
             if accepts is not None and not callable(accepts):
-                raise PluginLoadError(f"{where}: {record.name!r}: accepts must be a callable accepts(path) -> bool or None, got {accepts!r}")
+                raise PluginLoadError(
+                    f"{where}: {record.name!r}: accepts must be a callable accepts(path) -> bool or None, got {accepts!r}"
+                )
             sniff = getattr(record, "sniff", None)
             if sniff is not None and not callable(sniff):
-                raise PluginLoadError(f"{where}: {record.name!r}: sniff must be a callable sniff(path) -> kind or None, got {sniff!r}")
+                raise PluginLoadError(
+                    f"{where}: {record.name!r}: sniff must be a callable sniff(path) -> kind or None, got {sniff!r}"
+                )
             magic = getattr(record, "magic", ())
-            if not isinstance(magic, (tuple, list)) or not all(isinstance(m, bytes) and m for m in magic):
-                raise PluginLoadError(f"{where}: {record.name!r}: magic must be a tuple of non-empty byte strings like (b\"ply\",), got {magic!r}")
+            if not isinstance(magic, (tuple, list)) or not all(
+                isinstance(m, bytes) and m for m in magic
+            ):
+                raise PluginLoadError(
+                    f'{where}: {record.name!r}: magic must be a tuple of non-empty byte strings like (b"ply",), got {magic!r}'
+                )
         return record
 
-    def _check_duplicates(self, entries: list[RetargeterInfo], metrics: list[Metric], info: PluginInfo,
-                          presets: list[Preset] = ()) -> None:
+    def _check_duplicates(
+        self,
+        entries: list[RetargeterInfo],
+        metrics: list[Metric],
+        info: PluginInfo,
+        presets: list[Preset] = (),
+    ) -> None:
         seen = {}
         for entry in entries:
             for key in (entry.name, *entry.aliases):
                 k = key.lower()
                 owner = self.retargeters.get(self.aliases.get(k, key)) or self.retargeters.get(key)
                 if owner is None:
-                    owner = next((e for e in self.retargeters.values() if e.name.lower() == k), None)
+                    owner = next(
+                        (e for e in self.retargeters.values() if e.name.lower() == k), None
+                    )
                 if owner is not None or k in seen:
                     other = owner.plugin if owner else info
                     raise DuplicatePluginError(
@@ -470,9 +616,13 @@ class Registry:
             valid = ", ".join(sorted(self.retargeters))
             note = ""
             if self.failures:
-                note = "; plugins that failed to load: " + ", ".join(f"{f.name} ({f.distribution})" for f in self.failures)
+                note = "; plugins that failed to load: " + ", ".join(
+                    f"{f.name} ({f.distribution})" for f in self.failures
+                )
             hint = did_you_mean(name, [*self.retargeters, *self.aliases])
-            raise UnknownNameError(f"no retargeter named {name!r}{hint}; valid choices: {valid}{note}")
+            raise UnknownNameError(
+                f"no retargeter named {name!r}{hint}; valid choices: {valid}{note}"
+            )
         return self.retargeters[key]
 
 

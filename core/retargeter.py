@@ -12,13 +12,15 @@
 
 A subclass implements ``_fit`` and ``_retarget``; the base class does the checks.
 """
+
 from __future__ import annotations
 
 import copy
 import inspect
 import time
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, Iterable, Iterator
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -32,7 +34,13 @@ __all__ = ["Capabilities", "Retargeter", "clone", "SOURCE_KINDS", "RIG_PARTS"]
 SOURCE_KINDS = ("markers", "mesh", "weights")
 #: Rig parts (see :attr:`TargetRig.PARTS`) and source extras a retargeter can need.
 RIG_PARTS = ("blendshapes", "layers", "landmarks", "feature_lines", "examples")
-SOURCE_EXTRAS = ("source_landmarks", "source_examples", "source_feature_lines", "actor_layers", "source_rig")
+SOURCE_EXTRAS = (
+    "source_landmarks",
+    "source_examples",
+    "source_feature_lines",
+    "actor_layers",
+    "source_rig",
+)
 
 
 @dataclass(frozen=True)
@@ -66,7 +74,7 @@ class Capabilities:
         }
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "Capabilities":
+    def from_dict(cls, data: dict[str, Any]) -> Capabilities:
         return cls(
             sources=tuple(data.get("sources", ("markers",))),
             needs=tuple(tuple(n) if isinstance(n, list) else n for n in data.get("needs", ())),
@@ -123,7 +131,9 @@ PYTHON_ARGUMENTS = {
 }
 
 
-def missing_needs(capabilities: Capabilities, source: Source, target: TargetRig) -> list[tuple[str, ...]]:
+def missing_needs(
+    capabilities: Capabilities, source: Source, target: TargetRig
+) -> list[tuple[str, ...]]:
     """The needs of ``capabilities`` that (source, target) lack, each as its tuple of alternatives."""
     out = []
     for need in capabilities.needs:
@@ -170,7 +180,7 @@ class Retargeter:
         """The constructor parameters and their current values."""
         return {n: getattr(self, n) for n in self._param_names()}
 
-    def set_params(self, **params) -> "Retargeter":
+    def set_params(self, **params) -> Retargeter:
         """Set constructor parameters; unknown names raise. Returns self."""
         self.check_params(params, who=type(self).__name__)
         for k, v in params.items():
@@ -195,7 +205,7 @@ class Retargeter:
             f"{who} has no parameter{'s' if len(unknown) > 1 else ''} {named}; valid parameters: {', '.join(valid) or '(none)'}"
         )
 
-    def clone(self) -> "Retargeter":
+    def clone(self) -> Retargeter:
         """A new unfitted retargeter with the same (deep-copied) parameters."""
         return clone(self)
 
@@ -214,27 +224,39 @@ class Retargeter:
             return f"{cls.name or cls.__name__} takes {' or '.join(caps.sources)} sources; this source is {source.kind}"
         if target is None:
             return None
-        missing = [" or ".join(_NEED_TEXT.get(n, n) for n in options) for options in missing_needs(caps, source, target)]
+        missing = [
+            " or ".join(_NEED_TEXT.get(n, n) for n in options)
+            for options in missing_needs(caps, source, target)
+        ]
         if missing:
             return f"{cls.name or cls.__name__} needs {'; '.join(missing)}; this one lacks it"
         return None
 
     def _check_applicable(self, source: Source, target: TargetRig) -> None:
         if not isinstance(source, Source):
-            raise InputError(f"{self.name}.fit: source must be a faceretarget.Source, got {type(source).__name__}")
+            raise InputError(
+                f"{self.name}.fit: source must be a faceretarget.Source, got {type(source).__name__}"
+            )
         if not isinstance(target, TargetRig):
-            raise InputError(f"{self.name}.fit: target must be a faceretarget.TargetRig, got {type(target).__name__}")
+            raise InputError(
+                f"{self.name}.fit: target must be a faceretarget.TargetRig, got {type(target).__name__}"
+            )
         reason = self.why_not(source, target)
         if reason:
-            hints = [" or ".join(PYTHON_ARGUMENTS.get(n, n) for n in options) for options in missing_needs(self.capabilities, source, target)]
+            hints = [
+                " or ".join(PYTHON_ARGUMENTS.get(n, n) for n in options)
+                for options in missing_needs(self.capabilities, source, target)
+            ]
             raise CapabilityError(f"{reason}; give {'; '.join(hints)}" if hints else reason)
 
     def _check_fitted(self) -> None:
         if not getattr(self, "fitted_", False):
-            raise NotFittedError(f"this {type(self).__name__} is not fitted yet; call fit(source, target) before retarget()")
+            raise NotFittedError(
+                f"this {type(self).__name__} is not fitted yet; call fit(source, target) before retarget()"
+            )
 
     # -- public protocol ---------------------------------------------------------------
-    def fit(self, source: Source, target: TargetRig) -> "Retargeter":
+    def fit(self, source: Source, target: TargetRig) -> Retargeter:
         """Validate (source, target), precompute, and return self."""
         self._check_applicable(source, target)
         start = time.perf_counter()
@@ -248,7 +270,9 @@ class Retargeter:
         """Retarget ``source`` onto the fitted target; returns an :class:`Animation`."""
         self._check_fitted()
         if not isinstance(source, Source):
-            raise InputError(f"{self.name}.retarget: expected a faceretarget.Source, got {type(source).__name__}")
+            raise InputError(
+                f"{self.name}.retarget: expected a faceretarget.Source, got {type(source).__name__}"
+            )
         reason = self.why_not(source, None)
         if reason:
             raise CapabilityError(reason)
@@ -259,7 +283,9 @@ class Retargeter:
 
     def stream(self, frames: Iterable) -> Iterator[np.ndarray]:
         """Online retargeting, frame by frame (only where ``capabilities.stream``)."""
-        raise CapabilityError(f"{self.name or type(self).__name__} does not stream; use retarget() on the whole sequence")
+        raise CapabilityError(
+            f"{self.name or type(self).__name__} does not stream; use retarget() on the whole sequence"
+        )
 
     def edit(self, animation: Animation, **constraints) -> Animation:
         """Spacetime editing (only where ``capabilities.edit``)."""
@@ -279,23 +305,36 @@ class Retargeter:
         :class:`PluginOutputError` naming the method."""
         who = self.name or type(self).__name__
         if not isinstance(animation, Animation):
-            raise PluginOutputError(f"{who}: _retarget returned {type(animation).__name__}, not an Animation")
+            raise PluginOutputError(
+                f"{who}: _retarget returned {type(animation).__name__}, not an Animation"
+            )
         if source is not None and animation.n_frames != source.n_frames:
-            raise PluginOutputError(f"{who}: returned {animation.n_frames} frames for a source of {source.n_frames}; expected one per source frame")
+            raise PluginOutputError(
+                f"{who}: returned {animation.n_frames} frames for a source of {source.n_frames}; expected one per source frame"
+            )
         target = getattr(self, "target_", None)
-        n_vertices = animation._vertices.shape[1] if animation._vertices is not None else animation.rig.neutral.n_vertices
+        n_vertices = (
+            animation._vertices.shape[1]
+            if animation._vertices is not None
+            else animation.rig.neutral.n_vertices
+        )
         if isinstance(target, TargetRig) and n_vertices != target.neutral.n_vertices:
             raise PluginOutputError(
                 f"{who}: returned {n_vertices} vertices per frame but the target has {target.neutral.n_vertices}; "
                 "results must be on the target's own vertices"
             )
-        for what, values in (("weights", animation.weights), ("head motion", animation.head_motion)):
+        for what, values in (
+            ("weights", animation.weights),
+            ("head motion", animation.head_motion),
+        ):
             if values is not None and not np.isfinite(values).all():
                 raise PluginOutputError(f"{who} returned NaN or infinite {what}")
         if not _finite_vertices(animation):
             raise PluginOutputError(f"{who} returned NaN or infinite vertex coordinates")
 
-    def _stamp(self, animation: Animation, seconds: float, source: Source | None = None) -> Animation:
+    def _stamp(
+        self, animation: Animation, seconds: float, source: Source | None = None
+    ) -> Animation:
         """:meth:`check_output`, then fill the provenance."""
         self.check_output(animation, source)
         from ._version import __version__
@@ -330,17 +369,32 @@ def _finite_vertices(animation: Animation, chunk: int = 64) -> bool:
 
     stored = animation._vertices
     if stored is not None:
-        return all(np.isfinite(stored[i:i + chunk]).all() for i in range(0, stored.shape[0], chunk))
-    rig, weights, motion = animation.rig, np.asarray(animation.weights, dtype=np.float64), animation.head_motion
+        return all(
+            np.isfinite(stored[i : i + chunk]).all() for i in range(0, stored.shape[0], chunk)
+        )
+    rig, weights, motion = (
+        animation.rig,
+        np.asarray(animation.weights, dtype=np.float64),
+        animation.head_motion,
+    )
     with np.errstate(over="ignore", invalid="ignore"):
         # weights and head motion are finite here: a bound on |vertex| far from overflow proves it
         largest = np.abs(rig.deltas).max(axis=(1, 2), initial=0.0)
-        bound = np.abs(rig.neutral.vertices).max(initial=0.0) + (np.abs(weights) @ largest).max(initial=0.0)
+        bound = np.abs(rig.neutral.vertices).max(initial=0.0) + (np.abs(weights) @ largest).max(
+            initial=0.0
+        )
         if motion is not None:
-            bound = bound * 3.0 * np.abs(motion[:, :3, :3]).max(initial=0.0) + np.abs(motion[:, :3, 3]).max(initial=0.0)
+            bound = bound * 3.0 * np.abs(motion[:, :3, :3]).max(initial=0.0) + np.abs(
+                motion[:, :3, 3]
+            ).max(initial=0.0)
         if bound < 1e300:
             return True
         return all(
-            np.isfinite(apply_head_motion(None if motion is None else motion[i:i + chunk], rig.evaluate(weights[i:i + chunk]))).all()
+            np.isfinite(
+                apply_head_motion(
+                    None if motion is None else motion[i : i + chunk],
+                    rig.evaluate(weights[i : i + chunk]),
+                )
+            ).all()
             for i in range(0, weights.shape[0], chunk)
         )

@@ -41,18 +41,28 @@ Each check tests one invariant on a tiny synthetic parallel-rig case
 The module is also a pytest plugin (entry point ``pytest11``) giving the fixture
 ``faceretarget_case`` (the tiny case).
 """
+
 from __future__ import annotations
 
 import copy
 import functools
 import hashlib
 import pickle
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
 from .errors import CapabilityError, FaceRetargetError, NotFittedError
-from .model import BlendshapeRig, LayeredRig, MarkerSequence, Mesh, MeshSequence, Source, TargetRig, WeightSequence
+from .model import (
+    BlendshapeRig,
+    LayeredRig,
+    MarkerSequence,
+    Mesh,
+    MeshSequence,
+    Source,
+    TargetRig,
+    WeightSequence,
+)
 from .retargeter import Retargeter, clone
 
 __all__ = [
@@ -120,13 +130,21 @@ class _Affine:
     def __init__(self, scale: float = 1.0, rotation=None, translation=None):
         self.scale = float(scale)
         self.rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
-        self.translation = np.zeros(3) if translation is None else np.asarray(translation, dtype=np.float64)
+        self.translation = (
+            np.zeros(3) if translation is None else np.asarray(translation, dtype=np.float64)
+        )
 
     def points(self, x):
-        return None if x is None else self.scale * (np.asarray(x, dtype=np.float64) @ self.rotation.T) + self.translation
+        return (
+            None
+            if x is None
+            else self.scale * (np.asarray(x, dtype=np.float64) @ self.rotation.T) + self.translation
+        )
 
     def vectors(self, d):
-        return None if d is None else self.scale * (np.asarray(d, dtype=np.float64) @ self.rotation.T)
+        return (
+            None if d is None else self.scale * (np.asarray(d, dtype=np.float64) @ self.rotation.T)
+        )
 
     def inverse_points(self, y):
         return ((np.asarray(y, dtype=np.float64) - self.translation) @ self.rotation) / self.scale
@@ -150,13 +168,19 @@ class _Affine:
     def rig(self, rig):
         if rig is None:
             return None
-        return BlendshapeRig(self.mesh(rig.neutral), self.vectors(rig.deltas), rig.names, bounds=rig.bounds)
+        return BlendshapeRig(
+            self.mesh(rig.neutral), self.vectors(rig.deltas), rig.names, bounds=rig.bounds
+        )
 
     def layers(self, layers):
         if layers is None:
             return None
-        return LayeredRig({k: self.points(v) for k, v in layers.layers.items()}, np.asarray(layers.masks),
-                          pose_names=layers.pose_names, region_names=layers.region_names)
+        return LayeredRig(
+            {k: self.points(v) for k, v in layers.layers.items()},
+            np.asarray(layers.masks),
+            pose_names=layers.pose_names,
+            region_names=layers.region_names,
+        )
 
 
 def _rotation(axis, degrees: float) -> np.ndarray:
@@ -171,21 +195,47 @@ def _moved_source(source: Source, a: _Affine) -> Source:
     """The same performance with every 3D position moved by ``a`` (2D tracks stay in the image)."""
     perf = source.performance
     if isinstance(perf, MeshSequence):
-        moved = MeshSequence(a.points(perf.vertices), perf.triangles, fps=perf.fps, reference=a.mesh(perf.reference), name=perf.name)
+        moved = MeshSequence(
+            a.points(perf.vertices),
+            perf.triangles,
+            fps=perf.fps,
+            reference=a.mesh(perf.reference),
+            name=perf.name,
+        )
     elif isinstance(perf, MarkerSequence):
-        moved = MarkerSequence(a.points(perf.positions), names=perf.names, fps=perf.fps, reference=a.points(perf.reference))
+        moved = MarkerSequence(
+            a.points(perf.positions),
+            names=perf.names,
+            fps=perf.fps,
+            reference=a.points(perf.reference),
+        )
     else:
         moved = perf
-    return source.replace(performance=moved, examples=a.points(source.examples), rig=a.rig(source.rig),
-                          actor_layers=a.layers(source.actor_layers), head_motion=a.conjugate(source.head_motion))
+    return source.replace(
+        performance=moved,
+        examples=a.points(source.examples),
+        rig=a.rig(source.rig),
+        actor_layers=a.layers(source.actor_layers),
+        head_motion=a.conjugate(source.head_motion),
+    )
 
 
 def _moved_target(target: TargetRig, a: _Affine) -> TargetRig:
     neutral = a.mesh(target.neutral)
     rig = None
     if target.blendshapes is not None:
-        rig = BlendshapeRig(neutral, a.vectors(target.blendshapes.deltas), target.blendshapes.names, bounds=target.blendshapes.bounds)
-    return target.replace(neutral=neutral, blendshapes=rig, layers=a.layers(target.layers), examples=a.points(target.examples))
+        rig = BlendshapeRig(
+            neutral,
+            a.vectors(target.blendshapes.deltas),
+            target.blendshapes.names,
+            bounds=target.blendshapes.bounds,
+        )
+    return target.replace(
+        neutral=neutral,
+        blendshapes=rig,
+        layers=a.layers(target.layers),
+        examples=a.points(target.examples),
+    )
 
 
 def _instance(obj) -> Retargeter:
@@ -209,7 +259,9 @@ def _replace_performance(source: Source, performance) -> Source:
         head_motion=None,
         landmarks=source.landmarks if keep_landmarks else None,
         feature_lines=source.feature_lines if keep_landmarks else None,
-        examples=source.examples if (keep_landmarks or source.examples is None) else _examples_at_markers(source),
+        examples=source.examples
+        if (keep_landmarks or source.examples is None)
+        else _examples_at_markers(source),
         example_names=source.example_names or None,
         tracks2d=source.tracks2d if same_frames else None,
         actor_layers_2d=source.actor_layers_2d if same_frames else None,
@@ -228,14 +280,19 @@ def _source_of_kind(case, kind: str) -> Source:
         return src
     if kind == "markers":
         markers = MarkerSequence(
-            src.marker_positions(), names=src.landmarks.names, fps=src.fps, reference=src.marker_reference()
+            src.marker_positions(),
+            names=src.landmarks.names,
+            fps=src.fps,
+            reference=src.marker_reference(),
         )
         return _replace_performance(src, markers)
     if kind == "weights":
         weights = case.meta.get("weights")
         rig = case.meta.get("source_rig") or src.rig
         if weights is None or rig is None:
-            raise AssertionError("the tiny case has no source weight curves and rig to test a weights-only retargeter")
+            raise AssertionError(
+                "the tiny case has no source weight curves and rig to test a weights-only retargeter"
+            )
         ws = WeightSequence(weights, rig.names, fps=src.fps)
         return Source(ws, rig=rig)
     raise AssertionError(f"cannot build a {kind!r} source from the tiny case")
@@ -257,16 +314,28 @@ def _static_source(source: Source, transforms: np.ndarray | None = None) -> Sour
         ref = np.asarray(perf.reference.vertices)
         frames = np.repeat(ref[None], n_frames, axis=0)
         if transforms is not None:
-            frames = np.einsum("fij,fpj->fpi", transforms[:, :3, :3], frames) + transforms[:, None, :3, 3]
-        return _replace_performance(source, MeshSequence(frames, perf.triangles, fps=perf.fps, reference=perf.reference))
+            frames = (
+                np.einsum("fij,fpj->fpi", transforms[:, :3, :3], frames)
+                + transforms[:, None, :3, 3]
+            )
+        return _replace_performance(
+            source, MeshSequence(frames, perf.triangles, fps=perf.fps, reference=perf.reference)
+        )
     if isinstance(perf, MarkerSequence):
         ref = np.asarray(perf.reference)
         frames = np.repeat(ref[None], n_frames, axis=0)
         if transforms is not None:
-            frames = np.einsum("fij,fpj->fpi", transforms[:, :3, :3], frames) + transforms[:, None, :3, 3]
-        return _replace_performance(source, MarkerSequence(frames, names=perf.names, fps=perf.fps, reference=ref))
+            frames = (
+                np.einsum("fij,fpj->fpi", transforms[:, :3, :3], frames)
+                + transforms[:, None, :3, 3]
+            )
+        return _replace_performance(
+            source, MarkerSequence(frames, names=perf.names, fps=perf.fps, reference=ref)
+        )
     if isinstance(perf, WeightSequence):
-        return Source(WeightSequence(np.zeros_like(perf.weights), perf.names, fps=perf.fps), rig=source.rig)
+        return Source(
+            WeightSequence(np.zeros_like(perf.weights), perf.names, fps=perf.fps), rig=source.rig
+        )
     raise AssertionError("unknown performance type")
 
 
@@ -286,7 +355,9 @@ def _rigid_transforms(n_frames: int, size: float) -> np.ndarray:
 
 
 def _rms(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.sum((np.asarray(a, float) - np.asarray(b, float)) ** 2, axis=-1))))
+    return float(
+        np.sqrt(np.mean(np.sum((np.asarray(a, float) - np.asarray(b, float)) ** 2, axis=-1)))
+    )
 
 
 def _fingerprint(obj) -> str:
@@ -323,7 +394,9 @@ def _fingerprint(obj) -> str:
                     if slot != "__dict__" and hasattr(x, slot):
                         fields[slot] = getattr(x, slot)
             for k, v in getattr(x, "__dict__", {}).items():
-                if not k.startswith("_") and not isinstance(getattr(cls, k, None), functools.cached_property):
+                if not k.startswith("_") and not isinstance(
+                    getattr(cls, k, None), functools.cached_property
+                ):
                     fields[k] = v
             visit(fields)
 
@@ -353,16 +426,28 @@ def _layers32(layers):
 
 def _performance32(perf):
     if isinstance(perf, MeshSequence):
-        return MeshSequence(_f32(perf.vertices), perf.triangles, fps=perf.fps, reference=_f32(perf.reference.vertices))
+        return MeshSequence(
+            _f32(perf.vertices),
+            perf.triangles,
+            fps=perf.fps,
+            reference=_f32(perf.reference.vertices),
+        )
     if isinstance(perf, MarkerSequence):
-        return MarkerSequence(_f32(perf.positions), names=perf.names, fps=perf.fps, reference=_f32(perf.reference))
+        return MarkerSequence(
+            _f32(perf.positions), names=perf.names, fps=perf.fps, reference=_f32(perf.reference)
+        )
     return WeightSequence(_f32(perf.weights), perf.names, fps=perf.fps)
 
 
 def _rig32(rig):
     if rig is None:
         return None
-    return BlendshapeRig(Mesh(_f32(rig.neutral.vertices), rig.neutral.triangles), _f32(rig.deltas), rig.names, bounds=rig.bounds)
+    return BlendshapeRig(
+        Mesh(_f32(rig.neutral.vertices), rig.neutral.triangles),
+        _f32(rig.deltas),
+        rig.names,
+        bounds=rig.bounds,
+    )
 
 
 def _source32(source: Source) -> Source:
@@ -379,11 +464,23 @@ def _source32(source: Source) -> Source:
 
 def _target32(target: TargetRig) -> TargetRig:
     """The same target rebuilt from float32, read-only arrays."""
-    neutral = Mesh(_f32(target.neutral.vertices), target.neutral.triangles, name=target.neutral.name)
+    neutral = Mesh(
+        _f32(target.neutral.vertices), target.neutral.triangles, name=target.neutral.name
+    )
     rig = None
     if target.blendshapes is not None:
-        rig = BlendshapeRig(neutral, _f32(target.blendshapes.deltas), target.blendshapes.names, bounds=target.blendshapes.bounds)
-    return target.replace(neutral=neutral, blendshapes=rig, layers=_layers32(target.layers), examples=_f32(target.examples))
+        rig = BlendshapeRig(
+            neutral,
+            _f32(target.blendshapes.deltas),
+            target.blendshapes.names,
+            bounds=target.blendshapes.bounds,
+        )
+    return target.replace(
+        neutral=neutral,
+        blendshapes=rig,
+        layers=_layers32(target.layers),
+        examples=_f32(target.examples),
+    )
 
 
 # ------------------------------------------------------------------------------------
@@ -393,12 +490,18 @@ def check_params(r: Retargeter, case=None) -> None:
     r = _instance(r)
     params = r.get_params()
     fresh = type(r)(**params)
-    assert fresh.get_params().keys() == params.keys(), f"{_label(r)}: get_params() keys change after reconstruction"
+    assert fresh.get_params().keys() == params.keys(), (
+        f"{_label(r)}: get_params() keys change after reconstruction"
+    )
     for k, v in params.items():
         same = fresh.get_params()[k]
-        assert same is v or _equal(same, v), f"{_label(r)}: __init__ must store parameter {k!r} unchanged (got {same!r} for {v!r})"
+        assert same is v or _equal(same, v), (
+            f"{_label(r)}: __init__ must store parameter {k!r} unchanged (got {same!r} for {v!r})"
+        )
     r.set_params(**params)
-    assert _equal(r.get_params(), params), f"{_label(r)}: set_params(**get_params()) changed the parameters"
+    assert _equal(r.get_params(), params), (
+        f"{_label(r)}: set_params(**get_params()) changed the parameters"
+    )
 
 
 def check_not_fitted(r: Retargeter, case=None) -> None:
@@ -409,7 +512,9 @@ def check_not_fitted(r: Retargeter, case=None) -> None:
         r.retarget(source)
     except NotFittedError:
         return
-    raise AssertionError(f"{_label(r)}: retarget() before fit() must raise faceretarget.NotFittedError")
+    raise AssertionError(
+        f"{_label(r)}: retarget() before fit() must raise faceretarget.NotFittedError"
+    )
 
 
 def check_output(r: Retargeter, case=None) -> None:
@@ -456,7 +561,9 @@ def check_rigid_motion(r: Retargeter, case=None) -> None:
         f"{100 * err:.3f}% of face height (allowed {100 * RIGID_TOLERANCE:.2f}%): head motion turned into expression?"
     )
     if anim.weights is not None:
-        assert np.abs(anim.weights).max() < 0.05, f"{_label(r)}: rigid motion alone produced blendshape weights up to {np.abs(anim.weights).max():.3f}"
+        assert np.abs(anim.weights).max() < 0.05, (
+            f"{_label(r)}: rigid motion alone produced blendshape weights up to {np.abs(anim.weights).max():.3f}"
+        )
 
 
 def check_inputs_unchanged(r: Retargeter, case=None) -> None:
@@ -480,10 +587,14 @@ def check_float32_readonly(r: Retargeter, case=None) -> None:
         got = _instance(r).fit(source32, target32).retarget(source32).vertices
     except ValueError as exc:
         if "read-only" in str(exc) or "readonly" in str(exc):
-            raise AssertionError(f"{_label(r)}: writes into a read-only input array ({exc})") from exc
+            raise AssertionError(
+                f"{_label(r)}: writes into a read-only input array ({exc})"
+            ) from exc
         raise
     err = _rms(got, ref) / case.target.neutral.height
-    assert err <= FLOAT32_TOLERANCE, f"{_label(r)}: float32 inputs differ from float64 by {100 * err:.4f}% of face height"
+    assert err <= FLOAT32_TOLERANCE, (
+        f"{_label(r)}: float32 inputs differ from float64 by {100 * err:.4f}% of face height"
+    )
 
 
 def check_deterministic(r: Retargeter, case=None) -> None:
@@ -491,21 +602,29 @@ def check_deterministic(r: Retargeter, case=None) -> None:
     source = _preferred_source(_instance(r), case)
     a = _instance(r).fit(source, case.target).retarget(source)
     b = _instance(r).fit(source, case.target).retarget(source)
-    assert np.array_equal(np.asarray(a.vertices), np.asarray(b.vertices)), f"{_label(r)}: two fits on the same input differ"
+    assert np.array_equal(np.asarray(a.vertices), np.asarray(b.vertices)), (
+        f"{_label(r)}: two fits on the same input differ"
+    )
 
 
 def check_clone_pickle(r: Retargeter, case=None) -> None:
     case = case or tiny_case()
     r = _instance(r)
     twin = clone(r)
-    assert type(twin) is type(r) and _equal(twin.get_params(), r.get_params()), f"{_label(r)}: clone() changed the parameters"
-    assert not getattr(twin, "fitted_", False), f"{_label(r)}: clone() must return an unfitted retargeter"
+    assert type(twin) is type(r) and _equal(twin.get_params(), r.get_params()), (
+        f"{_label(r)}: clone() changed the parameters"
+    )
+    assert not getattr(twin, "fitted_", False), (
+        f"{_label(r)}: clone() must return an unfitted retargeter"
+    )
     source = _preferred_source(r, case)
     r.fit(source, case.target)
     want = np.asarray(r.retarget(source).vertices)
     again = pickle.loads(pickle.dumps(r))
     got = np.asarray(again.retarget(source).vertices)
-    assert np.allclose(got, want, rtol=0, atol=1e-9 * max(1.0, case.target.neutral.height)), f"{_label(r)}: a pickled and restored retargeter gives a different result"
+    assert np.allclose(got, want, rtol=0, atol=1e-9 * max(1.0, case.target.neutral.height)), (
+        f"{_label(r)}: a pickled and restored retargeter gives a different result"
+    )
 
 
 def check_stream(r: Retargeter, case=None) -> None:
@@ -515,7 +634,9 @@ def check_stream(r: Retargeter, case=None) -> None:
             list(r.stream([]))
         except CapabilityError:
             return
-        raise AssertionError(f"{_label(r)}: declares stream=False but stream() does not raise CapabilityError")
+        raise AssertionError(
+            f"{_label(r)}: declares stream=False but stream() does not raise CapabilityError"
+        )
     case = case or tiny_case()
     source = _preferred_source(r, case)
     r.fit(source, case.target)
@@ -527,9 +648,13 @@ def check_stream(r: Retargeter, case=None) -> None:
     else:
         frames = list(np.asarray(source.performance.weights))
     streamed = np.stack([np.asarray(f) for f in r.stream(iter(frames))])
-    assert streamed.shape == batch.shape, f"{_label(r)}: stream() gave {streamed.shape}, retarget() gave {batch.shape}"
+    assert streamed.shape == batch.shape, (
+        f"{_label(r)}: stream() gave {streamed.shape}, retarget() gave {batch.shape}"
+    )
     err = _rms(streamed, batch) / case.target.neutral.height
-    assert err <= 1e-6, f"{_label(r)}: stream() differs from retarget() by {100 * err:.5f}% of face height"
+    assert err <= 1e-6, (
+        f"{_label(r)}: stream() differs from retarget() by {100 * err:.5f}% of face height"
+    )
 
 
 def check_capabilities(r: Retargeter, case=None) -> None:
@@ -547,7 +672,9 @@ def check_capabilities(r: Retargeter, case=None) -> None:
             _instance(r).fit(source, case.target)
         except CapabilityError:
             continue
-        raise AssertionError(f"{_label(r)}: does not declare {kind!r} sources but fit() accepted one without CapabilityError")
+        raise AssertionError(
+            f"{_label(r)}: does not declare {kind!r} sources but fit() accepted one without CapabilityError"
+        )
     source = _preferred_source(r, case)
     for need in caps.needs:
         options = need if isinstance(need, tuple) else (need,)
@@ -559,7 +686,9 @@ def check_capabilities(r: Retargeter, case=None) -> None:
         except CapabilityError as exc:
             assert str(exc), f"{_label(r)}: CapabilityError without a message"
             continue
-        raise AssertionError(f"{_label(r)}: declares it needs {' or '.join(options)} but fit() worked without it")
+        raise AssertionError(
+            f"{_label(r)}: declares it needs {' or '.join(options)} but fit() worked without it"
+        )
     declared = {n for need in caps.needs for n in (need if isinstance(need, tuple) else (need,))}
     for part in TargetRig.PARTS:
         if part in declared or not case.target.has(part):
@@ -575,7 +704,9 @@ def check_capabilities(r: Retargeter, case=None) -> None:
             ) from exc
     if caps.outputs == "weights":
         anim = _instance(r).fit(source, case.target).retarget(source)
-        assert anim.weights is not None, f"{_label(r)}: declares outputs='weights' but the Animation has no weights"
+        assert anim.weights is not None, (
+            f"{_label(r)}: declares outputs='weights' but the Animation has no weights"
+        )
     if not caps.edit:
         fitted = _instance(r).fit(source, case.target)
         try:
@@ -583,7 +714,9 @@ def check_capabilities(r: Retargeter, case=None) -> None:
         except CapabilityError:
             pass
         else:
-            raise AssertionError(f"{_label(r)}: declares edit=False but edit() does not raise CapabilityError")
+            raise AssertionError(
+                f"{_label(r)}: declares edit=False but edit() does not raise CapabilityError"
+            )
 
 
 def check_unit_invariance(r: Retargeter, case=None) -> None:
@@ -635,7 +768,13 @@ def _without_head_motion(case):
     if src.kind != "mesh" or src.rig is None or weights is None:
         return case
     perf = src.performance
-    local = MeshSequence(src.rig.evaluate(weights), perf.triangles, fps=perf.fps, reference=perf.reference, name=perf.name)
+    local = MeshSequence(
+        src.rig.evaluate(weights),
+        perf.triangles,
+        fps=perf.fps,
+        reference=perf.reference,
+        name=perf.name,
+    )
     return dataclasses.replace(case, source=src.replace(performance=local, head_motion=None))
 
 
@@ -673,15 +812,26 @@ def _stripped_variants(source: Source, target: TargetRig):
     for part in TargetRig.PARTS:
         if target.has(part):
             yield f"target without {part}", source, _target_without(target, (part,))
-    extras = {"landmarks": dict(landmarks=None), "examples": dict(examples=None, example_names=None),
-              "feature_lines": dict(feature_lines=None), "actor_layers": dict(actor_layers=None), "rig": dict(rig=None)}
+    extras = {
+        "landmarks": dict(landmarks=None),
+        "examples": dict(examples=None, example_names=None),
+        "feature_lines": dict(feature_lines=None),
+        "actor_layers": dict(actor_layers=None),
+        "rig": dict(rig=None),
+    }
     for part, change in extras.items():
-        if getattr(source, part, None) is not None and not (part == "feature_lines" and not source.feature_lines):
+        if getattr(source, part, None) is not None and not (
+            part == "feature_lines" and not source.feature_lines
+        ):
             if part == "landmarks" and source.kind != "mesh":
                 continue
             yield f"source without {part}", source.replace(**change), target
     if source.kind == "mesh" and source.landmarks is not None and target.landmarks is not None:
-        yield "neither with landmarks", source.replace(landmarks=None), _target_without(target, ("landmarks",))
+        yield (
+            "neither with landmarks",
+            source.replace(landmarks=None),
+            _target_without(target, ("landmarks",)),
+        )
 
 
 def check_declared_needs(r: Retargeter, case=None) -> None:
@@ -758,7 +908,9 @@ def check_retargeter(retargeter, case=None) -> None:
             raise AssertionError(f"[{check.__name__}] {exc}") from exc
         except FaceRetargetError as exc:
             name = getattr(retargeter, "name", None) or getattr(retargeter, "__name__", retargeter)
-            raise AssertionError(f"[{check.__name__}] {name} raised {type(exc).__name__}: {exc}") from exc
+            raise AssertionError(
+                f"[{check.__name__}] {name} raised {type(exc).__name__}: {exc}"
+            ) from exc
 
 
 def parametrize_with_checks(retargeters: Iterable):

@@ -28,13 +28,14 @@ The built-in methods declare theirs in ``registry.toml`` (``type``, ``range``, `
 the same text (:func:`describe`) the errors use. Checks that involve several parameters,
 or the data's shapes, stay in the method.
 """
+
 from __future__ import annotations
 
 import inspect
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -69,7 +70,11 @@ class Interval:
     closed: str = "both"
 
     def __post_init__(self):
-        kind = {"float": float, "int": int}.get(self.kind, self.kind) if isinstance(self.kind, str) else self.kind
+        kind = (
+            {"float": float, "int": int}.get(self.kind, self.kind)
+            if isinstance(self.kind, str)
+            else self.kind
+        )
         if kind not in (float, int):
             import numbers
 
@@ -78,16 +83,26 @@ class Interval:
             raise TypeError(f"Interval: kind must be float or int, got {self.kind!r}")
         object.__setattr__(self, "kind", kind)
         if self.closed not in ("both", "left", "right", "neither"):
-            raise ValueError(f"Interval: closed must be 'both', 'left', 'right' or 'neither', got {self.closed!r}")
+            raise ValueError(
+                f"Interval: closed must be 'both', 'left', 'right' or 'neither', got {self.closed!r}"
+            )
         if self.left is not None and self.right is not None and self.left > self.right:
             raise ValueError(f"Interval: left {self.left} > right {self.right}")
         # an unbounded side is open: Interval(float, 0, None) == Interval(float, 0, None, closed="left")
         left_in = self.left is not None and self.closed in ("both", "left")
         right_in = self.right is not None and self.closed in ("both", "right")
-        object.__setattr__(self, "closed", {(True, True): "both", (True, False): "left", (False, True): "right"}.get((left_in, right_in), "neither"))
+        object.__setattr__(
+            self,
+            "closed",
+            {(True, True): "both", (True, False): "left", (False, True): "right"}.get(
+                (left_in, right_in), "neither"
+            ),
+        )
 
     def accepts(self, value) -> bool:
-        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        if isinstance(value, (bool, np.bool_)) or not isinstance(
+            value, (int, float, np.integer, np.floating)
+        ):
             return False
         try:
             number = float(value)
@@ -95,8 +110,16 @@ class Interval:
             return False
         if not math.isfinite(number) or (self.kind is int and not number.is_integer()):
             return False
-        low_ok = self.left is None or number > self.left or (number == self.left and self.closed in ("both", "left"))
-        high_ok = self.right is None or number < self.right or (number == self.right and self.closed in ("both", "right"))
+        low_ok = (
+            self.left is None
+            or number > self.left
+            or (number == self.left and self.closed in ("both", "left"))
+        )
+        high_ok = (
+            self.right is None
+            or number < self.right
+            or (number == self.right and self.closed in ("both", "right"))
+        )
         return low_ok and high_ok
 
     def convert(self, value):
@@ -154,7 +177,9 @@ class _Kind:
         if self.name == "none":
             return value is None
         if self.name == "boolean":
-            return isinstance(value, (bool, np.bool_)) or (isinstance(value, (int, np.integer)) and value in (0, 1))
+            return isinstance(value, (bool, np.bool_)) or (
+                isinstance(value, (int, np.integer)) and value in (0, 1)
+            )
         if self.name == "array-like":
             return value is not None and not isinstance(value, (str, bytes))
         if self.name == "mapping":
@@ -163,7 +188,9 @@ class _Kind:
             return callable(value)
         if self.name == "no_validation":
             return True
-        return isinstance(value, self.type) and not (self.type is not bool and isinstance(value, bool))
+        return isinstance(value, self.type) and not (
+            self.type is not bool and isinstance(value, bool)
+        )
 
     def convert(self, value):
         return bool(value) if self.name == "boolean" else value
@@ -171,8 +198,14 @@ class _Kind:
     def __str__(self) -> str:
         if self.type is not None:
             return "a string" if self.type is str else f"a {self.type.__name__}"
-        return {"none": "None", "boolean": "True or False", "array-like": "an array", "mapping": "a mapping",
-                "callable": "a callable", "no_validation": "any value"}[self.name]
+        return {
+            "none": "None",
+            "boolean": "True or False",
+            "array-like": "an array",
+            "mapping": "a mapping",
+            "callable": "a callable",
+            "no_validation": "any value",
+        }[self.name]
 
 
 _NAMED = {"boolean", "array-like", "mapping", "callable", "no_validation"}
@@ -230,11 +263,18 @@ def constraints_of(cls: type) -> dict[str, list]:
     """``cls.parameter_constraints`` (name -> list of constraints), ``{}`` if it declares none."""
     declared = getattr(cls, "parameter_constraints", None) or {}
     if not isinstance(declared, Mapping):
-        raise ConfigError(f"{cls.__name__}.parameter_constraints must be a dict {{name: [constraints]}}, got {declared!r}")
-    return {k: [make_constraint(c) for c in (v if isinstance(v, (list, tuple)) else [v])] for k, v in declared.items()}
+        raise ConfigError(
+            f"{cls.__name__}.parameter_constraints must be a dict {{name: [constraints]}}, got {declared!r}"
+        )
+    return {
+        k: [make_constraint(c) for c in (v if isinstance(v, (list, tuple)) else [v])]
+        for k, v in declared.items()
+    }
 
 
-def validate_params(estimator, params: Mapping[str, Any] | None = None, *, who: str | None = None) -> dict[str, Any]:
+def validate_params(
+    estimator, params: Mapping[str, Any] | None = None, *, who: str | None = None
+) -> dict[str, Any]:
     """Every constructor parameter of ``estimator`` (or the given ``params``) checked against
     its class's ``parameter_constraints``: ``{name: value}`` with numbers and flags converted
     (``3.0`` -> ``3`` for an ``int`` interval, ``np.True_`` -> ``True``). The first invalid one
@@ -249,8 +289,16 @@ def validate_params(estimator, params: Mapping[str, Any] | None = None, *, who: 
 
 # -- the manifest form (registry.toml, a plugin's faceretarget.toml) ------------------------
 #: ``type = ...`` in a manifest -> the constraint it stands for.
-MANIFEST_TYPES = {"float": None, "int": None, "bool": "boolean", "str": str, "array": "array-like",
-                  "mapping": "mapping", "callable": "callable", "any": "no_validation"}
+MANIFEST_TYPES = {
+    "float": None,
+    "int": None,
+    "bool": "boolean",
+    "str": str,
+    "array": "array-like",
+    "mapping": "mapping",
+    "callable": "callable",
+    "any": "no_validation",
+}
 _SPEC_KEYS = {"default", "doc", "type", "range", "choices", "none"}
 
 
@@ -266,7 +314,9 @@ def from_manifest(spec: Mapping[str, Any], where: str) -> list:
     """
     unknown = sorted(set(spec) - _SPEC_KEYS)
     if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {', '.join(map(repr, unknown))}; valid: {', '.join(sorted(_SPEC_KEYS))}")
+        raise ConfigError(
+            f"{where}: unknown key(s) {', '.join(map(repr, unknown))}; valid: {', '.join(sorted(_SPEC_KEYS))}"
+        )
     out: list = []
     none = spec.get("none", False)
     if not isinstance(none, bool):
@@ -275,16 +325,26 @@ def from_manifest(spec: Mapping[str, Any], where: str) -> list:
         out.append(_Kind("none"))
     choices = spec.get("choices")
     if choices is not None:
-        if not isinstance(choices, list) or not choices or not all(isinstance(c, str) for c in choices):
+        if (
+            not isinstance(choices, list)
+            or not choices
+            or not all(isinstance(c, str) for c in choices)
+        ):
             raise ConfigError(f"{where}: choices must be a non-empty list of strings")
         out.append(Options(choices))
     kinds = spec.get("type", [])
     kinds = [kinds] if isinstance(kinds, str) else kinds
-    if not isinstance(kinds, list) or not all(isinstance(k, str) and k in MANIFEST_TYPES for k in kinds):
-        raise ConfigError(f"{where}: type must be one of {', '.join(MANIFEST_TYPES)} (or a list of them), got {spec.get('type')!r}")
+    if not isinstance(kinds, list) or not all(
+        isinstance(k, str) and k in MANIFEST_TYPES for k in kinds
+    ):
+        raise ConfigError(
+            f"{where}: type must be one of {', '.join(MANIFEST_TYPES)} (or a list of them), got {spec.get('type')!r}"
+        )
     numeric = [k for k in kinds if k in ("float", "int")]
     if "range" in spec and len(numeric) != 1:
-        raise ConfigError(f"{where}: range needs exactly one numeric type (type = \"float\" or \"int\")")
+        raise ConfigError(
+            f'{where}: range needs exactly one numeric type (type = "float" or "int")'
+        )
     for kind in kinds:
         if kind in ("float", "int"):
             out.append(_interval(kind, spec.get("range", "(-inf, inf)"), where))
@@ -297,8 +357,16 @@ def from_manifest(spec: Mapping[str, Any], where: str) -> list:
 
 def _interval(kind: str, text, where: str) -> Interval:
     """``"[0, 1e12]"``, ``"(0, inf)"``... -> :class:`Interval`."""
-    bad = ConfigError(f"{where}: range must be an interval such as \"[0, 1]\", \"(0, inf)\" or \"[-1, 1e6]\", got {text!r}")
-    if not isinstance(text, str) or len(text) < 5 or text[0] not in "[(" or text[-1] not in "])" or text.count(",") != 1:
+    bad = ConfigError(
+        f'{where}: range must be an interval such as "[0, 1]", "(0, inf)" or "[-1, 1e6]", got {text!r}'
+    )
+    if (
+        not isinstance(text, str)
+        or len(text) < 5
+        or text[0] not in "[("
+        or text[-1] not in "])"
+        or text.count(",") != 1
+    ):
         raise bad
     try:
         lo, hi = (float(part) for part in text[1:-1].split(","))
@@ -306,11 +374,16 @@ def _interval(kind: str, text, where: str) -> Interval:
         raise bad from None
     if math.isnan(lo) or math.isnan(hi) or lo > hi:
         raise bad
-    closed = {(True, True): "both", (True, False): "left", (False, True): "right", (False, False): "neither"}[
-        (text[0] == "[", text[-1] == "]")
-    ]
+    closed = {
+        (True, True): "both",
+        (True, False): "left",
+        (False, True): "right",
+        (False, False): "neither",
+    }[(text[0] == "[", text[-1] == "]")]
     try:
-        return Interval(kind, None if lo == -math.inf else lo, None if hi == math.inf else hi, closed)
+        return Interval(
+            kind, None if lo == -math.inf else lo, None if hi == math.inf else hi, closed
+        )
     except ValueError:
         raise bad from None
 
@@ -326,4 +399,6 @@ def _num(x: float) -> str:
 
 def _either(parts: list[str]) -> str:
     parts = list(dict.fromkeys(parts))
-    return parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " or " + parts[-1] if parts else ""
+    return (
+        parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " or " + parts[-1] if parts else ""
+    )

@@ -13,6 +13,7 @@ baseline, then edits the result:
 
     python examples/coating_ict.py [--frames 120] [--out coating_ict.npz]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,7 +30,9 @@ def rms(a, b, height):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--out", default=None, help="save the edited animations to this .npz")
     args = ap.parse_args()
@@ -37,7 +40,9 @@ def main() -> None:
     case = fr.cases.ict(n_frames=args.frames)
     src, tgt = case.source, case.target
     height = tgt.neutral.height
-    print(f"{case.name}: {src.performance.n_vertices} vertices, {src.n_frames} frames, feature lines {sorted(src.feature_lines)}")
+    print(
+        f"{case.name}: {src.performance.n_vertices} vertices, {src.n_frames} frames, feature lines {sorted(src.feature_lines)}"
+    )
 
     results = {}
     for name in ("coating", "deformation_transfer"):
@@ -46,7 +51,9 @@ def main() -> None:
         anim = r.retarget(src)
         took = time.perf_counter() - start
         results[name] = (r, anim)
-        print(f"{name:22s} RMS error {100 * rms(anim.vertices, case.truth.vertices, height):.3f}% of face height, {took:.1f} s")
+        print(
+            f"{name:22s} RMS error {100 * rms(anim.vertices, case.truth.vertices, height):.3f}% of face height, {took:.1f} s"
+        )
     coating, anim = results["coating"]
     diag = anim.provenance["diagnostics"]
     print(f"coating used {diag['n_bases']} bases (source frames {diag['basis_frames']})")
@@ -59,13 +66,23 @@ def main() -> None:
     gap = np.linalg.norm(anim.vertices[:, chin] - anim.vertices[:, lip], axis=1)
     key = int(np.argmax(gap))
     goal = anim.vertices[key, chin] + np.array([0.0, -0.03 * height, 0.0])
-    fixed = [(key, tgt.landmarks.vertex_ids[[0, 3, 13, 16]].tolist())]  # keep the upper jaw line in place
+    fixed = [
+        (key, tgt.landmarks.vertex_ids[[0, 3, 13, 16]].tolist())
+    ]  # keep the upper jaw line in place
     for mode in ("bases", "weights"):
-        edited = coating.edit(anim, points=[(key, chin, goal)], fixed=fixed, window=(max(0, key - 10), min(src.n_frames - 1, key + 10)), mode=mode)
+        edited = coating.edit(
+            anim,
+            points=[(key, chin, goal)],
+            fixed=fixed,
+            window=(max(0, key - 10), min(src.n_frames - 1, key + 10)),
+            mode=mode,
+        )
         d = edited.provenance["diagnostics"]["last_edit"]
         moved = np.linalg.norm(edited.vertices - anim.vertices, axis=-1).max(axis=1)
-        print(f"large-scale edit ({mode}): constraint residual {np.linalg.norm(edited.vertices[key, chin] - goal):.3f} cm, "
-              f"{int((moved > 1e-6).sum())} frames changed, solve {1000 * d['solve_s']:.0f} ms, re-synthesis {d['synthesis_s']:.2f} s")
+        print(
+            f"large-scale edit ({mode}): constraint residual {np.linalg.norm(edited.vertices[key, chin] - goal):.3f} cm, "
+            f"{int((moved > 1e-6).sum())} frames changed, solve {1000 * d['solve_s']:.0f} ms, re-synthesis {d['synthesis_s']:.2f} s"
+        )
         results[f"edit_{mode}"] = (coating, edited)
 
     # 3. fine-scale edit: enhance the detail around the left eye at its most active frame
@@ -75,15 +92,23 @@ def main() -> None:
     region = np.flatnonzero(np.linalg.norm(tgt.neutral.vertices - centre, axis=1) < 0.12 * height)
     activity = np.linalg.norm(track.fine_motion(slice(None), region), axis=-1).sum(axis=1)
     key = int(np.argmax(activity))
-    enhanced = coating.edit(anim, detail=DetailEdit(frame=key, vertices=region, operation="scale", factor=2.0))
+    enhanced = coating.edit(
+        anim, detail=DetailEdit(frame=key, vertices=region, operation="scale", factor=2.0)
+    )
     d = enhanced.provenance["diagnostics"]["last_edit"]
-    print(f"fine-scale edit: key frame {key}, active window {d['window']}, {d['edited_vertices']} vertices, "
-          f"solve {1000 * d['solve_s']:.0f} ms, re-synthesis {d['synthesis_s']:.2f} s")
+    print(
+        f"fine-scale edit: key frame {key}, active window {d['window']}, {d['edited_vertices']} vertices, "
+        f"solve {1000 * d['solve_s']:.0f} ms, re-synthesis {d['synthesis_s']:.2f} s"
+    )
     results["edit_detail"] = (coating, enhanced)
     print(f"weights of {weights.shape[1]} bases; first frame {np.round(weights[0], 3)}")
 
     if args.out:
-        np.savez_compressed(args.out, triangles=tgt.neutral.triangles, **{k: np.asarray(a.vertices, dtype=np.float32) for k, (_, a) in results.items()})
+        np.savez_compressed(
+            args.out,
+            triangles=tgt.neutral.triangles,
+            **{k: np.asarray(a.vertices, dtype=np.float32) for k, (_, a) in results.items()},
+        )
         print(f"saved {', '.join(results)} to {args.out}")
 
 

@@ -8,6 +8,7 @@
   on copies of the sources in temporary folders (:func:`source_copy`), so no ``build/`` or
   ``*.egg-info`` appears in the checkout. ``tests/test_clean_environment.py`` checks both.
 """
+
 from __future__ import annotations
 
 import os
@@ -16,7 +17,6 @@ import tempfile
 from pathlib import Path
 
 import pytest
-
 from envtools import copy_sources
 
 

@@ -2,6 +2,7 @@
 
 Import as ``from memtools import traced_memory`` (``tests/`` is on the test path).
 """
+
 from __future__ import annotations
 
 import tracemalloc
@@ -9,7 +10,12 @@ import tracemalloc
 import pytest
 
 #: Modules whose ``check_budget`` the text readers call.
-TEXT_READER_MODULES = ("faceretarget.io._common", "faceretarget.io.meshes", "faceretarget.io.markers", "faceretarget.io.weights")
+TEXT_READER_MODULES = (
+    "faceretarget.io._common",
+    "faceretarget.io.meshes",
+    "faceretarget.io.markers",
+    "faceretarget.io.weights",
+)
 #: ... and the binary and glTF readers.
 READER_MODULES = TEXT_READER_MODULES + ("faceretarget.io.gltf", "faceretarget.io.sequences")
 

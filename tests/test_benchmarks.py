@@ -3,6 +3,7 @@ timing figure that the generated ``docs/performance.md`` does not contain.
 
 No timing is measured or asserted here: speed goals live in ``benchmarks/``.
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -49,7 +50,12 @@ def test_script_imports(path, monkeypatch):
 
 
 def test_run_all_help():
-    proc = subprocess.run([sys.executable, str(BENCH / "run_all.py"), "--help"], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, str(BENCH / "run_all.py"), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "--quick" in proc.stdout and "performance.md" in proc.stdout
 
@@ -70,7 +76,7 @@ def _figures(text: str):
     for m in FIGURE.finditer(text):
         line_start = text.rfind("\n", 0, m.start()) + 1
         line_end = text.find("\n", m.end())
-        yield m.group(0), text[line_start: line_end if line_end >= 0 else len(text)]
+        yield m.group(0), text[line_start : line_end if line_end >= 0 else len(text)]
 
 
 def test_docs_quote_only_generated_figures():
@@ -86,10 +92,17 @@ def test_docs_quote_only_generated_figures():
             if flat(figure) in flat(generated):
                 continue
             bad.append(f"{path.relative_to(ROOT)}: {figure!r} in: {line.strip()[:160]}")
-    assert not bad, ("timing figures not reproduced by benchmarks/run_all.py (docs/performance.md); quote that file "
-                     "or add a paper figure to ALLOW:\n" + "\n".join(bad))
+    assert not bad, (
+        "timing figures not reproduced by benchmarks/run_all.py (docs/performance.md); quote that file "
+        "or add a paper figure to ALLOW:\n" + "\n".join(bad)
+    )
 
 
 def test_figure_pattern():
-    found = [f for f, _ in _figures("solve 2.5 ms; 1,400-2,000x faster; 3,160 frames/s; 2.4 KB a frame; 0.5 s")]
+    found = [
+        f
+        for f, _ in _figures(
+            "solve 2.5 ms; 1,400-2,000x faster; 3,160 frames/s; 2.4 KB a frame; 0.5 s"
+        )
+    ]
     assert found == ["2.5 ms", "2,000x faster", "3,160 frames/s", "2.4 KB a frame"]

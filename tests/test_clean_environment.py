@@ -5,6 +5,7 @@ subprocess; before and after, the installed distributions (``pip list``), the li
 every site-packages folder and ``git status --porcelain --ignored`` of the checkout (new
 untracked or ignored files such as ``build/``, ``*.egg-info``, ``.hypothesis/``) must be equal.
 """
+
 from __future__ import annotations
 
 import json
@@ -25,7 +26,11 @@ PLUGIN_TESTS = [
 
 
 def installed() -> list[tuple[str, str]]:
-    out = subprocess.run([sys.executable, "-m", "pip", "list", "--format=json", "--disable-pip-version-check"], capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "pip", "list", "--format=json", "--disable-pip-version-check"],
+        capture_output=True,
+        text=True,
+    )
     assert out.returncode == 0, out.stderr
     return sorted((d["name"].lower(), d["version"]) for d in json.loads(out.stdout))
 
@@ -37,21 +42,32 @@ def site_listing() -> dict[str, list[str]]:
 
 def checkout_litter() -> list[str]:
     """Untracked and ignored entries of the checkout (tracked files are never written by tests)."""
-    out = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--ignored"], capture_output=True, text=True)
+    out = subprocess.run(
+        ["git", "-C", str(ROOT), "status", "--porcelain", "--ignored"],
+        capture_output=True,
+        text=True,
+    )
     assert out.returncode == 0, out.stderr
     return sorted(line for line in out.stdout.splitlines() if line.startswith(("??", "!!")))
 
 
-@pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(), reason="needs a git checkout")
+@pytest.mark.skipif(
+    shutil.which("git") is None or not (ROOT / ".git").exists(), reason="needs a git checkout"
+)
 def test_plugin_and_build_tests_leave_environment_and_checkout_alone(tmp_path):
     before = (installed(), site_listing(), checkout_litter())
     env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1", NUMBA_CACHE_DIR=str(tmp_path / "numba"))
     out = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *PLUGIN_TESTS],
-        cwd=ROOT, env=env, capture_output=True, text=True,
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
     )
     after = (installed(), site_listing(), checkout_litter())
-    assert after[0] == before[0], f"pip list changed: added {sorted(set(after[0]) - set(before[0]))}, removed {sorted(set(before[0]) - set(after[0]))}"
+    assert after[0] == before[0], (
+        f"pip list changed: added {sorted(set(after[0]) - set(before[0]))}, removed {sorted(set(before[0]) - set(after[0]))}"
+    )
     for folder in before[1]:
         added = sorted(set(after[1].get(folder, [])) - set(before[1][folder]))
         assert not added, f"{folder} gained {added}"

@@ -4,6 +4,7 @@
 measured; they run as xfails (strict: a fix that makes one pass fails here until its entry
 is removed).
 """
+
 import pytest
 
 import faceretarget as fr

@@ -23,6 +23,7 @@ Rules for shell blocks (the same for a reader copying them):
 
 A command that appears, identical, in two documents runs once (the demo takes a minute).
 """
+
 from __future__ import annotations
 
 import os
@@ -76,7 +77,15 @@ def extract(path: Path) -> list[Block]:
             j += 1
         prev = next((lines[k] for k in range(start - 1, -1, -1) if lines[k].strip()), "")
         mk = MARKER.search(prev)
-        blocks.append(Block(path, start + 1, lang, "\n".join(lines[start + 1 : j]) + "\n", (mk.group(1), mk.group(2)) if mk else None))
+        blocks.append(
+            Block(
+                path,
+                start + 1,
+                lang,
+                "\n".join(lines[start + 1 : j]) + "\n",
+                (mk.group(1), mk.group(2)) if mk else None,
+            )
+        )
         i = j + 1
     return blocks
 
@@ -122,7 +131,13 @@ out = "out/shot_hero.glb"
 
 
 def cli(*args: str, cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "faceretarget.cli", *args], cwd=cwd, env=env, capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "faceretarget.cli", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +153,10 @@ def exported(tmp_path_factory) -> Path:
     ids = np.asarray(source.landmarks.vertex_ids)
     perf = source.performance
     markers = fr.MarkerSequence(
-        np.asarray(perf.vertices)[:, ids], names=list(source.landmarks.names), fps=perf.fps, reference=perf.reference.vertices[ids]
+        np.asarray(perf.vertices)[:, ids],
+        names=list(source.landmarks.names),
+        fps=perf.fps,
+        reference=perf.reference.vertices[ids],
     )
     fr.save(markers, folder / "markers.c3d")
     return folder
@@ -168,20 +186,47 @@ class Session:
 
     def pip_install(self, words: list[str], block: Block) -> None:
         targets = [w for w in words[2:] if not w.startswith("-")]
-        local = [(ROOT / t) for t in targets if (ROOT / t).is_dir() and (ROOT / t).resolve().is_relative_to(ROOT)]
+        local = [
+            (ROOT / t)
+            for t in targets
+            if (ROOT / t).is_dir() and (ROOT / t).resolve().is_relative_to(ROOT)
+        ]
         if not local or (ROOT / targets[0]).resolve() == ROOT:
-            self.log.append(f"{block.where}: not run (installation of the project itself): {shlex.join(words)}")
+            self.log.append(
+                f"{block.where}: not run (installation of the project itself): {shlex.join(words)}"
+            )
             return
         for src in local:  # build from a copy: nothing is written into the checkout
             copy = self.site.parent / f"src-{src.name}"
-            shutil.copytree(src, copy, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
-            out = subprocess.run(
-                [sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--quiet", "--target", str(self.site), str(copy)],
-                capture_output=True, text=True, cwd=self.site.parent,
+            shutil.copytree(
+                src, copy, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__")
             )
-            assert out.returncode == 0, f"{block.where}: {shlex.join(words)} (into a temporary --target) failed:\n{out.stderr[-3000:]}"
-        self.log.append(f"{block.where}: installed a copy into a temporary --target folder: {shlex.join(words)}")
-        self.env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(self.site), self.env.get("PYTHONPATH", "")]))
+            out = subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "pip",
+                    "install",
+                    "--no-deps",
+                    "--no-build-isolation",
+                    "--quiet",
+                    "--target",
+                    str(self.site),
+                    str(copy),
+                ],
+                capture_output=True,
+                text=True,
+                cwd=self.site.parent,
+            )
+            assert out.returncode == 0, (
+                f"{block.where}: {shlex.join(words)} (into a temporary --target) failed:\n{out.stderr[-3000:]}"
+            )
+        self.log.append(
+            f"{block.where}: installed a copy into a temporary --target folder: {shlex.join(words)}"
+        )
+        self.env["PYTHONPATH"] = os.pathsep.join(
+            filter(None, [str(self.site), self.env.get("PYTHONPATH", "")])
+        )
 
     def run_shell(self, block: Block) -> None:
         for words in shell_commands(block.text):
@@ -210,7 +255,13 @@ class Session:
         start = time.perf_counter()
         script = self.cwd / f"doc_block_{block.line}.py"
         script.write_text(block.text)
-        out = subprocess.run([sys.executable, script.name], cwd=self.cwd, env=self.env, capture_output=True, text=True)
+        out = subprocess.run(
+            [sys.executable, script.name],
+            cwd=self.cwd,
+            env=self.env,
+            capture_output=True,
+            text=True,
+        )
         script.unlink()
         assert out.returncode == 0, f"{block.where}: the python block failed:\n{out.stderr[-3000:]}"
         self.log.append(f"{block.where}: ok ({time.perf_counter() - start:.0f} s): python block")
@@ -230,7 +281,9 @@ def test_document_runs_as_written(doc, exported, tmp_path, capsys):
     blocks = extract(doc)
     for block in blocks:
         if block.marker and block.marker[0] == "file":
-            assert block.lang in ("toml", "json", "text", ""), f"{block.where}: a file marker belongs on a data block"
+            assert block.lang in ("toml", "json", "text", ""), (
+                f"{block.where}: a file marker belongs on a data block"
+            )
             (folder / block.marker[1]).write_text(block.text)
     for block in blocks:
         if not runnable(block):
@@ -241,25 +294,39 @@ def test_document_runs_as_written(doc, exported, tmp_path, capsys):
             continue
         (session.run_python if block.lang == "python" else session.run_shell)(block)
     with capsys.disabled():
-        print(f"\n{doc.relative_to(ROOT)}:\n  " + "\n  ".join(session.log or ["(no runnable blocks)"]))
+        print(
+            f"\n{doc.relative_to(ROOT)}:\n  " + "\n  ".join(session.log or ["(no runnable blocks)"])
+        )
 
 
 def test_the_extractor_finds_the_readme_commands():
     """The README's blocks are found (a broken extractor would pass every document)."""
     blocks = [b for b in extract(ROOT / "README.md") if runnable(b)]
-    commands = [shlex.join(c) for b in blocks if b.lang in SHELL_LANGS for c in shell_commands(b.text)]
+    commands = [
+        shlex.join(c) for b in blocks if b.lang in SHELL_LANGS for c in shell_commands(b.text)
+    ]
     assert sum(c.startswith("faceretarget run ") for c in commands) >= 3
     assert "faceretarget demo" in commands
     assert any(c.startswith("faceretarget convert take.pc2 take.glb") for c in commands)
     assert any(b.lang == "python" for b in blocks)
     evaluation = extract(ROOT / "docs" / "evaluation.md")
     assert any(b.marker == ("file", "shots.toml") and "[[job]]" in b.text for b in evaluation)
-    assert shell_commands("$ pip install x\nout put\n$ faceretarget list  # c\n") == [["pip", "install", "x"], ["faceretarget", "list"]]
-    assert shell_commands("faceretarget run a \\\n   --out 'b c'\n") == [["faceretarget", "run", "a", "--out", "b c"]]
+    assert shell_commands("$ pip install x\nout put\n$ faceretarget list  # c\n") == [
+        ["pip", "install", "x"],
+        ["faceretarget", "list"],
+    ]
+    assert shell_commands("faceretarget run a \\\n   --out 'b c'\n") == [
+        ["faceretarget", "run", "a", "--out", "b c"]
+    ]
 
 
 def test_skips_are_rare_and_say_why():
-    skips = [(b.where, b.marker[1]) for d in DOCS for b in extract(d) if b.marker and b.marker[0] == "skip"]
+    skips = [
+        (b.where, b.marker[1])
+        for d in DOCS
+        for b in extract(d)
+        if b.marker and b.marker[0] == "skip"
+    ]
     assert all(reason for _, reason in skips), skips
     assert len(skips) <= 2, f"too many skipped doc blocks: {skips}"
 
@@ -270,14 +337,25 @@ def test_nothing_names_a_path_outside_the_repository():
     here = Path(__file__).resolve()
     offenders = []
     for path in ROOT.rglob("*"):
-        if path.suffix not in {".py", ".md", ".toml", ".txt", ".cfg", ".json"} or not path.is_file() or path.resolve() == here:
+        if (
+            path.suffix not in {".py", ".md", ".toml", ".txt", ".cfg", ".json"}
+            or not path.is_file()
+            or path.resolve() == here
+        ):
             continue
         rel = path.relative_to(ROOT)
-        if any(part in {"build", ".git", ".hypothesis", ".pytest_cache"} or part.endswith(".egg-info") for part in rel.parts):
+        if any(
+            part in {"build", ".git", ".hypothesis", ".pytest_cache"} or part.endswith(".egg-info")
+            for part in rel.parts
+        ):
             continue
         try:
             text = path.read_text(encoding="utf-8")
         except (UnicodeDecodeError, OSError):
             continue
-        offenders += [f"{rel}:{n}: {line.strip()[:100]}" for n, line in enumerate(text.splitlines(), 1) if pattern.search(line)]
+        offenders += [
+            f"{rel}:{n}: {line.strip()[:100]}"
+            for n, line in enumerate(text.splitlines(), 1)
+            if pattern.search(line)
+        ]
     assert not offenders, "paths outside the repository:\n" + "\n".join(offenders)

@@ -9,7 +9,14 @@
   onto a target surface (the target in the source topology) with a :class:`QualityReport`,
   and :func:`transfer_back` to carry results back to the target's own vertices.
 """
-from .landmarks import landmark_positions, paired_positions, project_landmarks, to_barycentric, to_vertex_ids
+
+from .landmarks import (
+    landmark_positions,
+    paired_positions,
+    project_landmarks,
+    to_barycentric,
+    to_vertex_ids,
+)
 from .nricp import DEFAULT_STIFFNESS, QualityReport, quality_report, resample_to_topology
 from .topology import boundary_loops
 from .transfer import Correspondence, closest_point_transfer, transfer_back

@@ -7,6 +7,7 @@ linear part, :func:`~faceretarget.correspond.rbf_warp`) and projected onto the s
 neutral (closest point). Pairs that land far from the source surface (a mouth bag or an
 eyeball the source does not have) or on a surface facing another way are dropped.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -112,8 +113,14 @@ def dense_pairs(
     tl = np.asarray(target_landmarks, dtype=np.float64)
     sl = np.asarray(source_landmarks, dtype=np.float64)
     if tl.ndim != 2 or tl.shape[1] != 3 or tl.shape != sl.shape:
-        raise ShapeError(f"dense_pairs: landmarks must be two (N, 3) arrays of the same shape, got {tl.shape} and {sl.shape}")
-    ids = interior_vertices(target, skip_rings) if candidates is None else np.asarray(candidates, dtype=np.int64)
+        raise ShapeError(
+            f"dense_pairs: landmarks must be two (N, 3) arrays of the same shape, got {tl.shape} and {sl.shape}"
+        )
+    ids = (
+        interior_vertices(target, skip_rings)
+        if candidates is None
+        else np.asarray(candidates, dtype=np.int64)
+    )
     n_candidates = len(ids)
     warp = rbf_warp(tl, sl)
     points = warp(target.vertices[ids])
@@ -121,8 +128,12 @@ def dense_pairs(
     size = float(np.sqrt(np.mean(np.sum((sl - sl.mean(axis=0)) ** 2, axis=1))))
     # the source normal at each closest point: the barycentric blend of its vertex normals,
     # the same whichever triangle meeting at an edge or vertex the search returned
-    blend = np.einsum("pk,pkd->pd", hits.barycentric, source.vertex_normals[source.triangles[hits.triangle_ids]])
-    source_normals = blend / np.maximum(np.linalg.norm(blend, axis=1, keepdims=True), np.finfo(float).tiny)
+    blend = np.einsum(
+        "pk,pkd->pd", hits.barycentric, source.vertex_normals[source.triangles[hits.triangle_ids]]
+    )
+    source_normals = blend / np.maximum(
+        np.linalg.norm(blend, axis=1, keepdims=True), np.finfo(float).tiny
+    )
     cosine = np.einsum("pk,pk->p", source_normals, target.vertex_normals[ids])
     keep = (hits.distances <= MAX_DISTANCE * size) & (cosine > MIN_NORMAL_COSINE)
     if max_points is not None and keep.sum() > max_points:
@@ -136,6 +147,15 @@ def dense_pairs(
             f"within {MAX_DISTANCE:.0%} of the face size; check that the landmarks of source and target correspond, "
             "or fit on the landmarks only"
         )
-    corr = Correspondence(hits.triangle_ids[keep], hits.barycentric[keep], hits.distances[keep], hits.triangles, hits.n_vertices)
-    dropped = int(n_candidates - np.count_nonzero((hits.distances <= MAX_DISTANCE * size) & (cosine > MIN_NORMAL_COSINE)))
+    corr = Correspondence(
+        hits.triangle_ids[keep],
+        hits.barycentric[keep],
+        hits.distances[keep],
+        hits.triangles,
+        hits.n_vertices,
+    )
+    dropped = int(
+        n_candidates
+        - np.count_nonzero((hits.distances <= MAX_DISTANCE * size) & (cosine > MIN_NORMAL_COSINE))
+    )
     return DensePairs(ids[keep], corr, dropped, n_candidates)

@@ -1,4 +1,5 @@
 """Landmarks as vertex ids or barycentric points: conversion and projection onto meshes."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +7,13 @@ import numpy as np
 from ..errors import ShapeError, TopologyMismatchError
 from ..model import Landmarks, Mesh
 
-__all__ = ["landmark_positions", "project_landmarks", "to_barycentric", "to_vertex_ids", "paired_positions"]
+__all__ = [
+    "landmark_positions",
+    "project_landmarks",
+    "to_barycentric",
+    "to_vertex_ids",
+    "paired_positions",
+]
 
 
 def landmark_positions(mesh: Mesh, landmarks: Landmarks) -> np.ndarray:
@@ -41,7 +48,9 @@ def to_barycentric(landmarks: Landmarks, mesh: Mesh) -> Landmarks:
     first[uniq] = order[start]
     if np.any(first[ids] < 0):
         bad = ids[first[ids] < 0][:5].tolist()
-        raise TopologyMismatchError(f"to_barycentric: landmark vertices {bad} belong to no triangle")
+        raise TopologyMismatchError(
+            f"to_barycentric: landmark vertices {bad} belong to no triangle"
+        )
     t_ids, corner = np.divmod(first[ids], 3)
     bary = np.zeros((len(ids), 3))
     bary[np.arange(len(ids)), corner] = 1.0

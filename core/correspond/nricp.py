@@ -29,6 +29,7 @@ iteration after iteration: either face scaled x0.01 .. x1000 or moved rigidly gi
 same resampling to ~5e-15 of the face height (before: 1e-4 RMS, up to 6e-3, from matches
 accepted or rejected on the face normal of whichever triangle a tie picked, at creases).
 """
+
 from __future__ import annotations
 
 import warnings
@@ -133,9 +134,26 @@ class QualityReport:
 
     def as_dict(self) -> dict:
         """The scalar fields (and the problems found, as text) as a plain (JSON-friendly) dict."""
-        out = {k: getattr(self, k) for k in ("residual_mean", "residual_max", "coverage_max", "landmark_error",
-                                             "flipped_triangles", "rejected", "iterations", "scale")}
-        for k in ("interior_triangles", "flipped_all", "matched_residual_mean", "uncovered_share", "uncovered_inner_share"):
+        out = {
+            k: getattr(self, k)
+            for k in (
+                "residual_mean",
+                "residual_max",
+                "coverage_max",
+                "landmark_error",
+                "flipped_triangles",
+                "rejected",
+                "iterations",
+                "scale",
+            )
+        }
+        for k in (
+            "interior_triangles",
+            "flipped_all",
+            "matched_residual_mean",
+            "uncovered_share",
+            "uncovered_inner_share",
+        ):
             if k in self.details:
                 out[k] = self.details[k]
         out["problems"] = [f"{level}: {text}" for level, text in self.problems()]
@@ -157,24 +175,44 @@ class QualityReport:
         share = self.flipped_triangles / interior
         if self.flipped_triangles > CORRESPONDENCE_FLIPPED_WARN:
             level = "error" if share > CORRESPONDENCE_FLIPPED_ERROR else "warning"
-            out.append((level, f"{self.flipped_triangles} triangles of the face interior ({100 * share:.2f}%) point against "
-                               f"the target surface{where('flipped')}"))
+            out.append(
+                (
+                    level,
+                    f"{self.flipped_triangles} triangles of the face interior ({100 * share:.2f}%) point against "
+                    f"the target surface{where('flipped')}",
+                )
+            )
         if self.landmark_error > CORRESPONDENCE_LANDMARK_WARN:
             level = "error" if self.landmark_error > CORRESPONDENCE_LANDMARK_ERROR else "warning"
-            out.append((level, f"a landmark ends {100 * self.landmark_error:.2f}% of the target's size from its target "
-                               f"landmark{where('landmarks')}"))
+            out.append(
+                (
+                    level,
+                    f"a landmark ends {100 * self.landmark_error:.2f}% of the target's size from its target "
+                    f"landmark{where('landmarks')}",
+                )
+            )
         res = d.get("matched_residual_mean")
         if res is not None and res > CORRESPONDENCE_RESIDUAL_WARN:
             level = "error" if res > CORRESPONDENCE_RESIDUAL_ERROR else "warning"
-            out.append((level, f"matched vertices lie {100 * res:.2f}% of the target's size off its surface on average{where('residual')}"))
+            out.append(
+                (
+                    level,
+                    f"matched vertices lie {100 * res:.2f}% of the target's size off its surface on average{where('residual')}",
+                )
+            )
         unc = d.get("uncovered_inner_share")
         if unc is not None and unc > CORRESPONDENCE_UNCOVERED_WARN:
             level = "error" if unc > CORRESPONDENCE_UNCOVERED_ERROR else "warning"
-            out.append((level, f"{100 * unc:.1f}% of the target's vertices inside its outline are not reached by the "
-                               f"source surface{where('uncovered')}"))
+            out.append(
+                (
+                    level,
+                    f"{100 * unc:.1f}% of the target's vertices inside its outline are not reached by the "
+                    f"source surface{where('uncovered')}",
+                )
+            )
         return out
 
-    def check(self, what: str = "correspondence") -> "QualityReport":
+    def check(self, what: str = "correspondence") -> QualityReport:
         """Raise :class:`~faceretarget.errors.CorrespondenceError` past a hard limit, else warn
         (:class:`~faceretarget.errors.CorrespondenceWarning`) below a warning threshold;
         returns self."""
@@ -182,12 +220,19 @@ class QualityReport:
         if not found:
             return self
         text = "; ".join(t for _, t in found)
-        hint = ("check that source and target landmarks correspond (same order, same points: the upper lid on both "
-                "faces, not on a closed lid's fold), or give more landmarks around the regions named")
+        hint = (
+            "check that source and target landmarks correspond (same order, same points: the upper lid on both "
+            "faces, not on a closed lid's fold), or give more landmarks around the regions named"
+        )
         if any(level == "error" for level, _ in found):
-            raise CorrespondenceError(f"{what}: the source and target surfaces could not be put in correspondence: {text}; {hint}")
-        warnings.warn(f"{what}: poor correspondence between source and target: {text}; results there may be wrong; {hint}",
-                      CorrespondenceWarning, stacklevel=3)
+            raise CorrespondenceError(
+                f"{what}: the source and target surfaces could not be put in correspondence: {text}; {hint}"
+            )
+        warnings.warn(
+            f"{what}: poor correspondence between source and target: {text}; results there may be wrong; {hint}",
+            CorrespondenceWarning,
+            stacklevel=3,
+        )
         return self
 
 
@@ -196,7 +241,9 @@ def _edge_keys(edges: np.ndarray, n: int) -> np.ndarray:
     return e[:, 0] * n + e[:, 1]
 
 
-def _on_boundary(tri_ids, bary, triangles, boundary_vertex, boundary_keys, n_vertices) -> np.ndarray:
+def _on_boundary(
+    tri_ids, bary, triangles, boundary_vertex, boundary_keys, n_vertices
+) -> np.ndarray:
     """(P,) bool: the closest point lies on a boundary edge or boundary vertex of the mesh."""
     corners = triangles[tri_ids]
     inside = bary > _ON_EDGE
@@ -212,7 +259,9 @@ def _on_boundary(tri_ids, bary, triangles, boundary_vertex, boundary_keys, n_ver
     return out
 
 
-def _match_loops(src_points, src_loops, tgt_vertices, tgt_loops, src_triangles=None, max_distance=np.inf):
+def _match_loops(
+    src_points, src_loops, tgt_vertices, tgt_loops, src_triangles=None, max_distance=np.inf
+):
     """For each source loop, the target loop nearest on average (index into ``tgt_loops``),
     or -1 when even that one does not follow it: the mean distance from the source loop to
     the target loop, or back, exceeds ``max_distance`` (a closed-eye source's outline cut
@@ -227,7 +276,9 @@ def _match_loops(src_points, src_loops, tgt_vertices, tgt_loops, src_triangles=N
                 best, best_d = j, d
         if best >= 0 and np.isfinite(max_distance):
             tl = tgt_loops[best]
-            back = closest_on_polyline(tgt_vertices[tl], src_points, np.stack([loop, np.roll(loop, -1)], axis=1))[3].mean()
+            back = closest_on_polyline(
+                tgt_vertices[tl], src_points, np.stack([loop, np.roll(loop, -1)], axis=1)
+            )[3].mean()
             if max(best_d, back) > max_distance:
                 best = -1
         out.append(best)
@@ -266,7 +317,9 @@ def canonical_frames(source_positions, target_positions) -> tuple[_Frame, _Frame
     tgt = np.asarray(target_positions, dtype=np.float64)
     rs, rt = _landmark_radius(src), _landmark_radius(tgt)
     if not (rs > 0 and rt > 0 and np.isfinite(rs) and np.isfinite(rt)):
-        raise DegenerateGeometryError("resample_to_topology: the landmarks of one face all coincide; give at least 4 landmarks spread over the face")
+        raise DegenerateGeometryError(
+            "resample_to_topology: the landmarks of one face all coincide; give at least 4 landmarks spread over the face"
+        )
     b = (src - src.mean(axis=0)) / rs
     _, axes = np.linalg.eigh(b.T @ b)
     axes = axes[:, ::-1]
@@ -346,12 +399,18 @@ def resample_to_topology(
     """
     stiffness = tuple(float(a) for a in np.atleast_1d(stiffness))
     if not stiffness or any(a <= 0 or not np.isfinite(a) for a in stiffness):
-        raise InputError(f"resample_to_topology: stiffness must be positive numbers, got {stiffness}")
+        raise InputError(
+            f"resample_to_topology: stiffness must be positive numbers, got {stiffness}"
+        )
     if int(iterations) < 1:
         raise InputError(f"resample_to_topology: iterations must be >= 1, got {iterations}")
     if not landmark_weight > 0:
-        raise InputError(f"resample_to_topology: landmark_weight must be > 0, got {landmark_weight}")
-    src_pos, tgt_pos = paired_positions(source_mesh, source_landmarks, target_mesh, target_landmarks)
+        raise InputError(
+            f"resample_to_topology: landmark_weight must be > 0, got {landmark_weight}"
+        )
+    src_pos, tgt_pos = paired_positions(
+        source_mesh, source_landmarks, target_mesh, target_landmarks
+    )
     if np.linalg.matrix_rank(src_pos - src_pos.mean(axis=0), tol=1e-9 * source_mesh.scale) < 3:
         raise DegenerateGeometryError(
             "resample_to_topology: the landmarks lie in a plane (or on a line); give at least 4 landmarks spread over the face"
@@ -360,16 +419,31 @@ def resample_to_topology(
     # the same numbers whatever the units and placement of either face
     frame_s, frame_t = canonical_frames(src_pos, tgt_pos)
     target_original = target_mesh
-    source_mesh = Mesh(frame_s.to_canonical(source_mesh.vertices), source_mesh.triangles, name=source_mesh.name, _trusted=True)
-    target_mesh = Mesh(frame_t.to_canonical(target_mesh.vertices), target_mesh.triangles, name=target_mesh.name, _trusted=True)
-    src_pos, tgt_pos = paired_positions(source_mesh, source_landmarks, target_mesh, target_landmarks)
+    source_mesh = Mesh(
+        frame_s.to_canonical(source_mesh.vertices),
+        source_mesh.triangles,
+        name=source_mesh.name,
+        _trusted=True,
+    )
+    target_mesh = Mesh(
+        frame_t.to_canonical(target_mesh.vertices),
+        target_mesh.triangles,
+        name=target_mesh.name,
+        _trusted=True,
+    )
+    src_pos, tgt_pos = paired_positions(
+        source_mesh, source_landmarks, target_mesh, target_landmarks
+    )
     n = source_mesh.n_vertices
     tri_s = source_mesh.triangles
     x0 = rbf_warp(src_pos, tgt_pos)(source_mesh.vertices)
     lap = uniform_laplacian(tri_s, n)
     lm = to_barycentric(source_landmarks, source_mesh)
     corners = tri_s[lm.triangle_ids]
-    p = sp.csr_matrix((lm.barycentric.ravel(), (np.repeat(np.arange(len(lm)), 3), corners.ravel())), shape=(len(lm), n))
+    p = sp.csr_matrix(
+        (lm.barycentric.ravel(), (np.repeat(np.arange(len(lm)), 3), corners.ravel())),
+        shape=(len(lm), n),
+    )
     ptp = (p.T @ p) * landmark_weight
     pt_t = (p.T @ tgt_pos) * landmark_weight
     size = _landmark_radius(tgt_pos)  # 1 in the canonical frame
@@ -420,10 +494,19 @@ def resample_to_topology(
     if snap:
         x = _snap(x, targets, accepted, tri_s)
     name = (target_original.name or "target") + " resampled"
-    report = quality_report(Mesh(x, tri_s, name=name, _trusted=True), source_landmarks, target_mesh, tgt_pos,
-                            rejected=int((~matched).sum()), iterations=total, matched=matched,
-                            target_landmarks=target_landmarks, released=int(released.sum()), untangle_rounds=rounds,
-                            loops_paired=[int(j) for j in matcher.pairs])
+    report = quality_report(
+        Mesh(x, tri_s, name=name, _trusted=True),
+        source_landmarks,
+        target_mesh,
+        tgt_pos,
+        rejected=int((~matched).sum()),
+        iterations=total,
+        matched=matched,
+        target_landmarks=target_landmarks,
+        released=int(released.sum()),
+        untangle_rounds=rounds,
+        loops_paired=[int(j) for j in matcher.pairs],
+    )
     report = _in_units(report, frame_t.scale)
     mesh = Mesh(frame_t.from_canonical(x), tri_s, name=name, _trusted=True)
     if check:
@@ -431,7 +514,7 @@ def resample_to_topology(
     return mesh, report
 
 
-def _in_units(report: "QualityReport", scale: float) -> "QualityReport":
+def _in_units(report: QualityReport, scale: float) -> QualityReport:
     """A report measured in the canonical frame, its lengths in the target's units (the
     relative measures are unchanged; ``scale`` is the target's bounding-box diagonal taken
     in the canonical orientation, so that it does not depend on how either face is turned)."""
@@ -446,7 +529,9 @@ def _in_units(report: "QualityReport", scale: float) -> "QualityReport":
 class _Matcher:
     """Closest-point targets and acceptance weights on one target mesh."""
 
-    def __init__(self, target: Mesh, source: Mesh, match_boundaries: bool, loop_distance: float = np.inf):
+    def __init__(
+        self, target: Mesh, source: Mesh, match_boundaries: bool, loop_distance: float = np.inf
+    ):
         from ..geometry.mesh_ops import boundary_edges
         from ..geometry.raycast import RayCaster
 
@@ -457,18 +542,33 @@ class _Matcher:
         self.t_keys = np.sort(_edge_keys(boundary_edges(target.triangles), target.n_vertices))
         self.source_triangles = source.triangles
         self.tgt_loops = boundary_loops(target.triangles) if match_boundaries else []
-        self.src_loops = boundary_loops(source.triangles) if (match_boundaries and self.tgt_loops) else []
+        self.src_loops = (
+            boundary_loops(source.triangles) if (match_boundaries and self.tgt_loops) else []
+        )
         self.loop_distance = loop_distance
         self.pairs: list[int] = []
         self.t_normals = target.vertex_normals
         edges = target.edges
         # a match within one mean edge length of the surface is never an outlier
-        self.floor = float(np.linalg.norm(target.vertices[edges[:, 0]] - target.vertices[edges[:, 1]], axis=1).mean())
+        self.floor = float(
+            np.linalg.norm(
+                target.vertices[edges[:, 0]] - target.vertices[edges[:, 1]], axis=1
+            ).mean()
+        )
 
     def pair_loops(self, x: np.ndarray) -> None:
         """Pair each source boundary loop with the target loop that follows it at the current fit (-1: none)."""
-        self.pairs = (_match_loops(x, self.src_loops, self.target.vertices, self.tgt_loops, max_distance=self.loop_distance)
-                      if self.src_loops else [])
+        self.pairs = (
+            _match_loops(
+                x,
+                self.src_loops,
+                self.target.vertices,
+                self.tgt_loops,
+                max_distance=self.loop_distance,
+            )
+            if self.src_loops
+            else []
+        )
 
     def __call__(self, x: np.ndarray):
         """Targets ``(V, 3)`` and weights ``(V,)`` in {0, 1} for the current fit ``x``."""
@@ -477,8 +577,18 @@ class _Matcher:
         hits = self.caster.closest(x)
         targets = hits.points.copy()
         normals = vertex_normals(x, self.source_triangles)
-        agree = np.einsum("ij,ij->i", normals, _normals_at(self.t_normals, self.target.triangles, hits)) > _NORMAL_COS
-        border = _on_boundary(hits.triangle, hits.barycentric, self.target.triangles, self.t_boundary, self.t_keys, self.target.n_vertices)
+        agree = (
+            np.einsum("ij,ij->i", normals, _normals_at(self.t_normals, self.target.triangles, hits))
+            > _NORMAL_COS
+        )
+        border = _on_boundary(
+            hits.triangle,
+            hits.barycentric,
+            self.target.triangles,
+            self.t_boundary,
+            self.t_keys,
+            self.target.n_vertices,
+        )
         ok = agree & ~border
         dist = np.abs(hits.distance)
         if ok.any():
@@ -494,7 +604,9 @@ class _Matcher:
             if j < 0:
                 continue
             tl = self.tgt_loops[j]
-            targets[loop] = closest_on_polyline(x[loop], self.target.vertices, np.stack([tl, np.roll(tl, -1)], axis=1))[2]
+            targets[loop] = closest_on_polyline(
+                x[loop], self.target.vertices, np.stack([tl, np.roll(tl, -1)], axis=1)
+            )[2]
             ok[loop] = True
         return targets, ok.astype(np.float64)
 
@@ -540,8 +652,16 @@ def _snap(x, targets, accepted, triangles):
 
 #: Landmark-name keywords -> region named in quality messages (first match wins).
 _REGION_WORDS = (
-    ("eye", "eyes"), ("lid", "eyes"), ("brow", "brows"), ("lip", "mouth"), ("mouth", "mouth"), ("nose", "nose"),
-    ("jaw", "jaw"), ("chin", "jaw"), ("cheek", "cheeks"), ("forehead", "forehead"),
+    ("eye", "eyes"),
+    ("lid", "eyes"),
+    ("brow", "brows"),
+    ("lip", "mouth"),
+    ("mouth", "mouth"),
+    ("nose", "nose"),
+    ("jaw", "jaw"),
+    ("chin", "jaw"),
+    ("cheek", "cheeks"),
+    ("forehead", "forehead"),
 )
 
 
@@ -553,7 +673,9 @@ def _region_of(name: str | None, index: int) -> str:
     return f"near landmark {name or index}"
 
 
-def _regions(points: np.ndarray, landmark_points: np.ndarray, names, boundary: np.ndarray | None = None) -> dict[str, int]:
+def _regions(
+    points: np.ndarray, landmark_points: np.ndarray, names, boundary: np.ndarray | None = None
+) -> dict[str, int]:
     """Count ``points (P, 3)`` per named region (nearest landmark's name; "boundary" where ``boundary``)."""
     if len(points) == 0:
         return {}
@@ -567,9 +689,20 @@ def _regions(points: np.ndarray, landmark_points: np.ndarray, names, boundary: n
     return dict(sorted(out.items(), key=lambda kv: -kv[1]))
 
 
-def quality_report(resampled: Mesh, source_landmarks: Landmarks, target_mesh: Mesh, target_landmark_positions, *, rejected: int = 0,
-                   iterations: int = 0, matched: np.ndarray | None = None, target_landmarks: Landmarks | None = None,
-                   released: int = 0, untangle_rounds: int = 0, loops_paired=None) -> QualityReport:
+def quality_report(
+    resampled: Mesh,
+    source_landmarks: Landmarks,
+    target_mesh: Mesh,
+    target_landmark_positions,
+    *,
+    rejected: int = 0,
+    iterations: int = 0,
+    matched: np.ndarray | None = None,
+    target_landmarks: Landmarks | None = None,
+    released: int = 0,
+    untangle_rounds: int = 0,
+    loops_paired=None,
+) -> QualityReport:
     """Measure how well ``resampled`` (source topology) fits ``target_mesh``.
 
     ``matched (V_s,)``: the source vertices that have a counterpart on the target (the
@@ -590,12 +723,16 @@ def quality_report(resampled: Mesh, source_landmarks: Landmarks, target_mesh: Me
     rim_band = _rings_from(target_mesh, target_mesh.boundary_vertices, CORRESPONDENCE_RIM_RINGS)
     # (the corners the closest point lies between, not every corner of whichever triangle
     # a tie on an edge returned)
-    on_rim = (rim_band[target_mesh.triangles[hits.triangle]] & (hits.barycentric > _ON_EDGE)).any(axis=1)
+    on_rim = (rim_band[target_mesh.triangles[hits.triangle]] & (hits.barycentric > _ON_EDGE)).any(
+        axis=1
+    )
     interior = matched[tri].all(axis=1) & ~on_rim[tri].any(axis=1)
     # target coverage by the matched (interior) part of the resampled surface
     covering = matched[tri].all(axis=1)
     if covering.any():
-        back = RayCaster(resampled.vertices, tri[covering], backend="bvh").closest(target_mesh.vertices)
+        back = RayCaster(resampled.vertices, tri[covering], backend="bvh").closest(
+            target_mesh.vertices
+        )
         coverage = np.abs(back.distance)
     else:
         coverage = np.full(target_mesh.n_vertices, np.inf)
@@ -610,7 +747,11 @@ def quality_report(resampled: Mesh, source_landmarks: Landmarks, target_mesh: Me
     elif source_landmarks.names is not None:
         names = list(source_landmarks.names)
     edges = target_mesh.edges
-    edge = float(np.linalg.norm(target_mesh.vertices[edges[:, 0]] - target_mesh.vertices[edges[:, 1]], axis=1).mean())
+    edge = float(
+        np.linalg.norm(
+            target_mesh.vertices[edges[:, 0]] - target_mesh.vertices[edges[:, 1]], axis=1
+        ).mean()
+    )
     uncovered = coverage > CORRESPONDENCE_UNCOVERED_EDGES * edge
     t_boundary = np.zeros(target_mesh.n_vertices, dtype=bool)
     t_boundary[target_mesh.boundary_vertices] = True
@@ -626,8 +767,12 @@ def quality_report(resampled: Mesh, source_landmarks: Landmarks, target_mesh: Me
         "flipped_all": int(flipped_all.sum()),
         "flipped_rim": int((flipped_all & matched[tri].all(axis=1) & ~interior).sum()),
         "flipped_ids": np.flatnonzero(flipped),
-        "matched_residual_mean": float(res[matched].mean() / scale) if matched.any() else float("inf"),
-        "matched_residual_max": float(res[matched].max() / scale) if matched.any() else float("inf"),
+        "matched_residual_mean": float(res[matched].mean() / scale)
+        if matched.any()
+        else float("inf"),
+        "matched_residual_max": float(res[matched].max() / scale)
+        if matched.any()
+        else float("inf"),
         "uncovered_share": float(uncovered.mean()),
         "uncovered_inner_share": float((uncovered & ~near_outline).mean()),
         "released": int(released),
@@ -635,9 +780,15 @@ def quality_report(resampled: Mesh, source_landmarks: Landmarks, target_mesh: Me
         "loops_paired": list(loops_paired or []),
         "regions": {
             "flipped": _regions(centroids, tgt_lm, names, s_boundary[tri[flipped]].any(axis=1)),
-            "landmarks": _regions(tgt_lm[lm_err > CORRESPONDENCE_LANDMARK_WARN * scale], tgt_lm, names),
+            "landmarks": _regions(
+                tgt_lm[lm_err > CORRESPONDENCE_LANDMARK_WARN * scale], tgt_lm, names
+            ),
             "uncovered": _regions(target_mesh.vertices[uncovered & ~near_outline], tgt_lm, names),
-            "residual": _regions(resampled.vertices[matched & (res > CORRESPONDENCE_RESIDUAL_WARN * scale)], tgt_lm, names),
+            "residual": _regions(
+                resampled.vertices[matched & (res > CORRESPONDENCE_RESIDUAL_WARN * scale)],
+                tgt_lm,
+                names,
+            ),
         },
     }
     return QualityReport(

@@ -1,4 +1,5 @@
 """Boundary loops of open triangle meshes."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,5 @@
 """Closest-point correspondence between surfaces, and carrying per-vertex values across it."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -34,7 +35,10 @@ class Correspondence:
         """(P, V) sparse interpolation matrix (three barycentric weights per row)."""
         corners = self.triangles[self.triangle_ids]
         rows = np.repeat(np.arange(len(corners)), 3)
-        return sp.csr_matrix((self.barycentric.ravel(), (rows, corners.ravel())), shape=(len(corners), self.n_vertices))
+        return sp.csr_matrix(
+            (self.barycentric.ravel(), (rows, corners.ravel())),
+            shape=(len(corners), self.n_vertices),
+        )
 
     def apply(self, values) -> np.ndarray:
         """Interpolate per-vertex ``values`` at the corresponding points.
@@ -49,7 +53,9 @@ class Correspondence:
         if squeeze:
             x = x[:, None]
         if x.shape[-2] != self.n_vertices:
-            raise ShapeError(f"Correspondence.apply: values have {x.shape[-2]} vertices, the mesh has {self.n_vertices}")
+            raise ShapeError(
+                f"Correspondence.apply: values have {x.shape[-2]} vertices, the mesh has {self.n_vertices}"
+            )
         corners = self.triangles[self.triangle_ids]  # (P, 3)
         bary = np.asarray(self.barycentric, dtype=np.float64)
         # gather the three corners (no transposed copy of the whole sequence, no sparse matrix)
@@ -67,7 +73,13 @@ def closest_point_transfer(points, mesh: Mesh) -> Correspondence:
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ShapeError(f"closest_point_transfer: points must be (P, 3), got {pts.shape}")
     hits = RayCaster(mesh.vertices, mesh.triangles, backend="bvh").closest(pts)
-    return Correspondence(hits.triangle, hits.barycentric, np.abs(hits.distance), np.asarray(mesh.triangles), mesh.n_vertices)
+    return Correspondence(
+        hits.triangle,
+        hits.barycentric,
+        np.abs(hits.distance),
+        np.asarray(mesh.triangles),
+        mesh.n_vertices,
+    )
 
 
 def transfer_back(resampled: Mesh, values, target: Mesh) -> np.ndarray:
@@ -80,5 +92,7 @@ def transfer_back(resampled: Mesh, values, target: Mesh) -> np.ndarray:
     ``resampled``. Returns ``(..., V_target, K)``.
     """
     if not isinstance(resampled, Mesh) or not isinstance(target, Mesh):
-        raise ShapeError("transfer_back(resampled, values, target): resampled and target must be Mesh objects")
+        raise ShapeError(
+            "transfer_back(resampled, values, target): resampled and target must be Mesh objects"
+        )
     return closest_point_transfer(target, resampled).apply(values)

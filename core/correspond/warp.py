@@ -1,4 +1,5 @@
 """Landmark-driven space warps."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -20,8 +21,8 @@ def _exact_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     on or near a landmark depend on the units and placement of the faces)."""
     out = np.empty((len(a), len(b)))
     for start in range(0, len(a), _BLOCK):
-        d = a[start:start + _BLOCK, None, :] - b[None, :, :]
-        out[start:start + _BLOCK] = np.sqrt(np.einsum("pnk,pnk->pn", d, d))
+        d = a[start : start + _BLOCK, None, :] - b[None, :, :]
+        out[start : start + _BLOCK] = np.sqrt(np.einsum("pnk,pnk->pn", d, d))
     return out
 
 
@@ -55,7 +56,9 @@ def rbf_warp(source_positions, target_positions, *, kernel: str = "linear") -> R
     src = np.asarray(source_positions, dtype=np.float64)
     tgt = np.asarray(target_positions, dtype=np.float64)
     if src.ndim != 2 or src.shape[1] != 3 or src.shape != tgt.shape:
-        raise ShapeError(f"rbf_warp: source and target positions must both be (N, 3), got {src.shape} and {tgt.shape}")
+        raise ShapeError(
+            f"rbf_warp: source and target positions must both be (N, 3), got {src.shape} and {tgt.shape}"
+        )
     if len(src) == 0:
         raise DegenerateGeometryError("rbf_warp: at least one landmark pair is needed")
     if not (np.isfinite(src).all() and np.isfinite(tgt).all()):
@@ -69,8 +72,16 @@ def rbf_warp(source_positions, target_positions, *, kernel: str = "linear") -> R
     else:
         c = 1.0
     if kernel != "linear" and not (np.isfinite(c) and c > 0 and np.isfinite(1.0 / c)):
-        raise DegenerateGeometryError(f"rbf_warp: the kernel width c={c!r} must be a positive, normal number")
+        raise DegenerateGeometryError(
+            f"rbf_warp: the kernel width c={c!r} must be a positive, normal number"
+        )
     phi = kernel_values(r, kernel, c)
     use_linear = n > dim and np.linalg.matrix_rank(x - x.mean(axis=0)) == dim
-    weights, affine = solve_system(x, y, phi, use_linear, "rbf_warp: the RBF system is singular ({}); check for coincident or collinear landmarks")
+    weights, affine = solve_system(
+        x,
+        y,
+        phi,
+        use_linear,
+        "rbf_warp: the RBF system is singular ({}); check for coincident or collinear landmarks",
+    )
     return _Warp(x, weights, affine, kernel, float(c))

@@ -22,6 +22,7 @@ The script checks what run time relies on: 1,500-3,000 vertices, four boundary l
 error below 0.05 cm, and the source landmarks following the ICT landmarks under jawOpen
 and the blinks (so no landmark sits on the wrong lip or lid).
 """
+
 import sys
 from pathlib import Path
 
@@ -33,16 +34,22 @@ HERE = Path(__file__).resolve().parent
 def load_ict(path: Path):
     with np.load(path) as d:
         out = {k: d[k] for k in d.files}
-    out["expression_deltas"] = out["expression_deltas_q"].astype(np.float64) * out["expression_scales"][:, None, None]
+    out["expression_deltas"] = (
+        out["expression_deltas_q"].astype(np.float64) * out["expression_scales"][:, None, None]
+    )
     return out
 
 
-def interpolate(values: np.ndarray, triangles: np.ndarray, tri_ids: np.ndarray, bary: np.ndarray) -> np.ndarray:
+def interpolate(
+    values: np.ndarray, triangles: np.ndarray, tri_ids: np.ndarray, bary: np.ndarray
+) -> np.ndarray:
     """Barycentric interpolation of per-vertex ``values (..., V, 3)`` at (triangle, weights) points."""
     return np.einsum("...pkd,pk->...pd", values[..., triangles[tri_ids], :], bary)
 
 
-def main(out: str = str(HERE / "ict_cross_rig_fixture.npz"), target_count: int = 4000, agg: float = 7.0) -> None:
+def main(
+    out: str = str(HERE / "ict_cross_rig_fixture.npz"), target_count: int = 4000, agg: float = 7.0
+) -> None:
     import fast_simplification
 
     from faceretarget.correspond.topology import boundary_loops
@@ -56,7 +63,9 @@ def main(out: str = str(HERE / "ict_cross_rig_fixture.npz"), target_count: int =
     deltas = d["expression_deltas"]
     lm = d["landmarks68"].astype(np.int64)
 
-    dec_v, dec_t = fast_simplification.simplify(ict_v, ict_t.astype(np.int32), target_count=target_count, agg=agg)
+    dec_v, dec_t = fast_simplification.simplify(
+        ict_v, ict_t.astype(np.int32), target_count=target_count, agg=agg
+    )
     used = np.unique(dec_t)
     remap = np.full(len(dec_v), -1)
     remap[used] = np.arange(len(used))
@@ -96,7 +105,9 @@ def main(out: str = str(HERE / "ict_cross_rig_fixture.npz"), target_count: int =
     for shape in ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthFunnel"):
         k = names.index(shape)
         moved_ict = deltas[k][lm]
-        moved_src = interpolate(interpolate(deltas[k], ict_t, tri_ids, bary), dec_t, lm_tri, lm_bary)
+        moved_src = interpolate(
+            interpolate(deltas[k], ict_t, tri_ids, bary), dec_t, lm_tri, lm_bary
+        )
         err = np.linalg.norm(moved_src - moved_ict, axis=1)
         assert err.max() < 0.25 * np.linalg.norm(moved_ict, axis=1).max() + 0.05, (shape, err.max())
 
@@ -108,8 +119,10 @@ def main(out: str = str(HERE / "ict_cross_rig_fixture.npz"), target_count: int =
         landmark_triangles=lm_tri.astype(np.int32),
         landmark_barycentric=lm_bary,
     )
-    print(f"{out}: {len(src_v)} vertices, {len(dec_t)} triangles, loops {[len(s) for s in src_loops]}, "
-          f"max projection {np.abs(hits.distance).max():.4f} cm, {Path(out).stat().st_size / 1024:.0f} KB")
+    print(
+        f"{out}: {len(src_v)} vertices, {len(dec_t)} triangles, loops {[len(s) for s in src_loops]}, "
+        f"max projection {np.abs(hits.distance).max():.4f} cm, {Path(out).stat().st_size / 1024:.0f} KB"
+    )
 
 
 if __name__ == "__main__":

@@ -38,6 +38,7 @@ The script checks what run time relies on: 2,000-3,000 vertices, a single bounda
 (the new outline), no degenerate or flipped triangle against the built surface, every
 face vertex within 0.05 cm of the ICT surface, and the file under 300 KB.
 """
+
 import os
 import sys
 from pathlib import Path
@@ -58,7 +59,9 @@ BAG_DEPTH = 3.0
 def load_ict(path: Path):
     with np.load(path) as d:
         out = {k: d[k] for k in d.files}
-    out["expression_deltas"] = out["expression_deltas_q"].astype(np.float64) * out["expression_scales"][:, None, None]
+    out["expression_deltas"] = (
+        out["expression_deltas_q"].astype(np.float64) * out["expression_scales"][:, None, None]
+    )
     return out
 
 
@@ -103,7 +106,9 @@ def fill_polygon(loop: np.ndarray, xy: np.ndarray) -> list:
     triangles oriented like the loop (counter-clockwise loops give counter-clockwise triangles)."""
     ids = list(loop)
     pts = {i: xy[i] for i in ids}
-    area = sum(pts[a][0] * pts[b][1] - pts[b][0] * pts[a][1] for a, b in zip(ids, ids[1:] + ids[:1]))
+    area = sum(
+        pts[a][0] * pts[b][1] - pts[b][0] * pts[a][1] for a, b in zip(ids, ids[1:] + ids[:1])
+    )
     sign = 1.0 if area > 0 else -1.0
     out = []
 
@@ -118,10 +123,16 @@ def fill_polygon(loop: np.ndarray, xy: np.ndarray) -> list:
             a, b, c = ids[k - 1], ids[k], ids[(k + 1) % len(ids)]
             if sign * cross(pts[a], pts[b], pts[c]) <= 0:
                 continue
-            if any(_inside(pts[p], pts[a], pts[b], pts[c], sign) for p in ids if p not in (a, b, c)):
+            if any(
+                _inside(pts[p], pts[a], pts[b], pts[c], sign) for p in ids if p not in (a, b, c)
+            ):
                 continue
             # prefer fat ears (smallest angle largest)
-            q = sign * cross(pts[a], pts[b], pts[c]) / (np.linalg.norm(pts[a] - pts[c]) ** 2 + 1e-12)
+            q = (
+                sign
+                * cross(pts[a], pts[b], pts[c])
+                / (np.linalg.norm(pts[a] - pts[c]) ** 2 + 1e-12)
+            )
             if q > best_q:
                 best, best_q = k, q
         if best is None:
@@ -148,9 +159,16 @@ def close_eyes(b: Builder, closed: np.ndarray, lm: np.ndarray) -> None:
     caster = RayCaster(closed, b.tri, backend="bvh")
     hidden = np.zeros(len(closed), dtype=bool)
     for eye in (lm[36:42], lm[42:48]):
-        lo, hi = closed[eye].min(axis=0) - [0.4, 0.6, 0.0], closed[eye].max(axis=0) + [0.4, 0.6, 0.0]
+        lo, hi = (
+            closed[eye].min(axis=0) - [0.4, 0.6, 0.0],
+            closed[eye].max(axis=0) + [0.4, 0.6, 0.0],
+        )
         near = np.flatnonzero(np.all((closed[:, :2] >= lo[:2]) & (closed[:, :2] <= hi[:2]), axis=1))
-        hits = caster.cast(closed[near] + [0.0, 0.0, 1e-4], np.tile([0.0, 0.0, 1.0], (len(near), 1)), both_directions=False)
+        hits = caster.cast(
+            closed[near] + [0.0, 0.0, 1e-4],
+            np.tile([0.0, 0.0, 1.0], (len(near), 1)),
+            both_directions=False,
+        )
         hidden[near[hits.hit & (hits.distance > 1e-3)]] = True
     keep_tri = ~hidden[b.tri].any(axis=1)
     b.tri = b.tri[keep_tri]
@@ -161,7 +179,12 @@ def close_eyes(b: Builder, closed: np.ndarray, lm: np.ndarray) -> None:
 
         be = boundary_edges(b.tri)
         keys = set(map(tuple, np.sort(be, axis=1).tolist()))
-        lonely = np.array([sum(tuple(sorted((t[i], t[(i + 1) % 3]))) in keys for i in range(3)) >= 2 for t in b.tri])
+        lonely = np.array(
+            [
+                sum(tuple(sorted((t[i], t[(i + 1) % 3]))) in keys for i in range(3)) >= 2
+                for t in b.tri
+            ]
+        )
         if not lonely.any():
             break
         b.tri = b.tri[~lonely]
@@ -180,7 +203,6 @@ def mouth_bag(b: Builder, closed: np.ndarray, lm: np.ndarray) -> None:
     import scipy.sparse as sp
 
     from faceretarget.correspond.topology import boundary_loops
-    from faceretarget.geometry.mesh_ops import vertex_normals
 
     loops = boundary_loops(b.tri)
     c = closed[lm[60:68]].mean(axis=0)
@@ -193,8 +215,12 @@ def mouth_bag(b: Builder, closed: np.ndarray, lm: np.ndarray) -> None:
         s = k / BAG_RINGS
         depth = BAG_DEPTH * s
         # widen a little behind the lips, then close towards the cap
-        radial = 1.0 + 0.5 * np.sin(np.pi * s) - 0.9 * s ** 3
-        ring = centre + (p[::-1] - centre) * np.array([radial, radial * (1.0 + 1.5 * np.sin(np.pi * s)), 1.0]) + [0.0, -0.3 * s, -depth]
+        radial = 1.0 + 0.5 * np.sin(np.pi * s) - 0.9 * s**3
+        ring = (
+            centre
+            + (p[::-1] - centre) * np.array([radial, radial * (1.0 + 1.5 * np.sin(np.pi * s)), 1.0])
+            + [0.0, -0.3 * s, -depth]
+        )
         rows = sp.csr_matrix((np.ones(n), (np.arange(n), loop[::-1])), shape=(n, b.rows.shape[0]))
         rows = rows @ b.rows  # composed with the lip vertex's own weights
         new = b.add(rows, ring - rows @ b.base, BAG)
@@ -206,7 +232,9 @@ def mouth_bag(b: Builder, closed: np.ndarray, lm: np.ndarray) -> None:
         prev = new
     cap_pts = b.vertices[prev].mean(axis=0)
     upper, lower = loop[np.argmax(p[:, 1])], loop[np.argmin(p[:, 1])]
-    rows = sp.csr_matrix(([0.5, 0.5], ([0, 0], [upper, lower])), shape=(1, b.rows.shape[0])) @ b.rows
+    rows = (
+        sp.csr_matrix(([0.5, 0.5], ([0, 0], [upper, lower])), shape=(1, b.rows.shape[0])) @ b.rows
+    )
     cap = b.add(rows, cap_pts[None] - rows @ b.base, BAG)[0]
     b.tri = np.vstack([b.tri, np.array([(prev[i], prev[(i + 1) % n], cap) for i in range(n)])])
 
@@ -247,7 +275,10 @@ def crop_and_skirt(b: Builder) -> None:
     m = len(run)
     for k in range(1, SKIRT_RINGS + 1):
         ring = v[loop[run]] + k * SKIRT_STEP * d - (0.15 * k * k * SKIRT_STEP) * nrm
-        rows = sp.csr_matrix((np.ones(m), (np.arange(m), loop[run])), shape=(m, b.rows.shape[0])) @ b.rows
+        rows = (
+            sp.csr_matrix((np.ones(m), (np.arange(m), loop[run])), shape=(m, b.rows.shape[0]))
+            @ b.rows
+        )
         new = b.add(rows, ring - rows @ b.base, SKIRT)
         tris = []
         for i in range(m - 1):
@@ -257,7 +288,11 @@ def crop_and_skirt(b: Builder) -> None:
         prev = new
 
 
-def main(out: str = str(HERE / "ict_cross_topology_fixture.npz"), target_count: int = 4600, agg: float = 7.0) -> None:
+def main(
+    out: str = str(HERE / "ict_cross_topology_fixture.npz"),
+    target_count: int = 4600,
+    agg: float = 7.0,
+) -> None:
     if os.environ.get("FSIMP"):
         sys.path.append(os.environ["FSIMP"])
     import fast_simplification
@@ -285,7 +320,9 @@ def main(out: str = str(HERE / "ict_cross_topology_fixture.npz"), target_count: 
     built = Mesh(built_v, built_t)
     assert len(boundary_loops(built_t)) == 1
 
-    dec_v, dec_t = fast_simplification.simplify(built_v, built_t.astype(np.int32), target_count=target_count, agg=agg)
+    dec_v, dec_t = fast_simplification.simplify(
+        built_v, built_t.astype(np.int32), target_count=target_count, agg=agg
+    )
     used = np.unique(dec_t)
     remap = np.full(len(dec_v), -1)
     remap[used] = np.arange(len(used))
@@ -296,12 +333,17 @@ def main(out: str = str(HERE / "ict_cross_topology_fixture.npz"), target_count: 
     bary /= bary.sum(axis=1, keepdims=True)
     corners = built_t[tri_ids]
     n_src = len(dec_v)
-    pick = sp.csr_matrix((bary.ravel(), (np.repeat(np.arange(n_src), 3), corners.ravel())), shape=(n_src, len(built_v)))
+    pick = sp.csr_matrix(
+        (bary.ravel(), (np.repeat(np.arange(n_src), 3), corners.ravel())),
+        shape=(n_src, len(built_v)),
+    )
     rows = (pick @ b.rows).tocsr()
     rows.eliminate_zeros()
     offset = pick @ b.offset
     # a vertex is on the face only if all three corners are
-    region = np.where((b.region[corners] == FACE).all(axis=1), FACE, b.region[corners].max(axis=1)).astype(np.int8)
+    region = np.where(
+        (b.region[corners] == FACE).all(axis=1), FACE, b.region[corners].max(axis=1)
+    ).astype(np.int8)
     offset[region == FACE] = 0.0
     src_v = rows @ closed + offset
     assert np.abs(src_v - hits.points).max() < 1e-9
@@ -333,8 +375,10 @@ def main(out: str = str(HERE / "ict_cross_topology_fixture.npz"), target_count: 
     )
     size = Path(out).stat().st_size / 1024
     counts = np.bincount(region, minlength=4)
-    print(f"{out}: {n_src} vertices, {len(dec_t)} triangles (built {len(built_v)} / {len(built_t)}), regions face/eye/bag/skirt "
-          f"{counts.tolist()}, {rows.nnz} weights, outline {len(boundary_loops(dec_t)[0])}, {size:.0f} KB")
+    print(
+        f"{out}: {n_src} vertices, {len(dec_t)} triangles (built {len(built_v)} / {len(built_t)}), regions face/eye/bag/skirt "
+        f"{counts.tolist()}, {rows.nnz} weights, outline {len(boundary_loops(dec_t)[0])}, {size:.0f} KB"
+    )
     assert size < 300, size
 
 

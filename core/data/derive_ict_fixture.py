@@ -14,6 +14,7 @@ fan-triangulated, centimetres; see README.md here). Output keys:
 - ``identity_deltas_q`` (10, 9409, 3) int16 and ``identity_scales`` (10,): the same for the
   first 10 identity modes.
 """
+
 import sys
 
 import numpy as np

@@ -7,6 +7,7 @@
 
 See ``docs/evaluation.md`` for the metric definitions, the report and the batch manifest.
 """
+
 from __future__ import annotations
 
 from importlib import import_module

@@ -17,6 +17,7 @@ the shepherd's process tree, where it is found (``/proc``), stopped (SIGSTOP, so
 cannot fork any more) and killed (SIGKILL). Elsewhere only the worker's own session is
 killed (``killpg``): a helper that left it survives.
 """
+
 from __future__ import annotations
 
 import os
@@ -128,7 +129,9 @@ def _exit_like(status: int) -> None:
         try:
             import resource
 
-            resource.setrlimit(resource.RLIMIT_CORE, (0, 0))  # the worker's crash, not ours: no core file
+            resource.setrlimit(
+                resource.RLIMIT_CORE, (0, 0)
+            )  # the worker's crash, not ours: no core file
         except (ImportError, OSError, ValueError):
             pass
         try:
@@ -161,7 +164,7 @@ def main(argv: list[str]) -> None:
     _prctl(PR_SET_PDEATHSIG, signal.SIGUSR2)
     if os.getppid() != supervisor:
         os._exit(_NO_WORKER)
-    fds = tuple(int(a[len("--fd="):]) for a in argv[1:] if a.startswith("--fd="))
+    fds = tuple(int(a[len("--fd=") :]) for a in argv[1:] if a.startswith("--fd="))
     command = [a for a in argv[1:] if not a.startswith("--fd=")] + [str(os.getpid())]
     try:
         worker = subprocess.Popen(command, pass_fds=fds, start_new_session=hasattr(os, "setsid"))

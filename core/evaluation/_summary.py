@@ -9,17 +9,26 @@
   it wins or loses, why (from what the case's ground truth is made of and what the methods
   consume), and a note when a paper method is behind its own baseline.
 """
+
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 from .._validate import did_you_mean
 from ..errors import ConfigError, UnknownNameError
 from .harness import OK, ComparisonResult
 
-__all__ = ["MethodRole", "method_roles", "ranking_metric", "case_summary", "DEFAULT_RANKING_METRIC", "CaseSummary"]
+__all__ = [
+    "MethodRole",
+    "method_roles",
+    "ranking_metric",
+    "case_summary",
+    "DEFAULT_RANKING_METRIC",
+    "CaseSummary",
+]
 
 #: The metric the report ranks by unless told otherwise: distance to the ground truth.
 DEFAULT_RANKING_METRIC = "vertex_error_rms"
@@ -28,8 +37,17 @@ PAPER, BASELINE, OTHER = "paper method", "baseline", "other"
 
 #: Metrics named in the "also best on" clause, in this order (accuracy and motion fidelity).
 CLAUSE_METRICS = (
-    "vertex_error_rms", "vertex_error_max", "marker_error_mean", "velocity_error", "acceleration_error",
-    "lip_closure_error", "eyelid_closure_error", "lve", "fdd_abs", "detail_error", "detail_correlation",
+    "vertex_error_rms",
+    "vertex_error_max",
+    "marker_error_mean",
+    "velocity_error",
+    "acceleration_error",
+    "lip_closure_error",
+    "eyelid_closure_error",
+    "lve",
+    "fdd_abs",
+    "detail_error",
+    "detail_correlation",
 )
 
 
@@ -50,7 +68,9 @@ class MethodRole:
         """``"paper method, Xu et al. 2014"``, ``"baseline of NAME"``, ``"other"``."""
         if self.kind == BASELINE and self.baseline_of:
             return f"baseline of {' / '.join(self.baseline_of)}"
-        return f"{self.kind}, {self.citation}" if self.citation and self.kind == PAPER else self.kind
+        return (
+            f"{self.kind}, {self.citation}" if self.citation and self.kind == PAPER else self.kind
+        )
 
 
 def short_citation(paper: str) -> str:
@@ -98,7 +118,9 @@ def _pair_baselines(roles: dict[str, MethodRole]) -> dict[str, MethodRole]:
     """A baseline without a known paper method stands against the paper methods of its citation."""
     for name, role in roles.items():
         if role.kind == BASELINE and not role.baseline_of and role.citation:
-            papers = tuple(m for m, r in roles.items() if r.kind == PAPER and r.citation == role.citation)
+            papers = tuple(
+                m for m, r in roles.items() if r.kind == PAPER and r.citation == role.citation
+            )
             roles[name] = MethodRole(BASELINE, role.citation, papers, role.cls)
     return roles
 
@@ -118,9 +140,13 @@ def ranking_metric(result: ComparisonResult, name: str | None = None) -> str | N
 
     if name is not None:
         if name not in result.metrics:
-            raise UnknownNameError(f"cannot rank by {name!r}{did_you_mean(name, result.metrics)}: not among the computed metrics {', '.join(result.metrics)}")
+            raise UnknownNameError(
+                f"cannot rank by {name!r}{did_you_mean(name, result.metrics)}: not among the computed metrics {', '.join(result.metrics)}"
+            )
         if result.better(name) not in ("lower", "higher"):
-            raise ConfigError(f"cannot rank by {name!r}: it is descriptive (neither lower nor higher is better)")
+            raise ConfigError(
+                f"cannot rank by {name!r}: it is descriptive (neither lower nor higher is better)"
+            )
         return name
     for candidate in (DEFAULT_RANKING_METRIC, *RANKED_METRICS):
         if candidate in result.metrics:
@@ -150,8 +176,12 @@ class CaseSummary:
 
 def _values(result: ComparisonResult, case: str, metric: str) -> dict[str, float]:
     return {
-        r["method"]: r["value"] for r in result.rows
-        if r["case"] == case and r["metric"] == metric and r["status"] == OK and r["value"] is not None
+        r["method"]: r["value"]
+        for r in result.rows
+        if r["case"] == case
+        and r["metric"] == metric
+        and r["status"] == OK
+        and r["value"] is not None
     }
 
 
@@ -171,18 +201,24 @@ def _who(name: str, roles: Mapping[str, MethodRole]) -> str:
 
 
 def _margin(best: float, second: float, better: str) -> str:
-    """"3.2 times lower than", "12% lower than", "0.01 higher than" (``best`` differs from ``second``)."""
+    """ "3.2 times lower than", "12% lower than", "0.01 higher than" (``best`` differs from ``second``)."""
     if better == "lower":
         ratio = second / best if best > 0 else float("inf")
         if ratio >= 1000:
             return "more than 1,000 times lower than"
-        return f"{ratio:.1f} times lower than" if ratio >= 1.5 else f"{100 * (1 - best / second):.0f}% lower than"
+        return (
+            f"{ratio:.1f} times lower than"
+            if ratio >= 1.5
+            else f"{100 * (1 - best / second):.0f}% lower than"
+        )
     if second > 0 and best / second >= 1.5:
         return f"{best / second:.1f} times higher than"
     return f"{_num(abs(best - second))} higher than"
 
 
-def case_summary(result: ComparisonResult, case: str, metric: str | None, roles: Mapping[str, MethodRole]) -> CaseSummary:
+def case_summary(
+    result: ComparisonResult, case: str, metric: str | None, roles: Mapping[str, MethodRole]
+) -> CaseSummary:
     """Who wins ``case`` on ``metric``, by how much, where else, why, and paper-vs-baseline notes."""
     out = CaseSummary(case, metric)
     if metric is None:
@@ -192,7 +228,9 @@ def case_summary(result: ComparisonResult, case: str, metric: str | None, roles:
     better = result.better(metric)
     unit = result.metrics[metric].unit if metric in result.metrics else ""
     if not values:
-        out.verdict = f"On {case}, no method has a value of {metric} ({_reason(result, case, metric)})."
+        out.verdict = (
+            f"On {case}, no method has a value of {metric} ({_reason(result, case, metric)})."
+        )
         return out
     order = _order(values, better)
     out.winner = winner = order[0]
@@ -215,12 +253,16 @@ def case_summary(result: ComparisonResult, case: str, metric: str | None, roles:
 
 
 def _reason(result: ComparisonResult, case: str, metric: str) -> str:
-    reasons = [r["reason"] for r in result.rows if r["case"] == case and r["metric"] == metric and r["reason"]]
+    reasons = [
+        r["reason"]
+        for r in result.rows
+        if r["case"] == case and r["metric"] == metric and r["reason"]
+    ]
     return reasons[0] if reasons else "no successful run"
 
 
 def _other_winners(result: ComparisonResult, case: str, metric: str, winner: str) -> str:
-    """"It is also best on a, b; METHOD is best on c." over :data:`CLAUSE_METRICS`."""
+    """ "It is also best on a, b; METHOD is best on c." over :data:`CLAUSE_METRICS`."""
     also, elsewhere = [], {}
     for m in CLAUSE_METRICS:
         if m == metric or m not in result.metrics:
@@ -263,21 +305,29 @@ def _why(result: ComparisonResult, case: str, winner: str, runner: str | None, r
     if cls is None:
         return ""
     if "layers" in _needs(cls) and meta.get("layer_coefficients") is not None:
-        return (f"Why: this case's ground truth is made from the same emotion, speech and blink layers that "
-                f"{winner} fits (the case's weights are layer mixes), so its model can hold the answer exactly.")
+        return (
+            f"Why: this case's ground truth is made from the same emotion, speech and blink layers that "
+            f"{winner} fits (the case's weights are layer mixes), so its model can hold the answer exactly."
+        )
     if _outputs(cls) == "weights" and meta.get("weights") is not None:
-        return (f"Why: {winner}'s result is a mix of the target's own blendshapes, and this case's ground truth is "
-                f"those blendshapes driven by the source's true weights, so good weights reproduce it exactly.")
+        return (
+            f"Why: {winner}'s result is a mix of the target's own blendshapes, and this case's ground truth is "
+            f"those blendshapes driven by the source's true weights, so good weights reproduce it exactly."
+        )
     if _outputs(cls) == "vertices" and other is not None and _outputs(other) == "weights":
-        return (f"Why: {winner} moves the target's vertices directly from the source's motion, while {runner} "
-                f"can only reach shapes that the target's blendshapes span.")
+        return (
+            f"Why: {winner} moves the target's vertices directly from the source's motion, while {runner} "
+            f"can only reach shapes that the target's blendshapes span."
+        )
     if "examples" in _needs(cls):
         return f"Why: {winner} learns the mapping from the example pose pairs of source and target."
     return ""
 
 
-def _behind_baseline(values: Mapping[str, float], better: str, metric: str, roles: Mapping[str, MethodRole]) -> list[str]:
-    """"Note: the paper method P is behind its baseline B on ..." per pair."""
+def _behind_baseline(
+    values: Mapping[str, float], better: str, metric: str, roles: Mapping[str, MethodRole]
+) -> list[str]:
+    """ "Note: the paper method P is behind its baseline B on ..." per pair."""
     notes = []
     for base, role in roles.items():
         if role.kind != BASELINE or base not in values:
@@ -285,8 +335,12 @@ def _behind_baseline(values: Mapping[str, float], better: str, metric: str, role
         for paper in role.baseline_of:
             if paper not in values:
                 continue
-            ahead = values[base] < values[paper] if better == "lower" else values[base] > values[paper]
+            ahead = (
+                values[base] < values[paper] if better == "lower" else values[base] > values[paper]
+            )
             if ahead:
-                notes.append(f"Note: the paper method {paper} is behind its baseline {base} on {metric} "
-                             f"({_num(values[paper])} vs {_num(values[base])}).")
+                notes.append(
+                    f"Note: the paper method {paper} is behind its baseline {base} on {metric} "
+                    f"({_num(values[paper])} vs {_num(values[base])})."
+                )
     return notes

@@ -24,6 +24,7 @@ worker's own session is killed. The worker dies with its shepherd and the shephe
 its supervisor (Linux: ``PR_SET_PDEATHSIG``; elsewhere they poll). Messages are pickled, as in
 ``multiprocessing``: only between a supervisor and the workers it started, never from files.
 """
+
 from __future__ import annotations
 
 import os
@@ -35,11 +36,12 @@ import threading
 import time
 import traceback
 from collections import deque
+from collections.abc import Callable, Hashable, Iterable, Sequence
 from dataclasses import dataclass
 from multiprocessing import spawn
 from multiprocessing.connection import Connection, wait
 from multiprocessing.reduction import ForkingPickler
-from typing import Any, Callable, Hashable, Iterable, Sequence
+from typing import Any
 
 from .. import config
 from ..errors import ConfigError, PluginError, PluginTimeoutError
@@ -79,7 +81,9 @@ class Task:
     owner: Hashable = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "timeout", config.check_timeout(self.timeout, f"task {self.key!r}: timeout"))
+        object.__setattr__(
+            self, "timeout", config.check_timeout(self.timeout, f"task {self.key!r}: timeout")
+        )
 
 
 @dataclass
@@ -151,7 +155,13 @@ def _serve(conn: Connection) -> None:
         try:
             message = ForkingPickler.loads(data)  # may import the plugin, build the case...
         except BaseException as exc:
-            conn.send(("error", f"the worker could not load the task: {_describe(exc)}", traceback.format_exc(limit=-6)))
+            conn.send(
+                (
+                    "error",
+                    f"the worker could not load the task: {_describe(exc)}",
+                    traceback.format_exc(limit=-6),
+                )
+            )
             continue
         if message is None:
             return
@@ -165,7 +175,13 @@ def _serve(conn: Connection) -> None:
         try:
             conn.send(("done", value))  # pickled completely before anything is sent
         except Exception as exc:
-            conn.send(("error", f"the result could not be sent back from the worker: {_describe(exc)}", ""))
+            conn.send(
+                (
+                    "error",
+                    f"the result could not be sent back from the worker: {_describe(exc)}",
+                    "",
+                )
+            )
 
 
 def _main() -> None:
@@ -203,7 +219,17 @@ class _Worker:
         fd = theirs.fileno()
         # the shepherd starts the worker (appending its own pid, the worker's parent) and
         # kills every descendant of it when it ends; -I: it needs the standard library only
-        argv = [sys.executable, "-I", _SHEPHERD, str(os.getpid()), f"--fd={fd}", sys.executable, "-c", code, str(fd)]
+        argv = [
+            sys.executable,
+            "-I",
+            _SHEPHERD,
+            str(os.getpid()),
+            f"--fd={fd}",
+            sys.executable,
+            "-c",
+            code,
+            str(fd),
+        ]
         try:
             self.popen = subprocess.Popen(argv, pass_fds=(fd,))
         finally:
@@ -371,7 +397,13 @@ def run_supervised(
             try:
                 payload = bytes(ForkingPickler.dumps((task.fn, task.args)))
             except Exception as exc:  # the task does not pickle; nothing was sent
-                on_outcome(Outcome(task.key, ERROR, message=f"the task could not be handed to a worker process: {_describe(exc)}"))
+                on_outcome(
+                    Outcome(
+                        task.key,
+                        ERROR,
+                        message=f"the task could not be handed to a worker process: {_describe(exc)}",
+                    )
+                )
                 continue
             worker.send(task, payload)
             return
@@ -393,7 +425,13 @@ def run_supervised(
 
     def died(worker: _Worker, now: float) -> None:
         when = "while running it" if worker.started_at else "while loading it"
-        outcome = Outcome(worker.task.key, DIED, message=f"{worker.exit_note()} {when}", started=bool(worker.started_at), seconds=now - worker.sent_at)
+        outcome = Outcome(
+            worker.task.key,
+            DIED,
+            message=f"{worker.exit_note()} {when}",
+            started=bool(worker.started_at),
+            seconds=now - worker.sent_at,
+        )
         finish(worker, outcome, restart=True)
 
     def receive(worker: _Worker, now: float) -> None:
@@ -406,17 +444,35 @@ def run_supervised(
         try:
             message = ForkingPickler.loads(data)
         except Exception as exc:  # the result pickled in the worker but does not load here
-            outcome = Outcome(task.key, ERROR, message=f"its result could not be loaded by the supervising process: {_describe(exc)}",
-                              started=True, seconds=now - worker.sent_at)
+            outcome = Outcome(
+                task.key,
+                ERROR,
+                message=f"its result could not be loaded by the supervising process: {_describe(exc)}",
+                started=True,
+                seconds=now - worker.sent_at,
+            )
             finish(worker, outcome, restart=False)
             return
         if message[0] == "started":
             worker.started_at = message[1]
             return
         if message[0] == "done":
-            finish(worker, Outcome(task.key, DONE, value=message[1], started=True, seconds=now - worker.sent_at), restart=False)
+            finish(
+                worker,
+                Outcome(
+                    task.key, DONE, value=message[1], started=True, seconds=now - worker.sent_at
+                ),
+                restart=False,
+            )
         else:
-            outcome = Outcome(task.key, ERROR, value=message[2] or None, message=message[1], started=bool(worker.started_at), seconds=now - worker.sent_at)
+            outcome = Outcome(
+                task.key,
+                ERROR,
+                value=message[2] or None,
+                message=message[1],
+                started=bool(worker.started_at),
+                seconds=now - worker.sent_at,
+            )
             finish(worker, outcome, restart=False)
 
     def overran(worker: _Worker, now: float) -> None:
@@ -425,7 +481,13 @@ def run_supervised(
             note = f"did not finish within its time limit of {task.timeout:g} s"
         else:
             note = f"was not even loaded within {max(task.timeout, config.WORKER_STARTUP_SECONDS):g} s (worker start-up, imports, input data)"
-        outcome = Outcome(task.key, TIMEOUT, message=f"{note}; its worker process was stopped", started=bool(worker.started_at), seconds=now - worker.sent_at)
+        outcome = Outcome(
+            task.key,
+            TIMEOUT,
+            message=f"{note}; its worker process was stopped",
+            started=bool(worker.started_at),
+            seconds=now - worker.sent_at,
+        )
         finish(worker, outcome, restart=True)
 
     try:
@@ -434,13 +496,17 @@ def run_supervised(
         while pool:
             soonest = min(w.deadline() for w in pool)
             handles = [w.conn for w in pool] + [w.sentinel for w in pool if w.sentinel is not None]
-            ready = set(wait(handles, timeout=min(max(0.0, soonest - time.monotonic()), _POLL_SECONDS)))
+            ready = set(
+                wait(handles, timeout=min(max(0.0, soonest - time.monotonic()), _POLL_SECONDS))
+            )
             now = time.monotonic()
             for worker in list(pool):
                 if worker not in pool or worker.task is None:
                     continue
                 if worker.conn in ready or worker.conn.poll(0):
-                    receive(worker, now)  # one message per round: results before deaths and deadlines
+                    receive(
+                        worker, now
+                    )  # one message per round: results before deaths and deadlines
                 elif worker.sentinel in ready or worker.exited():
                     died(worker, now)  # e.g. a helper process still holds the connection open
                 elif worker.deadline() <= now:

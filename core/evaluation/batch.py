@@ -33,6 +33,7 @@ and does not stop the others. A job that overruns its time limit (``timeout`` in
 manifest or the ``timeout`` argument, seconds) has its worker process killed and is
 reported as failed with its plugin and distribution; nothing is written for it. Progress is shown with tqdm on stderr.
 """
+
 from __future__ import annotations
 
 import json
@@ -41,13 +42,22 @@ import secrets
 import sys
 import time
 import tomllib
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from ..errors import ConfigError, UnknownNameError
 
-__all__ = ["Job", "JobResult", "BatchSummary", "load_manifest", "run_batch", "run_job", "CASE_PREFIX"]
+__all__ = [
+    "Job",
+    "JobResult",
+    "BatchSummary",
+    "load_manifest",
+    "run_batch",
+    "run_job",
+    "CASE_PREFIX",
+]
 
 #: Prefix of a shot / character given as a built-in case (``case:synthetic-human?n_frames=40``).
 CASE_PREFIX = "case:"
@@ -119,16 +129,30 @@ def _inside(root: Path, value: str, what: str, where: str) -> str:
         return value
     path = (root / value).resolve()
     if not path.is_relative_to(root):
-        raise ConfigError(f"{where}: {what} {value!r} resolves to {path}, outside the manifest's folder {root}; paths must stay inside it")
+        raise ConfigError(
+            f"{where}: {what} {value!r} resolves to {path}, outside the manifest's folder {root}; paths must stay inside it"
+        )
     return str(path)
 
 
 def writer_for(out: Path, registry, where: str):
     """The registered animation :class:`~faceretarget.Writer` for ``out``'s extension."""
     suffix = out.suffix.lower()
-    candidates = [w for w, _ in registry.writers if suffix and suffix in w.extensions and w.kind == "animation"]
+    candidates = [
+        w
+        for w, _ in registry.writers
+        if suffix and suffix in w.extensions and w.kind == "animation"
+    ]
     if not candidates:
-        valid = sorted({e for w, _ in registry.writers if w.kind == "animation" for e in w.extensions if e != "/"})
+        valid = sorted(
+            {
+                e
+                for w, _ in registry.writers
+                if w.kind == "animation"
+                for e in w.extensions
+                if e != "/"
+            }
+        )
         raise ConfigError(
             f"{where}: no registered writer for animations with extension {suffix or '(none)'!r} "
             f"(out = {out.name}); available: {', '.join(valid) or 'none registered'}"
@@ -142,12 +166,11 @@ def load_manifest(path, *, registry=None) -> list[Job]:
     Raises :class:`ConfigError` (malformed, unsafe paths, duplicate outputs, no writer)
     or :class:`UnknownNameError` (method or parameter) naming the job.
     """
-    from ..registry import registry as _registry
-    from .harness import parse_case_spec
-
     from ..errors import FileFormatError
     from ..io._atomic import note_input
     from ..io._common import check_regular, open_regular
+    from ..registry import registry as _registry
+    from .harness import parse_case_spec
 
     registry = registry or _registry()
     path = Path(path)
@@ -167,26 +190,43 @@ def load_manifest(path, *, registry=None) -> list[Job]:
     root = path.parent.resolve()
     unknown_top = set(data) - {"defaults", "job", "jobs"}
     if unknown_top:
-        raise ConfigError(f"manifest {path}: unknown table(s) {sorted(unknown_top)}; use [defaults] and [[job]]")
+        raise ConfigError(
+            f"manifest {path}: unknown table(s) {sorted(unknown_top)}; use [defaults] and [[job]]"
+        )
     defaults = data.get("defaults", {})
     job, jobs_ = data.get("job", []), data.get("jobs", [])
     if not isinstance(job, list) or not isinstance(jobs_, list):
-        raise ConfigError(f"manifest {path}: [[job]] must be an array of tables (one [[job]] header per job)")
+        raise ConfigError(
+            f"manifest {path}: [[job]] must be an array of tables (one [[job]] header per job)"
+        )
     entries = job + jobs_
     if not isinstance(defaults, dict) or not all(isinstance(e, dict) for e in entries):
-        raise ConfigError(f"manifest {path}: [defaults] must be a table and [[job]] an array of tables")
-    for where, table in (("[defaults]", defaults), *((f"job #{i + 1}", e) for i, e in enumerate(entries))):
+        raise ConfigError(
+            f"manifest {path}: [defaults] must be a table and [[job]] an array of tables"
+        )
+    for where, table in (
+        ("[defaults]", defaults),
+        *((f"job #{i + 1}", e) for i, e in enumerate(entries)),
+    ):
         if not isinstance(table.get("params", {}), dict):
-            raise ConfigError(f"manifest {path}, {where}: params must be a table, e.g. params = {{ alpha = 0.05 }}")
+            raise ConfigError(
+                f"manifest {path}, {where}: params must be a table, e.g. params = {{ alpha = 0.05 }}"
+            )
     if not entries:
         raise ConfigError(f"manifest {path}: no [[job]] entries")
     jobs, outs = [], {}
     for i, entry in enumerate(entries):
         where = f"manifest {path.name}, job #{i + 1}"
-        merged = {**defaults, **entry, "params": {**defaults.get("params", {}), **entry.get("params", {})}}
+        merged = {
+            **defaults,
+            **entry,
+            "params": {**defaults.get("params", {}), **entry.get("params", {})},
+        }
         unknown = set(merged) - _JOB_KEYS
         if unknown:
-            raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; valid keys: {sorted(_JOB_KEYS)}")
+            raise ConfigError(
+                f"{where}: unknown key(s) {sorted(unknown)}; valid keys: {sorted(_JOB_KEYS)}"
+            )
         missing = [k for k in ("shot", "method", "out") if k not in merged]
         if "character" not in merged and not str(merged.get("shot", "")).startswith(CASE_PREFIX):
             missing.append("character")
@@ -195,34 +235,57 @@ def load_manifest(path, *, registry=None) -> list[Job]:
         merged.setdefault("character", merged["shot"])
         for key in ("shot", "character"):
             if str(merged[key]).startswith(CASE_PREFIX):
-                parse_case_spec(merged[key][len(CASE_PREFIX):])
+                parse_case_spec(merged[key][len(CASE_PREFIX) :])
         if not isinstance(merged["params"], dict):
             raise ConfigError(f"{where}: params must be a table, e.g. params = {{ alpha = 0.05 }}")
         info = registry.resolve(str(merged["method"]))
         defaults_of = info.cls.default_params()
         bad = sorted(set(merged["params"]) - set(defaults_of))
         if bad:
-            raise UnknownNameError(f"{where}: {info.name} has no parameter(s) {', '.join(bad)}; valid: {', '.join(sorted(defaults_of)) or '(none)'}")
+            raise UnknownNameError(
+                f"{where}: {info.name} has no parameter(s) {', '.join(bad)}; valid: {', '.join(sorted(defaults_of)) or '(none)'}"
+            )
         out = _inside(root, merged["out"], "out", where)
         if str(merged["out"]).startswith(CASE_PREFIX):
             raise ConfigError(f"{where}: out must be a file path")
         shot = _inside(root, merged["shot"], "shot", where)
         character = _inside(root, merged["character"], "character", where)
-        landmarks = _inside(root, merged["landmarks"], "landmarks", where) if "landmarks" in merged else None
+        landmarks = (
+            _inside(root, merged["landmarks"], "landmarks", where)
+            if "landmarks" in merged
+            else None
+        )
         if out in (shot, character, landmarks):
-            raise ConfigError(f"{where}: out {merged['out']!r} is also an input; choose another output path")
+            raise ConfigError(
+                f"{where}: out {merged['out']!r} is also an input; choose another output path"
+            )
         name = str(merged.get("name") or merged["out"])
         if out in outs:
-            raise ConfigError(f"{where}: out {merged['out']!r} is already written by {outs[out]!r}; every job needs its own output")
+            raise ConfigError(
+                f"{where}: out {merged['out']!r} is already written by {outs[out]!r}; every job needs its own output"
+            )
         outs[out] = name
         writer = writer_for(Path(out), registry, where)
         from .. import config
 
-        timeout = config.check_timeout(merged["timeout"], f"{where}: timeout") if "timeout" in merged else RUN_DEFAULT
+        timeout = (
+            config.check_timeout(merged["timeout"], f"{where}: timeout")
+            if "timeout" in merged
+            else RUN_DEFAULT
+        )
         jobs.append(
             Job(
-                name, shot, character, info.name, dict(merged["params"]), out, landmarks, cls=info.cls,
-                writer=writer.write, writer_name=writer.name, origin=f"plugin {info.plugin.name} ({info.plugin.origin})",
+                name,
+                shot,
+                character,
+                info.name,
+                dict(merged["params"]),
+                out,
+                landmarks,
+                cls=info.cls,
+                writer=writer.write,
+                writer_name=writer.name,
+                origin=f"plugin {info.plugin.name} ({info.plugin.origin})",
                 timeout=timeout,
             )
         )
@@ -274,11 +337,13 @@ def _load_source(spec: str):
     from .harness import cached_case
 
     if spec.startswith(CASE_PREFIX):
-        return cached_case(spec[len(CASE_PREFIX):]).source
+        return cached_case(spec[len(CASE_PREFIX) :]).source
     from .. import io
 
     if not hasattr(io, "load_source"):
-        raise ConfigError(f"reading {spec} needs faceretarget.io.load_source, which this installation does not provide")
+        raise ConfigError(
+            f"reading {spec} needs faceretarget.io.load_source, which this installation does not provide"
+        )
     return io.load_source(spec)
 
 
@@ -286,15 +351,19 @@ def _load_target(spec: str, landmarks: str | None):
     from .harness import cached_case
 
     if spec.startswith(CASE_PREFIX):
-        return cached_case(spec[len(CASE_PREFIX):]).target
+        return cached_case(spec[len(CASE_PREFIX) :]).target
     from .. import io
 
     if not hasattr(io, "load_target"):
-        raise ConfigError(f"reading {spec} needs faceretarget.io.load_target, which this installation does not provide")
+        raise ConfigError(
+            f"reading {spec} needs faceretarget.io.load_target, which this installation does not provide"
+        )
     return io.load_target(spec, landmarks=landmarks)
 
 
-def write_animation(animation, out: Path, writer: Callable, *, force: bool = True, inputs=()) -> Path:
+def write_animation(
+    animation, out: Path, writer: Callable, *, force: bool = True, inputs=()
+) -> Path:
     """Write through ``writer`` into a temporary beside ``out`` (faceretarget's one naming
     scheme, :func:`faceretarget.io._atomic.temp_path`), then replace ``out``.
 
@@ -325,7 +394,9 @@ def _registered_writer(name: str) -> Callable:
     for writer, _ in registry().writers:
         if writer.name == name:
             return writer.write
-    raise ConfigError(f"no writer named {name!r} is registered in this worker; install the plugin that provides it on every worker")
+    raise ConfigError(
+        f"no writer named {name!r} is registered in this worker; install the plugin that provides it on every worker"
+    )
 
 
 def _portable(jobs: list[Job]) -> list[Job]:
@@ -356,12 +427,30 @@ def run_job(job: Job) -> JobResult:
         source = _load_source(job.shot)
         target = _load_target(job.character, job.landmarks)
         retargeter = job.cls(**job.params)
-        animation = retargeter.fit(source, target).retarget(source)  # checked by Retargeter.check_output
-        write_animation(animation, out, job.writer or _registered_writer(job.writer_name), force=job.replace, inputs=job_inputs(job))
+        animation = retargeter.fit(source, target).retarget(
+            source
+        )  # checked by Retargeter.check_output
+        write_animation(
+            animation,
+            out,
+            job.writer or _registered_writer(job.writer_name),
+            force=job.replace,
+            inputs=job_inputs(job),
+        )
         return JobResult(job.name, "done", job.out, time.perf_counter() - start, method=job.method)
-    except (Exception, SystemExit) as exc:  # reported per job (sys.exit in a plugin too); the batch goes on
+    except (
+        Exception,
+        SystemExit,
+    ) as exc:  # reported per job (sys.exit in a plugin too); the batch goes on
         message = " ".join(str(exc).split()) or type(exc).__name__
-        return JobResult(job.name, "failed", job.out, time.perf_counter() - start, f"{_who(job)}: {type(exc).__name__}: {message}", job.method)
+        return JobResult(
+            job.name,
+            "failed",
+            job.out,
+            time.perf_counter() - start,
+            f"{_who(job)}: {type(exc).__name__}: {message}",
+            job.method,
+        )
 
 
 # ---------------------------------------------------------------------------------------
@@ -375,10 +464,19 @@ def _failed_run(job: Job, outcome) -> JobResult:
     """The result of a job whose worker failed it (time limit, crash, task not movable)."""
     remove_leftovers(job.out)
     error = outcome.error()
-    return JobResult(job.name, "failed", job.out, outcome.seconds, f"{_who(job)}: {type(error).__name__}: {error}; no partial output is left", job.method)
+    return JobResult(
+        job.name,
+        "failed",
+        job.out,
+        outcome.seconds,
+        f"{_who(job)}: {type(error).__name__}: {error}; no partial output is left",
+        job.method,
+    )
 
 
-def _supervised(jobs: list[Job], workers: int, timeout: float | None, on_result: Callable[[JobResult], None]) -> None:
+def _supervised(
+    jobs: list[Job], workers: int, timeout: float | None, on_result: Callable[[JobResult], None]
+) -> None:
     """Jobs in supervised worker processes, each killed when it overruns its time limit."""
     from ._workers import DONE, Task, run_supervised
 
@@ -388,7 +486,18 @@ def _supervised(jobs: list[Job], workers: int, timeout: float | None, on_result:
         job = by_name[outcome.key]
         on_result(outcome.value if outcome.status == DONE else _failed_run(job, outcome))
 
-    groups = ([Task(job.name, run_job, (job,), _job_timeout(job, timeout), owner=getattr(job.cls, "__module__", job.method))] for job in jobs)
+    groups = (
+        [
+            Task(
+                job.name,
+                run_job,
+                (job,),
+                _job_timeout(job, timeout),
+                owner=getattr(job.cls, "__module__", job.method),
+            )
+        ]
+        for job in jobs
+    )
     run_supervised(groups, workers=workers, on_outcome=on_outcome)
 
 
@@ -415,25 +524,41 @@ def _run_local(jobs: list[Job], workers: int, timeout: float | None, bar) -> lis
     return results
 
 
-def _run_dask(jobs: list[Job], workers: int, scheduler: str | None, processes: bool, timeout: float | None, bar) -> list[JobResult]:
+def _run_dask(
+    jobs: list[Job],
+    workers: int,
+    scheduler: str | None,
+    processes: bool,
+    timeout: float | None,
+    bar,
+) -> list[JobResult]:
     from .harness import single_threaded_children
 
     try:
         from distributed import Client, LocalCluster, as_completed
     except ImportError as exc:
-        raise ConfigError(f"--dask / --scheduler need dask.distributed, in the cluster extra: pip install 'faceretarget[cluster]' ({exc})") from None
+        raise ConfigError(
+            f"--dask / --scheduler need dask.distributed, in the cluster extra: pip install 'faceretarget[cluster]' ({exc})"
+        ) from None
     cluster = None
     try:
         if scheduler:
             try:
                 client = Client(scheduler, timeout="20s")
             except (OSError, TimeoutError) as exc:
-                raise ConfigError(f"cannot reach the Dask scheduler at {scheduler!r}: {exc}") from None
+                raise ConfigError(
+                    f"cannot reach the Dask scheduler at {scheduler!r}: {exc}"
+                ) from None
         else:
             with single_threaded_children():
                 cluster = LocalCluster(
-                    n_workers=workers, threads_per_worker=1, processes=processes, host="127.0.0.1", protocol="tcp://",
-                    dashboard_address=None, silence_logs=40,
+                    n_workers=workers,
+                    threads_per_worker=1,
+                    processes=processes,
+                    host="127.0.0.1",
+                    protocol="tcp://",
+                    dashboard_address=None,
+                    silence_logs=40,
                 )
             client = Client(cluster)
         results = []
@@ -451,7 +576,14 @@ def _run_dask(jobs: list[Job], workers: int, scheduler: str | None, processes: b
             try:
                 result = future.result()
             except Exception as exc:  # e.g. KilledWorker
-                result = JobResult(job.name, "failed", job.out, 0.0, f"{_who(job)}: the Dask worker failed: {type(exc).__name__}: {exc}", job.method)
+                result = JobResult(
+                    job.name,
+                    "failed",
+                    job.out,
+                    0.0,
+                    f"{_who(job)}: the Dask worker failed: {type(exc).__name__}: {exc}",
+                    job.method,
+                )
             results.append(result)
             bar.update()
             bar.set_postfix_str(f"{result.name}: {result.status}")
@@ -512,7 +644,16 @@ def run_batch(
     try:
         if pending:
             if executor == "dask":
-                summary.results.extend(_run_dask(pending if not dask_processes else _portable(pending), workers, scheduler, dask_processes, timeout, bar))
+                summary.results.extend(
+                    _run_dask(
+                        pending if not dask_processes else _portable(pending),
+                        workers,
+                        scheduler,
+                        dask_processes,
+                        timeout,
+                        bar,
+                    )
+                )
             else:
                 summary.results.extend(_run_local(_portable(pending), workers, timeout, bar))
     finally:
@@ -527,12 +668,18 @@ def write_summary(summary: BatchSummary, path, *, force: bool = False, inputs=()
     :func:`run_inputs`), an existing file only with ``force``."""
     from ..io._atomic import write_bytes
 
-    return write_bytes(path, (json.dumps(summary.as_dict(), indent=1) + "\n").encode("utf-8"), inputs=inputs, force=force)
+    return write_bytes(
+        path,
+        (json.dumps(summary.as_dict(), indent=1) + "\n").encode("utf-8"),
+        inputs=inputs,
+        force=force,
+    )
 
 
 def format_summary(summary: BatchSummary) -> str:
-    lines = [f"batch: {summary.count('done')} done, {summary.count('skipped')} skipped (output exists), {summary.count('failed')} failed"]
+    lines = [
+        f"batch: {summary.count('done')} done, {summary.count('skipped')} skipped (output exists), {summary.count('failed')} failed"
+    ]
     for r in summary.failed:
         lines.append(f"  FAILED {r.name} ({r.method}): {r.error}")
     return "\n".join(lines)
-

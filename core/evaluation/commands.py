@@ -4,6 +4,7 @@
 ``run_<name>(args) -> int`` runs it. Errors are raised as
 :class:`~faceretarget.errors.FaceRetargetError` subclasses; the CLI prints them as one line.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,7 +37,9 @@ DEMO_CASES = {
 
 def _add_timeout_argument(parser: argparse.ArgumentParser, what: str) -> None:
     parser.add_argument(
-        "--timeout", type=float, metavar="SECONDS",
+        "--timeout",
+        type=float,
+        metavar="SECONDS",
         help=f"time limit of {what}; one that overruns is stopped and reported with its plugin, the rest go on "
         "(default: $FACERETARGET_TIMEOUT or 3600; 0: no limit)",
     )
@@ -44,7 +47,8 @@ def _add_timeout_argument(parser: argparse.ArgumentParser, what: str) -> None:
 
 def _add_keep_going_argument(parser: argparse.ArgumentParser, what: str) -> None:
     parser.add_argument(
-        "--keep-going", action="store_true",
+        "--keep-going",
+        action="store_true",
         help=f"exit 0 even when some {what} failed (default: exit 1 after the summary when any failed)",
     )
 
@@ -84,8 +88,14 @@ def _print_ranking(result, stream=None) -> None:
     from ._summary import ranking_metric
 
     rows = result.ranking()
-    print(f"ranked by {ranking_metric(result)} (mean rank over the cases; the report explains each case)", file=stream)
-    print(f"{'rank':>4}  {'method':<24} {'mean rank':>9} {'ok':>3} {'n/a':>3} {'fail':>4} {'vertex RMS %H':>13} {'time s':>8}", file=stream)
+    print(
+        f"ranked by {ranking_metric(result)} (mean rank over the cases; the report explains each case)",
+        file=stream,
+    )
+    print(
+        f"{'rank':>4}  {'method':<24} {'mean rank':>9} {'ok':>3} {'n/a':>3} {'fail':>4} {'vertex RMS %H':>13} {'time s':>8}",
+        file=stream,
+    )
     for r in rows:
         print(
             f"{r['rank'] if r['rank'] is not None else '-':>4}  {r['method']:<24} {_fmt(r['mean_rank']) or '-':>9} {r['ranked_cases']:>3} "
@@ -100,7 +110,9 @@ def _print_ranking(result, stream=None) -> None:
 def _new_folder(path: Path | None, prefix: str) -> Path:
     if path is not None:
         if path.exists() and (not path.is_dir() or any(path.iterdir())):
-            raise OutputError(f"{path} already exists and is not an empty folder; the demo never overwrites, choose a new --out")
+            raise OutputError(
+                f"{path} already exists and is not an empty folder; the demo never overwrites, choose a new --out"
+            )
         path.mkdir(parents=False, exist_ok=True)
         return path
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -118,17 +130,68 @@ def _new_folder(path: Path | None, prefix: str) -> Path:
 # compare
 # ---------------------------------------------------------------------------------------
 def add_compare_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("cases", nargs="*", metavar="CASE", help="case names (synthetic, synthetic-human, synthetic-stylized, ict, cross_rig, cross_topology; keywords as 'NAME?k=v&k=v'); default: synthetic-human synthetic-stylized ict")
-    parser.add_argument("--cases", dest="case_options", nargs="+", default=[], metavar="CASE", help="the same cases as an option (added to any given before the options)")
-    parser.add_argument("--methods", nargs="+", metavar="NAME", help="retargeters to compare (default: every registered one)")
-    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="METHOD.PARAM=VALUE", help="a constructor parameter of one method, e.g. METHOD.alpha=0.05 (repeatable)")
-    parser.add_argument("--metrics", nargs="+", metavar="NAME", help="metrics to compute (default: every registered one)")
-    parser.add_argument("--presets", nargs="*", metavar="NAME", help="also run the paper reproductions the plugins register (all when no name is given)")
-    parser.add_argument("--out", type=Path, metavar="FOLDER", help="write report.html, results.csv and results.json into FOLDER")
+    parser.add_argument(
+        "cases",
+        nargs="*",
+        metavar="CASE",
+        help="case names (synthetic, synthetic-human, synthetic-stylized, ict, cross_rig, cross_topology; keywords as 'NAME?k=v&k=v'); default: synthetic-human synthetic-stylized ict",
+    )
+    parser.add_argument(
+        "--cases",
+        dest="case_options",
+        nargs="+",
+        default=[],
+        metavar="CASE",
+        help="the same cases as an option (added to any given before the options)",
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        metavar="NAME",
+        help="retargeters to compare (default: every registered one)",
+    )
+    parser.add_argument(
+        "--set",
+        dest="sets",
+        action="append",
+        default=[],
+        metavar="METHOD.PARAM=VALUE",
+        help="a constructor parameter of one method, e.g. METHOD.alpha=0.05 (repeatable)",
+    )
+    parser.add_argument(
+        "--metrics",
+        nargs="+",
+        metavar="NAME",
+        help="metrics to compute (default: every registered one)",
+    )
+    parser.add_argument(
+        "--presets",
+        nargs="*",
+        metavar="NAME",
+        help="also run the paper reproductions the plugins register (all when no name is given)",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        metavar="FOLDER",
+        help="write report.html, results.csv and results.json into FOLDER",
+    )
     parser.add_argument("--csv", type=Path, metavar="FILE", help="write the tidy table as CSV")
-    parser.add_argument("--json", type=Path, metavar="FILE", help="write the tidy table, ranking and runs as JSON")
-    parser.add_argument("--jobs", type=int, default=1, metavar="N", help="run the methods in N worker processes (default 1)")
-    parser.add_argument("--force", action="store_true", help="replace existing --csv/--json files and report files in --out (never an input)")
+    parser.add_argument(
+        "--json", type=Path, metavar="FILE", help="write the tidy table, ranking and runs as JSON"
+    )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        metavar="N",
+        help="run the methods in N worker processes (default 1)",
+    )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="replace existing --csv/--json files and report files in --out (never an input)",
+    )
     _add_timeout_argument(parser, "one run (fit + retarget of one method on one case)")
     _add_keep_going_argument(parser, "runs")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -146,7 +209,9 @@ def check_outputs(paths, *, force: bool, inputs=()) -> None:
     for p in paths:
         real = os.path.realpath(p)
         if real in seen:
-            raise OutputError(f"{p}: given for two outputs ({seen[real]} and {p}); give each output its own file")
+            raise OutputError(
+                f"{p}: given for two outputs ({seen[real]} and {p}); give each output its own file"
+            )
         seen[real] = str(p)
         check_destination(p, inputs=inputs, force=force)
 
@@ -188,12 +253,26 @@ def run_compare(args) -> int:
 # demo
 # ---------------------------------------------------------------------------------------
 def add_demo_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, metavar="FOLDER", help="new folder for the results (default: ./faceretarget-demo-YYYYmmdd-HHMMSS)")
-    parser.add_argument("--methods", nargs="+", metavar="NAME", help="retargeters (default: every registered one)")
-    parser.add_argument("--frames", type=int, default=None, metavar="N", help="frames per case (default 60)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        metavar="FOLDER",
+        help="new folder for the results (default: ./faceretarget-demo-YYYYmmdd-HHMMSS)",
+    )
+    parser.add_argument(
+        "--methods", nargs="+", metavar="NAME", help="retargeters (default: every registered one)"
+    )
+    parser.add_argument(
+        "--frames", type=int, default=None, metavar="N", help="frames per case (default 60)"
+    )
     parser.add_argument("--no-presets", action="store_true", help="skip the paper reproductions")
     parser.add_argument("--no-glb", action="store_true", help="do not write a GLB per method")
-    parser.add_argument("--jobs", type=int, metavar="N", help="methods run in parallel worker processes (default: 2, at most the CPU count)")
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        metavar="N",
+        help="methods run in parallel worker processes (default: 2, at most the CPU count)",
+    )
     _add_timeout_argument(parser, "one run (fit + retarget of one method on one case)")
     _add_keep_going_argument(parser, "runs")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -205,7 +284,9 @@ def demo_cases(frames: int | None = None) -> dict[str, str]:
         return dict(DEMO_CASES)
     if frames < 3:
         raise ConfigError(f"--frames must be at least 3, got {frames}")
-    return {name: spec.replace("n_frames=60", f"n_frames={frames}") for name, spec in DEMO_CASES.items()}
+    return {
+        name: spec.replace("n_frames=60", f"n_frames={frames}") for name, spec in DEMO_CASES.items()
+    }
 
 
 def _jobs(value: int | None, default: int) -> int:
@@ -229,7 +310,11 @@ def run_demo(args) -> int:
     folder = _new_folder(args.out, "faceretarget-demo")
     print(f"faceretarget demo: writing into {folder}", file=sys.stderr)
     result = compare(
-        demo_cases(args.frames), methods=args.methods, progress=not args.quiet, n_jobs=_jobs(args.jobs, 2), timeout=timeout
+        demo_cases(args.frames),
+        methods=args.methods,
+        progress=not args.quiet,
+        n_jobs=_jobs(args.jobs, 2),
+        timeout=timeout,
     )
     if not args.no_presets:
         run_presets(result)
@@ -251,7 +336,9 @@ def run_demo(args) -> int:
 # warmup
 # ---------------------------------------------------------------------------------------
 def add_warmup_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--methods", nargs="+", metavar="NAME", help="only these methods (default: every built-in)")
+    parser.add_argument(
+        "--methods", nargs="+", metavar="NAME", help="only these methods (default: every built-in)"
+    )
 
 
 def warmup_cases() -> list:
@@ -270,13 +357,13 @@ def warmup_cases() -> list:
 
 
 def run_warmup(args) -> int:
-    from ..registry import registry
-
     import warnings
 
     import numpy as np
 
     import faceretarget as fr
+
+    from ..registry import registry
 
     reg = registry()
     names = args.methods or sorted(n for n, info in reg.retargeters.items() if info.plugin.builtin)
@@ -290,7 +377,9 @@ def run_warmup(args) -> int:
             if method.why_not(case.source, case.target):
                 continue
             try:
-                with warnings.catch_warnings():  # tiny cases, only to compile: their data warnings mean nothing
+                with (
+                    warnings.catch_warnings()
+                ):  # tiny cases, only to compile: their data warnings mean nothing
                     warnings.simplefilter("ignore")
                     animation = method.fit(case.source, case.target).retarget(case.source)
                     np.asarray(animation.vertices)
@@ -300,7 +389,9 @@ def run_warmup(args) -> int:
         print(f"{name:28s} {ran} case(s) {time.perf_counter() - began:6.1f} s")
     for line in failed:
         print(f"failed: {line}", file=sys.stderr)
-    print(f"warm in {time.perf_counter() - start:.1f} s; later runs load the compiled kernels from numba's cache")
+    print(
+        f"warm in {time.perf_counter() - start:.1f} s; later runs load the compiled kernels from numba's cache"
+    )
     return 1 if failed else 0
 
 
@@ -327,15 +418,47 @@ def _write_glbs(result, folder: Path, reg, write_animation, writer_for) -> str:
 # batch
 # ---------------------------------------------------------------------------------------
 def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("manifest", type=Path, help="TOML manifest of [[job]] entries (shot, character, method, params, out); see docs/evaluation.md")
-    parser.add_argument("--dask", action="store_true", help="run on dask.distributed (a local cluster on 127.0.0.1 unless --scheduler is given)")
-    parser.add_argument("--scheduler", metavar="ADDRESS", help="address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --dask)")
-    parser.add_argument("--workers", type=int, metavar="N", help="parallel jobs / local Dask workers (default: CPU count)")
-    parser.add_argument("--redo", action="store_true", help="run jobs whose output already exists (default: skip them)")
-    parser.add_argument("--summary", type=Path, metavar="FILE", help="write the per-job results as JSON (never over a file of the run)")
-    parser.add_argument("--force", action="store_true", help="replace an existing --summary file (job outputs are replaced only with --redo)")
+    parser.add_argument(
+        "manifest",
+        type=Path,
+        help="TOML manifest of [[job]] entries (shot, character, method, params, out); see docs/evaluation.md",
+    )
+    parser.add_argument(
+        "--dask",
+        action="store_true",
+        help="run on dask.distributed (a local cluster on 127.0.0.1 unless --scheduler is given)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="address of a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --dask)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="parallel jobs / local Dask workers (default: CPU count)",
+    )
+    parser.add_argument(
+        "--redo",
+        action="store_true",
+        help="run jobs whose output already exists (default: skip them)",
+    )
+    parser.add_argument(
+        "--summary",
+        type=Path,
+        metavar="FILE",
+        help="write the per-job results as JSON (never over a file of the run)",
+    )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing --summary file (job outputs are replaced only with --redo)",
+    )
     _add_timeout_argument(parser, "one job, unless its manifest entry sets timeout")
-    parser.add_argument("--check", action="store_true", help="only check the manifest and list the jobs")
+    parser.add_argument(
+        "--check", action="store_true", help="only check the manifest and list the jobs"
+    )
     _add_keep_going_argument(parser, "jobs")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -355,10 +478,17 @@ def run_batch(args) -> int:
         return 0
     executor = "dask" if (args.dask or args.scheduler) else "local"
     summary = batch.run_batch(
-        jobs, executor=executor, scheduler=args.scheduler, workers=args.workers, redo=args.redo, progress=not args.quiet,
+        jobs,
+        executor=executor,
+        scheduler=args.scheduler,
+        workers=args.workers,
+        redo=args.redo,
+        progress=not args.quiet,
         timeout=_timeout(args.timeout),
     )
     print(batch.format_summary(summary))
     if args.summary:
-        print(f"wrote {batch.write_summary(summary, args.summary, force=args.force, inputs=run_files)}")
+        print(
+            f"wrote {batch.write_summary(summary, args.summary, force=args.force, inputs=run_files)}"
+        )
     return _failed_exit(len(summary.failed), len(summary.results), "jobs", args.keep_going)

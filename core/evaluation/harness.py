@@ -19,6 +19,7 @@ For each (case, method) the harness
 4. computes every registered metric (``faceretarget_metrics`` hook), each value a row
    of the tidy table ``(case, method, metric, value, unit, status, reason)``.
 """
+
 from __future__ import annotations
 
 import csv
@@ -27,23 +28,24 @@ import json
 import math
 import os
 import time
-import tracemalloc
 import traceback
+import tracemalloc
+from collections.abc import Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
+from .._args import literal
+from .._json import jsonable
+from .._validate import did_you_mean
 from ..errors import (
     CapabilityError,
     ConfigError,
     UnknownNameError,
 )
-from .._args import literal
-from .._json import jsonable
-from .._validate import did_you_mean
 from ..hookspecs import Metric
 from ..model import Animation
 from ..retargeter import Retargeter
@@ -93,7 +95,9 @@ def resolve_case(spec):
     if not isinstance(spec, str):
         if hasattr(spec, "source") and hasattr(spec, "target"):
             return spec
-        raise UnknownNameError(f"a case is a name ({', '.join(CASE_NAMES)}) or a case object with .source and .target; got {spec!r}")
+        raise UnknownNameError(
+            f"a case is a name ({', '.join(CASE_NAMES)}) or a case object with .source and .target; got {spec!r}"
+        )
     name, kwargs = parse_case_spec(spec)
     factory_name, fixed = CASE_NAMES[name]
     from .. import cases
@@ -148,7 +152,9 @@ def _methods(methods, registry) -> list[_Method]:
         elif isinstance(item, type) and issubclass(item, Retargeter):
             out.append(_Method(item.name or item.__name__, item, item.__module__, "local", "-"))
         else:
-            raise UnknownNameError(f"methods are retargeter names or Retargeter subclasses; got {item!r}")
+            raise UnknownNameError(
+                f"methods are retargeter names or Retargeter subclasses; got {item!r}"
+            )
     names = [m.name for m in out]
     if len(set(names)) != len(names):
         raise ConfigError(f"methods: each retargeter once please; got {names}")
@@ -156,7 +162,9 @@ def _methods(methods, registry) -> list[_Method]:
 
 
 def _from_info(info) -> _Method:
-    return _Method(info.name, info.cls, info.plugin.name, info.plugin.distribution, info.plugin.version)
+    return _Method(
+        info.name, info.cls, info.plugin.name, info.plugin.distribution, info.plugin.version
+    )
 
 
 def _params_for(method: _Method, params: Mapping | None) -> dict:
@@ -235,7 +243,9 @@ class ComparisonResult:
         for r in self.runs:
             if r.case == case and r.method == method:
                 return r
-        raise UnknownNameError(f"no run of {method!r} on case {case!r}; runs: {sorted({(r.case, r.method) for r in self.runs})}")
+        raise UnknownNameError(
+            f"no run of {method!r} on case {case!r}; runs: {sorted({(r.case, r.method) for r in self.runs})}"
+        )
 
     def value(self, case: str, method: str, metric: str) -> float | None:
         """The value of ``metric`` for (case, method), None when not computed."""
@@ -277,8 +287,12 @@ class ComparisonResult:
             if row["status"] == OK and row["value"] is not None:
                 table.setdefault((row["case"], row["metric"]), {})[row["method"]] = row["value"]
         ranks: dict[str, list[float]] = {m: [] for m in self.methods}
-        for (case, metric), values in table.items():
-            if metric not in chosen or len(values) < 2 or self.better(metric) not in ("lower", "higher"):
+        for (_case, metric), values in table.items():
+            if (
+                metric not in chosen
+                or len(values) < 2
+                or self.better(metric) not in ("lower", "higher")
+            ):
                 continue
             names = list(values)
             arr = np.array([values[n] for n in names], dtype=float)
@@ -300,13 +314,23 @@ class ComparisonResult:
                     "time_total": self._mean_value(method, "time_total"),
                 }
             )
-        out.sort(key=lambda r: (r["mean_rank"] is None, r["mean_rank"] if r["mean_rank"] is not None else 0.0, r["method"]))
+        out.sort(
+            key=lambda r: (
+                r["mean_rank"] is None,
+                r["mean_rank"] if r["mean_rank"] is not None else 0.0,
+                r["method"],
+            )
+        )
         for i, row in enumerate(out, 1):
             row["rank"] = i if row["mean_rank"] is not None else None
         return [{"rank": r.pop("rank"), **r} for r in out]
 
     def _mean_value(self, method: str, metric: str) -> float | None:
-        vals = [r["value"] for r in self.rows if r["method"] == method and r["metric"] == metric and r["value"] is not None]
+        vals = [
+            r["value"]
+            for r in self.rows
+            if r["method"] == method and r["metric"] == metric and r["value"] is not None
+        ]
         return float(np.mean(vals)) if vals else None
 
     # -- export ------------------------------------------------------------------------
@@ -327,7 +351,8 @@ class ComparisonResult:
             "ranking": self.ranking(),
             "runs": [r.as_dict() for r in self.runs],
             "metrics": {
-                name: {"description": m.description, "unit": m.unit, "better": m.better} for name, m in self.metrics.items()
+                name: {"description": m.description, "unit": m.unit, "better": m.better}
+                for name, m in self.metrics.items()
             },
             "presets": [p.as_dict() for p in self.presets],
         }
@@ -335,7 +360,12 @@ class ComparisonResult:
     def to_json(self, path, *, force: bool = False, inputs=()) -> Path:
         """Write rows, ranking, runs (with errors), metric definitions and presets as JSON
         (atomically; an existing file only with ``force``, never an input)."""
-        return atomic_write_text(path, json.dumps(jsonable(self.as_dict()), indent=1, allow_nan=False) + "\n", force=force, inputs=inputs)
+        return atomic_write_text(
+            path,
+            json.dumps(jsonable(self.as_dict()), indent=1, allow_nan=False) + "\n",
+            force=force,
+            inputs=inputs,
+        )
 
     def __repr__(self) -> str:
         counts = {s: sum(r.status == s for r in self.runs) for s in (OK, NOT_APPLICABLE, ERROR)}
@@ -410,7 +440,14 @@ def _compile_clock():
 
 
 def _run_one(case, cname: str, method: _Method, params: dict) -> Run:
-    run = Run(cname, method.name, OK, plugin=method.plugin, distribution=method.distribution, version=method.version)
+    run = Run(
+        cname,
+        method.name,
+        OK,
+        plugin=method.plugin,
+        distribution=method.distribution,
+        version=method.version,
+    )
     try:
         reason = method.cls.why_not(case.source, case.target)
     except (Exception, SystemExit) as exc:  # a plugin's own applicability check may be broken too
@@ -442,7 +479,10 @@ def _run_one(case, cname: str, method: _Method, params: dict) -> Run:
         run.status, run.reason = NOT_APPLICABLE, " ".join(str(exc).split())
     except Exception as exc:  # a failing plugin must not stop the others
         _failed(run, exc, method, stage)
-    except (SystemExit, GeneratorExit) as exc:  # sys.exit in a plugin run in this process: a failure, not the end
+    except (
+        SystemExit,
+        GeneratorExit,
+    ) as exc:  # sys.exit in a plugin run in this process: a failure, not the end
         _failed(run, exc, method, stage)
     finally:
         if started_tracing:
@@ -455,7 +495,15 @@ def _metric_rows(run: Run, case, metrics: Mapping[str, Metric]) -> list[dict]:
 
     def add(name, value, metric, status, reason=""):
         rows.append(
-            {"case": run.case, "method": run.method, "metric": name, "value": value, "unit": metric.unit, "status": status, "reason": reason}
+            {
+                "case": run.case,
+                "method": run.method,
+                "metric": name,
+                "value": value,
+                "unit": metric.unit,
+                "status": status,
+                "reason": reason,
+            }
         )
 
     if run.status != OK:
@@ -476,12 +524,26 @@ def _metric_rows(run: Run, case, metrics: Mapping[str, Metric]) -> list[dict]:
         try:
             value = metric.compute(run.animation, case, context)
             if value is None:
-                reason = context["reasons"].get(name) or (metric.why_not(run.animation, case) if metric.why_not else None)
-                add(name, None, metric, NOT_APPLICABLE, reason or "the metric gave no value for this run")
+                reason = context["reasons"].get(name) or (
+                    metric.why_not(run.animation, case) if metric.why_not else None
+                )
+                add(
+                    name,
+                    None,
+                    metric,
+                    NOT_APPLICABLE,
+                    reason or "the metric gave no value for this run",
+                )
             elif isinstance(value, Mapping):
                 for label, v in value.items():
                     ok = v is not None and math.isfinite(float(v))
-                    add(f"{name}[{label}]", float(v) if ok else None, metric, OK if ok else NOT_APPLICABLE, "" if ok else "no value for this region")
+                    add(
+                        f"{name}[{label}]",
+                        float(v) if ok else None,
+                        metric,
+                        OK if ok else NOT_APPLICABLE,
+                        "" if ok else "no value for this region",
+                    )
             else:
                 value = float(value)
                 if math.isfinite(value):
@@ -519,7 +581,11 @@ def _light_extras(extras: Mapping) -> dict:
             kept[key] = value
             continue
         try:
-            size = value.nbytes if isinstance(value, np.ndarray) else np.asarray(value, dtype=float).nbytes
+            size = (
+                value.nbytes
+                if isinstance(value, np.ndarray)
+                else np.asarray(value, dtype=float).nbytes
+            )
         except (TypeError, ValueError):
             continue
         if size <= LIGHT_EXTRAS_BYTES:
@@ -548,7 +614,12 @@ def _run_item(method: _Method, params: dict, cname: str, case) -> Run:
 
 #: Thread counts pinned to 1 in worker processes, so n processes do not each start
 #: a thread per core (BLAS and numba threads that spin on 2 cores waste most of the CPU).
-_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+_THREAD_VARIABLES = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMBA_NUM_THREADS",
+)
 
 
 @contextmanager
@@ -568,7 +639,9 @@ def single_threaded_children():
                 os.environ[k] = v
 
 
-def _isolated(refs: dict, chosen: list[_Method], per_method: dict, n_jobs: int, timeout: float | None, on_run) -> None:
+def _isolated(
+    refs: dict, chosen: list[_Method], per_method: dict, n_jobs: int, timeout: float | None, on_run
+) -> None:
     """Every run in a supervised worker process (killed after ``timeout`` seconds).
 
     The methods of one module (sharing numba kernels) form one group, so each worker
@@ -583,7 +656,15 @@ def _isolated(refs: dict, chosen: list[_Method], per_method: dict, n_jobs: int, 
         tasks = groups.setdefault(m.cls.__module__, [])
         for cname, ref in refs.items():
             case = _CaseByName(ref) if isinstance(ref, str) else ref
-            tasks.append(Task((cname, m.name), _run_item, (m, per_method[m.name], cname, case), timeout, owner=m.cls.__module__))
+            tasks.append(
+                Task(
+                    (cname, m.name),
+                    _run_item,
+                    (m, per_method[m.name], cname, case),
+                    timeout,
+                    owner=m.cls.__module__,
+                )
+            )
 
     def on_outcome(outcome) -> None:
         cname, name = outcome.key
@@ -591,7 +672,9 @@ def _isolated(refs: dict, chosen: list[_Method], per_method: dict, n_jobs: int, 
             on_run(outcome.value)
             return
         m = by_name[name]
-        run = Run(cname, name, ERROR, plugin=m.plugin, distribution=m.distribution, version=m.version)
+        run = Run(
+            cname, name, ERROR, plugin=m.plugin, distribution=m.distribution, version=m.version
+        )
         _failed(run, outcome.error(), m, "run" if outcome.started else "hand-over to a worker")
         if isinstance(outcome.value, str):
             run.error["traceback"] = outcome.value
@@ -650,7 +733,9 @@ def compare(
         unknown = sorted(set(params) - {m.name for m in chosen})
         if unknown:
             named = ", ".join(f"{u!r}{did_you_mean(u, [m.name for m in chosen])}" for u in unknown)
-            raise UnknownNameError(f"params given for {named}, which is not among the compared methods {[m.name for m in chosen]}")
+            raise UnknownNameError(
+                f"params given for {named}, which is not among the compared methods {[m.name for m in chosen]}"
+            )
     all_metrics = {name: m for name, (m, _) in registry.metrics.items()}
     if metrics is not None:
         missing = [m for m in metrics if m not in all_metrics]
@@ -663,7 +748,11 @@ def compare(
     from .. import config
 
     timeout = config.check_timeout(timeout, "compare: timeout")
-    named = list(cases.items()) if isinstance(cases, Mapping) else [(None, c) for c in (DEFAULT_CASES if cases is None else cases)]
+    named = (
+        list(cases.items())
+        if isinstance(cases, Mapping)
+        else [(None, c) for c in (DEFAULT_CASES if cases is None else cases)]
+    )
     if not named:
         raise ConfigError("compare: no cases given")
     resolved: dict[str, Any] = {}
@@ -678,7 +767,13 @@ def compare(
     per_method = {m.name: _params_for(m, params) for m in chosen}
     from tqdm import tqdm
 
-    bar = tqdm(total=len(resolved) * len(chosen), desc="compare", unit="run", disable=not progress, leave=False)
+    bar = tqdm(
+        total=len(resolved) * len(chosen),
+        desc="compare",
+        unit="run",
+        disable=not progress,
+        leave=False,
+    )
     done: dict[tuple[str, str], tuple[Run, list[dict]]] = {}
 
     def on_run(run: Run) -> None:

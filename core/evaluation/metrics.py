@@ -55,10 +55,12 @@ Conventions shared by the definitions:
   of the value for the built-in dense methods). To see the wrinkles alone, compare
   against the case built without them (the detail presets' "wrinkle transfer error").
 """
+
 from __future__ import annotations
 
 import re
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -140,7 +142,9 @@ class _Views:
     @property
     def distances(self) -> np.ndarray:
         """(F, V) ||X - Y|| in % of H."""
-        return self.get("distances", lambda: 100.0 * np.linalg.norm(self.X - self.Y, axis=-1) / self.height)
+        return self.get(
+            "distances", lambda: 100.0 * np.linalg.norm(self.X - self.Y, axis=-1) / self.height
+        )
 
 
 def _views(animation, case, context) -> _Views:
@@ -178,7 +182,9 @@ def _side(name: str) -> str:
     return ""
 
 
-def feature_groups(feature_lines: Mapping[str, np.ndarray], neutral: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def feature_groups(
+    feature_lines: Mapping[str, np.ndarray], neutral: np.ndarray
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Upper and lower vertex chains of the mouth and each eye.
 
     feature_lines : name -> (L,) vertex ids; neutral : (V, 3) target neutral vertices.
@@ -195,12 +201,23 @@ def feature_groups(feature_lines: Mapping[str, np.ndarray], neutral: np.ndarray)
             group = f"eye_{side}" if side else "eye"
         else:
             continue
-        part = "upper" if ("upper" in low or "top" in low) else "lower" if ("lower" in low or "bottom" in low) else "any"
-        members.setdefault(group, {}).setdefault(part, []).append((low, np.asarray(chain, dtype=np.int64)))
+        part = (
+            "upper"
+            if ("upper" in low or "top" in low)
+            else "lower"
+            if ("lower" in low or "bottom" in low)
+            else "any"
+        )
+        members.setdefault(group, {}).setdefault(part, []).append(
+            (low, np.asarray(chain, dtype=np.int64))
+        )
     out = {}
     for group, named in members.items():
         inner = any("inner" in low for chains in named.values() for low, _ in chains)
-        parts = {k: [c for low, c in chains if "inner" in low or not inner] for k, chains in named.items()}
+        parts = {
+            k: [c for low, c in chains if "inner" in low or not inner]
+            for k, chains in named.items()
+        }
         if parts.get("upper") and parts.get("lower"):
             upper = np.unique(np.concatenate(parts["upper"]))
             lower = np.unique(np.concatenate(parts["lower"]))
@@ -215,7 +232,9 @@ def feature_groups(feature_lines: Mapping[str, np.ndarray], neutral: np.ndarray)
     return out
 
 
-def closure_pairs(upper: np.ndarray, lower: np.ndarray, neutral: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def closure_pairs(
+    upper: np.ndarray, lower: np.ndarray, neutral: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Pair each upper vertex with the lower vertex nearest to it on ``neutral : (V, 3)``.
 
     Returns ``(u, l)`` index arrays of equal length.
@@ -230,7 +249,9 @@ def opening(vertices: np.ndarray, pairs: tuple[np.ndarray, np.ndarray]) -> np.nd
     return np.linalg.norm(vertices[:, u] - vertices[:, l], axis=-1).mean(axis=1)
 
 
-def upper_face_vertices(groups: Mapping[str, tuple[np.ndarray, np.ndarray]], neutral: np.ndarray) -> np.ndarray | None:
+def upper_face_vertices(
+    groups: Mapping[str, tuple[np.ndarray, np.ndarray]], neutral: np.ndarray
+) -> np.ndarray | None:
     """Vertex ids above the midpoint between eyes and mouth (None without both groups)."""
     eyes = [np.concatenate(v) for k, v in groups.items() if k.startswith("eye")]
     if "mouth" not in groups or not eyes:
@@ -246,7 +267,10 @@ def regions(target) -> dict[str, np.ndarray]:
     """Region name -> vertex ids (layer masks, else upper / lower face; may be empty)."""
     if target.layers is not None:
         masks = np.asarray(target.layers.masks)
-        out = {name: np.flatnonzero(masks[r] >= REGION_MASK_THRESHOLD) for r, name in enumerate(target.layers.region_names)}
+        out = {
+            name: np.flatnonzero(masks[r] >= REGION_MASK_THRESHOLD)
+            for r, name in enumerate(target.layers.region_names)
+        }
         return {k: v for k, v in out.items() if v.size}
     neutral = np.asarray(target.neutral.vertices)
     upper = upper_face_vertices(feature_groups(target.feature_lines, neutral), neutral)
@@ -257,10 +281,16 @@ def regions(target) -> dict[str, np.ndarray]:
 
 def per_vertex_error(result: np.ndarray, truth: np.ndarray, height: float) -> np.ndarray:
     """(V,) mean over frames of ``||x - y||`` in % of ``height``."""
-    return 100.0 * np.linalg.norm(np.asarray(result, np.float64) - truth, axis=-1).mean(axis=0) / height
+    return (
+        100.0
+        * np.linalg.norm(np.asarray(result, np.float64) - truth, axis=-1).mean(axis=0)
+        / height
+    )
 
 
-def velocity_error_per_frame(result_points: np.ndarray, truth_points: np.ndarray, height: float) -> np.ndarray:
+def velocity_error_per_frame(
+    result_points: np.ndarray, truth_points: np.ndarray, height: float
+) -> np.ndarray:
     """(F-1,) ``sum_i ||(p_{t+1,i} - p_{t,i}) - (q_{t+1,i} - q_{t,i})||^2 / H^2``.
 
     result_points, truth_points : (F, N, 3) corresponding points (landmarks).
@@ -278,7 +308,9 @@ def landmark_velocity_curve(vertices: np.ndarray, truth, target) -> np.ndarray:
     """
     lm, tri = target.landmarks, target.neutral.triangles
     p = to_head_frame(lm.positions(np.asarray(vertices, dtype=np.float64), tri), truth.head_motion)
-    q = to_head_frame(lm.positions(np.asarray(truth.vertices, dtype=np.float64), tri), truth.head_motion)
+    q = to_head_frame(
+        lm.positions(np.asarray(truth.vertices, dtype=np.float64), tri), truth.head_motion
+    )
     return velocity_error_per_frame(p, q, float(target.neutral.height) or 1.0)
 
 
@@ -287,7 +319,9 @@ def second_difference(x: np.ndarray) -> np.ndarray:
     return x[2:] - 2.0 * x[1:-1] + x[:-2]
 
 
-def smoothing_operator(n_vertices: int, triangles: np.ndarray, lam: float = DETAIL_SMOOTHING_LAMBDA):
+def smoothing_operator(
+    n_vertices: int, triangles: np.ndarray, lam: float = DETAIL_SMOOTHING_LAMBDA
+):
     """Sparse ``S = (1 - lam) I + lam D^-1 A`` (one uniform Laplacian smoothing step; isolated vertices stay)."""
     import scipy.sparse as sp
 
@@ -298,7 +332,9 @@ def smoothing_operator(n_vertices: int, triangles: np.ndarray, lam: float = DETA
     return (sp.diags(np.where(has, 1.0 - lam, 1.0)) + lam * neighbours).tocsr()
 
 
-def detail_smoothing_operator(n_vertices: int, triangles: np.ndarray, lam: float = DETAIL_SMOOTHING_LAMBDA):
+def detail_smoothing_operator(
+    n_vertices: int, triangles: np.ndarray, lam: float = DETAIL_SMOOTHING_LAMBDA
+):
     """Sparse ``S`` of the detail metrics: :func:`smoothing_operator`, except that a vertex on a
     boundary edge averages only its neighbours along boundary edges (a smooth field along an
     eye, mouth or outer rim stays nearly smooth, as it would in the interior).
@@ -327,7 +363,12 @@ def detail_smoothing_operator(n_vertices: int, triangles: np.ndarray, lam: float
     return (keep @ interior + sp.diags(on.astype(np.float64)) @ boundary).tocsr()
 
 
-def normal_detail(displacements: np.ndarray, triangles: np.ndarray, neutral: np.ndarray, steps: int = DETAIL_SMOOTHING_STEPS) -> np.ndarray:
+def normal_detail(
+    displacements: np.ndarray,
+    triangles: np.ndarray,
+    neutral: np.ndarray,
+    steps: int = DETAIL_SMOOTHING_STEPS,
+) -> np.ndarray:
     """(F, V) ``hn(d)``: the high-pass of ``displacements : (F, V, 3)`` by ``steps`` steps of
     :func:`detail_smoothing_operator` on the mesh ``(neutral (V, 3), triangles)``, along the
     neutral's unit vertex normals (the module docstring's *fine-scale detail*)."""
@@ -336,10 +377,16 @@ def normal_detail(displacements: np.ndarray, triangles: np.ndarray, neutral: np.
     neutral = np.asarray(neutral, dtype=np.float64)
     smoother = detail_smoothing_operator(neutral.shape[0], np.asarray(triangles))
     normals = vertex_normals(neutral, np.asarray(triangles))
-    return np.einsum("fvd,vd->fv", high_pass(np.asarray(displacements, dtype=np.float64), smoother, steps), normals)
+    return np.einsum(
+        "fvd,vd->fv",
+        high_pass(np.asarray(displacements, dtype=np.float64), smoother, steps),
+        normals,
+    )
 
 
-def high_pass(displacements: np.ndarray, smoother, steps: int = DETAIL_SMOOTHING_STEPS) -> np.ndarray:
+def high_pass(
+    displacements: np.ndarray, smoother, steps: int = DETAIL_SMOOTHING_STEPS
+) -> np.ndarray:
     """``d - S^steps d`` for ``displacements : (F, V, 3)`` with sparse ``smoother : (V, V)``."""
     f, v, _ = displacements.shape
     flat = np.moveaxis(displacements, 1, 0).reshape(v, f * 3)
@@ -450,7 +497,11 @@ def vertex_error_region(v: _Views):
 def _landmark_distances(v: _Views) -> np.ndarray:
     def make():
         lm, tri = v.target.landmarks, v.target.neutral.triangles
-        return 100.0 * np.linalg.norm(lm.positions(v.X, tri) - lm.positions(v.Y, tri), axis=-1) / v.height
+        return (
+            100.0
+            * np.linalg.norm(lm.positions(v.X, tri) - lm.positions(v.Y, tri), axis=-1)
+            / v.height
+        )
 
     return v.get("landmark_distances", make)
 
@@ -513,7 +564,9 @@ def lve(v: _Views):
     return float(v.distances[:, _mouth_vertices(v)].max(axis=1).mean())
 
 
-def _motion_std(local: np.ndarray, neutral: np.ndarray, ids: np.ndarray, squared: bool) -> np.ndarray:
+def _motion_std(
+    local: np.ndarray, neutral: np.ndarray, ids: np.ndarray, squared: bool
+) -> np.ndarray:
     disp = local[:, ids] - neutral[ids]
     mag = np.einsum("fvd,fvd->fv", disp, disp)
     return (mag if squared else np.sqrt(mag)).std(axis=0)
@@ -532,7 +585,9 @@ def fdd_abs(v: _Views):
     """Upper-face dynamics deviation, absolute variant: for each upper-face vertex the std over time of its displacement magnitude ||x_t - x_neutral|| (head frame, not squared), the absolute difference between Y and X per vertex, averaged over the upper face, in % of H."""
     neutral = np.asarray(v.target.neutral.vertices, dtype=np.float64)
     ids = upper_face_vertices(_groups(v.case), neutral)
-    diff = _motion_std(v.Y_local, neutral, ids, squared=False) - _motion_std(v.X_local, neutral, ids, squared=False)
+    diff = _motion_std(v.Y_local, neutral, ids, squared=False) - _motion_std(
+        v.X_local, neutral, ids, squared=False
+    )
     return float(100.0 * np.abs(diff).mean() / v.height)
 
 
@@ -543,7 +598,7 @@ def _normal_details(v: _Views) -> tuple[np.ndarray, np.ndarray]:
         neutral = np.asarray(v.target.neutral.vertices, dtype=np.float64)
         both = np.concatenate([v.X_local - neutral, v.Y_local - neutral])
         details = normal_detail(both, np.asarray(v.target.neutral.triangles), neutral)
-        return details[: v.X.shape[0]], details[v.X.shape[0]:]
+        return details[: v.X.shape[0]], details[v.X.shape[0] :]
 
     return v.get("normal_details", make)
 
@@ -601,7 +656,9 @@ def weight_error_rms(v: _Views):
     truth = v.case.truth
     common = [n for n in v.animation.weight_names if n in truth.weight_names]
     wr = _weights(v)[:, [v.animation.weight_names.index(n) for n in common]]
-    wt = np.asarray(truth.weights, dtype=np.float64)[:, [truth.weight_names.index(n) for n in common]]
+    wt = np.asarray(truth.weights, dtype=np.float64)[
+        :, [truth.weight_names.index(n) for n in common]
+    ]
     return float(np.sqrt(np.mean((wr - wt) ** 2)))
 
 
@@ -609,7 +666,9 @@ def _from_context(key: str):
     def compute(v: _Views, context):
         value = (context or {}).get(key)
         if value is None:
-            raise NotApplicable(f"not measured: run through faceretarget.evaluation.compare, which records {key!r}")
+            raise NotApplicable(
+                f"not measured: run through faceretarget.evaluation.compare, which records {key!r}"
+            )
         return float(value)
 
     return compute
@@ -713,7 +772,14 @@ def _make(fn: Callable, unit: str, better: str, checks: tuple) -> Metric:
         return reason
 
     description = " ".join((fn.__doc__ or "").split())
-    return Metric(name=fn.__name__, compute=compute, description=description, better=better, unit=unit, why_not=why_not)
+    return Metric(
+        name=fn.__name__,
+        compute=compute,
+        description=description,
+        better=better,
+        unit=unit,
+        why_not=why_not,
+    )
 
 
 def builtin_metrics() -> list[Metric]:

@@ -17,17 +17,26 @@ returned with status ``not applicable`` / ``error`` and the reason, and the repo
     run_presets(result)                      # attaches every preset to result.presets
     write_report(result, "report/")
 """
+
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 from .._json import jsonable
 from ..errors import CapabilityError, UnknownNameError
 from ..hookspecs import Preset
 from .harness import ERROR, NOT_APPLICABLE, OK, resolve_case
 
-__all__ = ["PresetResult", "Cases", "available_presets", "run_preset", "run_presets", "PRESET_CASES"]
+__all__ = [
+    "PresetResult",
+    "Cases",
+    "available_presets",
+    "run_preset",
+    "run_presets",
+    "PRESET_CASES",
+]
 
 #: Cases the presets build when the caller gives none (kept small: seconds each).
 PRESET_CASES = {
@@ -103,7 +112,9 @@ def available_presets() -> dict[str, Preset]:
     return {name: preset for name, (preset, _) in registry().presets.items()}
 
 
-def run_preset(preset: str | Preset, cases: Mapping[str, Any] | Cases | None = None) -> PresetResult:
+def run_preset(
+    preset: str | Preset, cases: Mapping[str, Any] | Cases | None = None
+) -> PresetResult:
     """Run one preset (a registered name, or a :class:`~faceretarget.Preset`); never raises for
     a missing or failing retargeter (see ``status``).
 
@@ -112,20 +123,33 @@ def run_preset(preset: str | Preset, cases: Mapping[str, Any] | Cases | None = N
     if not isinstance(preset, Preset):
         known = available_presets()
         if preset not in known:
-            raise UnknownNameError(f"no preset named {preset!r}; valid presets: {', '.join(known) or 'none installed'}")
+            raise UnknownNameError(
+                f"no preset named {preset!r}; valid presets: {', '.join(known) or 'none installed'}"
+            )
         preset = known[preset]
     pool = cases if isinstance(cases, Cases) else Cases(cases)
-    res = PresetResult(preset.name, preset.title, preset.paper, preset.description, claim=preset.claim, setting=preset.setting)
+    res = PresetResult(
+        preset.name,
+        preset.title,
+        preset.paper,
+        preset.description,
+        claim=preset.claim,
+        setting=preset.setting,
+    )
     try:
         preset.run(pool, res)
     except Exception as exc:  # a missing or failing retargeter is reported in the report
-        res.status = NOT_APPLICABLE if isinstance(exc, (UnknownNameError, CapabilityError)) else ERROR
+        res.status = (
+            NOT_APPLICABLE if isinstance(exc, (UnknownNameError, CapabilityError)) else ERROR
+        )
         res.reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
         res.agrees, res.evidence = None, f"not decided: the reproduction did not run ({res.status})"
     return res
 
 
-def run_presets(result=None, names=None, cases: Mapping[str, Any] | None = None) -> list[PresetResult]:
+def run_presets(
+    result=None, names=None, cases: Mapping[str, Any] | None = None
+) -> list[PresetResult]:
     """Run presets (default all); with ``result``, reuse its cases and attach to ``result.presets``."""
     pool = Cases({**(result.cases if result is not None else {}), **(cases or {})})
     out = [run_preset(n, pool) for n in (names or list(available_presets()))]

@@ -25,16 +25,17 @@ are decimated (graph-Voronoi clustering: seed vertices on a grid, every vertex j
 seed nearest along mesh edges, triangles whose corners fall in three clusters remain)
 to fit ``max_bytes``, and coordinates are quantized to 16 bits.
 """
+
 from __future__ import annotations
 
 import base64
 import datetime as _dt
 import html
 import json
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -52,9 +53,32 @@ MIN_VERTICES = 300
 #: Weight curves drawn per case (the shapes with the largest variance in the ground truth).
 MAX_WEIGHT_PANELS = 6
 #: Columns of the per-case summary table (times are in the ranking and the runs, apart from compilation).
-SUMMARY_METRICS = ("vertex_error_rms", "vertex_error_max", "marker_error_mean", "velocity_error", "lip_closure_error", "eyelid_closure_error", "lve", "fdd_abs", "detail_error", "detail_correlation", "weight_outside_share")
+SUMMARY_METRICS = (
+    "vertex_error_rms",
+    "vertex_error_max",
+    "marker_error_mean",
+    "velocity_error",
+    "lip_closure_error",
+    "eyelid_closure_error",
+    "lve",
+    "fdd_abs",
+    "detail_error",
+    "detail_correlation",
+    "weight_outside_share",
+)
 
-_PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
+_PALETTE = (
+    "#1f77b4",
+    "#d62728",
+    "#2ca02c",
+    "#ff7f0e",
+    "#9467bd",
+    "#8c564b",
+    "#e377c2",
+    "#17becf",
+    "#bcbd22",
+    "#7f7f7f",
+)
 
 
 # ---------------------------------------------------------------------------------------
@@ -69,7 +93,12 @@ class Series:
     color: str | None = None
 
     def as_dict(self) -> dict:
-        return {"name": self.name, "x": [float(v) for v in self.x], "y": [_finite(v) for v in self.y], "dashed": self.dashed}
+        return {
+            "name": self.name,
+            "x": [float(v) for v in self.x],
+            "y": [_finite(v) for v in self.y],
+            "dashed": self.dashed,
+        }
 
 
 @dataclass
@@ -84,7 +113,13 @@ class Plot:
     log_y: bool = False
 
     def as_dict(self) -> dict:
-        return {"title": self.title, "kind": self.kind, "xlabel": self.xlabel, "ylabel": self.ylabel, "series": [s.as_dict() for s in self.series]}
+        return {
+            "title": self.title,
+            "kind": self.kind,
+            "xlabel": self.xlabel,
+            "ylabel": self.ylabel,
+            "series": [s.as_dict() for s in self.series],
+        }
 
 
 def _finite(v) -> float | None:
@@ -113,7 +148,9 @@ def _fmt(v) -> str:
     return f"{v:.4g}"
 
 
-_SUPERSCRIPT = str.maketrans("-0123456789", "\u207b\u2070\u00b9\u00b2\u00b3\u2074\u2075\u2076\u2077\u2078\u2079")
+_SUPERSCRIPT = str.maketrans(
+    "-0123456789", "\u207b\u2070\u00b9\u00b2\u00b3\u2074\u2075\u2076\u2077\u2078\u2079"
+)
 
 
 def format_number(v) -> str:
@@ -173,7 +210,10 @@ def _title(plot: Plot, width: int, left: int) -> tuple[str, int]:
     """The title's ``<text>`` lines and the height they take."""
     lines = _wrap(plot.title, width - left - 8) or [""]
     esc = html.escape
-    text = "".join(f'<text x="{left}" y="{16 + 16 * i}" class="ptitle">{esc(line)}</text>' for i, line in enumerate(lines))
+    text = "".join(
+        f'<text x="{left}" y="{16 + 16 * i}" class="ptitle">{esc(line)}</text>'
+        for i, line in enumerate(lines)
+    )
     return text, 16 * len(lines)
 
 
@@ -217,36 +257,60 @@ def _bar_plot(plot: Plot, width: int) -> str:
     xs = lambda v: left + (v - lo) / (hi - lo) * w  # noqa: E731
     parts = [_svg_open(width, height), title]
     for t in _spaced_ticks(lo, hi, w, format_number):
-        parts.append(f'<line x1="{xs(t):.1f}" x2="{xs(t):.1f}" y1="{top}" y2="{bottom}" class="grid"/><text x="{xs(t):.1f}" y="{bottom + 14}" class="tick" text-anchor="middle">{format_number(t)}</text>')
+        parts.append(
+            f'<line x1="{xs(t):.1f}" x2="{xs(t):.1f}" y1="{top}" y2="{bottom}" class="grid"/><text x="{xs(t):.1f}" y="{bottom + 14}" class="tick" text-anchor="middle">{format_number(t)}</text>'
+        )
     for i, (s, v) in enumerate(zip(plot.series, values)):
         y = top + i * row
-        parts.append(f'<text x="{left - 6:.1f}" y="{y + 15}" class="tick" text-anchor="end">{esc(names[i])}<title>{esc(s.name)}</title></text>')
+        parts.append(
+            f'<text x="{left - 6:.1f}" y="{y + 15}" class="tick" text-anchor="end">{esc(names[i])}<title>{esc(s.name)}</title></text>'
+        )
         if v is None:
             parts.append(f'<text x="{xs(0.0) + 4:.1f}" y="{y + 15}" class="tick">no value</text>')
             continue
         x0, x1 = sorted((xs(0.0), xs(v)))
-        parts.append(f'<rect x="{x0:.1f}" y="{y + 4}" width="{max(x1 - x0, 0.5):.1f}" height="{row - 8}" fill="{colors[i]}"><title>{esc(s.name)}: {labels[i]}</title></rect>')
+        parts.append(
+            f'<rect x="{x0:.1f}" y="{y + 4}" width="{max(x1 - x0, 0.5):.1f}" height="{row - 8}" fill="{colors[i]}"><title>{esc(s.name)}: {labels[i]}</title></rect>'
+        )
         anchor, at = ("start", x1 + 4) if v >= 0 else ("end", x0 - 4)
         if v < 0 and at - _text_px(labels[i]) < left:
             anchor, at = "start", x1 + 4
-        parts.append(f'<text x="{at:.1f}" y="{y + 15}" class="tick" text-anchor="{anchor}">{labels[i]}</text>')
-    parts.append(f'<line x1="{xs(0.0):.1f}" x2="{xs(0.0):.1f}" y1="{top}" y2="{bottom}" class="zero"/>')
+        parts.append(
+            f'<text x="{at:.1f}" y="{y + 15}" class="tick" text-anchor="{anchor}">{labels[i]}</text>'
+        )
+    parts.append(
+        f'<line x1="{xs(0.0):.1f}" x2="{xs(0.0):.1f}" y1="{top}" y2="{bottom}" class="zero"/>'
+    )
     if plot.ylabel:
-        parts.append(f'<text x="{left + w / 2:.0f}" y="{height - 6}" class="axis" text-anchor="middle">{esc(plot.ylabel)}</text>')
+        parts.append(
+            f'<text x="{left + w / 2:.0f}" y="{height - 6}" class="axis" text-anchor="middle">{esc(plot.ylabel)}</text>'
+        )
     parts.append("</svg>")
     return "".join(parts)
 
 
 def _line_plot(plot: Plot, width: int, height: int) -> str:
     esc = html.escape
-    xs_all = np.concatenate([np.asarray(s.x, float) for s in plot.series]) if plot.series else np.zeros(0)
-    ys_all = np.concatenate([np.asarray(s.y, float) for s in plot.series]) if plot.series else np.zeros(0)
+    xs_all = (
+        np.concatenate([np.asarray(s.x, float) for s in plot.series])
+        if plot.series
+        else np.zeros(0)
+    )
+    ys_all = (
+        np.concatenate([np.asarray(s.y, float) for s in plot.series])
+        if plot.series
+        else np.zeros(0)
+    )
     ok = np.isfinite(ys_all) & np.isfinite(xs_all)
     if plot.log_y:
         ok &= ys_all > 0
     if not ok.any():
         return _no_values(plot, width)
-    tf = (lambda a: np.log10(np.maximum(a, 1e-300))) if plot.log_y else (lambda a: np.asarray(a, float))  # noqa: E731
+    tf = (
+        (lambda a: np.log10(np.maximum(a, 1e-300)))
+        if plot.log_y
+        else (lambda a: np.asarray(a, float))
+    )  # noqa: E731
     x0, x1 = float(xs_all[ok].min()), float(xs_all[ok].max())
     y0, y1 = float(tf(ys_all[ok]).min()), float(tf(ys_all[ok]).max())
     if x1 == x0:
@@ -269,23 +333,41 @@ def _line_plot(plot: Plot, width: int, height: int) -> str:
     height = top + h + bottom
     sx = lambda v: left + (v - x0) / (x1 - x0) * w  # noqa: E731
     sy = lambda v: top + h - (v - y0) / (y1 - y0) * h  # noqa: E731
-    parts = [_svg_open(width, height), title, f'<rect x="{left:.1f}" y="{top}" width="{w:.1f}" height="{h}" class="frame"/>']
+    parts = [
+        _svg_open(width, height),
+        title,
+        f'<rect x="{left:.1f}" y="{top}" width="{w:.1f}" height="{h}" class="frame"/>',
+    ]
     for t in yticks:
-        parts.append(f'<line x1="{left:.1f}" x2="{left + w:.1f}" y1="{sy(t):.1f}" y2="{sy(t):.1f}" class="grid"/><text x="{left - 6:.1f}" y="{sy(t) + 4:.1f}" class="tick" text-anchor="end">{ylabel(t)}</text>')
+        parts.append(
+            f'<line x1="{left:.1f}" x2="{left + w:.1f}" y1="{sy(t):.1f}" y2="{sy(t):.1f}" class="grid"/><text x="{left - 6:.1f}" y="{sy(t) + 4:.1f}" class="tick" text-anchor="end">{ylabel(t)}</text>'
+        )
     for t in _spaced_ticks(x0, x1, w, format_number):
-        parts.append(f'<text x="{sx(t):.1f}" y="{top + h + 14}" class="tick" text-anchor="middle">{format_number(t)}</text>')
+        parts.append(
+            f'<text x="{sx(t):.1f}" y="{top + h + 14}" class="tick" text-anchor="middle">{format_number(t)}</text>'
+        )
     for i, s in enumerate(plot.series):
         x, y = np.asarray(s.x, float), tf(np.asarray(s.y, float))
-        good = np.isfinite(x) & np.isfinite(y) & ((np.asarray(s.y, float) > 0) if plot.log_y else True)
+        good = (
+            np.isfinite(x) & np.isfinite(y) & ((np.asarray(s.y, float) > 0) if plot.log_y else True)
+        )
         if not good.any():
             continue
         pts = " ".join(f"{sx(a):.1f},{sy(b):.1f}" for a, b in zip(x[good], y[good]))
         dash = ' stroke-dasharray="5,4"' if s.dashed else ""
-        parts.append(f'<polyline points="{pts}" fill="none" stroke="{colors[i]}" stroke-width="1.6"{dash}><title>{esc(s.name)}</title></polyline>')
+        parts.append(
+            f'<polyline points="{pts}" fill="none" stroke="{colors[i]}" stroke-width="1.6"{dash}><title>{esc(s.name)}</title></polyline>'
+        )
         ly = top + 12 + 16 * i
-        parts.append(f'<line x1="{left + w + 10:.1f}" x2="{left + w + 30:.1f}" y1="{ly - 4}" y2="{ly - 4}" stroke="{colors[i]}" stroke-width="2"{dash}/><text x="{left + w + 34:.1f}" y="{ly}" class="legend">{esc(names[i])}</text>')
-    parts.append(f'<text x="{left + w / 2:.0f}" y="{height - 6}" class="axis" text-anchor="middle">{esc(plot.xlabel)}</text>')
-    parts.append(f'<text x="12" y="{top + h / 2:.0f}" class="axis" transform="rotate(-90 12 {top + h / 2:.0f})" text-anchor="middle">{esc(plot.ylabel)}</text>')
+        parts.append(
+            f'<line x1="{left + w + 10:.1f}" x2="{left + w + 30:.1f}" y1="{ly - 4}" y2="{ly - 4}" stroke="{colors[i]}" stroke-width="2"{dash}/><text x="{left + w + 34:.1f}" y="{ly}" class="legend">{esc(names[i])}</text>'
+        )
+    parts.append(
+        f'<text x="{left + w / 2:.0f}" y="{height - 6}" class="axis" text-anchor="middle">{esc(plot.xlabel)}</text>'
+    )
+    parts.append(
+        f'<text x="12" y="{top + h / 2:.0f}" class="axis" transform="rotate(-90 12 {top + h / 2:.0f})" text-anchor="middle">{esc(plot.ylabel)}</text>'
+    )
     parts.append("</svg>")
     return "".join(parts)
 
@@ -293,7 +375,9 @@ def _line_plot(plot: Plot, width: int, height: int) -> str:
 # ---------------------------------------------------------------------------------------
 # Geometry for the viewer
 # ---------------------------------------------------------------------------------------
-def decimate(vertices: np.ndarray, triangles: np.ndarray, max_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def decimate(
+    vertices: np.ndarray, triangles: np.ndarray, max_vertices: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Coarsen a mesh to at most about ``max_vertices`` vertices for display.
 
     Returns ``(keep (K,) vertex ids, triangles (T', 3) in 0..K-1, labels (V,) cluster of
@@ -333,12 +417,19 @@ def decimate(vertices: np.ndarray, triangles: np.ndarray, max_vertices: int) -> 
     edges = unique_edges(triangles)
     length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1) + 1e-12
     graph = sp.coo_matrix((length, (edges[:, 0], edges[:, 1])), shape=(n, n)).tocsr()
-    _, _, sources = dijkstra(graph, directed=False, indices=seeds, min_only=True, return_predecessors=True)
+    _, _, sources = dijkstra(
+        graph, directed=False, indices=seeds, min_only=True, return_predecessors=True
+    )
     seed_index = np.full(n, -1)
     seed_index[seeds] = np.arange(len(seeds))
     labels = np.where(sources >= 0, seed_index[np.maximum(sources, 0)], -1)
     tl = labels[triangles]
-    good = (tl >= 0).all(axis=1) & (tl[:, 0] != tl[:, 1]) & (tl[:, 1] != tl[:, 2]) & (tl[:, 0] != tl[:, 2])
+    good = (
+        (tl >= 0).all(axis=1)
+        & (tl[:, 0] != tl[:, 1])
+        & (tl[:, 1] != tl[:, 2])
+        & (tl[:, 0] != tl[:, 2])
+    )
     tl = tl[good]
     _, unique_rows = np.unique(np.sort(tl, axis=1), axis=0, return_index=True)
     return seeds, tl[np.sort(unique_rows)], labels
@@ -372,10 +463,16 @@ def _quantize(points: np.ndarray) -> dict:
 
 def _mesh_block(vertices: np.ndarray, triangles: np.ndarray, max_vertices: int):
     keep, tris, labels = decimate(vertices, triangles, max_vertices)
-    return keep, labels, {"nv": int(len(keep)), "tri": _b64(tris.astype("<u4")), "nt": int(len(tris))}
+    return (
+        keep,
+        labels,
+        {"nv": int(len(keep)), "tri": _b64(tris.astype("<u4")), "nt": int(len(tris))},
+    )
 
 
-def _key_frames(truth_local: np.ndarray, neutral: np.ndarray, frames: np.ndarray, count: int = 3) -> list[int]:
+def _key_frames(
+    truth_local: np.ndarray, neutral: np.ndarray, frames: np.ndarray, count: int = 3
+) -> list[int]:
     """Indices into ``frames`` of up to ``count`` expressive, well separated frames."""
     amount = np.linalg.norm(truth_local[frames] - neutral, axis=-1).mean(axis=1)
     chosen: list[int] = []
@@ -388,8 +485,12 @@ def _key_frames(truth_local: np.ndarray, neutral: np.ndarray, frames: np.ndarray
     return sorted(chosen)
 
 
-def _case_view(result: ComparisonResult, cname: str, case, max_vertices: int, max_frames: int) -> dict:
-    runs = [r for r in result.runs if r.case == cname and r.status == OK and r.animation is not None]
+def _case_view(
+    result: ComparisonResult, cname: str, case, max_vertices: int, max_frames: int
+) -> dict:
+    runs = [
+        r for r in result.runs if r.case == cname and r.status == OK and r.animation is not None
+    ]
     target = case.target
     neutral = np.asarray(target.neutral.vertices, dtype=np.float64)
     height = float(target.neutral.height) or 1.0
@@ -401,20 +502,40 @@ def _case_view(result: ComparisonResult, cname: str, case, max_vertices: int, ma
     reference = None
     if truth is not None:
         truth_v = np.asarray(truth.vertices, dtype=np.float64)
-        seqs.append({"label": "ground truth", "mesh": "target", "kind": "truth", **_quantize(truth_v[frames][:, keep])})
+        seqs.append(
+            {
+                "label": "ground truth",
+                "mesh": "target",
+                "kind": "truth",
+                **_quantize(truth_v[frames][:, keep]),
+            }
+        )
         reference = truth_v
     heat = []
     for run in runs:
         verts = np.asarray(run.animation.vertices, dtype=np.float64)
-        seqs.append({"label": run.method, "mesh": "target", "kind": "method", **_quantize(verts[frames][:, keep])})
+        seqs.append(
+            {
+                "label": run.method,
+                "mesh": "target",
+                "kind": "method",
+                **_quantize(verts[frames][:, keep]),
+            }
+        )
         if reference is not None:
             err = per_vertex_error(verts, reference, height)
-            heat.append({"label": run.method, "values": _cluster_mean(err, labels, len(keep)).tolist()})
+            heat.append(
+                {"label": run.method, "values": _cluster_mean(err, labels, len(keep)).tolist()}
+            )
     source = {"kind": case.source.kind}
     perf = case.source.performance
     if case.source.kind == "mesh":
-        s_keep, _, s_mesh = _mesh_block(np.asarray(perf.reference.vertices), np.asarray(perf.triangles), max_vertices)
-        source.update(mesh=s_mesh, **_quantize(np.asarray(perf.vertices, dtype=np.float64)[frames][:, s_keep]))
+        s_keep, _, s_mesh = _mesh_block(
+            np.asarray(perf.reference.vertices), np.asarray(perf.triangles), max_vertices
+        )
+        source.update(
+            mesh=s_mesh, **_quantize(np.asarray(perf.vertices, dtype=np.float64)[frames][:, s_keep])
+        )
     elif case.source.kind == "markers" and perf.dim == 3:
         source.update(**_quantize(np.asarray(perf.positions, dtype=np.float64)[frames]))
     heat_max = max([max(h["values"]) for h in heat if h["values"]] + [1e-9])
@@ -446,7 +567,11 @@ def _velocity_plot(result: ComparisonResult, cname: str, case) -> Plot | None:
     truth = getattr(case, "truth", None)
     if truth is None or case.target.landmarks is None or case.source.n_frames < 2:
         return None
-    plot = Plot(f"{cname}: velocity error over time (Seol 2012 fig. 11)", xlabel="frame", ylabel="||DP - DQ||^2 / H^2")
+    plot = Plot(
+        f"{cname}: velocity error over time (Seol 2012 fig. 11)",
+        xlabel="frame",
+        ylabel="||DP - DQ||^2 / H^2",
+    )
     for run in result.runs:
         if run.case == cname and run.status == OK and run.animation is not None:
             curve = landmark_velocity_curve(run.animation.vertices, truth, case.target)
@@ -455,7 +580,14 @@ def _velocity_plot(result: ComparisonResult, cname: str, case) -> Plot | None:
 
 
 def _weight_plots(result: ComparisonResult, cname: str, case) -> list[Plot]:
-    runs = [r for r in result.runs if r.case == cname and r.status == OK and r.animation is not None and r.animation.weights is not None]
+    runs = [
+        r
+        for r in result.runs
+        if r.case == cname
+        and r.status == OK
+        and r.animation is not None
+        and r.animation.weights is not None
+    ]
     truth = getattr(case, "truth", None)
     has_truth = truth is not None and truth.weights is not None
     if not runs and not has_truth:
@@ -470,11 +602,26 @@ def _weight_plots(result: ComparisonResult, cname: str, case) -> list[Plot]:
     for shape in chosen:
         plot = Plot(f"{cname}: {shape}", xlabel="frame", ylabel="weight")
         if has_truth:
-            plot.series.append(Series("ground truth", frames, np.asarray(truth.weights)[:, truth.weight_names.index(shape)], dashed=True, color="#444"))
+            plot.series.append(
+                Series(
+                    "ground truth",
+                    frames,
+                    np.asarray(truth.weights)[:, truth.weight_names.index(shape)],
+                    dashed=True,
+                    color="#444",
+                )
+            )
         for i, run in enumerate(runs):
             if shape in run.animation.weight_names:
                 col = run.animation.weight_names.index(shape)
-                plot.series.append(Series(run.method, frames, np.asarray(run.animation.weights)[:, col], color=_PALETTE[i % len(_PALETTE)]))
+                plot.series.append(
+                    Series(
+                        run.method,
+                        frames,
+                        np.asarray(run.animation.weights)[:, col],
+                        color=_PALETTE[i % len(_PALETTE)],
+                    )
+                )
         if len(plot.series) > int(has_truth) or (has_truth and not runs):
             plots.append(plot)
     return plots
@@ -484,7 +631,11 @@ def _weight_plots(result: ComparisonResult, cname: str, case) -> list[Plot]:
 # HTML
 # ---------------------------------------------------------------------------------------
 def _asset(name: str) -> str:
-    return resources.files("faceretarget.evaluation").joinpath("assets", name).read_text(encoding="utf-8")
+    return (
+        resources.files("faceretarget.evaluation")
+        .joinpath("assets", name)
+        .read_text(encoding="utf-8")
+    )
 
 
 def _breakable(name: str) -> str:
@@ -519,10 +670,18 @@ def _best(values: dict[str, float], better: str) -> set[str]:
     return {k for k, v in values.items() if v == target}
 
 
-def _best_per_metric(result: ComparisonResult, index: dict, metrics: Sequence[str]) -> dict[str, set[str]]:
+def _best_per_metric(
+    result: ComparisonResult, index: dict, metrics: Sequence[str]
+) -> dict[str, set[str]]:
     best = {}
     for m in metrics:
-        vals = {meth: index[(meth, m)]["value"] for meth in result.methods if (meth, m) in index and index[(meth, m)]["status"] == OK and index[(meth, m)]["value"] is not None}
+        vals = {
+            meth: index[(meth, m)]["value"]
+            for meth in result.methods
+            if (meth, m) in index
+            and index[(meth, m)]["status"] == OK
+            and index[(meth, m)]["value"] is not None
+        }
         best[m] = _best(vals, result.better(m))
     return best
 
@@ -535,25 +694,41 @@ def _metric_header(result: ComparisonResult, metric: str, unit: str, ranked: boo
     return f'<th{cls} title="{esc(definition)}">{_breakable(metric)}<br><small>{esc(unit)}</small></th>'
 
 
-def _metric_table(result: ComparisonResult, cname: str, metrics: Sequence[str], roles: Mapping, rank_by: str | None) -> str:
+def _metric_table(
+    result: ComparisonResult,
+    cname: str,
+    metrics: Sequence[str],
+    roles: Mapping,
+    rank_by: str | None,
+) -> str:
     """Methods down, metrics across; the best value per metric highlighted, the ranking metric marked."""
     esc = html.escape
     index = {(r["method"], r["metric"]): r for r in result.rows if r["case"] == cname}
     units = {r["metric"]: r["unit"] for r in result.rows if r["case"] == cname}
     head = "".join(_metric_header(result, m, units.get(m, ""), m == rank_by) for m in metrics)
     best = _best_per_metric(result, index, metrics)
-    out = [f'<table class="metrics case-metrics"><thead><tr><th>method</th>{head}</tr></thead><tbody>']
+    out = [
+        f'<table class="metrics case-metrics"><thead><tr><th>method</th>{head}</tr></thead><tbody>'
+    ]
     for run in (r for r in result.runs if r.case == cname):
-        status = "" if run.status == OK else f'<span class="{"err" if run.status == ERROR else "na"} status">{esc(run.status)}</span>'
+        status = (
+            ""
+            if run.status == OK
+            else f'<span class="{"err" if run.status == ERROR else "na"} status">{esc(run.status)}</span>'
+        )
         cells = "".join(_cell(index.get((run.method, m)), run.method in best[m]) for m in metrics)
         out.append(f"<tr>{_method_cell(run.method, roles, status)}{cells}</tr>")
         if run.status != OK:
-            out.append(f'<tr class="reason"><td colspan="{len(metrics) + 1}">{esc(run.reason)}</td></tr>')
+            out.append(
+                f'<tr class="reason"><td colspan="{len(metrics) + 1}">{esc(run.reason)}</td></tr>'
+            )
     out.append("</tbody></table>")
     return "".join(out)
 
 
-def _all_metrics_table(result: ComparisonResult, cname: str, metrics: Sequence[str], roles: Mapping) -> str:
+def _all_metrics_table(
+    result: ComparisonResult, cname: str, metrics: Sequence[str], roles: Mapping
+) -> str:
     """Metrics down, methods across (any number of metrics fits the page width)."""
     esc = html.escape
     index = {(r["method"], r["metric"]): r for r in result.rows if r["case"] == cname}
@@ -561,12 +736,16 @@ def _all_metrics_table(result: ComparisonResult, cname: str, metrics: Sequence[s
     methods = [r.method for r in result.runs if r.case == cname]
     best = _best_per_metric(result, index, metrics)
     head = "".join(f"<th>{_breakable(m)}</th>" for m in methods)
-    out = [f'<table class="metrics all-metrics"><thead><tr><th>metric</th><th>unit</th><th>better</th>{head}</tr></thead><tbody>']
+    out = [
+        f'<table class="metrics all-metrics"><thead><tr><th>metric</th><th>unit</th><th>better</th>{head}</tr></thead><tbody>'
+    ]
     for m in metrics:
         base = m.split("[")[0]
         definition = result.metrics[base].description if base in result.metrics else ""
         cells = "".join(_cell(index.get((meth, m)), meth in best[m]) for meth in methods)
-        out.append(f'<tr><th title="{esc(definition)}">{_breakable(m)}</th><td>{esc(units.get(m, ""))}</td><td>{esc(result.better(m))}</td>{cells}</tr>')
+        out.append(
+            f'<tr><th title="{esc(definition)}">{_breakable(m)}</th><td>{esc(units.get(m, ""))}</td><td>{esc(result.better(m))}</td>{cells}</tr>'
+        )
     out.append("</tbody></table>")
     return "".join(out)
 
@@ -583,7 +762,9 @@ def _timings(result: ComparisonResult, method: str) -> tuple[float | None, float
     runs = [r for r in result.runs if r.method == method and r.status == OK]
     times = [t for t in (_excl_compile(r) for r in runs) if t is not None]
     compiles = [r.compile_s for r in runs if r.compile_s is not None]
-    return (float(np.mean(times)) if times else None), (float(np.sum(compiles)) if compiles else None)
+    return (float(np.mean(times)) if times else None), (
+        float(np.sum(compiles)) if compiles else None
+    )
 
 
 def _ranking_table(result: ComparisonResult, rank_by: str | None, roles: Mapping) -> str:
@@ -593,19 +774,38 @@ def _ranking_table(result: ComparisonResult, rank_by: str | None, roles: Mapping
     rows = result.ranking(metrics=[rank_by]) if rank_by else result.ranking()
     unit = result.metrics[rank_by].unit if rank_by in result.metrics else ""
     values = {(r["case"], r["method"]): r for r in result.rows if r["metric"] == rank_by}
-    best = {c: _best({m: r["value"] for (cc, m), r in values.items() if cc == c and r["status"] == OK and r["value"] is not None}, result.better(rank_by or "")) for c in cases}
-    case_heads = "".join(f'<th class="ranked">{_breakable(c)}<br><small>{esc(unit)}</small></th>' for c in cases)
+    best = {
+        c: _best(
+            {
+                m: r["value"]
+                for (cc, m), r in values.items()
+                if cc == c and r["status"] == OK and r["value"] is not None
+            },
+            result.better(rank_by or ""),
+        )
+        for c in cases
+    }
+    case_heads = "".join(
+        f'<th class="ranked">{_breakable(c)}<br><small>{esc(unit)}</small></th>' for c in cases
+    )
     out = [
         '<table class="metrics ranking"><thead><tr><th>rank</th><th>method</th>',
         case_heads,
-        '<th>mean rank<br><small>over cases</small></th><th>time<br><small>s, mean, excl. compile</small></th>',
-        '<th>compile<br><small>s, total</small></th><th>did not run</th></tr></thead><tbody>',
+        "<th>mean rank<br><small>over cases</small></th><th>time<br><small>s, mean, excl. compile</small></th>",
+        "<th>compile<br><small>s, total</small></th><th>did not run</th></tr></thead><tbody>",
     ]
     for r in rows:
         method = r["method"]
         per_case = "".join(_cell(values.get((c, method)), method in best[c]) for c in cases)
         run_time, compile_time = _timings(result, method)
-        missing = ", ".join(part for part in (f'{r["not_applicable"]} n/a' if r["not_applicable"] else "", f'{r["failed"]} failed' if r["failed"] else "") if part)
+        missing = ", ".join(
+            part
+            for part in (
+                f"{r['not_applicable']} n/a" if r["not_applicable"] else "",
+                f"{r['failed']} failed" if r["failed"] else "",
+            )
+            if part
+        )
         out.append(
             f'<tr><td class="num">{r["rank"] if r["rank"] is not None else "-"}</td>{_method_cell(method, roles)}{per_case}'
             f'<td class="num">{format_number(r["mean_rank"]) or "-"}</td><td class="num">{format_number(run_time) or "-"}</td>'
@@ -653,8 +853,12 @@ def _reproductions_line(presets) -> str:
     verdicts = [getattr(p, "agrees", None) for p in presets]
     disagree = [p for p, v in zip(presets, verdicts) if v is False]
     counts = f"{sum(v is True for v in verdicts)} agree, {len(disagree)} disagree, {sum(v is None for v in verdicts)} not decided"
-    links = ", ".join(f'<a class="disagree" href="#preset-{esc(p.name)}">{esc(p.name)}</a>' for p in disagree)
-    flagged = f'; <span class="disagree">disagreeing with their paper: {links}</span>' if disagree else ""
+    links = ", ".join(
+        f'<a class="disagree" href="#preset-{esc(p.name)}">{esc(p.name)}</a>' for p in disagree
+    )
+    flagged = (
+        f'; <span class="disagree">disagreeing with their paper: {links}</span>' if disagree else ""
+    )
     return f'<p class="reproductions-line">Paper reproductions: {counts}{flagged}.</p>'
 
 
@@ -665,8 +869,14 @@ def _roles_legend(roles: Mapping) -> str:
     groups: dict[str, list[str]] = {}
     for name, role in roles.items():
         groups.setdefault(role.kind, []).append(name)
-    words = {"paper method": "paper methods (the retargeter a paper describes)", "baseline": "baselines (what a paper compares against)", "other": "other methods"}
-    parts = [f"{esc(words.get(kind, kind))}: {esc(', '.join(names))}" for kind, names in groups.items()]
+    words = {
+        "paper method": "paper methods (the retargeter a paper describes)",
+        "baseline": "baselines (what a paper compares against)",
+        "other": "other methods",
+    }
+    parts = [
+        f"{esc(words.get(kind, kind))}: {esc(', '.join(names))}" for kind, names in groups.items()
+    ]
     return f'<p class="note roles">{"; ".join(parts)}.</p>'
 
 
@@ -677,7 +887,11 @@ def _table_cell(value) -> str:
 
 
 #: CSS class and heading of a reproduction's verdict (``PresetResult.agrees``).
-_VERDICTS = {True: ("agree", "Agrees with the paper"), False: ("disagree", "Disagrees with the paper"), None: ("undecided", "Not decided")}
+_VERDICTS = {
+    True: ("agree", "Agrees with the paper"),
+    False: ("disagree", "Disagrees with the paper"),
+    None: ("undecided", "Not decided"),
+}
 
 
 def _verdict_html(preset) -> str:
@@ -686,7 +900,9 @@ def _verdict_html(preset) -> str:
     esc = html.escape
     agrees = getattr(preset, "agrees", None)
     cls, label = _VERDICTS[None if agrees is None else bool(agrees)]
-    evidence = getattr(preset, "evidence", "") or ("the preset did not run" if preset.status != OK else "")
+    evidence = getattr(preset, "evidence", "") or (
+        "the preset did not run" if preset.status != OK else ""
+    )
     return f'<div class="verdict {cls}" data-verdict="{cls}"><strong>{label}</strong>: {esc(evidence)}</div>'
 
 
@@ -697,7 +913,9 @@ def _claim_html(preset) -> str:
     if claim:
         out.append(f'<p class="claim"><strong>The paper\'s claim.</strong> {esc(claim)}</p>')
     if setting:
-        out.append(f'<p class="setting"><strong>The paper\'s setting, as reproduced.</strong> {esc(setting)}</p>')
+        out.append(
+            f'<p class="setting"><strong>The paper\'s setting, as reproduced.</strong> {esc(setting)}</p>'
+        )
     return "".join(out)
 
 
@@ -714,23 +932,34 @@ def _presets_summary(presets) -> str:
             f'<tr><th><a href="#preset-{esc(p.name)}">{esc(p.name)}</a></th><td>{esc(getattr(p, "claim", ""))}</td>'
             f'<td class="verdict-cell {cls}">{esc(label)}</td></tr>'
         )
-    return ('<table class="metrics presets-summary"><thead><tr><th>reproduction</th><th>the paper\'s claim</th><th>measured</th></tr></thead><tbody>'
-            + "".join(rows) + "</tbody></table>")
+    return (
+        '<table class="metrics presets-summary"><thead><tr><th>reproduction</th><th>the paper\'s claim</th><th>measured</th></tr></thead><tbody>'
+        + "".join(rows)
+        + "</tbody></table>"
+    )
 
 
 def _preset_html(preset) -> str:
     esc = html.escape
-    out = [f'<section class="preset" id="preset-{esc(preset.name)}"><h3>{esc(preset.title)}</h3><p class="paper">{esc(preset.paper)}</p>']
+    out = [
+        f'<section class="preset" id="preset-{esc(preset.name)}"><h3>{esc(preset.title)}</h3><p class="paper">{esc(preset.paper)}</p>'
+    ]
     out.append(_claim_html(preset))
     out.append(_verdict_html(preset))
     out.append(f"<p>{esc(preset.description)}</p>")
     if preset.status != OK:
-        out.append(f'<p class="{"err" if preset.status == ERROR else "na"} note">{esc(preset.status)}: {esc(preset.reason)}</p>')
+        out.append(
+            f'<p class="{"err" if preset.status == ERROR else "na"} note">{esc(preset.status)}: {esc(preset.reason)}</p>'
+        )
     for plot in preset.plots:
         out.append(svg_plot(plot))
     if preset.table:
         cols = list(dict.fromkeys(k for row in preset.table for k in row))
-        out.append('<table class="metrics"><thead><tr>' + "".join(f"<th>{esc(c)}</th>" for c in cols) + "</tr></thead><tbody>")
+        out.append(
+            '<table class="metrics"><thead><tr>'
+            + "".join(f"<th>{esc(c)}</th>" for c in cols)
+            + "</tr></thead><tbody>"
+        )
         for row in preset.table:
             out.append("<tr>" + "".join(_table_cell(row.get(c)) for c in cols) + "</tr>")
         out.append("</tbody></table>")
@@ -745,14 +974,26 @@ def _budget(result: ComparisonResult, max_bytes: int, max_frames: int, max_verti
     return int(np.clip(per_case / (n_seqs * max_frames * 6), MIN_VERTICES, max_vertices))
 
 
-def _case_section(result: ComparisonResult, ci: int, cname: str, case, summary, roles: Mapping, rank_by: str | None) -> str:
+def _case_section(
+    result: ComparisonResult,
+    ci: int,
+    cname: str,
+    case,
+    summary,
+    roles: Mapping,
+    rank_by: str | None,
+) -> str:
     esc = html.escape
     present = {r["metric"] for r in result.rows if r["case"] == cname}
     cols = [m for m in SUMMARY_METRICS if m in present]
     if rank_by in present and rank_by not in cols:
         cols.insert(0, rank_by)
     regions = sorted(m for m in present if m.startswith("vertex_error_region["))
-    others = [m for m in dict.fromkeys(r["metric"] for r in result.rows if r["case"] == cname) if m not in cols]
+    others = [
+        m
+        for m in dict.fromkeys(r["metric"] for r in result.rows if r["case"] == cname)
+        if m not in cols
+    ]
     source = case.source
     sec = [
         f'<section class="case" id="case-{ci}"><h2>Case: {esc(cname)}</h2>',
@@ -760,7 +1001,7 @@ def _case_section(result: ComparisonResult, ci: int, cname: str, case, summary, 
         f'<ul class="summaries">{_summary_html(summary)}</ul>',
         "<h3>Metrics</h3>",
         _metric_table(result, cname, cols, roles, rank_by),
-        f'<details><summary>all metrics ({len(others)} more, incl. {len(regions)} regions)</summary>{_all_metrics_table(result, cname, others, roles)}</details>',
+        f"<details><summary>all metrics ({len(others)} more, incl. {len(regions)} regions)</summary>{_all_metrics_table(result, cname, others, roles)}</details>",
         f'<h3>Viewer</h3><div class="viewer" data-case="{ci}"></div>',
         f'<h3>Key frames side by side</h3><div class="keyframes" data-case="{ci}"></div>',
         f'<h3>Per-vertex error on the target mesh</h3><p class="note">mean over frames of ||result - truth||, % of face height; shared colour scale per case.</p><div class="heat" data-case="{ci}"></div>',
@@ -770,7 +1011,11 @@ def _case_section(result: ComparisonResult, ci: int, cname: str, case, summary, 
         sec.append("<h3>Velocity error over time</h3>" + svg_plot(vplot, width=760))
     wplots = _weight_plots(result, cname, case)
     if wplots:
-        sec.append('<h3>Weight curves</h3><div class="plots">' + "".join(svg_plot(p, width=560, height=230) for p in wplots) + "</div>")
+        sec.append(
+            '<h3>Weight curves</h3><div class="plots">'
+            + "".join(svg_plot(p, width=560, height=230) for p in wplots)
+            + "</div>"
+        )
     sec.append("</section>")
     return "".join(sec)
 
@@ -792,7 +1037,16 @@ def _runs_table(result: ComparisonResult, roles: Mapping) -> str:
     )
 
 
-def render_html(result: ComparisonResult, *, title: str = "faceretarget comparison", max_bytes: int = MAX_BYTES, max_frames: int = MAX_FRAMES, max_vertices: int = MAX_VERTICES, rank_by: str | None = None, registry=None) -> str:
+def render_html(
+    result: ComparisonResult,
+    *,
+    title: str = "faceretarget comparison",
+    max_bytes: int = MAX_BYTES,
+    max_frames: int = MAX_FRAMES,
+    max_vertices: int = MAX_VERTICES,
+    rank_by: str | None = None,
+    registry=None,
+) -> str:
     """The self-contained report page as a string.
 
     ``rank_by``: the metric that ranks the methods (default ``vertex_error_rms``); ``registry``:
@@ -810,9 +1064,12 @@ def render_html(result: ComparisonResult, *, title: str = "faceretarget comparis
     for ci, (cname, case) in enumerate(result.cases.items()):
         sections.append(_case_section(result, ci, cname, case, summaries[ci], roles, rank_by))
         views.append(_case_view(result, cname, case, vertex_budget, max_frames))
-    presets = (_presets_summary(result.presets) + "".join(_preset_html(p) for p in result.presets)) or '<p class="note">No paper reproductions in this run.</p>'
+    presets = (
+        _presets_summary(result.presets) + "".join(_preset_html(p) for p in result.presets)
+    ) or '<p class="note">No paper reproductions in this run.</p>'
     definitions = "".join(
-        f"<tr><th>{_breakable(name)}</th><td>{esc(m.unit)}</td><td>{esc(m.better)}</td><td>{esc(m.description)}</td></tr>" for name, m in result.metrics.items()
+        f"<tr><th>{_breakable(name)}</th><td>{esc(m.unit)}</td><td>{esc(m.better)}</td><td>{esc(m.description)}</td></tr>"
+        for name, m in result.metrics.items()
     )
     nav = "".join(f'<a href="#case-{i}">{esc(n)}</a>' for i, n in enumerate(result.cases))
     data = json.dumps({"cases": views}, separators=(",", ":")).replace("</", "<\\/")
@@ -851,7 +1108,19 @@ def check_report_folder(folder) -> Path:
     return folder
 
 
-def write_report(result: ComparisonResult, folder, *, title: str = "faceretarget comparison", max_bytes: int = MAX_BYTES, max_frames: int = MAX_FRAMES, max_vertices: int = MAX_VERTICES, force: bool = False, inputs=(), rank_by: str | None = None, registry=None) -> dict[str, Path]:
+def write_report(
+    result: ComparisonResult,
+    folder,
+    *,
+    title: str = "faceretarget comparison",
+    max_bytes: int = MAX_BYTES,
+    max_frames: int = MAX_FRAMES,
+    max_vertices: int = MAX_VERTICES,
+    force: bool = False,
+    inputs=(),
+    rank_by: str | None = None,
+    registry=None,
+) -> dict[str, Path]:
     """Write ``report.html``, ``results.csv`` and ``results.json`` into ``folder``.
 
     The folder is created if missing (its parent must exist); each file is written
@@ -868,7 +1137,15 @@ def write_report(result: ComparisonResult, folder, *, title: str = "faceretarget
         for name in REPORT_FILES:
             check_destination(folder / name, inputs=inputs, force=force)
     folder.mkdir(exist_ok=True)
-    page = render_html(result, title=title, max_bytes=max_bytes, max_frames=max_frames, max_vertices=max_vertices, rank_by=rank_by, registry=registry)
+    page = render_html(
+        result,
+        title=title,
+        max_bytes=max_bytes,
+        max_frames=max_frames,
+        max_vertices=max_vertices,
+        rank_by=rank_by,
+        registry=registry,
+    )
     return {
         "html": atomic_write_text(folder / "report.html", page, force=force, inputs=inputs),
         "csv": result.to_csv(folder / "results.csv", force=force, inputs=inputs),

@@ -16,9 +16,11 @@ plugin), on the built-in cases (modest sizes by default, or the caller's cases).
 tuned to make a reproduction agree: one that disagrees with its paper is reported as
 disagreeing, and the report shows it in red with the numbers.
 """
+
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -26,8 +28,20 @@ from .metrics import METRICS, normal_detail, to_head_frame
 from .presets import Cases, PresetResult
 
 __all__ = [
-    "OPTICAL_NOISE", "NOISE_SEED", "DETAIL_CASES", "DETAIL_MIN_WRINKLE", "paper_params", "require", "run_method",
-    "set_verdict", "num", "rms_per_frame", "face_size", "noisy_markers", "procrustes_head_motion", "detail_transfer",
+    "OPTICAL_NOISE",
+    "NOISE_SEED",
+    "DETAIL_CASES",
+    "DETAIL_MIN_WRINKLE",
+    "paper_params",
+    "require",
+    "run_method",
+    "set_verdict",
+    "num",
+    "rms_per_frame",
+    "face_size",
+    "noisy_markers",
+    "procrustes_head_motion",
+    "detail_transfer",
 ]
 
 #: Marker noise of optical motion capture, relative to the face size: 0.3 mm (standard
@@ -86,7 +100,9 @@ def num(v: float) -> str:
 def rms_per_frame(animation, case) -> np.ndarray:
     """Per frame, the RMS distance of the result from the ground truth, % of the target face height."""
     height = float(case.target.neutral.height)
-    diff = np.asarray(animation.vertices, dtype=np.float64) - np.asarray(case.truth.vertices, dtype=np.float64)
+    diff = np.asarray(animation.vertices, dtype=np.float64) - np.asarray(
+        case.truth.vertices, dtype=np.float64
+    )
     return 100.0 * np.sqrt(np.einsum("fvd,fvd->fv", diff, diff).mean(axis=1)) / height
 
 
@@ -96,7 +112,13 @@ def face_size(points: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))
 
 
-def noisy_markers(source, relative_sigma: float = OPTICAL_NOISE, seed: int = NOISE_SEED, *, procrustes: bool = False):
+def noisy_markers(
+    source,
+    relative_sigma: float = OPTICAL_NOISE,
+    seed: int = NOISE_SEED,
+    *,
+    procrustes: bool = False,
+):
     """``(Source, sigma)``: the source's markers (a mesh source sampled at its landmarks) plus
     Gaussian noise of ``relative_sigma`` times the RMS radius of its neutral markers, as an
     optical capture would deliver them (actor layers kept). Head motion: none known, or with
@@ -148,11 +170,23 @@ def _no_wrinkles(spec: str) -> str:
 
 
 def _measure(animation, case) -> dict:
-    return {m: METRICS[m].compute(animation, case, {}) for m in ("detail_error", "detail_correlation", "vertex_error_rms")}
+    return {
+        m: METRICS[m].compute(animation, case, {})
+        for m in ("detail_error", "detail_correlation", "vertex_error_rms")
+    }
 
 
-def detail_transfer(cases: Cases, res: PresetResult, method: str, params: dict, *, ablation: dict, baseline: str,
-                    baseline_label: str, large_scale: bool) -> None:
+def detail_transfer(
+    cases: Cases,
+    res: PresetResult,
+    method: str,
+    params: dict,
+    *,
+    ablation: dict,
+    baseline: str,
+    baseline_label: str,
+    large_scale: bool,
+) -> None:
     """``method`` (with ``params``), the same with its detail layer switched off (``params``
     updated by ``ablation``, public parameters) and ``baseline`` (default parameters; called
     ``baseline_label`` in the evidence) on each of :data:`DETAIL_CASES`; the verdict compares
@@ -161,7 +195,11 @@ def detail_transfer(cases: Cases, res: PresetResult, method: str, params: dict, 
 
     require(method, baseline)
     labels = {"method": method, "without": f"{method} without details", "baseline": baseline}
-    short = {"method": method, "without": "no detail", "baseline": "".join(w[0] for w in baseline_label.split()).upper()}
+    short = {
+        "method": method,
+        "without": "no detail",
+        "baseline": "".join(w[0] for w in baseline_label.split()).upper(),
+    }
     parts, bars, skipped = [], [], []
     for label, spec in DETAIL_CASES:
         case = cases(spec)
@@ -171,55 +209,104 @@ def detail_transfer(cases: Cases, res: PresetResult, method: str, params: dict, 
             skipped.append(f"{label}: the wrinkle-free twin does not match the case")
             continue
         neutral = np.asarray(case.target.neutral.vertices, dtype=np.float64)
-        local = [to_head_frame(np.asarray(c.truth.vertices, dtype=np.float64), c.truth.head_motion) for c in (case, twin)]
-        wrinkle = 100.0 * float(np.sqrt(np.mean(normal_detail(local[0] - local[1], case.target.neutral.triangles, neutral) ** 2))) / height
+        local = [
+            to_head_frame(np.asarray(c.truth.vertices, dtype=np.float64), c.truth.head_motion)
+            for c in (case, twin)
+        ]
+        wrinkle = (
+            100.0
+            * float(
+                np.sqrt(
+                    np.mean(
+                        normal_detail(local[0] - local[1], case.target.neutral.triangles, neutral)
+                        ** 2
+                    )
+                )
+            )
+            / height
+        )
         if not wrinkle > DETAIL_MIN_WRINKLE:
-            skipped.append(f"{label}: no wrinkle is active in the performance (fine-scale wrinkle motion {num(wrinkle)}% of H)")
+            skipped.append(
+                f"{label}: no wrinkle is active in the performance (fine-scale wrinkle motion {num(wrinkle)}% of H)"
+            )
             continue
-        settings = {"method": (method, params), "without": (method, paper_params(method, {**params, **ablation})),
-                    "baseline": (baseline, {})}
+        settings = {
+            "method": (method, params),
+            "without": (method, paper_params(method, {**params, **ablation})),
+            "baseline": (baseline, {}),
+        }
         got = {}
         truth_wrinkle = normal_detail(local[0] - local[1], case.target.neutral.triangles, neutral)
         for key, (name, kw) in settings.items():
             anim, plain = run_method(name, case, **kw), run_method(name, twin, **kw)
             got[key] = _measure(anim, case)
             # what the wrinkles alone change in the result (the twin differs only by them)
-            moved = [to_head_frame(np.asarray(a.vertices, dtype=np.float64), c.truth.head_motion) for a, c in ((anim, case), (plain, twin))]
+            moved = [
+                to_head_frame(np.asarray(a.vertices, dtype=np.float64), c.truth.head_motion)
+                for a, c in ((anim, case), (plain, twin))
+            ]
             response = normal_detail(moved[0] - moved[1], case.target.neutral.triangles, neutral)
             got[key]["twin"] = METRICS["detail_error"].compute(plain, twin, {})
-            got[key]["wrinkle error"] = 100.0 * float(np.sqrt(np.mean((response - truth_wrinkle) ** 2))) / height
-            got[key]["wrinkle gain"] = float(np.sum(response * truth_wrinkle) / np.sum(truth_wrinkle**2))
+            got[key]["wrinkle error"] = (
+                100.0 * float(np.sqrt(np.mean((response - truth_wrinkle) ** 2))) / height
+            )
+            got[key]["wrinkle gain"] = float(
+                np.sum(response * truth_wrinkle) / np.sum(truth_wrinkle**2)
+            )
         for key, values in got.items():
-            res.table.append({
-                "case": label,
-                "retargeter": labels[key],
-                "detail error (% face height)": values["detail_error"],
-                "detail correlation": values["detail_correlation"],
-                "RMS error (% face height)": values["vertex_error_rms"],
-                "wrinkle fine-scale motion (% face height)": wrinkle,
-                "detail error without wrinkles (% face height)": values["twin"],
-                "wrinkle transfer error (% face height)": values["wrinkle error"],
-                "wrinkle gain": values["wrinkle gain"],
-            })
+            res.table.append(
+                {
+                    "case": label,
+                    "retargeter": labels[key],
+                    "detail error (% face height)": values["detail_error"],
+                    "detail correlation": values["detail_correlation"],
+                    "RMS error (% face height)": values["vertex_error_rms"],
+                    "wrinkle fine-scale motion (% face height)": wrinkle,
+                    "detail error without wrinkles (% face height)": values["twin"],
+                    "wrinkle transfer error (% face height)": values["wrinkle error"],
+                    "wrinkle gain": values["wrinkle gain"],
+                }
+            )
             bars.append(Series(f"{label} {short[key]}", [0], [values["detail_error"]]))
         m, w, d = got["method"], got["without"], got["baseline"]
-        parts.append((f"{label}: the detail transfer lowers the detail error ({num(m['detail_error'])}% vs {num(w['detail_error'])}% without it)",
-                      m["detail_error"] < w["detail_error"]))
-        parts.append((f"{label}: detail error below {baseline_label}'s ({num(m['detail_error'])}% vs {num(d['detail_error'])}%; correlation "
-                      f"{num(m['detail_correlation'])} vs {num(d['detail_correlation'])}; without wrinkles {num(m['twin'])}% vs {num(d['twin'])}%, "
-                      f"wrinkle transfer error {num(m['wrinkle error'])}% vs {num(d['wrinkle error'])}%)",
-                      m["detail_error"] < d["detail_error"]))
+        parts.append(
+            (
+                f"{label}: the detail transfer lowers the detail error ({num(m['detail_error'])}% vs {num(w['detail_error'])}% without it)",
+                m["detail_error"] < w["detail_error"],
+            )
+        )
+        parts.append(
+            (
+                f"{label}: detail error below {baseline_label}'s ({num(m['detail_error'])}% vs {num(d['detail_error'])}%; correlation "
+                f"{num(m['detail_correlation'])} vs {num(d['detail_correlation'])}; without wrinkles {num(m['twin'])}% vs {num(d['twin'])}%, "
+                f"wrinkle transfer error {num(m['wrinkle error'])}% vs {num(d['wrinkle error'])}%)",
+                m["detail_error"] < d["detail_error"],
+            )
+        )
         if large_scale:
-            parts.append((f"{label}: large-scale expression at least as close as {baseline_label}'s (RMS error {num(m['vertex_error_rms'])}% vs {num(d['vertex_error_rms'])}%)",
-                          m["vertex_error_rms"] <= d["vertex_error_rms"]))
+            parts.append(
+                (
+                    f"{label}: large-scale expression at least as close as {baseline_label}'s (RMS error {num(m['vertex_error_rms'])}% vs {num(d['vertex_error_rms'])}%)",
+                    m["vertex_error_rms"] <= d["vertex_error_rms"],
+                )
+            )
     if bars:
-        res.plots.append(Plot("detail error (fine-scale normal motion, RMS % face height)", bars, ylabel="% face height", kind="bar"))
-    note = ("Detail error and correlation as the metrics detail_error and detail_correlation (% of the face height). "
-            "'Detail error without wrinkles' is the same metric on the wrinkle-free twin: the fine-scale error of the "
-            "large-scale motion (lids, lips, jaw crease), which the metric sees as well; 'wrinkle transfer error' and "
-            "'wrinkle gain' compare what the wrinkles alone change in the result (case minus twin, high-passed normal "
-            "motion) with what they change in the ground truth (gain 1 = the truth's wrinkle depth)." + (
-                " Not measured: " + "; ".join(skipped) + "." if skipped else ""))
+        res.plots.append(
+            Plot(
+                "detail error (fine-scale normal motion, RMS % face height)",
+                bars,
+                ylabel="% face height",
+                kind="bar",
+            )
+        )
+    note = (
+        "Detail error and correlation as the metrics detail_error and detail_correlation (% of the face height). "
+        "'Detail error without wrinkles' is the same metric on the wrinkle-free twin: the fine-scale error of the "
+        "large-scale motion (lids, lips, jaw crease), which the metric sees as well; 'wrinkle transfer error' and "
+        "'wrinkle gain' compare what the wrinkles alone change in the result (case minus twin, high-passed normal "
+        "motion) with what they change in the ground truth (gain 1 = the truth's wrinkle depth)."
+        + (" Not measured: " + "; ".join(skipped) + "." if skipped else "")
+    )
     if not parts:
         res.agrees, res.evidence = None, "not decided: " + "; ".join(skipped)
         return

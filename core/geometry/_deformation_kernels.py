@@ -1,4 +1,5 @@
 """numba kernels for deformation gradients (compiled lazily, cached)."""
+
 from __future__ import annotations
 
 import numba as nb
@@ -42,4 +43,8 @@ def gradient_columns(points, triangles, inv_ref, out, bad):
         e[2, 2] = nz * s
         for col in range(3):
             for d in range(3):
-                out[3 * j + col, 3 * f + d] = e[d, 0] * inv_ref[j, 0, col] + e[d, 1] * inv_ref[j, 1, col] + e[d, 2] * inv_ref[j, 2, col]
+                out[3 * j + col, 3 * f + d] = (
+                    e[d, 0] * inv_ref[j, 0, col]
+                    + e[d, 1] * inv_ref[j, 1, col]
+                    + e[d, 2] * inv_ref[j, 2, col]
+                )

@@ -5,6 +5,7 @@ blocks so each factor entry updates a contiguous run of ``k`` values. Columns ar
 into blocks solved in parallel; each column's arithmetic is the same whatever the
 split, so results do not depend on the number of threads.
 """
+
 from __future__ import annotations
 
 import numba as nb
@@ -38,7 +39,9 @@ def lu_solve(l_ptr, l_ind, l_val, u_ptr, u_ind, u_val, u_diag, x, n_blocks):
 
 
 @nb.njit(parallel=True, cache=True)
-def lu_solve_frames(order, l_ptr, l_ind, l_val, u_ptr, u_ind, u_val, u_diag, rhs, add, out, n_blocks):
+def lu_solve_frames(
+    order, l_ptr, l_ind, l_val, u_ptr, u_ind, u_val, u_diag, rhs, add, out, n_blocks
+):
     """Solve ``A x = rhs`` for per-frame right-hand sides ``rhs : (C, n, 3)`` and write
     ``out = add + x`` (``(C, n, 3)``) for a symmetric pivoting (``order[i]``: the original
     index of pivot ``i``). Each thread gathers its block of the ``3C`` columns into a

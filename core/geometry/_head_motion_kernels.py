@@ -4,6 +4,7 @@ The Gauss-Newton iteration of the head motion, one frame at a time until that fr
 converges. Each step needs only the per-frame moments ``P (6, 9)`` of the gain matrix and
 the markers (see ``head_motion._moments``), so a step is a few hundred flops.
 """
+
 from __future__ import annotations
 
 import math
@@ -13,7 +14,9 @@ import numpy as np
 
 
 @nb.njit(cache=True)
-def gauss_newton(moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, iterations, warm):
+def gauss_newton(
+    moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, iterations, warm
+):
     """Iterate every frame in place on ``rot (F, 3, 3)``, ``trans (F, 3)``.
 
     ``iterations[f]`` receives the steps frame ``f`` took, or -1 if it did not converge in
@@ -68,12 +71,18 @@ def gauss_newton(moments, sums, offsets, which, centre, size, rot, trans, max_it
             d_rot[2, 1] = s * v0 + c * v1 * v2
             # local ~ dR (p - c) + c + dt  =>  world = R dR (p - c) + R (c + dt) + t
             for i in range(3):
-                shift[i] = centre[i] - (d_rot[i, 0] * centre[0] + d_rot[i, 1] * centre[1] + d_rot[i, 2] * centre[2]) + step[3 + i]
+                shift[i] = (
+                    centre[i]
+                    - (d_rot[i, 0] * centre[0] + d_rot[i, 1] * centre[1] + d_rot[i, 2] * centre[2])
+                    + step[3 + i]
+                )
             for i in range(3):
                 trans[f, i] += r[i, 0] * shift[0] + r[i, 1] * shift[1] + r[i, 2] * shift[2]
             for i in range(3):
                 for j in range(3):
-                    new_rot[i, j] = r[i, 0] * d_rot[0, j] + r[i, 1] * d_rot[1, j] + r[i, 2] * d_rot[2, j]
+                    new_rot[i, j] = (
+                        r[i, 0] * d_rot[0, j] + r[i, 1] * d_rot[1, j] + r[i, 2] * d_rot[2, j]
+                    )
             for i in range(3):
                 for j in range(3):
                     rot[f, i, j] = new_rot[i, j]

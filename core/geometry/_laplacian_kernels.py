@@ -4,6 +4,7 @@ Compiled lazily (imported inside the functions that use them) and cached. No ker
 uses ``fastmath`` or a parallel reduction, so results do not depend on the number of
 threads or on how many frames are batched together.
 """
+
 from __future__ import annotations
 
 import numba as nb
@@ -182,7 +183,9 @@ def vertex_frames(points, triangles, vt_ptr, vt_tri, neighbors, out):
         _face_cross(points, f, triangles, cross)
         count = 0
         for v in range(n_vertices):
-            tx, ty, tz, bx, by, bz, nx, ny, nz, ok = _vertex_frame(points, f, v, cross, vt_ptr, vt_tri, neighbors)
+            tx, ty, tz, bx, by, bz, nx, ny, nz, ok = _vertex_frame(
+                points, f, v, cross, vt_ptr, vt_tri, neighbors
+            )
             if not ok:
                 count += 1
             out[f, v, 0, 0] = tx
@@ -199,7 +202,9 @@ def vertex_frames(points, triangles, vt_ptr, vt_tri, neighbors, out):
 
 
 @nb.njit(parallel=True, cache=True)
-def frame_apply(points, triangles, vt_ptr, vt_tri, neighbors, vectors, out, inverse, m_ptr, m_ind, m_val):
+def frame_apply(
+    points, triangles, vt_ptr, vt_tri, neighbors, vectors, out, inverse, m_ptr, m_ind, m_val
+):
     """Apply each vertex's frame (computed on the fly from ``points``) to per-vertex vectors.
 
     ``inverse``: world -> local (``F^T d``), else local -> world (``F c``). The vectors are
@@ -217,7 +222,9 @@ def frame_apply(points, triangles, vt_ptr, vt_tri, neighbors, vectors, out, inve
         _face_cross(points, f, triangles, cross)
         count = 0
         for v in range(n_vertices):
-            tx, ty, tz, bx, by, bz, nx, ny, nz, ok = _vertex_frame(points, f, v, cross, vt_ptr, vt_tri, neighbors)
+            tx, ty, tz, bx, by, bz, nx, ny, nz, ok = _vertex_frame(
+                points, f, v, cross, vt_ptr, vt_tri, neighbors
+            )
             if not ok:
                 count += 1
             if matrix:
@@ -234,6 +241,8 @@ def frame_apply(points, triangles, vt_ptr, vt_tri, neighbors, vectors, out, inve
                 a = vectors[f, v, 0]
                 b = vectors[f, v, 1]
                 c = vectors[f, v, 2]
-            out[f, v, 0], out[f, v, 1], out[f, v, 2] = _rotate(tx, ty, tz, bx, by, bz, nx, ny, nz, a, b, c, inverse)
+            out[f, v, 0], out[f, v, 1], out[f, v, 2] = _rotate(
+                tx, ty, tz, bx, by, bz, nx, ny, nz, a, b, c, inverse
+            )
         bad[f] = count
     return bad

@@ -21,6 +21,7 @@ The one place for these jobs; plugins import them rather than keep their own cop
   :func:`active_set_qp_frames` (a sequence of frames, each warm-started from the previous
   solution, with ``G`` downdated at frames where some row blocks are missing).
 """
+
 from __future__ import annotations
 
 import numba as nb
@@ -223,7 +224,9 @@ def active_set_qp(G, c, lo, hi, group, sums, x, max_iter, tol):
                     if z[a] < lo[i] and (a == blocking or x[i] <= lo[i] + tol * (1.0 + abs(lo[i]))):
                         x[i] = lo[i]
                         status[i] = LOWER
-                    elif z[a] > hi[i] and (a == blocking or x[i] >= hi[i] - tol * (1.0 + abs(hi[i]))):
+                    elif z[a] > hi[i] and (
+                        a == blocking or x[i] >= hi[i] - tol * (1.0 + abs(hi[i]))
+                    ):
                         x[i] = hi[i]
                         status[i] = UPPER
                 continue
@@ -285,7 +288,9 @@ def active_set_qp_many(G, C, lo, hi, group, sums, X, max_iter, tol, iterations):
 
 
 @nb.njit(cache=True)
-def active_set_qp_frames(G, block_grams, dropped, C, lo, hi, x0, ridge, pivot_rtol, X, max_iter, tol, iterations):
+def active_set_qp_frames(
+    G, block_grams, dropped, C, lo, hi, x0, ridge, pivot_rtol, X, max_iter, tol, iterations
+):
     """:func:`active_set_qp` without groups for each frame ``t`` (row ``C[t]``), in order,
     each warm-started from the previous frame's solution (frame 0 from ``x0``), into ``X[t]``.
 

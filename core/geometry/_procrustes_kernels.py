@@ -1,4 +1,5 @@
 """numba kernel of :mod:`faceretarget.geometry.procrustes` (compiled lazily, cached)."""
+
 from __future__ import annotations
 
 import numba as nb

@@ -7,6 +7,7 @@ children come after their parent, which makes refitting one reverse sweep. Queri
 - lines (rays in both directions, or one) -> nearest hit by |t|, Moller-Trumbore in float64;
 - points -> closest point on the surface (Ericson, Real-Time Collision Detection 5.1.5).
 """
+
 from __future__ import annotations
 
 import numba as nb
@@ -107,7 +108,12 @@ def build_topology(codes, leaf_size):
         top += 1
         st_lo[top], st_hi[top], st_node[top] = split, hi, rnode
         top += 1
-    return left[:n_nodes].copy(), right[:n_nodes].copy(), start[:n_nodes].copy(), count[:n_nodes].copy()
+    return (
+        left[:n_nodes].copy(),
+        right[:n_nodes].copy(),
+        start[:n_nodes].copy(),
+        count[:n_nodes].copy(),
+    )
 
 
 @nb.njit(cache=True, nogil=True)
@@ -171,7 +177,25 @@ def _abs_lower(a, b):
 
 
 @nb.njit(cache=True)
-def cast_one(node_lo, node_hi, left, right, start, count, order, vertices, triangles, o0, o1, o2, d0, d1, d2, max_dist, both):
+def cast_one(
+    node_lo,
+    node_hi,
+    left,
+    right,
+    start,
+    count,
+    order,
+    vertices,
+    triangles,
+    o0,
+    o1,
+    o2,
+    d0,
+    d1,
+    d2,
+    max_dist,
+    both,
+):
     """Nearest hit by |t| of the line ``o + t d`` with |t| <= max_dist (t >= 0 unless ``both``).
 
     Returns (triangle or -1, t, u, v) with (u, v) the barycentric weights of corners 1, 2.
@@ -226,22 +250,88 @@ def cast_one(node_lo, node_hi, left, right, start, count, order, vertices, trian
 
 
 @nb.njit(cache=True, parallel=True)
-def cast_lines(node_lo, node_hi, left, right, start, count, order, vertices, triangles, origins, directions, max_dist, both, out_tri, out_t, out_u, out_v):
+def cast_lines(
+    node_lo,
+    node_hi,
+    left,
+    right,
+    start,
+    count,
+    order,
+    vertices,
+    triangles,
+    origins,
+    directions,
+    max_dist,
+    both,
+    out_tri,
+    out_t,
+    out_u,
+    out_v,
+):
     """:func:`cast_one` for every line (threads over lines); writes triangle (-1 = miss), t, u, v."""
     for r in nb.prange(origins.shape[0]):
         out_tri[r], out_t[r], out_u[r], out_v[r] = cast_one(
-            node_lo, node_hi, left, right, start, count, order, vertices, triangles,
-            origins[r, 0], origins[r, 1], origins[r, 2], directions[r, 0], directions[r, 1], directions[r, 2], max_dist[r], both,
+            node_lo,
+            node_hi,
+            left,
+            right,
+            start,
+            count,
+            order,
+            vertices,
+            triangles,
+            origins[r, 0],
+            origins[r, 1],
+            origins[r, 2],
+            directions[r, 0],
+            directions[r, 1],
+            directions[r, 2],
+            max_dist[r],
+            both,
         )
 
 
 @nb.njit(cache=True, nogil=True)
-def cast_lines_serial(node_lo, node_hi, left, right, start, count, order, vertices, triangles, origins, directions, max_dist, both, out_tri, out_t, out_u, out_v):
+def cast_lines_serial(
+    node_lo,
+    node_hi,
+    left,
+    right,
+    start,
+    count,
+    order,
+    vertices,
+    triangles,
+    origins,
+    directions,
+    max_dist,
+    both,
+    out_tri,
+    out_t,
+    out_u,
+    out_v,
+):
     """:func:`cast_lines` without threads (small batches: waking the pool costs more)."""
     for r in range(origins.shape[0]):
         out_tri[r], out_t[r], out_u[r], out_v[r] = cast_one(
-            node_lo, node_hi, left, right, start, count, order, vertices, triangles,
-            origins[r, 0], origins[r, 1], origins[r, 2], directions[r, 0], directions[r, 1], directions[r, 2], max_dist[r], both,
+            node_lo,
+            node_hi,
+            left,
+            right,
+            start,
+            count,
+            order,
+            vertices,
+            triangles,
+            origins[r, 0],
+            origins[r, 1],
+            origins[r, 2],
+            directions[r, 0],
+            directions[r, 1],
+            directions[r, 2],
+            max_dist[r],
+            both,
         )
 
 
@@ -299,7 +389,9 @@ def closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
 
 
 @nb.njit(cache=True)
-def closest_one(node_lo, node_hi, left, right, start, count, order, vertices, triangles, p0, p1, p2, max_dist2):
+def closest_one(
+    node_lo, node_hi, left, right, start, count, order, vertices, triangles, p0, p1, p2, max_dist2
+):
     """Closest surface point to p within squared distance ``max_dist2``: (triangle or -1, wa, wb, wc, d2)."""
     best = max_dist2
     best_tri = -1
@@ -317,10 +409,18 @@ def closest_one(node_lo, node_hi, left, right, start, count, order, vertices, tr
                 tri = order[i]
                 ia, ib, ic = triangles[tri, 0], triangles[tri, 1], triangles[tri, 2]
                 wa, wb, wc = closest_on_triangle(
-                    p0, p1, p2,
-                    vertices[ia, 0], vertices[ia, 1], vertices[ia, 2],
-                    vertices[ib, 0], vertices[ib, 1], vertices[ib, 2],
-                    vertices[ic, 0], vertices[ic, 1], vertices[ic, 2],
+                    p0,
+                    p1,
+                    p2,
+                    vertices[ia, 0],
+                    vertices[ia, 1],
+                    vertices[ia, 2],
+                    vertices[ib, 0],
+                    vertices[ib, 1],
+                    vertices[ib, 2],
+                    vertices[ic, 0],
+                    vertices[ic, 1],
+                    vertices[ic, 2],
                 )
                 x0 = wa * vertices[ia, 0] + wb * vertices[ib, 0] + wc * vertices[ic, 0] - p0
                 x1 = wa * vertices[ia, 1] + wb * vertices[ib, 1] + wc * vertices[ic, 1] - p1
@@ -345,11 +445,38 @@ def closest_one(node_lo, node_hi, left, right, start, count, order, vertices, tr
 
 
 @nb.njit(cache=True, parallel=True)
-def closest_points(node_lo, node_hi, left, right, start, count, order, vertices, triangles, points, max_dist2, out_tri, out_bary, out_d2):
+def closest_points(
+    node_lo,
+    node_hi,
+    left,
+    right,
+    start,
+    count,
+    order,
+    vertices,
+    triangles,
+    points,
+    max_dist2,
+    out_tri,
+    out_bary,
+    out_d2,
+):
     """:func:`closest_one` for every point (threads over points)."""
     for q in nb.prange(points.shape[0]):
         out_tri[q], out_bary[q, 0], out_bary[q, 1], out_bary[q, 2], out_d2[q] = closest_one(
-            node_lo, node_hi, left, right, start, count, order, vertices, triangles, points[q, 0], points[q, 1], points[q, 2], max_dist2[q]
+            node_lo,
+            node_hi,
+            left,
+            right,
+            start,
+            count,
+            order,
+            vertices,
+            triangles,
+            points[q, 0],
+            points[q, 1],
+            points[q, 2],
+            max_dist2[q],
         )
 
 
@@ -388,7 +515,20 @@ def walk_one(vertices, triangles, neighbors, o0, o1, o2, d0, d1, d2, tri, max_di
 
 
 @nb.njit(cache=True, nogil=True)
-def walk_lines(vertices, triangles, neighbors, origins, directions, start, max_dist, max_steps, out_tri, out_t, out_u, out_v):
+def walk_lines(
+    vertices,
+    triangles,
+    neighbors,
+    origins,
+    directions,
+    start,
+    max_dist,
+    max_steps,
+    out_tri,
+    out_t,
+    out_u,
+    out_v,
+):
     """Line/surface hits found by walking over the mesh from ``start`` triangles.
 
     From each start triangle the line is intersected with the triangle's plane; while the
@@ -400,17 +540,26 @@ def walk_lines(vertices, triangles, neighbors, origins, directions, start, max_d
     """
     for r in range(origins.shape[0]):
         tri, out_t[r], out_u[r], out_v[r] = walk_one(
-            vertices, triangles, neighbors,
-            origins[r, 0], origins[r, 1], origins[r, 2],
-            directions[r, 0], directions[r, 1], directions[r, 2],
-            start[r], max_dist[r], max_steps,
+            vertices,
+            triangles,
+            neighbors,
+            origins[r, 0],
+            origins[r, 1],
+            origins[r, 2],
+            directions[r, 0],
+            directions[r, 1],
+            directions[r, 2],
+            start[r],
+            max_dist[r],
+            max_steps,
         )
         out_tri[r] = max(tri, -1)
 
 
-
 @nb.njit(cache=True, nogil=True)
-def cast_lines_brute(vertices, triangles, origins, directions, max_dist, both, out_tri, out_t, out_u, out_v):
+def cast_lines_brute(
+    vertices, triangles, origins, directions, max_dist, both, out_tri, out_t, out_u, out_v
+):
     """Nearest hit by |t| (|t| <= max_dist, t >= 0 unless ``both``) testing every triangle: O(lines x T).
 
     For the few lines a walk loses, where refitting a BVH would cost more.
@@ -422,7 +571,12 @@ def cast_lines_brute(vertices, triangles, origins, directions, max_dist, both, o
         d0, d1, d2 = directions[r, 0], directions[r, 1], directions[r, 2]
         for tri in range(triangles.shape[0]):
             ok, t, u, v = line_triangle(vertices, triangles, tri, o0, o1, o2, d0, d1, d2)
-            if ok and _inside(u, v) and (both or t >= 0.0) and (abs(t) < best or (abs(t) == best and best_tri < 0)):
+            if (
+                ok
+                and _inside(u, v)
+                and (both or t >= 0.0)
+                and (abs(t) < best or (abs(t) == best and best_tri < 0))
+            ):
                 best, best_tri = abs(t), tri
                 best_t, best_u, best_v = t, u, v
         out_tri[r], out_t[r], out_u[r], out_v[r] = best_tri, best_t, best_u, best_v

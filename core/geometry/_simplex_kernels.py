@@ -1,4 +1,5 @@
 """numba kernels for :mod:`faceretarget.geometry.simplex` (compiled lazily, cached)."""
+
 from __future__ import annotations
 
 import numba as nb

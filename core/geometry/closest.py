@@ -4,6 +4,7 @@ Closest points on a triangle mesh are answered by :mod:`faceretarget.geometry.ra
 (a numba BVH, :meth:`RayCaster.closest`); this module adds the polyline case that
 correspondence needs for open boundaries (eye, mouth and outline loops).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -53,5 +54,10 @@ def closest_on_polyline(points: np.ndarray, vertices: np.ndarray, edges: np.ndar
         d = np.linalg.norm(c - pts[sl, None], axis=2)
         best = np.argmin(d, axis=1)
         rows = np.arange(len(best))
-        out_e[sl], out_t[sl], out_c[sl], out_d[sl] = best, t[rows, best], c[rows, best], d[rows, best]
+        out_e[sl], out_t[sl], out_c[sl], out_d[sl] = (
+            best,
+            t[rows, best],
+            c[rows, best],
+            d[rows, best],
+        )
     return out_e, out_t, out_c, out_d

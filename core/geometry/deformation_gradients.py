@@ -25,9 +25,10 @@ Translation is not determined by gradients; every connected component is pinned 
 vertex for the solve and then shifted so its (optionally weighted) mean displacement
 equals the one asked for (by default the source's).
 """
+
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import scipy.sparse as sp
@@ -52,14 +53,18 @@ __all__ = [
 ]
 
 
-def check_triangles(vertices: np.ndarray, triangles: np.ndarray, what: str = "deformation gradients") -> None:
+def check_triangles(
+    vertices: np.ndarray, triangles: np.ndarray, what: str = "deformation gradients"
+) -> None:
     """Raise DegenerateGeometryError naming the zero-area triangles of ``vertices : (…, V, 3)``."""
     v = np.asarray(vertices, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     flat = v.reshape(-1, v.shape[-2], 3)
     for f, frame in enumerate(flat):
         areas = face_areas(frame, t)
-        bad = np.flatnonzero(areas <= config.DEGENERATE_AREA_RATIO * max(float(areas.mean()), np.finfo(float).tiny))
+        bad = np.flatnonzero(
+            areas <= config.DEGENERATE_AREA_RATIO * max(float(areas.mean()), np.finfo(float).tiny)
+        )
         if bad.size:
             where = f" in mesh {f}" if flat.shape[0] > 1 else ""
             raise DegenerateGeometryError(
@@ -89,7 +94,9 @@ def triangle_frames(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.stack([a, b, c], axis=-1)
 
 
-def deformation_gradients(reference: np.ndarray, deformed: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def deformation_gradients(
+    reference: np.ndarray, deformed: np.ndarray, triangles: np.ndarray
+) -> np.ndarray:
     """Per-triangle deformation gradients ``Q = V~ V^-1`` -> ``(…, T, 3, 3)``.
 
     reference : (V, 3); deformed : (…, V, 3); triangles : (T, 3).
@@ -102,13 +109,17 @@ def deformation_gradients(reference: np.ndarray, deformed: np.ndarray, triangles
     return triangle_frames(deformed, triangles) @ inv
 
 
-def reference_inverse(reference: np.ndarray, triangles: np.ndarray, what: str = "deformation gradients (reference)") -> np.ndarray:
+def reference_inverse(
+    reference: np.ndarray, triangles: np.ndarray, what: str = "deformation gradients (reference)"
+) -> np.ndarray:
     """(T, 3, 3) inverse frames ``V^-1`` of a reference mesh (checked for zero-area triangles)."""
     check_triangles(reference, triangles, what)
     return np.linalg.inv(triangle_frames(reference, triangles))
 
 
-def gradient_columns(inverse: np.ndarray, deformed: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def gradient_columns(
+    inverse: np.ndarray, deformed: np.ndarray, triangles: np.ndarray
+) -> np.ndarray:
     """Deformation gradients of ``deformed : (C, V, 3)`` as least-squares columns (numba).
 
     inverse : (T, 3, 3) from :func:`reference_inverse`. Returns ``(3T, 3C)`` with entry
@@ -158,12 +169,16 @@ def gradient_operator(reference: np.ndarray, triangles: np.ndarray) -> sp.csr_ma
     cols[:, :, 3] = t[:, 0, None]
     vals[:, :, :3] = np.transpose(w, (0, 2, 1))  # [j, c, k] = W[k, c]
     vals[:, :, 3] = -w.sum(axis=1)
-    return sp.csr_matrix((vals.ravel(), (rows, cols.ravel())), shape=(3 * n_tri, n_vertices + n_tri))
+    return sp.csr_matrix(
+        (vals.ravel(), (rows, cols.ravel())), shape=(3 * n_tri, n_vertices + n_tri)
+    )
 
 
 def _segments(chains: Sequence[np.ndarray]) -> np.ndarray:
     """(S, 2) consecutive vertex pairs of every chain."""
-    pairs = [np.stack([np.asarray(c)[:-1], np.asarray(c)[1:]], axis=1) for c in chains if len(c) >= 2]
+    pairs = [
+        np.stack([np.asarray(c)[:-1], np.asarray(c)[1:]], axis=1) for c in chains if len(c) >= 2
+    ]
     return np.concatenate(pairs).astype(np.int64) if pairs else np.zeros((0, 2), dtype=np.int64)
 
 
@@ -173,12 +188,16 @@ def _line_frames(points: np.ndarray, normals: np.ndarray, segments: np.ndarray) 
     e0 = points[..., b, :] - points[..., a, :]
     n = normals[..., a, :] + normals[..., b, :]
     e1 = np.cross(e0, n)
-    e1 *= (np.linalg.norm(e0, axis=-1, keepdims=True) / np.maximum(np.linalg.norm(e1, axis=-1, keepdims=True), 1e-300))
+    e1 *= np.linalg.norm(e0, axis=-1, keepdims=True) / np.maximum(
+        np.linalg.norm(e1, axis=-1, keepdims=True), 1e-300
+    )
     e2 = np.cross(e0, e1) / np.maximum(np.linalg.norm(e0, axis=-1, keepdims=True), 1e-300)
     return np.stack([e0, e1, e2], axis=-1)
 
 
-def feature_line_gradients(reference: np.ndarray, deformed: np.ndarray, triangles: np.ndarray, chains: Sequence[np.ndarray]) -> np.ndarray:
+def feature_line_gradients(
+    reference: np.ndarray, deformed: np.ndarray, triangles: np.ndarray, chains: Sequence[np.ndarray]
+) -> np.ndarray:
     """Affine deformation ``D^l`` of every feature-line segment (Xu et al. eq. 11) -> ``(…, S, 3, 3)``.
 
     ``e0`` is the segment vector; the virtual vectors are ``e1 = e0 x n`` (``n`` the
@@ -195,7 +214,9 @@ def feature_line_gradients(reference: np.ndarray, deformed: np.ndarray, triangle
         return np.zeros(dfm.shape[:-2] + (0, 3, 3))
     length = np.linalg.norm(ref[seg[:, 1]] - ref[seg[:, 0]], axis=1)
     if np.any(length <= 0):
-        raise DegenerateGeometryError(f"feature lines: {int(np.sum(length <= 0))} segment(s) join coincident vertices; remove repeated vertices from the chains")
+        raise DegenerateGeometryError(
+            f"feature lines: {int(np.sum(length <= 0))} segment(s) join coincident vertices; remove repeated vertices from the chains"
+        )
     ids = np.unique(seg)
     local = np.searchsorted(ids, seg)
     n_ref = _normals_at(ref, t, ids)
@@ -209,11 +230,23 @@ def _normals_at(points: np.ndarray, triangles: np.ndarray, ids: np.ndarray) -> n
     rows, corners = np.nonzero(np.isin(triangles, ids))
     tri = triangles[rows]
     base = points[..., tri[:, 0], :]
-    cross = np.cross(points[..., tri[:, 1], :] - base, points[..., tri[:, 2], :] - base)  # (…, R, 3)
-    incidence = sp.csr_matrix((np.ones(rows.size), (np.searchsorted(ids, triangles[rows, corners]), np.arange(rows.size))), shape=(ids.size, rows.size))
+    cross = np.cross(
+        points[..., tri[:, 1], :] - base, points[..., tri[:, 2], :] - base
+    )  # (…, R, 3)
+    incidence = sp.csr_matrix(
+        (
+            np.ones(rows.size),
+            (np.searchsorted(ids, triangles[rows, corners]), np.arange(rows.size)),
+        ),
+        shape=(ids.size, rows.size),
+    )
     lead = cross.shape[:-2]
-    flat = np.moveaxis(cross.reshape((-1,) + cross.shape[-2:]), 1, 0).reshape(rows.size, -1)  # (R, B*3)
-    acc = np.moveaxis((incidence @ flat).reshape(ids.size, -1, 3), 0, 1).reshape(lead + (ids.size, 3))
+    flat = np.moveaxis(cross.reshape((-1,) + cross.shape[-2:]), 1, 0).reshape(
+        rows.size, -1
+    )  # (R, B*3)
+    acc = np.moveaxis((incidence @ flat).reshape(ids.size, -1, 3), 0, 1).reshape(
+        lead + (ids.size, 3)
+    )
     return acc / np.maximum(np.linalg.norm(acc, axis=-1, keepdims=True), 1e-300)
 
 
@@ -239,11 +272,21 @@ class DeformationTransfer:
     :meth:`solve` / :meth:`transfer` reuses it for any number of deformations.
     """
 
-    def __init__(self, target_reference: np.ndarray, triangles: np.ndarray, *, feature_lines=None, sigma: float = 100.0, gauge_weights=None):
+    def __init__(
+        self,
+        target_reference: np.ndarray,
+        triangles: np.ndarray,
+        *,
+        feature_lines=None,
+        sigma: float = 100.0,
+        gauge_weights=None,
+    ):
         ref = np.asarray(target_reference, dtype=np.float64)
         t = np.asarray(triangles, dtype=np.int64)
         if ref.ndim != 2 or ref.shape[1] != 3:
-            raise ShapeError(f"DeformationTransfer: target_reference must be (V, 3), got {ref.shape}")
+            raise ShapeError(
+                f"DeformationTransfer: target_reference must be (V, 3), got {ref.shape}"
+            )
         check_triangles(ref, t, "deformation transfer (target reference)")
         self.reference = ref
         self.triangles = t
@@ -267,7 +310,9 @@ class DeformationTransfer:
             inv_len = 1.0 / np.linalg.norm(ref[seg[:, 1]] - ref[seg[:, 0]], axis=1)
             rows = np.repeat(np.arange(seg.shape[0]), 2)
             vals = np.stack([-inv_len, inv_len], axis=1).ravel()
-            self.line_operator = sp.csr_matrix((vals, (rows, seg.ravel())), shape=(seg.shape[0], self.n_vertices))
+            self.line_operator = sp.csr_matrix(
+                (vals, (rows, seg.ravel())), shape=(seg.shape[0], self.n_vertices)
+            )
             self._line_ref = (ref[seg[:, 1]] - ref[seg[:, 0]]) * inv_len[:, None]
             normal = normal + self.sigma * (self.line_operator.T @ self.line_operator)
         else:
@@ -282,10 +327,19 @@ class DeformationTransfer:
         free[anchors] = False
         self.free = np.flatnonzero(free)
         self.anchors = anchors
-        self.factor = SPDFactor(self.normal_matrix[self.free][:, self.free], what="deformation-transfer normal equations")
-        w = np.ones(self.n_vertices) if gauge_weights is None else np.asarray(gauge_weights, dtype=np.float64).copy()
+        self.factor = SPDFactor(
+            self.normal_matrix[self.free][:, self.free],
+            what="deformation-transfer normal equations",
+        )
+        w = (
+            np.ones(self.n_vertices)
+            if gauge_weights is None
+            else np.asarray(gauge_weights, dtype=np.float64).copy()
+        )
         if w.shape != (self.n_vertices,) or np.any(w < 0) or not np.isfinite(w).all():
-            raise ShapeError(f"DeformationTransfer: gauge_weights must be ({self.n_vertices},) non-negative, got shape {w.shape}")
+            raise ShapeError(
+                f"DeformationTransfer: gauge_weights must be ({self.n_vertices},) non-negative, got shape {w.shape}"
+            )
         totals = np.bincount(labels, weights=w, minlength=n_comp)
         empty = totals <= 0
         w[empty[labels]] = 1.0  # a component without weight falls back to uniform weights
@@ -300,17 +354,23 @@ class DeformationTransfer:
         """
         q = np.asarray(gradients, dtype=np.float64)
         n_frames = q.shape[0]
-        c = np.transpose(q, (1, 3, 0, 2)).reshape(3 * self.triangles.shape[0], n_frames * 3)  # [3j+c, 3f+d]
+        c = np.transpose(q, (1, 3, 0, 2)).reshape(
+            3 * self.triangles.shape[0], n_frames * 3
+        )  # [3j+c, 3f+d]
         return self.rhs_columns(c, line_gradients)
 
-    def rhs_columns(self, columns: np.ndarray, line_gradients: np.ndarray | None = None) -> np.ndarray:
+    def rhs_columns(
+        self, columns: np.ndarray, line_gradients: np.ndarray | None = None
+    ) -> np.ndarray:
         """Right-hand sides ``(V, 3F)`` from gradients already laid out as ``(3T, 3F)``
         columns (:func:`gradient_columns`)."""
         n_frames = columns.shape[1] // 3
         out = self.reduced_operator.T @ columns
         if self.line_operator is not None and line_gradients is not None:
             lq = np.asarray(line_gradients, dtype=np.float64)
-            target = np.einsum("fsij,sj->sfi", lq, self._line_ref).reshape(lq.shape[1], n_frames * 3)
+            target = np.einsum("fsij,sj->sfi", lq, self._line_ref).reshape(
+                lq.shape[1], n_frames * 3
+            )
             out += self.sigma * (self.line_operator.T @ target)
         return out
 
@@ -330,7 +390,11 @@ class DeformationTransfer:
 
     def _set_gauge(self, out: np.ndarray, mean_displacement: np.ndarray | None) -> np.ndarray:
         means = self.component_means(out - self.reference)
-        want = np.zeros_like(means) if mean_displacement is None else np.asarray(mean_displacement, dtype=np.float64).reshape(means.shape)
+        want = (
+            np.zeros_like(means)
+            if mean_displacement is None
+            else np.asarray(mean_displacement, dtype=np.float64).reshape(means.shape)
+        )
         return out + (want - means)[:, self.labels, :]
 
     def component_means(self, displacement: np.ndarray) -> np.ndarray:
@@ -341,11 +405,17 @@ class DeformationTransfer:
         out = np.empty((d.shape[0], self.n_components, 3))
         for f in range(d.shape[0]):
             for k in range(3):
-                out[f, :, k] = np.bincount(self.labels, weights=self.gauge_weights * d[f, :, k], minlength=self.n_components)
+                out[f, :, k] = np.bincount(
+                    self.labels,
+                    weights=self.gauge_weights * d[f, :, k],
+                    minlength=self.n_components,
+                )
         return out
 
     # -- source side -----------------------------------------------------------------
-    def line_targets(self, source_reference: np.ndarray, source_deformed: np.ndarray, source_chains=None) -> np.ndarray | None:
+    def line_targets(
+        self, source_reference: np.ndarray, source_deformed: np.ndarray, source_chains=None
+    ) -> np.ndarray | None:
         """(F, S, 3, 3) source feature-line deformations paired with the target's segments.
 
         Lines are paired by name. Source and target share the topology, so each target
@@ -363,7 +433,9 @@ class DeformationTransfer:
             )
         names = list(self.chains)
         dfm = np.asarray(source_deformed, dtype=np.float64)
-        src_seg = feature_line_gradients(source_reference, dfm, self.triangles, [src_chains[k] for k in names])
+        src_seg = feature_line_gradients(
+            source_reference, dfm, self.triangles, [src_chains[k] for k in names]
+        )
         pick = []
         offset = 0
         ref = self.reference
@@ -371,12 +443,21 @@ class DeformationTransfer:
             s_chain, t_chain = np.asarray(src_chains[k]), self.chains[k]
             s_mid = 0.5 * (ref[s_chain[:-1]] + ref[s_chain[1:]])
             t_mid = 0.5 * (ref[t_chain[:-1]] + ref[t_chain[1:]])
-            nearest = np.argmin(np.linalg.norm(t_mid[:, None, :] - s_mid[None, :, :], axis=-1), axis=1)
+            nearest = np.argmin(
+                np.linalg.norm(t_mid[:, None, :] - s_mid[None, :, :], axis=-1), axis=1
+            )
             pick.append(offset + nearest)
             offset += len(s_chain) - 1
         return src_seg[..., np.concatenate(pick), :, :]
 
-    def transfer(self, source_reference: np.ndarray, source_deformed: np.ndarray, *, source_feature_lines=None, mean_displacement=None) -> np.ndarray:
+    def transfer(
+        self,
+        source_reference: np.ndarray,
+        source_deformed: np.ndarray,
+        *,
+        source_feature_lines=None,
+        mean_displacement=None,
+    ) -> np.ndarray:
         """Transfer deformations ``source_deformed : (V, 3) or (F, V, 3)`` onto the target.
 
         The source must share the target's triangles. By default each connected
@@ -393,14 +474,24 @@ class DeformationTransfer:
                 "bring them to one topology first (faceretarget.correspond)"
             )
         columns = gradient_columns(reference_inverse(src_ref, self.triangles), dfm, self.triangles)
-        lines = self.line_targets(src_ref, dfm, source_feature_lines if source_feature_lines is not None else self.chains)
+        lines = self.line_targets(
+            src_ref, dfm, source_feature_lines if source_feature_lines is not None else self.chains
+        )
         if mean_displacement is None:
             mean_displacement = self.component_means(dfm - src_ref)
         out = self.solve_rhs(self.rhs_columns(columns, lines), mean_displacement)
         return out[0] if single else out
 
 
-def deformation_transfer(source_reference, source_deformed, target_reference, triangles, *, feature_lines=None, sigma: float = 100.0) -> np.ndarray:
+def deformation_transfer(
+    source_reference,
+    source_deformed,
+    target_reference,
+    triangles,
+    *,
+    feature_lines=None,
+    sigma: float = 100.0,
+) -> np.ndarray:
     """One-shot :class:`DeformationTransfer` (same topology; the same chains on both meshes)."""
     dt = DeformationTransfer(target_reference, triangles, feature_lines=feature_lines, sigma=sigma)
     return dt.transfer(source_reference, source_deformed, source_feature_lines=feature_lines)

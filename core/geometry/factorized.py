@@ -9,6 +9,7 @@ call and can exhaust memory without raising.
 
 A factor pickles as its matrix and is refactorized on first use after unpickling.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -52,11 +53,20 @@ class SPDFactor:
             return self._lu
         m = self.matrix
         if not np.isfinite(m.data).all():
-            raise NumericalError(f"{self.what}: the matrix holds NaN or infinite entries; check the input geometry")
+            raise NumericalError(
+                f"{self.what}: the matrix holds NaN or infinite entries; check the input geometry"
+            )
         try:
-            lu = sla.splu(m, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+            lu = sla.splu(
+                m,
+                permc_spec="MMD_AT_PLUS_A",
+                diag_pivot_thresh=0.0,
+                options={"SymmetricMode": True},
+            )
         except RuntimeError as exc:
-            raise NumericalError(f"{self.what}: factorization failed ({exc}); the system is singular (a mesh part without anchor?)") from None
+            raise NumericalError(
+                f"{self.what}: factorization failed ({exc}); the system is singular (a mesh part without anchor?)"
+            ) from None
         low = lu.L.tocsc()
         up = lu.U.tocsc()
         low_rows = np.repeat(np.arange(low.shape[1]), np.diff(low.indptr))
@@ -64,7 +74,9 @@ class SPDFactor:
         up_cols = np.repeat(np.arange(up.shape[1]), np.diff(up.indptr))
         diag = up.diagonal()
         if not np.all(np.isfinite(diag)) or np.any(diag == 0):
-            raise NumericalError(f"{self.what}: zero pivot in the factorization; the system is singular")
+            raise NumericalError(
+                f"{self.what}: zero pivot in the factorization; the system is singular"
+            )
         upper = up.indices < up_cols
         self._l = _strict(low, keep)
         self._u = _strict(up, upper)
@@ -72,13 +84,21 @@ class SPDFactor:
         self._perm_r = lu.perm_r.astype(np.int64)
         self._perm_c = lu.perm_c.astype(np.int64)
         # symmetric pivoting (the normal case here): pivot i is original index order[i]
-        self._order = np.argsort(self._perm_r).astype(np.int64) if np.array_equal(self._perm_r, self._perm_c) else None
+        self._order = (
+            np.argsort(self._perm_r).astype(np.int64)
+            if np.array_equal(self._perm_r, self._perm_c)
+            else None
+        )
         self._lu = lu
         probe = np.cos(np.arange(self.n, dtype=np.float64))
         res = m @ self.solve(probe) - probe
-        if not np.isfinite(res).all() or np.linalg.norm(res) > _RESIDUAL_TOL * np.linalg.norm(probe):
+        if not np.isfinite(res).all() or np.linalg.norm(res) > _RESIDUAL_TOL * np.linalg.norm(
+            probe
+        ):
             self._lu = None
-            raise NumericalError(f"{self.what}: the factorization is numerically singular (residual {np.linalg.norm(res):.2e})")
+            raise NumericalError(
+                f"{self.what}: the factorization is numerically singular (residual {np.linalg.norm(res):.2e})"
+            )
         return lu
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
@@ -86,7 +106,9 @@ class SPDFactor:
         lu = self._factor()
         b = np.asarray(rhs, dtype=np.float64)
         if b.shape[0] != self.n or b.ndim not in (1, 2):
-            raise ShapeError(f"{self.what}: right-hand side must be ({self.n},) or ({self.n}, k), got {b.shape}")
+            raise ShapeError(
+                f"{self.what}: right-hand side must be ({self.n},) or ({self.n}, k), got {b.shape}"
+            )
         if b.ndim == 1 or b.shape[1] < _NUMBA_MIN_COLUMNS:
             return lu.solve(np.ascontiguousarray(b))
         from numba import get_num_threads
@@ -105,7 +127,9 @@ class SPDFactor:
         (``(C, n, 3)``, ``add`` default zero) without transposed copies."""
         r = np.ascontiguousarray(rhs, dtype=np.float64)
         if r.ndim != 3 or r.shape[1] != self.n:
-            raise ShapeError(f"{self.what}: right-hand sides must be (C, {self.n}, 3), got {r.shape}")
+            raise ShapeError(
+                f"{self.what}: right-hand sides must be (C, {self.n}, 3), got {r.shape}"
+            )
         a = np.zeros_like(r) if add is None else np.ascontiguousarray(add, dtype=np.float64)
         self._factor()
         if self._order is None:
@@ -119,14 +143,16 @@ class SPDFactor:
         out = np.empty_like(r)
         blocks = max(1, min(get_num_threads(), r.shape[0] * r.shape[2]))
         l, u = self._l, self._u
-        lu_solve_frames(self._order, l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, r, a, out, blocks)
+        lu_solve_frames(
+            self._order, l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, r, a, out, blocks
+        )
         return out
 
     def __getstate__(self):
         return {"matrix": self.matrix, "what": self.what}
 
     def __setstate__(self, state):
-        self.__init__(state["matrix"], what=state["what"])
+        self.__init__(state["matrix"], what=state["what"])  # type: ignore[misc]
 
 
 def _strict(m: sp.csc_matrix, keep: np.ndarray):

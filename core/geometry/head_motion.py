@@ -48,6 +48,7 @@ invented for sources without any head motion. Three things keep that out:
 
 Missing samples are NaN (a marker with any NaN coordinate is missing in that frame).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -55,11 +56,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import config
+from .._threads import blas_single_threaded
 from ..errors import DegenerateGeometryError, InputError, NonFiniteError, NumericalError, ShapeError
 from . import procrustes
-from .._threads import blas_single_threaded
 
-__all__ = ["estimate_head_motion", "rigidity_weights", "HeadMotionInfo", "DEFAULT_MAX_ITER", "DEFAULT_TOL"]
+__all__ = [
+    "estimate_head_motion",
+    "rigidity_weights",
+    "HeadMotionInfo",
+    "DEFAULT_MAX_ITER",
+    "DEFAULT_TOL",
+]
 
 #: Gauss-Newton steps at most (typically 5-10 converge to ``DEFAULT_TOL``).
 DEFAULT_MAX_ITER = 60
@@ -114,9 +121,13 @@ def rigidity_weights(reference, basis=None, *, eps: float | None = None) -> np.n
     b = _basis(basis, n)
     eps = config.HEAD_MOTION_RIGIDITY if eps is None else float(eps)
     if not eps > 0 or not np.isfinite(eps):
-        raise InputError(f"rigidity_weights: eps must be a positive number of face sizes, got {eps!r}")
+        raise InputError(
+            f"rigidity_weights: eps must be a positive number of face sizes, got {eps!r}"
+        )
     size = _face_size(ref)
-    motion2 = np.mean(np.sum(b.reshape(n, 3, -1) ** 2, axis=1), axis=1) if b.shape[1] else np.zeros(n)
+    motion2 = (
+        np.mean(np.sum(b.reshape(n, 3, -1) ** 2, axis=1), axis=1) if b.shape[1] else np.zeros(n)
+    )
     w = 1.0 / ((eps * size) ** 2 + motion2)
     return w / w.mean()
 
@@ -173,9 +184,17 @@ def estimate_head_motion(
     n = ref.shape[0]
     x = np.asarray(markers, dtype=np.float64)
     if x.ndim != 3 or x.shape[1:] != (n, 3):
-        raise ShapeError(f"estimate_head_motion: markers must be (F, {n}, 3) like the reference, got {x.shape}")
-    if isinstance(window, (bool, np.bool_)) or not isinstance(window, (int, np.integer)) or window < 1:
-        raise InputError(f"estimate_head_motion: window must be a whole number of frames >= 1, got {window!r}")
+        raise ShapeError(
+            f"estimate_head_motion: markers must be (F, {n}, 3) like the reference, got {x.shape}"
+        )
+    if (
+        isinstance(window, (bool, np.bool_))
+        or not isinstance(window, (int, np.integer))
+        or window < 1
+    ):
+        raise InputError(
+            f"estimate_head_motion: window must be a whole number of frames >= 1, got {window!r}"
+        )
     b = None if basis is None else _basis(basis, n)
     if b is not None and b.shape[1] == 0:
         b = None
@@ -183,7 +202,9 @@ def estimate_head_motion(
     if marker_weights is not None:
         extra = np.asarray(marker_weights, dtype=np.float64)
         if extra.shape != (n,):
-            raise ShapeError(f"estimate_head_motion: marker_weights must be ({n},), got shape {extra.shape}")
+            raise ShapeError(
+                f"estimate_head_motion: marker_weights must be ({n},), got shape {extra.shape}"
+            )
         if not np.isfinite(extra).all() or (extra < 0).any():
             raise InputError("estimate_head_motion: marker_weights must be finite and >= 0")
         w = w * extra
@@ -193,13 +214,19 @@ def estimate_head_motion(
     n_frames = x.shape[0]
     if n_frames == 0:
         out = np.zeros((0, 4, 4))
-        return (out, HeadMotionInfo(False, 0.0, w, 0, np.zeros(0, dtype=np.intp))) if return_info else out
+        return (
+            (out, HeadMotionInfo(False, 0.0, w, 0, np.zeros(0, dtype=np.intp)))
+            if return_info
+            else out
+        )
     if np.isfinite(np.sum(x)):  # common case: nothing missing (inf would make the sum inf or NaN)
         valid = np.broadcast_to(w > 0, (n_frames, n))
         x0 = x
     else:
         if np.isinf(x).any():
-            raise NonFiniteError("estimate_head_motion: markers contain infinite values; mark missing samples with NaN")
+            raise NonFiniteError(
+                "estimate_head_motion: markers contain infinite values; mark missing samples with NaN"
+            )
         valid = ~np.isnan(x).any(axis=2) & (w > 0)
         x0 = np.where(valid[..., None], x, 0.0)
     counts = valid.sum(axis=1)
@@ -229,11 +256,24 @@ def estimate_head_motion(
     moments, sums, offsets = _moments(gains, which, x0, ref)
     warm = np.ones(n_frames, dtype=np.bool_)
     warm[weak_frames] = False  # those keep their Procrustes start
-    iterations, done = _gauss_newton(moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, warm)
+    iterations, done = _gauss_newton(
+        moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, warm
+    )
     if not done.all():  # far from the identity (e.g. > 150 degrees): restart from Procrustes
         again = np.flatnonzero(~done)
         sub_rot, sub_trans, _ = procrustes.fit_rigid(ref, x[again], weights=w)
-        more, done_again = _gauss_newton(moments[again], sums, offsets, which[again], centre, size, sub_rot, sub_trans, max_iter, tol)
+        more, done_again = _gauss_newton(
+            moments[again],
+            sums,
+            offsets,
+            which[again],
+            centre,
+            size,
+            sub_rot,
+            sub_trans,
+            max_iter,
+            tol,
+        )
         rot[again], trans[again] = sub_rot, sub_trans
         iterations += more
         if not done_again.all():
@@ -257,7 +297,9 @@ def estimate_head_motion(
     return out
 
 
-def _evidence(x0, valid, ref, w, basis, rot, trans, centre, size, schur, ainv, which, window) -> float:
+def _evidence(
+    x0, valid, ref, w, basis, rot, trans, centre, size, schur, ainv, which, window
+) -> float:
     """The gate's statistic: the largest ``sum_f (c0_f - c1_f) / sum_f (c1_f + floor_f)`` over
     ``window`` consecutive frames (the whole shot if shorter).
 
@@ -303,16 +345,22 @@ def _evidence(x0, valid, ref, w, basis, rot, trans, centre, size, schur, ainv, w
 def _reference(reference) -> np.ndarray:
     ref = np.asarray(reference, dtype=np.float64)
     if ref.ndim != 2 or ref.shape[1] != 3 or ref.shape[0] < 3:
-        raise ShapeError(f"estimate_head_motion: reference must be (N, 3) with N >= 3, got {ref.shape}")
+        raise ShapeError(
+            f"estimate_head_motion: reference must be (N, 3) with N >= 3, got {ref.shape}"
+        )
     if not np.isfinite(ref).all():
-        raise NonFiniteError("estimate_head_motion: the reference contains NaN or infinity; give a complete neutral")
+        raise NonFiniteError(
+            "estimate_head_motion: the reference contains NaN or infinity; give a complete neutral"
+        )
     return ref
 
 
 def _basis(basis, n: int) -> np.ndarray:
     b = np.asarray(basis, dtype=np.float64)
     if b.ndim != 2 or b.shape[0] != 3 * n:
-        raise ShapeError(f"estimate_head_motion: basis must be (3N, M) = ({3 * n}, M), got {b.shape}")
+        raise ShapeError(
+            f"estimate_head_motion: basis must be (3N, M) = ({3 * n}, M), got {b.shape}"
+        )
     if not np.isfinite(b).all():
         raise NonFiniteError("estimate_head_motion: the expression basis contains NaN or infinity")
     return b
@@ -349,7 +397,9 @@ def _gains(patterns, w, gen, basis, ridge):
     """
     n_pat, n = patterns.shape
     wd = np.repeat(patterns * w, 3, axis=1)  # (P, 3N)
-    normal = (wd @ (gen[:, :, None] * gen[:, None, :]).reshape(3 * n, 36)).reshape(n_pat, 6, 6)  # G^T W G
+    normal = (wd @ (gen[:, :, None] * gen[:, None, :]).reshape(3 * n, 36)).reshape(
+        n_pat, 6, 6
+    )  # G^T W G
     ainv = None
     if basis is None:
         schur = normal
@@ -364,16 +414,22 @@ def _gains(patterns, w, gen, basis, ridge):
         dropped = (~patterns) & (w > 0)
         if dropped.any():  # subtract the missing markers' Gram matrices
             per_marker = basis.reshape(n, 3, m)
-            grams = np.matmul(per_marker.transpose(0, 2, 1), per_marker).reshape(n, m * m)  # (N, M*M)
+            grams = np.matmul(per_marker.transpose(0, 2, 1), per_marker).reshape(
+                n, m * m
+            )  # (N, M*M)
             gram = full[None] - ((dropped * w) @ grams).reshape(n_pat, m, m)
         else:
             gram = np.repeat(full[None], n_pat, axis=0)
         gram += ridge_value * np.eye(m)
-        coupling = (wd @ (gen[:, :, None] * basis[:, None, :]).reshape(3 * n, 6 * m)).reshape(n_pat, 6, m)  # G^T W B
+        coupling = (wd @ (gen[:, :, None] * basis[:, None, :]).reshape(3 * n, 6 * m)).reshape(
+            n_pat, 6, m
+        )  # G^T W B
         try:
             ainv = np.linalg.inv(gram)  # A^-1, also used by the gate
         except np.linalg.LinAlgError:
-            raise NumericalError("estimate_head_motion: the expression basis' Gram matrix is singular; give a positive ridge") from None
+            raise NumericalError(
+                "estimate_head_motion: the expression basis' Gram matrix is singular; give a positive ridge"
+            ) from None
         h = np.matmul(ainv, coupling.transpose(0, 2, 1))  # (P, M, 6) = A^-1 C^T
         schur = normal - np.matmul(coupling, h)
         # G^T W - C A^-1 B^T W = (G - B H)^T W, with B H for all patterns in one product
@@ -398,7 +454,9 @@ def _gains(patterns, w, gen, basis, ridge):
     return gains, schur, ainv, ~keep.all(axis=1)
 
 
-def _local_residual(x0: np.ndarray, rot: np.ndarray, trans: np.ndarray, ref: np.ndarray) -> np.ndarray:
+def _local_residual(
+    x0: np.ndarray, rot: np.ndarray, trans: np.ndarray, ref: np.ndarray
+) -> np.ndarray:
     """``R^T (x - t) - n`` per frame and marker ``(F, N, 3)`` (numba kernel: one pass)."""
     from ._head_motion_kernels import local_residual
 
@@ -420,12 +478,16 @@ def _moments(gains, which, x0, ref):
     n_frames = x0.shape[0]
     if n_pat == 1:
         moments = np.empty((n_frames, 6, 9))
-        for start in range(0, n_frames, _RESIDUAL_CHUNK):  # tensordot copies its input: a chunk at a time
+        for start in range(
+            0, n_frames, _RESIDUAL_CHUNK
+        ):  # tensordot copies its input: a chunk at a time
             sl = slice(start, start + _RESIDUAL_CHUNK)
             part = np.tensordot(x0[sl], blocks[0], axes=([1], [1]))  # (f, b, 6, a)
             moments[sl] = part.transpose(0, 2, 3, 1).reshape(-1, 6, 9)
     else:
-        rows = np.ascontiguousarray(blocks.transpose(0, 1, 3, 2)).reshape(n_pat, 18, -1)  # (P, 6*3, N)
+        rows = np.ascontiguousarray(blocks.transpose(0, 1, 3, 2)).reshape(
+            n_pat, 18, -1
+        )  # (P, 6*3, N)
         moments = np.empty((n_frames, 6, 9))
         for start in range(0, n_frames, _CHUNK):  # bounded memory for the gathered gains
             sl = slice(start, start + _CHUNK)
@@ -435,7 +497,10 @@ def _moments(gains, which, x0, ref):
 
 def _rotation_vectors(rot: np.ndarray) -> np.ndarray:
     """Log map: ``(F, 3, 3)`` rotations -> ``(F, 3)`` rotation vectors."""
-    skew = 0.5 * np.stack([rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0], rot[:, 1, 0] - rot[:, 0, 1]], axis=1)
+    skew = 0.5 * np.stack(
+        [rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0], rot[:, 1, 0] - rot[:, 0, 1]],
+        axis=1,
+    )
     sin = np.sqrt(np.sum(skew * skew, axis=1))
     cos = 0.5 * (np.trace(rot, axis1=1, axis2=2) - 1.0)
     angle = np.arctan2(sin, cos)
@@ -449,18 +514,33 @@ def _rotation_vectors(rot: np.ndarray) -> np.ndarray:
     return out
 
 
-def _gauss_newton(moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, warm=None):
+def _gauss_newton(
+    moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, warm=None
+):
     """Gauss-Newton steps on ``rot (F, 3, 3)`` / ``trans (F, 3)`` in place (numba kernel, one
     frame at a time until it converges; frames where ``warm (F,)`` is set start from the
     previous frame's result); returns (most steps taken, converged (F,))."""
     from ._head_motion_kernels import gauss_newton
 
     steps = np.empty(rot.shape[0], dtype=np.int64)
-    warm = np.zeros(rot.shape[0], dtype=np.bool_) if warm is None else np.ascontiguousarray(warm, dtype=np.bool_)
+    warm = (
+        np.zeros(rot.shape[0], dtype=np.bool_)
+        if warm is None
+        else np.ascontiguousarray(warm, dtype=np.bool_)
+    )
     gauss_newton(
-        np.ascontiguousarray(moments), np.ascontiguousarray(sums), np.ascontiguousarray(offsets),
-        np.ascontiguousarray(which, dtype=np.int64), np.ascontiguousarray(centre, dtype=np.float64), float(size),
-        rot, trans, int(max_iter), float(tol), steps, warm,
+        np.ascontiguousarray(moments),
+        np.ascontiguousarray(sums),
+        np.ascontiguousarray(offsets),
+        np.ascontiguousarray(which, dtype=np.int64),
+        np.ascontiguousarray(centre, dtype=np.float64),
+        float(size),
+        rot,
+        trans,
+        int(max_iter),
+        float(tol),
+        steps,
+        warm,
     )
     done = steps >= 0
     return int(np.where(done, steps, max_iter).max(initial=0)), done

@@ -9,6 +9,7 @@ The cotangent Laplacian of many meshes of one topology (the frames of a sequence
 built by refilling the values of a fixed CSR pattern with a numba kernel
 (:class:`LaplacianPattern`), which costs a few milliseconds at 80K vertices.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -122,7 +123,9 @@ class LaplacianPattern:
     slots: np.ndarray
 
     def matrix(self, data: np.ndarray) -> sp.csr_matrix:
-        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_vertices, self.n_vertices))
+        return sp.csr_matrix(
+            (data, self.indices, self.indptr), shape=(self.n_vertices, self.n_vertices)
+        )
 
 
 def laplacian_pattern(triangles: np.ndarray, n_vertices: int) -> LaplacianPattern:
@@ -148,7 +151,9 @@ def laplacian_pattern(triangles: np.ndarray, n_vertices: int) -> LaplacianPatter
     return LaplacianPattern(n_vertices, t, indptr, indices, slots)
 
 
-def cotangent_laplacian(vertices: np.ndarray, triangles: np.ndarray, pattern: LaplacianPattern | None = None) -> sp.csr_matrix:
+def cotangent_laplacian(
+    vertices: np.ndarray, triangles: np.ndarray, pattern: LaplacianPattern | None = None
+) -> sp.csr_matrix:
     """Cotangent Laplacian (V, V): ``L_ij = -(cot a_ij + cot b_ij) / 2``, rows sum to zero.
 
     Parameters

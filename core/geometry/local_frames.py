@@ -11,6 +11,7 @@ The neighbour of each vertex is chosen once per topology, on a reference mesh, a
 one whose projected edge best follows a global direction, so that neighbouring frames
 are roughly aligned.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -42,7 +43,9 @@ def frame_neighbors(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
             f"local frames: {bad.size} vertex/vertices belong to no triangle (first: {bad[:5].tolist()}); remove unused vertices"
         )
     n = normals[src]
-    axis = np.where(np.abs(n[:, :1]) > 0.9, np.array([[0.0, 1.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]))
+    axis = np.where(
+        np.abs(n[:, :1]) > 0.9, np.array([[0.0, 1.0, 0.0]]), np.array([[1.0, 0.0, 0.0]])
+    )
     axis = axis - np.einsum("ij,ij->i", axis, n)[:, None] * n
     edge = v[dst] - v[src]
     edge = edge - np.einsum("ij,ij->i", edge, n)[:, None] * n
@@ -53,7 +56,9 @@ def frame_neighbors(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     best = dst[order[first]]
     second_pos = np.minimum(first + 1, order.size - 1)
     has_second = degree > 1
-    second = np.where(has_second & (src[order[second_pos]] == np.arange(n_vertices)), dst[order[second_pos]], best)
+    second = np.where(
+        has_second & (src[order[second_pos]] == np.arange(n_vertices)), dst[order[second_pos]], best
+    )
     return np.stack([best, second], axis=1).astype(np.int64)
 
 
@@ -76,7 +81,9 @@ class VertexFrames:
         corner_vertex = t.ravel()
         order = np.argsort(corner_vertex, kind="stable")
         self.vt_tri = (order // 3).astype(np.int64)
-        self.vt_ptr = np.concatenate([[0], np.cumsum(np.bincount(corner_vertex, minlength=n_vertices))]).astype(np.int64)
+        self.vt_ptr = np.concatenate(
+            [[0], np.cumsum(np.bincount(corner_vertex, minlength=n_vertices))]
+        ).astype(np.int64)
         self.triangles = t
         self.neighbors = nb_
         self.n_vertices = n_vertices
@@ -87,7 +94,9 @@ class VertexFrames:
         if single:
             p = p[None]
         if p.ndim != 3 or p.shape[1:] != (self.n_vertices, 3):
-            raise ShapeError(f"VertexFrames: {what} must be (V, 3) or (F, V, 3) with V={self.n_vertices}, got {np.shape(points)}")
+            raise ShapeError(
+                f"VertexFrames: {what} must be (V, 3) or (F, V, 3) with V={self.n_vertices}, got {np.shape(points)}"
+            )
         if p.dtype not in (np.float32, np.float64):
             p = p.astype(np.float64)
         return np.ascontiguousarray(p), single
@@ -124,9 +133,22 @@ class VertexFrames:
         vec = np.ascontiguousarray(np.asarray(vectors, dtype=np.float64).reshape(p.shape))
         out = np.empty(p.shape, dtype=np.float64)
         none = np.zeros(1, dtype=np.int64)
-        self._check(frame_apply(p, self.triangles, self.vt_ptr, self.vt_tri, self.neighbors, vec, out, bool(inverse), none, none, np.zeros(1)))
+        self._check(
+            frame_apply(
+                p,
+                self.triangles,
+                self.vt_ptr,
+                self.vt_tri,
+                self.neighbors,
+                vec,
+                out,
+                bool(inverse),
+                none,
+                none,
+                np.zeros(1),
+            )
+        )
         return out[0] if single else out
-
 
     def coating(self, points: np.ndarray, smooth: np.ndarray, matrix) -> np.ndarray:
         """Laplacian coating ``F(smooth)^T (M (points - smooth))`` of meshes ``(…, V, 3)``.
@@ -143,12 +165,27 @@ class VertexFrames:
         p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(s.shape))
         m = sp.csr_matrix(matrix)
         out = np.empty(s.shape, dtype=np.float64)
-        self._check(frame_apply(s, self.triangles, self.vt_ptr, self.vt_tri, self.neighbors, p, out, True,
-                                m.indptr.astype(np.int64), m.indices.astype(np.int64), m.data.astype(np.float64)))
+        self._check(
+            frame_apply(
+                s,
+                self.triangles,
+                self.vt_ptr,
+                self.vt_tri,
+                self.neighbors,
+                p,
+                out,
+                True,
+                m.indptr.astype(np.int64),
+                m.indices.astype(np.int64),
+                m.data.astype(np.float64),
+            )
+        )
         return out[0] if single else out
 
 
-def vertex_frames(points: np.ndarray, triangles: np.ndarray, neighbors: np.ndarray | None = None) -> np.ndarray:
+def vertex_frames(
+    points: np.ndarray, triangles: np.ndarray, neighbors: np.ndarray | None = None
+) -> np.ndarray:
     """Frames ``(…, V, 3, 3)`` (columns tangent, bitangent, normal) of ``points : (…, V, 3)``.
 
     ``neighbors`` default: :func:`frame_neighbors` of the first mesh.
@@ -162,10 +199,18 @@ def vertex_frames(points: np.ndarray, triangles: np.ndarray, neighbors: np.ndarr
 def to_local(frames: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """Express world ``vectors (…, V, 3)`` in ``frames (…, V, 3, 3)``: ``F^T d``."""
     d = np.asarray(vectors, dtype=np.float64)
-    return frames[..., 0, :] * d[..., 0:1] + frames[..., 1, :] * d[..., 1:2] + frames[..., 2, :] * d[..., 2:3]
+    return (
+        frames[..., 0, :] * d[..., 0:1]
+        + frames[..., 1, :] * d[..., 1:2]
+        + frames[..., 2, :] * d[..., 2:3]
+    )
 
 
 def to_world(frames: np.ndarray, coords: np.ndarray) -> np.ndarray:
     """World vectors from local ``coords (…, V, 3)`` in ``frames (…, V, 3, 3)``: ``F c``."""
     c = np.asarray(coords, dtype=np.float64)
-    return frames[..., :, 0] * c[..., 0:1] + frames[..., :, 1] * c[..., 1:2] + frames[..., :, 2] * c[..., 2:3]
+    return (
+        frames[..., :, 0] * c[..., 0:1]
+        + frames[..., :, 1] * c[..., 1:2]
+        + frames[..., :, 2] * c[..., 2:3]
+    )

@@ -2,6 +2,7 @@
 
 All functions take ``vertices : (V, 3) float64`` and ``triangles : (T, 3) int``.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -15,6 +15,7 @@ Working on ``A^T A`` squares the condition number; for the sizes this is meant f
 (n up to a few hundred columns, well-posed rigs) the objective agrees with
 ``scipy.optimize.nnls`` to ~1e-10 relative.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,7 +23,14 @@ import numpy as np
 from ..config import PIVOT_RTOL
 from ..errors import InputError, NonFiniteError, NumericalError, ShapeError
 
-__all__ = ["nnls", "nnls_gram", "bounded_lsq", "bounded_lsq_gram", "bounded_lsq_frames", "DEFAULT_TOL"]
+__all__ = [
+    "nnls",
+    "nnls_gram",
+    "bounded_lsq",
+    "bounded_lsq_gram",
+    "bounded_lsq_frames",
+    "DEFAULT_TOL",
+]
 
 #: Relative optimality tolerance (times the largest |AtA_ii| or |Atb_i|).
 DEFAULT_TOL = 1e-12
@@ -71,7 +79,9 @@ def bounded_lsq(A, b, lower, upper, *, tol: float = DEFAULT_TOL) -> np.ndarray:
     a = _matrix(A, "A")
     rhs = _finite(b, "b")
     if rhs.ndim not in (1, 2) or rhs.shape[0] != a.shape[0]:
-        raise ShapeError(f"nnls: b must be (m,) or (m, k) with m = {a.shape[0]} rows of A, got {rhs.shape}")
+        raise ShapeError(
+            f"nnls: b must be (m,) or (m, k) with m = {a.shape[0]} rows of A, got {rhs.shape}"
+        )
     x = bounded_lsq_gram(a.T @ a, (a.T @ rhs).T, lower, upper, tol=tol)
     return x.T
 
@@ -95,7 +105,9 @@ def bounded_lsq_gram(AtA, Atb, lower, upper, *, x0=None, tol: float = DEFAULT_TO
     start = np.ascontiguousarray(np.clip(start, lo, hi))  # feasible (finite) start
     iters = np.zeros(rhs2.shape[0], dtype=np.int64)
     no_groups = np.full(n, -1, dtype=np.int64)
-    active_set_qp_many(gram, rhs2, lo, hi, no_groups, np.zeros(0), start, _max_iter(n), float(tol), iters)
+    active_set_qp_many(
+        gram, rhs2, lo, hi, no_groups, np.zeros(0), start, _max_iter(n), float(tol), iters
+    )
     if np.any(iters < 0):
         bad = int(np.flatnonzero(iters < 0)[0])
         raise NumericalError(
@@ -105,8 +117,18 @@ def bounded_lsq_gram(AtA, Atb, lower, upper, *, x0=None, tol: float = DEFAULT_TO
     return start[0] if single else start
 
 
-def bounded_lsq_frames(AtA, Atb, lower, upper, *, dropped=None, block_grams=None, ridge: float = 0.0,
-                       x0=None, tol: float = DEFAULT_TOL) -> np.ndarray:
+def bounded_lsq_frames(
+    AtA,
+    Atb,
+    lower,
+    upper,
+    *,
+    dropped=None,
+    block_grams=None,
+    ridge: float = 0.0,
+    x0=None,
+    tol: float = DEFAULT_TOL,
+) -> np.ndarray:
     """Bounded least squares for each frame of a sequence, warm-started from the frame before.
 
     Frame t solves ``argmin 1/2 x^T AtA_t x - Atb[t].x`` subject to ``lower <= x <= upper``,
@@ -150,7 +172,9 @@ def bounded_lsq_frames(AtA, Atb, lower, upper, *, dropped=None, block_grams=None
     else:
         drop = np.ascontiguousarray(dropped, dtype=np.bool_)
         if block_grams is None:
-            raise InputError("bounded_lsq_frames: dropped needs block_grams (the Gram of each row block)")
+            raise InputError(
+                "bounded_lsq_frames: dropped needs block_grams (the Gram of each row block)"
+            )
         grams = np.ascontiguousarray(_finite(block_grams, "block_grams"))
         if drop.ndim != 2 or drop.shape[0] != n_frames or grams.shape != (drop.shape[1], n, n):
             raise ShapeError(
@@ -163,8 +187,21 @@ def bounded_lsq_frames(AtA, Atb, lower, upper, *, dropped=None, block_grams=None
     start = np.ascontiguousarray(np.clip(start, lo, hi))
     out = np.empty((n_frames, n))
     iters = np.zeros(n_frames, dtype=np.int64)
-    active_set_qp_frames(gram, grams, drop, rhs, lo, hi, start, float(ridge), PIVOT_RTOL, out, _max_iter(n),
-                         float(tol), iters)
+    active_set_qp_frames(
+        gram,
+        grams,
+        drop,
+        rhs,
+        lo,
+        hi,
+        start,
+        float(ridge),
+        PIVOT_RTOL,
+        out,
+        _max_iter(n),
+        float(tol),
+        iters,
+    )
     if np.any(iters < 0):
         bad = int(np.flatnonzero(iters < 0)[0])
         raise NumericalError(
@@ -185,7 +222,9 @@ def _gram(value) -> np.ndarray:
     if gram.shape != (n, n):
         raise ShapeError(f"nnls_gram: AtA must be square (n, n), got {gram.shape}")
     if not np.allclose(gram, gram.T, rtol=1e-8, atol=1e-12 * max(1.0, float(np.abs(gram).max()))):
-        raise InputError("nnls_gram: AtA must be symmetric (it is A^T A); symmetrise it with (M + M.T) / 2")
+        raise InputError(
+            "nnls_gram: AtA must be symmetric (it is A^T A); symmetrise it with (M + M.T) / 2"
+        )
     return gram
 
 
@@ -202,7 +241,9 @@ def _finite(value, name: str) -> np.ndarray:
     except (TypeError, ValueError) as exc:
         raise ShapeError(f"nnls: {name} is not a numeric array ({exc})") from None
     if not np.all(np.isfinite(arr)):
-        raise NonFiniteError(f"nnls: {name} holds NaN or infinite values; remove or fill them first")
+        raise NonFiniteError(
+            f"nnls: {name} holds NaN or infinite values; remove or fill them first"
+        )
     return arr
 
 

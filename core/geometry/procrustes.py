@@ -4,6 +4,7 @@ Conventions: a transform maps *reference* (neutral) coordinates to frame
 coordinates, ``x_frame ~= s * R @ x_ref + t``. Head motion is stored as 4x4
 matrices ``[[s R, t], [0, 1]]`` (with s = 1 for rigid motion).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -11,7 +12,13 @@ import numpy as np
 from ..errors import DegenerateGeometryError, ShapeError
 
 
-def fit_rigid(reference: np.ndarray, frames: np.ndarray, weights: np.ndarray | None = None, *, scale: bool = False):
+def fit_rigid(
+    reference: np.ndarray,
+    frames: np.ndarray,
+    weights: np.ndarray | None = None,
+    *,
+    scale: bool = False,
+):
     """Best rigid (or similarity) transform from ``reference`` onto each frame (Kabsch / Umeyama).
 
     Parameters
@@ -37,15 +44,23 @@ def fit_rigid(reference: np.ndarray, frames: np.ndarray, weights: np.ndarray | N
     if single:
         frm = frm[None]
     if ref.ndim != 2 or frm.shape[1:] != ref.shape or ref.shape[1] not in (2, 3):
-        raise ShapeError(f"fit_rigid: reference (N, D) and frames (F, N, D) must agree, got {ref.shape} and {frm.shape}")
+        raise ShapeError(
+            f"fit_rigid: reference (N, D) and frames (F, N, D) must agree, got {ref.shape} and {frm.shape}"
+        )
     n_frames, n_points, dim = frm.shape
     valid = ~np.isnan(frm).any(axis=-1)
-    w = np.ones((n_frames, n_points)) if weights is None else np.broadcast_to(np.asarray(weights, dtype=np.float64), (n_frames, n_points))
+    w = (
+        np.ones((n_frames, n_points))
+        if weights is None
+        else np.broadcast_to(np.asarray(weights, dtype=np.float64), (n_frames, n_points))
+    )
     w = np.where(valid, w, 0.0)
     total = w.sum(axis=1)
     if np.any(np.count_nonzero(w, axis=1) < dim):
         f = int(np.flatnonzero(np.count_nonzero(w, axis=1) < dim)[0])
-        raise DegenerateGeometryError(f"fit_rigid: frame {f} has fewer than {dim} usable points; a rigid fit needs at least {dim}")
+        raise DegenerateGeometryError(
+            f"fit_rigid: frame {f} has fewer than {dim} usable points; a rigid fit needs at least {dim}"
+        )
     x = np.where(valid[..., None], frm, 0.0)
     wn = w / total[:, None]
     mu_ref = wn @ ref  # (F, D)
@@ -70,7 +85,9 @@ def fit_rigid(reference: np.ndarray, frames: np.ndarray, weights: np.ndarray | N
     return rot, trans, s
 
 
-def to_matrix(rotation: np.ndarray, translation: np.ndarray, scales: np.ndarray | None = None) -> np.ndarray:
+def to_matrix(
+    rotation: np.ndarray, translation: np.ndarray, scales: np.ndarray | None = None
+) -> np.ndarray:
     """(F, D+1, D+1) homogeneous matrices from ``rotation (F, D, D)``, ``translation (F, D)``."""
     rot = np.asarray(rotation, dtype=np.float64)
     n_frames, dim = rot.shape[0], rot.shape[1]
@@ -88,10 +105,14 @@ def apply(transforms: np.ndarray, points: np.ndarray) -> np.ndarray:
     dim = m.shape[-1] - 1
     p = np.asarray(points, dtype=np.float64)
     lin = m[:, :dim, :dim]
-    return np.matmul(p, lin.transpose(0, 2, 1)) + m[:, None, :dim, dim]  # rows: p @ L^T (broadcasts (P, D))
+    return (
+        np.matmul(p, lin.transpose(0, 2, 1)) + m[:, None, :dim, dim]
+    )  # rows: p @ L^T (broadcasts (P, D))
 
 
-def remove(transforms: np.ndarray, points: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
+def remove(
+    transforms: np.ndarray, points: np.ndarray, reference: np.ndarray | None = None
+) -> np.ndarray:
     """Undo ``(F, D+1, D+1)`` transforms on ``points (F, P, D)``: back to reference coordinates.
 
     With ``reference (P, D)`` returns the displacements from it instead (one pass, no
@@ -103,14 +124,22 @@ def remove(transforms: np.ndarray, points: np.ndarray, reference: np.ndarray | N
     if p.ndim == 3 and p.shape[2] == 3 and m.shape == (p.shape[0], 4, 4):
         from ._procrustes_kernels import remove_affine
 
-        ref = np.zeros((p.shape[1], 3)) if reference is None else np.ascontiguousarray(reference, dtype=np.float64)
+        ref = (
+            np.zeros((p.shape[1], 3))
+            if reference is None
+            else np.ascontiguousarray(reference, dtype=np.float64)
+        )
         out = np.empty(p.shape)
         bad = remove_affine(np.ascontiguousarray(m), np.ascontiguousarray(p), ref, out)
         if bad >= 0:
-            raise DegenerateGeometryError(f"remove: the transform of frame {bad} is singular (or NaN); give invertible head motion")
+            raise DegenerateGeometryError(
+                f"remove: the transform of frame {bad} is singular (or NaN); give invertible head motion"
+            )
         return out
     try:
         out = apply(np.linalg.inv(m), p)
     except np.linalg.LinAlgError:
-        raise DegenerateGeometryError("remove: a transform is singular; give invertible head motion") from None
+        raise DegenerateGeometryError(
+            "remove: a transform is singular; give invertible head motion"
+        ) from None
     return out if reference is None else out - reference

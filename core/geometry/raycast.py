@@ -14,16 +14,27 @@ for closest points the distance signed by the side of the triangle's normal.
 
 The brute-force O(N*M) references the tests compare against live in ``tests/naive/raycast.py``.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ShapeError
 from .._validate import check_finite
+from ..errors import ShapeError
 
-__all__ = ["BVH", "RayHits", "RayCaster", "build_bvh", "cast_rays", "closest_points", "embree_available", "triangle_neighbors", "walk_rays"]
+__all__ = [
+    "BVH",
+    "RayHits",
+    "RayCaster",
+    "build_bvh",
+    "cast_rays",
+    "closest_points",
+    "embree_available",
+    "triangle_neighbors",
+    "walk_rays",
+]
 
 #: Fewest queries for which the threaded kernels are used (below, waking the pool costs more).
 PARALLEL_MIN = 2048
@@ -39,8 +50,8 @@ _MORTON_BITS = 21
 def embree_available() -> bool:
     """Whether the Embree backend (package ``embreex``) can be imported."""
     try:
-        import embreex.rtcore_scene  # noqa: F401
         import embreex.mesh_construction  # noqa: F401
+        import embreex.rtcore_scene  # noqa: F401
     except Exception:
         return False
     return True
@@ -96,21 +107,37 @@ class BVH:
     count: np.ndarray
     order: np.ndarray
 
-    def refit(self, vertices: np.ndarray) -> "BVH":
+    def refit(self, vertices: np.ndarray) -> BVH:
         """The same tree with boxes recomputed for new ``vertices : (V, 3)`` (same topology)."""
         from . import _raycast_kernels as k
 
         v = _as_points(vertices, "BVH.refit vertices")
         if v.shape != self.vertices.shape:
-            raise ShapeError(f"BVH.refit: expected vertices of shape {self.vertices.shape}, got {v.shape}")
+            raise ShapeError(
+                f"BVH.refit: expected vertices of shape {self.vertices.shape}, got {v.shape}"
+            )
         lo = np.empty_like(self.node_lo)
         hi = np.empty_like(self.node_hi)
-        k.refit_bounds(self.left, self.right, self.start, self.count, self.order, v, self.triangles, lo, hi)
-        return BVH(v, self.triangles, lo, hi, self.left, self.right, self.start, self.count, self.order)
+        k.refit_bounds(
+            self.left, self.right, self.start, self.count, self.order, v, self.triangles, lo, hi
+        )
+        return BVH(
+            v, self.triangles, lo, hi, self.left, self.right, self.start, self.count, self.order
+        )
 
     @property
     def arrays(self) -> tuple:
-        return (self.node_lo, self.node_hi, self.left, self.right, self.start, self.count, self.order, self.vertices, self.triangles)
+        return (
+            self.node_lo,
+            self.node_hi,
+            self.left,
+            self.right,
+            self.start,
+            self.count,
+            self.order,
+            self.vertices,
+            self.triangles,
+        )
 
 
 def _as_points(x, name: str) -> np.ndarray:
@@ -150,7 +177,9 @@ def build_bvh(vertices: np.ndarray, triangles: np.ndarray, *, leaf_size: int = L
 def _unit_directions(directions: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     d = _as_points(directions, "directions")
     if d.shape[0] != n:
-        raise ShapeError(f"origins and directions must have the same length, got {n} and {d.shape[0]}")
+        raise ShapeError(
+            f"origins and directions must have the same length, got {n} and {d.shape[0]}"
+        )
     norm = np.linalg.norm(d, axis=1)
     ok = norm > 0
     unit = np.zeros_like(d)
@@ -207,11 +236,15 @@ class RayCaster:
         self.vertices = _as_points(vertices, "vertices")
         self.triangles = _as_triangles(triangles, len(self.vertices))
         if backend not in ("auto", "embree", "bvh", "brute"):
-            raise ShapeError(f"RayCaster backend must be 'auto', 'embree', 'bvh' or 'brute', got {backend!r}")
+            raise ShapeError(
+                f"RayCaster backend must be 'auto', 'embree', 'bvh' or 'brute', got {backend!r}"
+            )
         if backend == "embree" and not embree_available():
             from ..errors import CapabilityError
 
-            raise CapabilityError("the Embree backend needs the package embreex (pip install embreex, x86_64 only); use backend='bvh'")
+            raise CapabilityError(
+                "the Embree backend needs the package embreex (pip install embreex, x86_64 only); use backend='bvh'"
+            )
         if backend == "auto":
             backend = "embree" if embree_available() else "bvh"
         self.backend = backend
@@ -230,11 +263,17 @@ class RayCaster:
             from embreex.mesh_construction import TriangleMesh
 
             scene = rtcore_scene.EmbreeScene()
-            TriangleMesh(scene=scene, vertices=self.vertices.astype(np.float32), indices=self.triangles.astype(np.int32))
+            TriangleMesh(
+                scene=scene,
+                vertices=self.vertices.astype(np.float32),
+                indices=self.triangles.astype(np.int32),
+            )
             self._scene = scene
         return self._scene
 
-    def cast(self, origins, directions, *, both_directions: bool = True, max_distance=np.inf) -> RayHits:
+    def cast(
+        self, origins, directions, *, both_directions: bool = True, max_distance=np.inf
+    ) -> RayHits:
         """Nearest hit (by |t|) of lines ``origins + t * directions`` with |t| <= ``max_distance``.
 
         ``directions`` need not be unit length (they are normalised, so ``distance`` is in
@@ -315,15 +354,29 @@ class RayCaster:
         hits = _hits(self.vertices, self.triangles, tri, bary, np.sqrt(d2))
         found = tri >= 0
         a = self.vertices[self.triangles[tri[found], 0]]
-        normal = np.cross(self.vertices[self.triangles[tri[found], 1]] - a, self.vertices[self.triangles[tri[found], 2]] - a)
+        normal = np.cross(
+            self.vertices[self.triangles[tri[found], 1]] - a,
+            self.vertices[self.triangles[tri[found], 2]] - a,
+        )
         side = np.einsum("ij,ij->i", p[found] - hits.points[found], normal)
         hits.distance[found] *= np.where(side < 0, -1.0, 1.0)
         return hits
 
 
-def cast_rays(vertices, triangles, origins, directions, *, both_directions: bool = True, max_distance=np.inf, backend: str = "auto") -> RayHits:
+def cast_rays(
+    vertices,
+    triangles,
+    origins,
+    directions,
+    *,
+    both_directions: bool = True,
+    max_distance=np.inf,
+    backend: str = "auto",
+) -> RayHits:
     """One-off line query (see :meth:`RayCaster.cast`)."""
-    return RayCaster(vertices, triangles, backend=backend).cast(origins, directions, both_directions=both_directions, max_distance=max_distance)
+    return RayCaster(vertices, triangles, backend=backend).cast(
+        origins, directions, both_directions=both_directions, max_distance=max_distance
+    )
 
 
 def closest_points(vertices, triangles, points, *, max_distance=np.inf) -> RayHits:
@@ -358,7 +411,17 @@ def triangle_neighbors(triangles: np.ndarray) -> np.ndarray:
     return out
 
 
-def walk_rays(vertices, triangles, neighbors, origins, directions, start, *, max_distance=np.inf, max_steps: int = WALK_STEPS) -> RayHits:
+def walk_rays(
+    vertices,
+    triangles,
+    neighbors,
+    origins,
+    directions,
+    start,
+    *,
+    max_distance=np.inf,
+    max_steps: int = WALK_STEPS,
+) -> RayHits:
     """Hits of lines ``origins + t * directions`` (both directions) found by walking the mesh.
 
     ``start (R,)`` gives a triangle to start from per line (-1: skip). Meant for frames of a
@@ -380,6 +443,19 @@ def walk_rays(vertices, triangles, neighbors, origins, directions, start, *, max
     n = len(o)
     tri = np.empty(n, np.int64)
     t, u, w = np.empty(n), np.empty(n), np.empty(n)
-    k.walk_lines(v, tri_arr, np.ascontiguousarray(neighbors, dtype=np.int64), o, d, s, limit, int(max_steps), tri, t, u, w)
+    k.walk_lines(
+        v,
+        tri_arr,
+        np.ascontiguousarray(neighbors, dtype=np.int64),
+        o,
+        d,
+        s,
+        limit,
+        int(max_steps),
+        tri,
+        t,
+        u,
+        w,
+    )
     bary = np.stack([1.0 - u - w, u, w], axis=1)
     return _hits(v, tri_arr, tri, bary, t)

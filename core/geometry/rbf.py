@@ -13,6 +13,7 @@ Coincident centres: exact duplicates are merged (their values averaged), which i
 the only consistent reading of an interpolation constraint given twice; a tiny
 relative ridge (``config.RIDGE_EPS``) keeps near-coincident centres solvable.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -66,7 +67,14 @@ def _distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(d2, 0.0))
 
 
-def fit_rbf(centers: np.ndarray, values: np.ndarray, *, kernel: str = "linear", c: float | None = None, polynomial: bool = True) -> RBFInterpolant:
+def fit_rbf(
+    centers: np.ndarray,
+    values: np.ndarray,
+    *,
+    kernel: str = "linear",
+    c: float | None = None,
+    polynomial: bool = True,
+) -> RBFInterpolant:
     """Fit an RBF interpolant through ``values (N, K)`` at ``centers (N, D)``.
 
     ``c`` is the kernel shape parameter (default: the mean distance to the nearest
@@ -78,7 +86,9 @@ def fit_rbf(centers: np.ndarray, values: np.ndarray, *, kernel: str = "linear", 
     if y.ndim == 1:
         y = y[:, None]
     if x.ndim != 2 or y.shape[0] != x.shape[0] or x.shape[0] == 0:
-        raise ShapeError(f"fit_rbf: centers (N, D) and values (N, K) must agree, got {x.shape} and {y.shape}")
+        raise ShapeError(
+            f"fit_rbf: centers (N, D) and values (N, K) must agree, got {x.shape} and {y.shape}"
+        )
     if not (np.isfinite(x).all() and np.isfinite(y).all()):
         raise DegenerateGeometryError("fit_rbf: centres and values must be finite")
     x, y = _merge_duplicates(x, y)
@@ -91,10 +101,18 @@ def fit_rbf(centers: np.ndarray, values: np.ndarray, *, kernel: str = "linear", 
         else:
             c = 1.0
     if not (np.isfinite(c) and c > 0 and np.isfinite(1.0 / c)):
-        raise DegenerateGeometryError(f"fit_rbf: the kernel width c={c!r} must be a positive, normal number")
+        raise DegenerateGeometryError(
+            f"fit_rbf: the kernel width c={c!r} must be a positive, normal number"
+        )
     phi = kernel_values(_distances(x, x), kernel, c)
     use_linear = polynomial and n > dim and np.linalg.matrix_rank(x - x.mean(axis=0)) == dim
-    weights, affine = solve_system(x, y, phi, use_linear, "fit_rbf: the RBF system is singular ({}); check for coincident or collinear centres")
+    weights, affine = solve_system(
+        x,
+        y,
+        phi,
+        use_linear,
+        "fit_rbf: the RBF system is singular ({}); check for coincident or collinear centres",
+    )
     return RBFInterpolant(x, weights, affine, kernel, float(c))
 
 
@@ -132,7 +150,9 @@ def _merge_duplicates(x: np.ndarray, y: np.ndarray):
     extent = float(np.max(np.ptp(x, axis=0))) if len(x) > 1 else 0.0
     tol = extent * 1e-12 if extent > 0 and np.isfinite(extent) else 1.0
     keys = np.round((x - x.min(axis=0)) / tol)
-    _, first, inverse, counts = np.unique(keys, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    _, first, inverse, counts = np.unique(
+        keys, axis=0, return_index=True, return_inverse=True, return_counts=True
+    )
     if len(first) == len(x):
         return x, y
     inverse = inverse.ravel()

@@ -9,6 +9,7 @@
 Both return points on the simplex to rounding: non-negative exactly, and each group
 rescaled at the end so it sums to ``r`` within a few ulps.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -35,7 +36,9 @@ def project_simplex(values, radius: float = 1.0) -> np.ndarray:
 
     arr = np.asarray(values, dtype=np.float64)
     if arr.ndim == 0 or arr.shape[-1] == 0:
-        raise ShapeError(f"project_simplex: values must be (..., n) with n >= 1, got shape {arr.shape}")
+        raise ShapeError(
+            f"project_simplex: values must be (..., n) with n >= 1, got shape {arr.shape}"
+        )
     if not np.all(np.isfinite(arr)):
         raise NonFiniteError("project_simplex: values hold NaN or infinite entries")
     radius = float(radius)
@@ -51,7 +54,9 @@ def group_index(sizes) -> np.ndarray:
     """``(n,)`` group id of each variable for consecutive groups of the given ``sizes``."""
     sizes = np.asarray(sizes, dtype=np.int64)
     if sizes.ndim != 1 or sizes.size == 0 or np.any(sizes < 1):
-        raise ShapeError(f"group sizes must be a non-empty list of positive counts, got {sizes.tolist()}")
+        raise ShapeError(
+            f"group sizes must be a non-empty list of positive counts, got {sizes.tolist()}"
+        )
     return np.repeat(np.arange(sizes.size, dtype=np.int64), sizes)
 
 
@@ -77,7 +82,9 @@ def simplex_qp(G, c, groups=None, *, x0=None, tol: float = 1e-12) -> np.ndarray:
     gram = np.ascontiguousarray(np.asarray(G, dtype=np.float64))
     n = gram.shape[-1] if gram.ndim == 2 else 0
     if gram.ndim != 2 or gram.shape != (n, n) or n == 0:
-        raise ShapeError(f"simplex_qp: G must be a non-empty square (n, n) matrix, got {gram.shape}")
+        raise ShapeError(
+            f"simplex_qp: G must be a non-empty square (n, n) matrix, got {gram.shape}"
+        )
     lin = np.asarray(c, dtype=np.float64)
     single = lin.ndim == 1
     lin2 = np.ascontiguousarray(lin.reshape(1, -1) if single else lin)
@@ -95,11 +102,19 @@ def simplex_qp(G, c, groups=None, *, x0=None, tol: float = 1e-12) -> np.ndarray:
     start = np.empty_like(lin2)
     for g in range(n_groups):
         cols = grp == g
-        guess = np.full((lin2.shape[0], int(cols.sum())), 1.0) if x0 is None else np.asarray(x0, dtype=np.float64).reshape(lin2.shape)[:, cols]
+        guess = (
+            np.full((lin2.shape[0], int(cols.sum())), 1.0)
+            if x0 is None
+            else np.asarray(x0, dtype=np.float64).reshape(lin2.shape)[:, cols]
+        )
         start[:, cols] = project_simplex(guess)
     iters = np.zeros(lin2.shape[0], dtype=np.int64)
     lo, hi = np.zeros(n), np.full(n, np.inf)
-    active_set_qp_many(gram, lin2, lo, hi, grp, np.ones(n_groups), start, 10 * n + 50, float(tol), iters)
+    active_set_qp_many(
+        gram, lin2, lo, hi, grp, np.ones(n_groups), start, 10 * n + 50, float(tol), iters
+    )
     if np.any(iters < 0):
-        raise NumericalError("simplex_qp: the active-set method did not converge; G is probably near singular")
+        raise NumericalError(
+            "simplex_qp: the active-set method did not converge; G is probably near singular"
+        )
     return start[0] if single else start

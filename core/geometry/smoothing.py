@@ -10,6 +10,7 @@ Sparse mat-vecs are memory-bound; smoothing many frames at once, as columns of o
 float32 blocks halve the traffic (``dtype=np.float32``; about 8 ms a frame at 80K
 vertices on 2 cores).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -43,7 +44,17 @@ class TaubinSmoother:
         fixed vectors ``b`` needs ``G^T b`` once, not a smoothing of every frame.
     """
 
-    def __init__(self, triangles, n_vertices: int, *, iterations: int = 40, lam: float = TAUBIN_LAMBDA, mu: float = TAUBIN_MU, dtype=np.float64, adjoint: bool = False):
+    def __init__(
+        self,
+        triangles,
+        n_vertices: int,
+        *,
+        iterations: int = 40,
+        lam: float = TAUBIN_LAMBDA,
+        mu: float = TAUBIN_MU,
+        dtype=np.float64,
+        adjoint: bool = False,
+    ):
         w = umbrella_operator(np.asarray(triangles, dtype=np.int64), int(n_vertices))
         if adjoint:
             w = w.T.tocsr()
@@ -72,17 +83,38 @@ class TaubinSmoother:
         if single:
             p = p[None]
         if p.ndim != 3 or p.shape[1:] != (self.n_vertices, 3):
-            raise ShapeError(f"TaubinSmoother: expected (V, 3) or (F, V, 3) with V={self.n_vertices}, got {np.shape(points)}")
+            raise ShapeError(
+                f"TaubinSmoother: expected (V, 3) or (F, V, 3) with V={self.n_vertices}, got {np.shape(points)}"
+            )
         if p.dtype not in (np.float32, np.float64):
             p = p.astype(np.float64)
         p = np.ascontiguousarray(p)
         out = np.empty(p.shape, dtype=np.float64)
         blocks = max(1, min(get_num_threads(), 3 * p.shape[0]))
-        taubin_frames(self.indptr, self.indices, self.weights, p, out, self.iterations, self.lam, self.mu, blocks, np.empty(0, dtype=self.dtype))
+        taubin_frames(
+            self.indptr,
+            self.indices,
+            self.weights,
+            p,
+            out,
+            self.iterations,
+            self.lam,
+            self.mu,
+            blocks,
+            np.empty(0, dtype=self.dtype),
+        )
         return out[0] if single else out
 
 
-def taubin_smooth(points: np.ndarray, triangles: np.ndarray, *, iterations: int = 40, lam: float = TAUBIN_LAMBDA, mu: float = TAUBIN_MU, dtype=np.float64) -> np.ndarray:
+def taubin_smooth(
+    points: np.ndarray,
+    triangles: np.ndarray,
+    *,
+    iterations: int = 40,
+    lam: float = TAUBIN_LAMBDA,
+    mu: float = TAUBIN_MU,
+    dtype=np.float64,
+) -> np.ndarray:
     """Taubin-smooth ``points : (V, 3)`` or ``(F, V, 3)`` on the mesh ``triangles : (T, 3)``.
 
     Returns float64 positions of the same shape. For repeated calls on one topology,
@@ -91,4 +123,6 @@ def taubin_smooth(points: np.ndarray, triangles: np.ndarray, *, iterations: int 
     p = np.asarray(points)
     if p.ndim not in (2, 3) or p.shape[-1] != 3:
         raise ShapeError(f"taubin_smooth: points must be (V, 3) or (F, V, 3), got {p.shape}")
-    return TaubinSmoother(triangles, p.shape[-2], iterations=iterations, lam=lam, mu=mu, dtype=dtype)(p)
+    return TaubinSmoother(
+        triangles, p.shape[-2], iterations=iterations, lam=lam, mu=mu, dtype=dtype
+    )(p)

@@ -23,6 +23,7 @@ Rules (Loop 1987; boundary rules of Hoppe et al. 1994):
 The operator is built once per topology (:func:`loop_step`) and applied to any number of
 frames as a sparse product.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -118,8 +119,19 @@ def loop_step(triangles: np.ndarray, n_vertices: int, *, even: str = "loop") -> 
     odd = n_vertices + np.arange(n_edges)
     inner = ~boundary_edge
     rows += [odd[inner]] * 4 + [odd[boundary_edge]] * 2
-    cols += [edges[inner, 0], edges[inner, 1], opposite[inner, 0], opposite[inner, 1], edges[boundary_edge, 0], edges[boundary_edge, 1]]
-    vals += [np.full(inner.sum(), 3 / 8)] * 2 + [np.full(inner.sum(), 1 / 8)] * 2 + [np.full(boundary_edge.sum(), 0.5)] * 2
+    cols += [
+        edges[inner, 0],
+        edges[inner, 1],
+        opposite[inner, 0],
+        opposite[inner, 1],
+        edges[boundary_edge, 0],
+        edges[boundary_edge, 1],
+    ]
+    vals += (
+        [np.full(inner.sum(), 3 / 8)] * 2
+        + [np.full(inner.sum(), 1 / 8)] * 2
+        + [np.full(boundary_edge.sum(), 0.5)] * 2
+    )
 
     # even vertices
     b_edges = edges[boundary_edge]
@@ -153,7 +165,8 @@ def loop_step(triangles: np.ndarray, n_vertices: int, *, even: str = "loop") -> 
         vals.append(np.full(take.sum(), 1 / 8))
     n_fine = n_vertices + n_edges
     matrix = sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n_fine, n_vertices)
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(n_fine, n_vertices),
     )
     matrix.sum_duplicates()
 
@@ -174,7 +187,9 @@ def loop_step(triangles: np.ndarray, n_vertices: int, *, even: str = "loop") -> 
     return LoopStep(matrix, children, edges, opposite, boundary_edge, boundary_vertex)
 
 
-def loop_hierarchy(triangles: np.ndarray, n_vertices: int, levels: int, *, even: str = "loop") -> list[LoopStep]:
+def loop_hierarchy(
+    triangles: np.ndarray, n_vertices: int, levels: int, *, even: str = "loop"
+) -> list[LoopStep]:
     """``levels`` successive :func:`loop_step` operators starting from ``triangles``."""
     if int(levels) < 0:
         raise ShapeError(f"loop_hierarchy: levels must be >= 0, got {levels}")
@@ -187,7 +202,9 @@ def loop_hierarchy(triangles: np.ndarray, n_vertices: int, levels: int, *, even:
     return steps
 
 
-def subdivide(vertices: np.ndarray, triangles: np.ndarray, levels: int = 1, *, even: str = "loop") -> tuple[np.ndarray, np.ndarray]:
+def subdivide(
+    vertices: np.ndarray, triangles: np.ndarray, levels: int = 1, *, even: str = "loop"
+) -> tuple[np.ndarray, np.ndarray]:
     """Loop-subdivide ``vertices (V, 3)`` (or ``(F, V, 3)`` frames) ``levels`` times.
 
     Returns the new vertices (same leading shape) and triangles.

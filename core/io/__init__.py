@@ -52,12 +52,22 @@ Built-in formats (kind: extensions):
 - weights: .csv (Live Link Face layout and plain), .npz
 - animation: .glb/.gltf, .npz (also written as OBJ sequence / PC2 / MDD / npy / CSV)
 """
+
 from __future__ import annotations
 
 from ._atomic import atomic_dir, atomic_file, atomic_path, is_input, note_input, write_bytes
 from .dispatch import formats, kind_of, shadow_note
-from .sources import _examples  # noqa: F401 (the CLI's --source-examples)
-from .sources import load, load_bundle, load_source, load_target, read_feature_lines, read_landmarks, save, save_bundle
+from .sources import (
+    _examples,  # noqa: F401 (the CLI's --source-examples)
+    load,
+    load_bundle,
+    load_source,
+    load_target,
+    read_feature_lines,
+    read_landmarks,
+    save,
+    save_bundle,
+)
 
 __all__ = [
     "load",

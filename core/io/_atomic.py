@@ -24,6 +24,7 @@ that pid runs, or nobody holds the lock) are found by :func:`leftovers` and remo
 restored) by :func:`remove_leftovers`, which every write runs for its destination first
 (the batch runner also for outputs it skips).
 """
+
 from __future__ import annotations
 
 import errno
@@ -32,9 +33,10 @@ import re
 import secrets
 import shutil
 import stat
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Iterable, Iterator
+from typing import IO
 
 from ..errors import OutputError
 
@@ -44,8 +46,19 @@ except ImportError:  # pragma: no cover - not on Windows
     fcntl = None
 
 __all__ = [
-    "note_input", "clear_inputs", "is_input", "recorded_inputs", "check_destination", "atomic_file", "atomic_dir", "atomic_path", "write_bytes",
-    "temp_path", "temp_owner", "leftovers", "remove_leftovers",
+    "note_input",
+    "clear_inputs",
+    "is_input",
+    "recorded_inputs",
+    "check_destination",
+    "atomic_file",
+    "atomic_dir",
+    "atomic_path",
+    "write_bytes",
+    "temp_path",
+    "temp_owner",
+    "leftovers",
+    "remove_leftovers",
 ]
 
 _TMP_SUFFIX = ".frtmp"
@@ -101,7 +114,9 @@ def is_input(path, inputs: Iterable = ()) -> bool:
     return ident is not None and ident in set(v for v in known.values() if v is not None)
 
 
-def check_destination(path, *, inputs: Iterable = (), force: bool = False, folder: bool = False) -> Path:
+def check_destination(
+    path, *, inputs: Iterable = (), force: bool = False, folder: bool = False
+) -> Path:
     """Validate a destination before writing; returns it as a :class:`Path`.
 
     Raises :class:`OutputError` when it is an input, exists without ``force``, is of
@@ -115,7 +130,9 @@ def check_destination(path, *, inputs: Iterable = (), force: bool = False, folde
     if folder and p.is_dir():
         for child in p.iterdir():
             if is_input(child, inputs):
-                raise OutputError(f"{p}: refusing to replace a folder holding an input ({child.name}); choose another output folder")
+                raise OutputError(
+                    f"{p}: refusing to replace a folder holding an input ({child.name}); choose another output folder"
+                )
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise OutputError(f"{p}: the folder {parent} does not exist; create it first")
@@ -135,13 +152,19 @@ def temp_path(dest) -> Path:
     so a writer that dispatches on the extension (a plugin's) can be given the temporary
     path; :func:`leftovers` recognises every such name."""
     dest = Path(dest)
-    return dest.parent / f".{dest.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_SUFFIX}{dest.suffix}"
+    return (
+        dest.parent / f".{dest.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_SUFFIX}{dest.suffix}"
+    )
 
 
 #: ``.NAME.PID.TOKEN.frtmp[.EXT]`` / ``.NAME.PID.TOKEN.frold``
-_TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.(?P<token>[0-9a-f]{8})(?P<tag>\.frtmp|\.frold)(?P<ext>\.[^.]*)?$")
+_TEMP_NAME = re.compile(
+    r"^\.(?P<name>.+)\.(?P<pid>\d+)\.(?P<token>[0-9a-f]{8})(?P<tag>\.frtmp|\.frold)(?P<ext>\.[^.]*)?$"
+)
 #: the batch runner's former scheme ``.NAME.frbatch-PID-TOKEN.EXT`` (still cleaned up)
-_LEGACY_NAME = re.compile(r"^\.(?P<name>.+?)\.frbatch-(?P<pid>\d+)-(?P<token>[0-9a-f]+)(?P<ext>\.[^.]*)?$")
+_LEGACY_NAME = re.compile(
+    r"^\.(?P<name>.+?)\.frbatch-(?P<pid>\d+)-(?P<token>[0-9a-f]+)(?P<ext>\.[^.]*)?$"
+)
 
 
 def temp_owner(name: str) -> tuple[str, list[int], str] | None:
@@ -175,7 +198,13 @@ def _locked(path: Path) -> bool:
     if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
         return False
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0))
+        fd = os.open(
+            path,
+            os.O_RDONLY
+            | os.O_NONBLOCK
+            | getattr(os, "O_NOFOLLOW", 0)
+            | getattr(os, "O_CLOEXEC", 0),
+        )
     except OSError:
         return True  # cannot tell: leave it
     try:
@@ -273,12 +302,18 @@ def _create_locked(dest: Path, *, folder: bool) -> tuple[Path, int]:
     try:
         if folder:
             tmp.mkdir()
-            fd = os.open(tmp, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0))
+            fd = os.open(
+                tmp, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0)
+            )
         else:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666)
+            fd = os.open(
+                tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_CLOEXEC", 0), 0o666
+            )
     except OSError as exc:
         what = "folder" if folder else "file"
-        raise OutputError(f"{dest}: cannot create a {what} in {dest.parent} ({exc.strerror or exc}); check the folder's permissions") from None
+        raise OutputError(
+            f"{dest}: cannot create a {what} in {dest.parent} ({exc.strerror or exc}); check the folder's permissions"
+        ) from None
     if fcntl is not None:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -307,7 +342,9 @@ def _discard(tmp: Path) -> None:
 
 
 @contextmanager
-def atomic_file(path, *, inputs: Iterable = (), force: bool = False, text: bool = False) -> Iterator[IO]:
+def atomic_file(
+    path, *, inputs: Iterable = (), force: bool = False, text: bool = False
+) -> Iterator[IO]:
     """Open a temporary file that replaces ``path`` when the ``with`` block succeeds.
 
     On an exception inside the block the temporary file is removed and ``path`` is
@@ -325,9 +362,12 @@ def atomic_file(path, *, inputs: Iterable = (), force: bool = False, text: bool 
     tmp, lock = _create_locked(dest, folder=False)
     try:
         try:
-            handle = open(tmp, "w", encoding="utf-8", newline="\n") if text else open(tmp, "wb")
+            # opened here, entered below: a failure to create the file is its own error
+            handle = open(tmp, "w", encoding="utf-8", newline="\n") if text else open(tmp, "wb")  # noqa: SIM115
         except OSError as exc:
-            raise OutputError(f"{dest}: cannot create a file in {dest.parent} ({exc.strerror or exc})") from None
+            raise OutputError(
+                f"{dest}: cannot create a file in {dest.parent} ({exc.strerror or exc})"
+            ) from None
         with _typed_os_errors(dest):
             with handle:
                 yield handle
@@ -347,12 +387,16 @@ def atomic_file(path, *, inputs: Iterable = (), force: bool = False, text: bool 
 @contextmanager
 def _direct_file(tmp: Path, dest: Path, inputs: Iterable, text: bool) -> Iterator[IO]:
     if is_input(dest, inputs):
-        raise OutputError(f"{dest}: refusing to write over an input file; choose another output path")
-    with _typed_os_errors(dest):
-        with (open(tmp, "w", encoding="utf-8", newline="\n") if text else open(tmp, "wb")) as handle:
-            yield handle
-            handle.flush()
-            os.fsync(handle.fileno())
+        raise OutputError(
+            f"{dest}: refusing to write over an input file; choose another output path"
+        )
+    with (
+        _typed_os_errors(dest),
+        open(tmp, "w", encoding="utf-8", newline="\n") if text else open(tmp, "wb") as handle,
+    ):
+        yield handle
+        handle.flush()
+        os.fsync(handle.fileno())
 
 
 @contextmanager
@@ -371,7 +415,9 @@ def atomic_path(path, *, inputs: Iterable = (), force: bool = False) -> Iterator
         with _typed_os_errors(dest):
             yield tmp
             if not tmp.is_file() or tmp.is_symlink() or tmp.stat().st_size == 0:
-                raise OutputError(f"{dest}: the writer wrote nothing (or not a regular file) at {tmp.name}; nothing was replaced")
+                raise OutputError(
+                    f"{dest}: the writer wrote nothing (or not a regular file) at {tmp.name}; nothing was replaced"
+                )
             fd = os.open(tmp, os.O_RDONLY)
             try:
                 os.fsync(fd)
@@ -396,7 +442,13 @@ def write_bytes(path, data: bytes, *, inputs: Iterable = (), force: bool = False
 
 
 @contextmanager
-def atomic_dir(path, *, inputs: Iterable = (), force: bool = False, allowed_suffixes: tuple[str, ...] | None = ()) -> Iterator[Path]:
+def atomic_dir(
+    path,
+    *,
+    inputs: Iterable = (),
+    force: bool = False,
+    allowed_suffixes: tuple[str, ...] | None = (),
+) -> Iterator[Path]:
     """A temporary folder that replaces folder ``path`` when the ``with`` block succeeds.
 
     Files written into the yielded folder should be fsync-ed by the caller (use
@@ -411,7 +463,9 @@ def atomic_dir(path, *, inputs: Iterable = (), force: bool = False, allowed_suff
     if direct is not None:  # a temporary folder handed out by atomic_dir: write into it
         _check_foreign(direct, allowed_suffixes)
         if is_input(direct, inputs):
-            raise OutputError(f"{direct}: refusing to write over an input; choose another output path")
+            raise OutputError(
+                f"{direct}: refusing to write over an input; choose another output path"
+            )
         with _typed_os_errors(direct):
             yield Path(path)
         return
@@ -442,7 +496,9 @@ def _check_foreign(dest: Path, allowed_suffixes) -> None:
     checks it with its own suffixes)."""
     if allowed_suffixes is None or not dest.is_dir():
         return
-    foreign = [c.name for c in dest.iterdir() if not (c.is_file() and c.suffix.lower() in allowed_suffixes)]
+    foreign = [
+        c.name for c in dest.iterdir() if not (c.is_file() and c.suffix.lower() in allowed_suffixes)
+    ]
     if foreign:
         raise OutputError(
             f"{dest}: the existing folder holds other content ({', '.join(sorted(foreign)[:5])}); "
@@ -464,7 +520,9 @@ def _replace_dir(tmp: Path, dest: Path) -> None:
         return
     # no atomic exchange on this system: move the old folder aside under a name the next
     # write recognises and restores if we die before the new folder is in place
-    backup = dest.parent / f".{dest.name}.{os.getpid()}.{secrets.token_hex(4)}{_BACKUP_SUFFIX}"  # temp_path's scheme
+    backup = (
+        dest.parent / f".{dest.name}.{os.getpid()}.{secrets.token_hex(4)}{_BACKUP_SUFFIX}"
+    )  # temp_path's scheme
     os.replace(dest, backup)
     os.replace(tmp, dest)
     shutil.rmtree(backup, ignore_errors=True)
@@ -504,7 +562,9 @@ def _typed_os_errors(dest: Path) -> Iterator[None]:
         raise
     except OSError as exc:
         reason = exc.strerror or str(exc) or type(exc).__name__
-        raise OutputError(f"{dest}: writing failed ({reason}); the previous file, if any, is unchanged") from None
+        raise OutputError(
+            f"{dest}: writing failed ({reason}); the previous file, if any, is unchanged"
+        ) from None
 
 
 def write_file_synced(path: Path, data: bytes | str) -> None:

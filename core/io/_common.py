@@ -1,5 +1,6 @@
 """Helpers shared by the format modules: typed errors naming the file, the memory
 budget, safe text and npy/npz access (never pickle), JSON and natural sorting."""
+
 from __future__ import annotations
 
 import functools
@@ -9,13 +10,21 @@ import re
 import stat
 import warnings
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from .. import config
-from ..errors import FaceRetargetError, FileFormatError, FormatMismatchError, InputError, OutputError, ResourceLimitError
+from ..errors import (
+    FaceRetargetError,
+    FileFormatError,
+    FormatMismatchError,
+    InputError,
+    OutputError,
+    ResourceLimitError,
+)
 from ._atomic import note_input
 
 __all__ = [
@@ -127,10 +136,12 @@ def guarded_reader(fn: Callable) -> Callable:
                     return fn(p, **options)
         except InputError as exc:
             message = str(exc)
-            raise _mismatch_or(p, FileFormatError(message if message.startswith(str(p)) else f"{p}: {message}")) from None
+            raise _mismatch_or(
+                p, FileFormatError(message if message.startswith(str(p)) else f"{p}: {message}")
+            ) from None
         except FormatMismatchError:
             raise
-        except FileFormatError as exc:  # a file of another kind fails its parser: say what it is
+        except FileFormatError:  # a file of another kind fails its parser: say what it is
             mismatch = _mismatch_or(p, None)
             if mismatch is None:
                 raise
@@ -138,14 +149,19 @@ def guarded_reader(fn: Callable) -> Callable:
         except FaceRetargetError:
             raise
         except MemoryError:
-            raise ResourceLimitError(f"{p}: ran out of memory while reading; the file is too large for this machine") from None
+            raise ResourceLimitError(
+                f"{p}: ran out of memory while reading; the file is too large for this machine"
+            ) from None
         except RecursionError:
             raise FileFormatError(f"{p}: nested too deeply to read") from None
         except Exception as exc:  # parsers and third-party libraries raise anything on bad input
             detail = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-            raise _mismatch_or(p, FileFormatError(
-                f"{p}: not a readable file of this format ({type(exc).__name__}{': ' + detail[:200] if detail else ''})"
-            )) from None
+            raise _mismatch_or(
+                p,
+                FileFormatError(
+                    f"{p}: not a readable file of this format ({type(exc).__name__}{': ' + detail[:200] if detail else ''})"
+                ),
+            ) from None
 
     return read
 
@@ -226,7 +242,9 @@ def read_bytes(path: Path, what: str = "reading the file", *, factor: float = 1.
         check_budget(path, size * factor, what)
         data = fh.read(size + 1)
     if len(data) > size:
-        raise ResourceLimitError(f"{path}: the file grew while it was read (more than its {size} bytes); read it once it is complete")
+        raise ResourceLimitError(
+            f"{path}: the file grew while it was read (more than its {size} bytes); read it once it is complete"
+        )
     return data
 
 
@@ -266,7 +284,9 @@ def iter_chunks(fh, size: int = 1 << 20):
         if cut < 0:
             rest = block
             if len(rest) > 64 * size:
-                check_budget(getattr(fh, "name", "the file"), len(rest), "one line of this text file")
+                check_budget(
+                    getattr(fh, "name", "the file"), len(rest), "one line of this text file"
+                )
             continue
         rest = block[cut + 1 :]
         yield block[: cut + 1]
@@ -327,7 +347,9 @@ class TextRows:
             yield rows
 
 
-def number_block(rows: list[bytes], columns: int, dtype=np.float64, *, delimiter=None) -> np.ndarray | None:
+def number_block(
+    rows: list[bytes], columns: int, dtype=np.float64, *, delimiter=None
+) -> np.ndarray | None:
     """The first ``columns`` values of each row as a ``(len(rows), columns)`` array, parsed
     in C (numpy); None when a row has fewer values or one is not a number (the caller's
     row-by-row parser then says which)."""
@@ -336,7 +358,14 @@ def number_block(rows: list[bytes], columns: int, dtype=np.float64, *, delimiter
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            return np.loadtxt(rows, dtype=dtype, usecols=range(columns), ndmin=2, comments=None, delimiter=delimiter)
+            return np.loadtxt(
+                rows,
+                dtype=dtype,
+                usecols=range(columns),
+                ndmin=2,
+                comments=None,
+                delimiter=delimiter,
+            )
     except (ValueError, TypeError, OverflowError, IndexError):
         return None
 
@@ -346,7 +375,9 @@ _NAT = re.compile(r"(\d+)")
 
 def natural_key(text: str) -> tuple:
     """Sort key putting ``frame2`` before ``frame10``."""
-    return tuple((0, int(t), t) if t.isdigit() else (1, 0, t.lower()) for t in _NAT.split(text) if t)
+    return tuple(
+        (0, int(t), t) if t.isdigit() else (1, 0, t.lower()) for t in _NAT.split(text) if t
+    )
 
 
 def fmt_float(value: float) -> str:
@@ -391,7 +422,10 @@ def npy_header(fh, path, name: str = "") -> tuple[tuple[int, ...], np.dtype, boo
     except Exception as exc:
         raise bad(path, f"{where} is not a valid numpy array header ({exc})") from None
     if dtype.hasobject:
-        raise bad(path, f"{where} holds Python objects; only plain numeric or text arrays are read (never pickle)")
+        raise bad(
+            path,
+            f"{where} holds Python objects; only plain numeric or text arrays are read (never pickle)",
+        )
     if any(int(s) < 0 for s in shape):
         raise bad(path, f"{where} declares a negative size {shape}")
     return tuple(int(s) for s in shape), dtype, bool(fortran)
@@ -437,17 +471,22 @@ def read_npz(path: Path) -> dict[str, np.ndarray]:
                 raise bad(path, f"array {key!r} cannot be opened ({exc})") from None
             nbytes = array_nbytes(shape, dtype)
             if info.file_size < nbytes:
-                raise bad(path, f"array {key!r} declares {shape} {dtype} ({nbytes} bytes) but its member holds {info.file_size}")
+                raise bad(
+                    path,
+                    f"array {key!r} declares {shape} {dtype} ({nbytes} bytes) but its member holds {info.file_size}",
+                )
             headers[key] = (shape, dtype)
             total += nbytes
         check_budget(path, total, "the arrays of this npz")
         out = {}
-        for key, (shape, dtype) in headers.items():
+        for key in headers:
             try:
                 with zf.open(key + ".npy") as fh:
                     arr = np.lib.format.read_array(fh, allow_pickle=False)
             except Exception as exc:
-                raise bad(path, f"array {key!r} is truncated or corrupt ({type(exc).__name__}: {exc})") from None
+                raise bad(
+                    path, f"array {key!r} is truncated or corrupt ({type(exc).__name__}: {exc})"
+                ) from None
             out[key] = arr
     return out
 
@@ -461,7 +500,10 @@ def load_npy(path: Path, *, mmap: bool = True) -> np.ndarray:
     check_budget(path, nbytes, f"an array of shape {shape}")
     size = path.stat().st_size
     if size < offset + nbytes:
-        raise bad(path, f"truncated: the header declares {shape} {dtype} ({nbytes} bytes) but only {size - offset} bytes follow")
+        raise bad(
+            path,
+            f"truncated: the header declares {shape} {dtype} ({nbytes} bytes) but only {size - offset} bytes follow",
+        )
     if dtype.kind in "OV" or dtype.hasobject:
         raise bad(path, "holds structured or object data; expected a plain numeric array")
     if mmap and nbytes > 0:
@@ -586,7 +628,9 @@ EXPECTED: dict[str, tuple[str, frozenset[str]]] = {
 }
 
 #: families that are text: a text file where a binary format is expected is a mismatch
-_TEXT_FAMILIES = frozenset({"text", "html", "xml", "svg", "json", "obj", "off", "trc", "csv", "stl-ascii"})
+_TEXT_FAMILIES = frozenset(
+    {"text", "html", "xml", "svg", "json", "obj", "off", "trc", "csv", "stl-ascii"}
+)
 _SNIFF_BYTES = 4096
 
 
@@ -608,15 +652,26 @@ def _sniff_text(head: bytes) -> tuple[str, str, str] | None:
             text = head[: exc.start].decode("utf-8", "replace")
     body = text.lstrip("\ufeff \t\r\n")
     low = body[:512].lower()
-    if low.startswith(("<!doctype html", "<html")) or "<html" in low[:256] or ("<head" in low and "<body" in low):
-        return "html", "an HTML web page (a download that saved the page instead of the file?)", ".html"
+    if (
+        low.startswith(("<!doctype html", "<html"))
+        or "<html" in low[:256]
+        or ("<head" in low and "<body" in low)
+    ):
+        return (
+            "html",
+            "an HTML web page (a download that saved the page instead of the file?)",
+            ".html",
+        )
     if low.startswith("<svg") or ("<svg" in low[:256] and low.startswith("<?xml")):
         return "svg", "an SVG image", ".svg"
     if low.startswith("<?xml") or low.startswith("<"):
         return "xml", "an XML document", ".xml"
     if low.startswith(("{", "[")):
         return "json", "JSON text", ".json"
-    first = next((ln.strip() for ln in body.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), "")
+    first = next(
+        (ln.strip() for ln in body.splitlines() if ln.strip() and not ln.lstrip().startswith("#")),
+        "",
+    )
     head_word = first.split(None, 1)[0].lower() if first else ""
     if low.startswith("ply\n") or low.startswith("ply\r"):
         return "ply", "a PLY mesh", ".ply"
@@ -630,7 +685,9 @@ def _sniff_text(head: bytes) -> tuple[str, str, str] | None:
         ln.startswith("v ") for ln in body.splitlines()[:50]
     ):
         return "obj", "a Wavefront OBJ mesh", ".obj"
-    if first.count(",") >= 1 and all(ln.count(",") == first.count(",") for ln in body.splitlines()[1:6] if ln.strip()):
+    if first.count(",") >= 1 and all(
+        ln.count(",") == first.count(",") for ln in body.splitlines()[1:6] if ln.strip()
+    ):
         return "csv", "a CSV table", ".csv"
     return "text", "a text file", ".txt"
 
@@ -655,7 +712,11 @@ def sniff(path) -> tuple[str, str, str] | None:
             if family == "zip":
                 return _sniff_zip(path, family, what, ext)
             if family == "riff" and head[8:12] in (b"WAVE", b"AVI ", b"WEBP"):
-                kind = {b"WAVE": ("a WAV audio file", ".wav"), b"AVI ": ("an AVI video", ".avi"), b"WEBP": ("a WebP image", ".webp")}[head[8:12]]
+                kind = {
+                    b"WAVE": ("a WAV audio file", ".wav"),
+                    b"AVI ": ("an AVI video", ".avi"),
+                    b"WEBP": ("a WebP image", ".webp"),
+                }[head[8:12]]
                 return family, kind[0], kind[1]
             return family, what, ext
     if b"<VTKFile" in head[:1024]:  # XML, possibly followed by raw appended data
@@ -710,7 +771,9 @@ def format_mismatch(path, expected_ext: str | None = None) -> str | None:
     return message
 
 
-def mismatch_error(path, expected_ext: str | None = None, detail: str = "") -> "FormatMismatchError | None":
+def mismatch_error(
+    path, expected_ext: str | None = None, detail: str = ""
+) -> FormatMismatchError | None:
     """A :class:`FormatMismatchError` naming what ``path`` really is (see
     :func:`format_mismatch`), or None when its content fits its extension."""
     from ..errors import FormatMismatchError

@@ -16,6 +16,7 @@ Foreign ``.npz`` files without a ``format`` key are read by their keys (``vertic
 ``expression_names``, as in the ICT-FaceKit export; ``positions`` + ``names``;
 ``weights`` + ``names``).
 """
+
 from __future__ import annotations
 
 import json
@@ -40,25 +41,56 @@ from ..model import (
 from ._atomic import atomic_file
 from ._common import bad, guarded_reader, join_arrays, read_npz, split_arrays
 
-__all__ = ["VERSION", "encode", "decode", "write_npz", "read_npz_object", "npz_type", "TYPES", "type_of"]
+__all__ = [
+    "VERSION",
+    "encode",
+    "decode",
+    "write_npz",
+    "read_npz_object",
+    "npz_type",
+    "TYPES",
+    "type_of",
+]
 
 VERSION = 1
 PREFIX = "faceretarget."
-TYPES = ("mesh", "mesh_sequence", "markers", "weights", "rig", "layers", "animation", "source", "target", "case")
+TYPES = (
+    "mesh",
+    "mesh_sequence",
+    "markers",
+    "weights",
+    "rig",
+    "layers",
+    "animation",
+    "source",
+    "target",
+    "case",
+)
 BUNDLE_TYPES = ("source", "target", "case")
 
 
 def type_of(obj: Any) -> str:
     """The npz type name of a model object (``case`` for anything with source and target)."""
     for cls, name in (
-        (Mesh, "mesh"), (MeshSequence, "mesh_sequence"), (MarkerSequence, "markers"), (WeightSequence, "weights"),
-        (BlendshapeRig, "rig"), (LayeredRig, "layers"), (Animation, "animation"), (Source, "source"), (TargetRig, "target"),
+        (Mesh, "mesh"),
+        (MeshSequence, "mesh_sequence"),
+        (MarkerSequence, "markers"),
+        (WeightSequence, "weights"),
+        (BlendshapeRig, "rig"),
+        (LayeredRig, "layers"),
+        (Animation, "animation"),
+        (Source, "source"),
+        (TargetRig, "target"),
     ):
         if isinstance(obj, cls):
             return name
-    if isinstance(getattr(obj, "source", None), Source) and isinstance(getattr(obj, "target", None), TargetRig):
+    if isinstance(getattr(obj, "source", None), Source) and isinstance(
+        getattr(obj, "target", None), TargetRig
+    ):
         return "case"
-    raise InputError(f"cannot store a {type(obj).__name__} in a faceretarget npz; expected a model object, Source, TargetRig or case")
+    raise InputError(
+        f"cannot store a {type(obj).__name__} in a faceretarget npz; expected a model object, Source, TargetRig or case"
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -246,19 +278,37 @@ def decode(arrays: _Arrays | dict, kind: str, prefix: str = "", path=None) -> An
         return Mesh(a.get(p + "vertices"), a.get(p + "triangles"), name=a.text(p + "name", None))
     if kind == "mesh_sequence":
         return MeshSequence(
-            a.get(p + "vertices"), a.get(p + "triangles"), fps=a.scalar(p + "fps"), reference=a.get(p + "reference", None),
+            a.get(p + "vertices"),
+            a.get(p + "triangles"),
+            fps=a.scalar(p + "fps"),
+            reference=a.get(p + "reference", None),
             name=a.text(p + "name", None),
         )
     if kind == "markers":
-        return MarkerSequence(a.get(p + "positions"), names=a.text(p + "names"), fps=a.scalar(p + "fps"), reference=a.get(p + "reference", None))
+        return MarkerSequence(
+            a.get(p + "positions"),
+            names=a.text(p + "names"),
+            fps=a.scalar(p + "fps"),
+            reference=a.get(p + "reference", None),
+        )
     if kind == "weights":
         return WeightSequence(a.get(p + "weights"), a.text(p + "names"), fps=a.scalar(p + "fps"))
     if kind == "rig":
-        return BlendshapeRig(decode(a, "mesh", p + "neutral/"), a.get(p + "deltas"), a.text(p + "names"), bounds=a.get(p + "bounds", None))
+        return BlendshapeRig(
+            decode(a, "mesh", p + "neutral/"),
+            a.get(p + "deltas"),
+            a.text(p + "names"),
+            bounds=a.get(p + "bounds", None),
+        )
     if kind == "layers":
         layers = a.dict_of_arrays(p + "layers/")
         pose_names = {n: a.text(f"{p}pose_names/{i}") for i, n in enumerate(layers)}
-        return LayeredRig(layers, a.get(p + "masks"), pose_names=pose_names, region_names=a.text(p + "region_names"))
+        return LayeredRig(
+            layers,
+            a.get(p + "masks"),
+            pose_names=pose_names,
+            region_names=a.text(p + "region_names"),
+        )
     if kind == "animation":
         rig = decode(a, "rig", p + "rig/") if a.has(p + "rig/deltas") else None
         return Animation(
@@ -278,7 +328,12 @@ def decode(arrays: _Arrays | dict, kind: str, prefix: str = "", path=None) -> An
             raise bad(a.path, f"unknown performance type {perf_type!r}")
         performance = decode(a, perf_type, p + "performance/")
         parts = _decode_parts(a, p)
-        for part, sub in (("rig", "rig"), ("actor_layers", "layers"), ("tracks2d", "markers"), ("actor_layers_2d", "layers")):
+        for part, sub in (
+            ("rig", "rig"),
+            ("actor_layers", "layers"),
+            ("tracks2d", "markers"),
+            ("actor_layers_2d", "layers"),
+        ):
             if a.has_prefix(f"{p}{part}/"):
                 parts[part] = decode(a, sub, f"{p}{part}/")
         return Source(performance, **parts)
@@ -296,8 +351,11 @@ def decode(arrays: _Arrays | dict, kind: str, prefix: str = "", path=None) -> An
         from ..cases import Case
 
         return Case(
-            name=a.text(p + "name", None) or Path(str(a.path)).stem, source=decode(a, "source", p + "source/"),
-            target=decode(a, "target", p + "target/"), truth=truth, meta=meta,
+            name=a.text(p + "name", None) or Path(str(a.path)).stem,
+            source=decode(a, "source", p + "source/"),
+            target=decode(a, "target", p + "target/"),
+            truth=truth,
+            meta=meta,
         )
     raise bad(a.path, f"unknown object type {kind!r}; known: {', '.join(TYPES)}")
 
@@ -311,7 +369,11 @@ def _decode_parts(a: _Arrays, p: str) -> dict[str, Any]:
         if a.has(p + "landmarks/vertex_ids"):
             parts["landmarks"] = Landmarks(a.get(p + "landmarks/vertex_ids"), names=names)
         else:
-            parts["landmarks"] = Landmarks(triangle_ids=a.get(p + "landmarks/triangle_ids"), barycentric=a.get(p + "landmarks/barycentric"), names=names)
+            parts["landmarks"] = Landmarks(
+                triangle_ids=a.get(p + "landmarks/triangle_ids"),
+                barycentric=a.get(p + "landmarks/barycentric"),
+                names=names,
+            )
     lines = a.dict_of_arrays(p + "feature_lines/")
     if lines:
         parts["feature_lines"] = lines
@@ -324,13 +386,17 @@ def _decode_parts(a: _Arrays, p: str) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------
 # files
 # ---------------------------------------------------------------------------------------
-def write_npz(obj: Any, path, *, force: bool = False, inputs=(), compress: bool = False, **options) -> None:
+def write_npz(
+    obj: Any, path, *, force: bool = False, inputs=(), compress: bool = False, **options
+) -> None:
     """Write any model object, Source, TargetRig or case as a faceretarget ``.npz`` (atomic)."""
     kind = type_of(obj)
     arrays = encode(obj)
     for key, value in arrays.items():
         if value.dtype.hasobject:
-            raise InputError(f"npz: {key!r} would need pickle (object dtype); only numeric and text arrays are stored")
+            raise InputError(
+                f"npz: {key!r} would need pickle (object dtype); only numeric and text arrays are stored"
+            )
     arrays["format"] = np.array(PREFIX + kind)
     arrays["version"] = np.array(VERSION)
     with atomic_file(path, inputs=inputs, force=force) as fh:
@@ -351,7 +417,10 @@ def npz_type(arrays: dict[str, np.ndarray], path) -> str | None:
     if version is None or version.size != 1 or version.dtype.kind not in "iu":
         raise bad(path, "missing or bad 'version'")
     if int(version) > VERSION:
-        raise bad(path, f"written by a newer faceretarget (npz version {int(version)}; this one reads up to {VERSION}); upgrade")
+        raise bad(
+            path,
+            f"written by a newer faceretarget (npz version {int(version)}; this one reads up to {VERSION}); upgrade",
+        )
     return kind
 
 
@@ -392,16 +461,28 @@ def _decode_foreign(arrays: dict, kind: str, path: Path, options: dict) -> Any:
         tris = _first(arrays, "triangles")
         names = _first(arrays, "names")
         if tris is None or names is None:
-            raise bad(path, "a rig npz needs 'neutral', 'deltas' (or 'expression_deltas'), 'names' and 'triangles' (or 'faces')")
-        return BlendshapeRig(Mesh(arrays["neutral"], tris, name=name), _first(arrays, "deltas"), [str(n) for n in names.tolist()])
+            raise bad(
+                path,
+                "a rig npz needs 'neutral', 'deltas' (or 'expression_deltas'), 'names' and 'triangles' (or 'faces')",
+            )
+        return BlendshapeRig(
+            Mesh(arrays["neutral"], tris, name=name),
+            _first(arrays, "deltas"),
+            [str(n) for n in names.tolist()],
+        )
     if kind == "weights":
         if "names" not in arrays:
             raise bad(path, "a weights npz needs 'weights' (F, M) and 'names' (M,)")
-        return WeightSequence(arrays["weights"], [str(n) for n in arrays["names"].tolist()], fps=fps or float(arrays.get("fps", 30.0)))
+        return WeightSequence(
+            arrays["weights"],
+            [str(n) for n in arrays["names"].tolist()],
+            fps=fps or float(arrays.get("fps", 30.0)),
+        )
     if kind == "markers":
         names = arrays.get("names")
         return MarkerSequence(
-            _first(arrays, "positions"), names=None if names is None else [str(n) for n in names.tolist()],
+            _first(arrays, "positions"),
+            names=None if names is None else [str(n) for n in names.tolist()],
             fps=fps or float(arrays.get("fps", 30.0)),
         )
     if kind in ("mesh", "mesh_sequence"):
@@ -447,7 +528,10 @@ def read_npz_object(path: Path, *, kind: str | None = None, **options) -> Any:
     if stored is None:
         guessed = kind or guess_type(arrays)
         if guessed is None:
-            raise bad(path, f"cannot tell what this npz holds (keys: {sorted(arrays)[:12]}); it has no 'format' key")
+            raise bad(
+                path,
+                f"cannot tell what this npz holds (keys: {sorted(arrays)[:12]}); it has no 'format' key",
+            )
         return _decode_foreign(arrays, guessed, path, options)
     obj = decode(_Arrays(arrays, path), stored)
     return obj if kind is None else _convert(obj, stored, kind, path)

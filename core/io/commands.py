@@ -14,6 +14,7 @@ Refuses ``IN == OUT`` and never replaces a file it read; an existing ``OUT`` nee
 ``--force``. Errors are :class:`~faceretarget.errors.FaceRetargetError` subclasses (the
 CLI prints them on one line).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,17 +25,41 @@ from .._json import jsonable
 from ..errors import OutputError
 from ..hookspecs import DATA_KINDS
 
-__all__ = ["add_convert_arguments", "run_convert", "convert", "export_case", "add_cases_arguments", "run_cases", "run_commands"]
+__all__ = [
+    "add_convert_arguments",
+    "run_convert",
+    "convert",
+    "export_case",
+    "add_cases_arguments",
+    "run_cases",
+    "run_commands",
+]
 
 
 def add_convert_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``convert`` arguments to ``parser``."""
     parser.add_argument("input", metavar="IN", help="file or folder to read")
-    parser.add_argument("output", metavar="OUT", help="file to write (no extension: a folder of OBJ files)")
-    parser.add_argument("--kind", choices=DATA_KINDS, default=None, help="what to read IN as, when its extension is ambiguous")
-    parser.add_argument("--force", action="store_true", help="replace OUT if it exists (never an input)")
-    parser.add_argument("--topology", metavar="MESH", default=None, help="mesh giving the triangles of a point cache or .npy")
-    parser.add_argument("--fps", type=float, default=None, help="frame rate for formats that do not store it")
+    parser.add_argument(
+        "output", metavar="OUT", help="file to write (no extension: a folder of OBJ files)"
+    )
+    parser.add_argument(
+        "--kind",
+        choices=DATA_KINDS,
+        default=None,
+        help="what to read IN as, when its extension is ambiguous",
+    )
+    parser.add_argument(
+        "--force", action="store_true", help="replace OUT if it exists (never an input)"
+    )
+    parser.add_argument(
+        "--topology",
+        metavar="MESH",
+        default=None,
+        help="mesh giving the triangles of a point cache or .npy",
+    )
+    parser.add_argument(
+        "--fps", type=float, default=None, help="frame rate for formats that do not store it"
+    )
     return parser
 
 
@@ -60,7 +85,14 @@ def convert(src, dst, *, kind: str | None = None, force: bool = False, **options
 
 def run_convert(args: argparse.Namespace) -> int:
     """Run ``faceretarget convert`` from parsed arguments; returns the exit code (0)."""
-    out = convert(args.input, args.output, kind=args.kind, force=args.force, topology=args.topology, fps=args.fps)
+    out = convert(
+        args.input,
+        args.output,
+        kind=args.kind,
+        force=args.force,
+        topology=args.topology,
+        fps=args.fps,
+    )
     print(f"wrote {out}")
     return 0
 
@@ -118,7 +150,9 @@ def export_case(case, folder, *, force: bool = False) -> dict[str, Path]:
         case = resolve_case(case)
     folder = Path(folder)
     if folder.exists() and (not folder.is_dir() or (any(folder.iterdir()) and not force)):
-        raise OutputError(f"{folder} already exists and is not an empty folder; choose a new folder or pass --force to replace the files in it")
+        raise OutputError(
+            f"{folder} already exists and is not an empty folder; choose a new folder or pass --force to replace the files in it"
+        )
     folder.mkdir(parents=True, exist_ok=True)
     written: dict[str, Path] = {}
 
@@ -128,12 +162,20 @@ def export_case(case, folder, *, force: bool = False) -> dict[str, Path]:
         written[part] = path
 
     def put_json(part: str, name: str, data) -> None:
-        put(part, name, lambda p: write_bytes(p, (json.dumps(data, indent=1) + "\n").encode(), force=force))
+        put(
+            part,
+            name,
+            lambda p: write_bytes(p, (json.dumps(data, indent=1) + "\n").encode(), force=force),
+        )
 
     def put_examples(part: str, name: str, examples, names) -> None:
         def write(p):
             with atomic_file(p, force=force) as fh:
-                np.savez(fh, examples=np.asarray(examples), example_names=np.array([str(n) for n in names], dtype=str))
+                np.savez(
+                    fh,
+                    examples=np.asarray(examples),
+                    example_names=np.array([str(n) for n in names], dtype=str),
+                )
 
         put(part, name, write)
 
@@ -149,7 +191,11 @@ def export_case(case, folder, *, force: bool = False) -> dict[str, Path]:
     if source.rig is not None and source.kind == "weights":
         put("source_rig", "source_rig.glb", lambda p: save(source.rig, p, force=force))
     if source.head_motion is not None:
-        put("source_head_motion", "source_head_motion.npy", lambda p: _save_npy(p, source.head_motion, force))
+        put(
+            "source_head_motion",
+            "source_head_motion.npy",
+            lambda p: _save_npy(p, source.head_motion, force),
+        )
     if target.blendshapes is not None:
         put("character", "character.glb", lambda p: save(target.blendshapes, p, force=force))
     else:
@@ -158,19 +204,37 @@ def export_case(case, folder, *, force: bool = False) -> dict[str, Path]:
         if obj.landmarks is not None:
             put_json(f"{side}_landmarks", f"{side}_landmarks.json", _landmarks_json(obj.landmarks))
         if obj.feature_lines:
-            put_json(f"{side}_feature_lines", f"{side}_feature_lines.json", {str(k): jsonable(v) for k, v in obj.feature_lines.items()})
+            put_json(
+                f"{side}_feature_lines",
+                f"{side}_feature_lines.json",
+                {str(k): jsonable(v) for k, v in obj.feature_lines.items()},
+            )
         if obj.examples is not None:
-            put_examples(f"{side}_examples", f"{side}_examples.npz", obj.examples, obj.example_names)
+            put_examples(
+                f"{side}_examples", f"{side}_examples.npz", obj.examples, obj.example_names
+            )
         layers = obj.actor_layers if side == "source" else obj.layers
         if layers is not None:
-            put(f"{side}_layers", f"{side}_layers.npz", lambda p, layers=layers: write_npz(layers, p, force=force))
+            put(
+                f"{side}_layers",
+                f"{side}_layers.npz",
+                lambda p, layers=layers: write_npz(layers, p, force=force),
+            )
     if getattr(case, "truth", None) is not None:
         put("truth", "truth.npz", lambda p: write_npz(case.truth, p, force=force))
     put("case", "case.npz", lambda p: write_npz(case, p, force=force))
     methods = _applicable(source, target)
     (folder / "out").mkdir(exist_ok=True)  # where the run commands and the manifest write
-    put("manifest", "batch.toml", lambda p: write_bytes(p, _manifest(methods, case).encode(), force=force))
-    put("readme", "README.txt", lambda p: write_bytes(p, _export_readme(case, written, methods).encode(), force=force))
+    put(
+        "manifest",
+        "batch.toml",
+        lambda p: write_bytes(p, _manifest(methods, case).encode(), force=force),
+    )
+    put(
+        "readme",
+        "README.txt",
+        lambda p: write_bytes(p, _export_readme(case, written, methods).encode(), force=force),
+    )
     return written
 
 
@@ -187,7 +251,11 @@ def _applicable(source, target) -> list[str]:
     from ..registry import registry
 
     reg = registry()
-    return [m for m in EXPORT_METHODS if m in reg.retargeters and reg.retargeters[m].cls.why_not(source, target) is None]
+    return [
+        m
+        for m in EXPORT_METHODS
+        if m in reg.retargeters and reg.retargeters[m].cls.why_not(source, target) is None
+    ]
 
 
 def _manifest(methods: list[str], case) -> str:
@@ -209,18 +277,26 @@ def _manifest(methods: list[str], case) -> str:
 
 def run_commands(written: dict[str, Path], methods: list[str]) -> list[str]:
     """One ``faceretarget run`` command per method on the exported plain files (relative paths)."""
+
     def arg(option: str, part: str) -> str:
         return f" {option} {written[part].name}" if part in written else ""
 
     source = (
-        f"--source {written['source'].name}" + arg("--source-neutral", "source_neutral") + arg("--source-rig", "source_rig")
-        + arg("--source-head-motion", "source_head_motion") + arg("--source-landmarks", "source_landmarks")
-        + arg("--source-feature-lines", "source_feature_lines") + arg("--source-examples", "source_examples")
+        f"--source {written['source'].name}"
+        + arg("--source-neutral", "source_neutral")
+        + arg("--source-rig", "source_rig")
+        + arg("--source-head-motion", "source_head_motion")
+        + arg("--source-landmarks", "source_landmarks")
+        + arg("--source-feature-lines", "source_feature_lines")
+        + arg("--source-examples", "source_examples")
         + arg("--actor-layers", "source_layers")
     )
     target = (
-        f"--target {written['character'].name}" + arg("--landmarks", "character_landmarks") + arg("--feature-lines", "character_feature_lines")
-        + arg("--examples", "character_examples") + arg("--layers", "character_layers")
+        f"--target {written['character'].name}"
+        + arg("--landmarks", "character_landmarks")
+        + arg("--feature-lines", "character_feature_lines")
+        + arg("--examples", "character_examples")
+        + arg("--layers", "character_layers")
     )
     return [f"faceretarget run {m} {source} {target} --out out/{m}.glb" for m in methods]
 
@@ -234,25 +310,56 @@ def _export_readme(case, written: dict[str, Path], methods: list[str]) -> str:
     lines.append(f"  {'out/':<28} (empty) for the results")
     lines += ["", "Run each method that applies on the plain files (from this folder):", ""]
     lines += [f"  {c}" for c in run_commands(written, methods)]
-    lines += ["", "or all of them from the bundle case.npz:", "", "  faceretarget batch batch.toml", ""]
+    lines += [
+        "",
+        "or all of them from the bundle case.npz:",
+        "",
+        "  faceretarget batch batch.toml",
+        "",
+    ]
     return "\n".join(lines)
 
 
 def add_cases_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """``faceretarget cases list`` and ``faceretarget cases export NAME DIR``."""
-    sub = parser.add_subparsers(dest="cases_command", metavar="ACTION", required=True, help="list or export")
-    sub.add_parser("list", help="the built-in cases", description="List the built-in cases (names for compare, batch and export).")
+    sub = parser.add_subparsers(
+        dest="cases_command", metavar="ACTION", required=True, help="list or export"
+    )
+    sub.add_parser(
+        "list",
+        help="the built-in cases",
+        description="List the built-in cases (names for compare, batch and export).",
+    )
     p = sub.add_parser(
-        "export", help="write a built-in case as ordinary files",
+        "export",
+        help="write a built-in case as ordinary files",
         description="Write a built-in case as ordinary files: the source take, the target character, landmarks, feature "
         "lines, example poses and layers of both, the ground truth, the whole case as one bundle (case.npz), a "
         "ready batch manifest (batch.toml) and README.txt with a `faceretarget run` command per method.",
         epilog='example: faceretarget cases export "synthetic-human?n_frames=40" take/',
     )
-    p.add_argument("name", metavar="NAME", help="case name, optionally with keywords: synthetic-human, synthetic-stylized, ict, cross_rig, cross_topology; e.g. 'ict?n_frames=40'")
-    p.add_argument("folder", metavar="DIR", type=Path, help="folder to write (created; must be new or empty unless --force)")
-    p.add_argument("--frames", type=int, metavar="N", help="frames of the performance (same as NAME?n_frames=N)")
-    p.add_argument("--force", action="store_true", help="write into a folder that is not empty, replacing the files of the export")
+    p.add_argument(
+        "name",
+        metavar="NAME",
+        help="case name, optionally with keywords: synthetic-human, synthetic-stylized, ict, cross_rig, cross_topology; e.g. 'ict?n_frames=40'",
+    )
+    p.add_argument(
+        "folder",
+        metavar="DIR",
+        type=Path,
+        help="folder to write (created; must be new or empty unless --force)",
+    )
+    p.add_argument(
+        "--frames",
+        type=int,
+        metavar="N",
+        help="frames of the performance (same as NAME?n_frames=N)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="write into a folder that is not empty, replacing the files of the export",
+    )
     return parser
 
 
@@ -275,5 +382,7 @@ def run_cases(args: argparse.Namespace) -> int:
     print(f"wrote {len(written)} files into {args.folder}:")
     for part, path in written.items():
         print(f"  {path.name:<28} {part.replace('_', ' ')}")
-    print(f"see {written['readme']} for a `faceretarget run` command per method, or: faceretarget batch {written['manifest']}")
+    print(
+        f"see {written['readme']} for a `faceretarget run` command per method, or: faceretarget batch {written['manifest']}"
+    )
     return 0

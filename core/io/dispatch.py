@@ -15,11 +15,13 @@ Writing: the writer for the extension and the object's kind, handed a temporary 
 that :func:`_write_through` moves into place (never over an input or, without ``force``,
 an existing file).
 """
+
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from ..errors import FileFormatError, InputError, UnknownNameError
 from ..hookspecs import DATA_KINDS, Writer
@@ -63,7 +65,9 @@ def _looks_like(formats: FormatTable, path: Path) -> str | None:
     for entry in formats.identify(path):
         if ext not in entry.extensions:
             exts = "/".join(x for x in entry.extensions if x != "/")
-            return f"a {entry.name} file ({entry.record.description}; {exts}, format={entry.name!r})"
+            return (
+                f"a {entry.name} file ({entry.record.description}; {exts}, format={entry.name!r})"
+            )
     from ._common import sniff
 
     found = sniff(path)
@@ -72,7 +76,9 @@ def _looks_like(formats: FormatTable, path: Path) -> str | None:
     return None
 
 
-def _reader_order(formats: FormatTable, path: Path, kind: str | None, fmt: str | None) -> list[Entry]:
+def _reader_order(
+    formats: FormatTable, path: Path, kind: str | None, fmt: str | None
+) -> list[Entry]:
     """The readers to try for ``path``, in order (the first that does not decline reads it)."""
     from .._validate import did_you_mean
 
@@ -81,22 +87,32 @@ def _reader_order(formats: FormatTable, path: Path, kind: str | None, fmt: str |
         if named:
             return named[:1]
         names = formats.names("read")
-        raise UnknownNameError(f"no reader named {fmt!r}{did_you_mean(fmt, names)}; readers: {', '.join(names)}")
+        raise UnknownNameError(
+            f"no reader named {fmt!r}{did_you_mean(fmt, names)}; readers: {', '.join(names)}"
+        )
     ext = _ext(path)
     candidates = formats.candidates("read", ext)
     if not candidates:
         known = formats.extensions("read")
-        what = "folders" if ext == "/" else (f"'{ext}' files" if ext else "files without an extension")
+        what = (
+            "folders" if ext == "/" else (f"'{ext}' files" if ext else "files without an extension")
+        )
         found = _looks_like(formats, path)
         looks = f" (it looks like {found})" if found else ""
         hint = did_you_mean(ext, known) if ext not in ("/", "") else ""
-        raise FileFormatError(f"{path}: no reader for {what}{looks}{hint}; readable: {', '.join(known)}")
+        raise FileFormatError(
+            f"{path}: no reader for {what}{looks}{hint}; readable: {', '.join(known)}"
+        )
     kinds = sorted({e.kind for e in candidates})
     if kind is not None:
         if kind not in DATA_KINDS:
-            raise UnknownNameError(f"unknown kind {kind!r}{did_you_mean(kind, DATA_KINDS)}; kinds: {', '.join(DATA_KINDS)}")
+            raise UnknownNameError(
+                f"unknown kind {kind!r}{did_you_mean(kind, DATA_KINDS)}; kinds: {', '.join(DATA_KINDS)}"
+            )
         if kind not in kinds:
-            raise FileFormatError(f"{path}: '{ext}' files cannot be read as {kind}; they can be read as {', '.join(kinds)}")
+            raise FileFormatError(
+                f"{path}: '{ext}' files cannot be read as {kind}; they can be read as {', '.join(kinds)}"
+            )
     elif len(kinds) > 1:
         kind = formats.sniff_kind(path, candidates) or candidates[0].kind
     return [e for e in candidates if kind in (None, e.kind)]
@@ -137,7 +153,9 @@ def _read_with(formats: FormatTable, readers: list[Entry], path: Path, options: 
     if looks is None:
         found = _looks_like(formats, path)
         looks = f"this looks like {found}" if found else None
-    raise FormatMismatchError(f"{path}: {looks + '; ' if looks else ''}every reader for it declined it: {tried}")
+    raise FormatMismatchError(
+        f"{path}: {looks + '; ' if looks else ''}every reader for it declined it: {tried}"
+    )
 
 
 def read(path, kind: str | None = None, *, format: str | None = None, **options) -> Any:
@@ -157,12 +175,18 @@ def kind_of(obj: Any) -> str:
     from ..model import Animation, BlendshapeRig, MarkerSequence, Mesh, MeshSequence, WeightSequence
 
     for cls, kind in (
-        (Mesh, "mesh"), (MeshSequence, "mesh_sequence"), (BlendshapeRig, "rig"), (MarkerSequence, "markers"),
-        (WeightSequence, "weights"), (Animation, "animation"),
+        (Mesh, "mesh"),
+        (MeshSequence, "mesh_sequence"),
+        (BlendshapeRig, "rig"),
+        (MarkerSequence, "markers"),
+        (WeightSequence, "weights"),
+        (Animation, "animation"),
     ):
         if isinstance(obj, cls):
             return kind
-    raise InputError(f"cannot save a {type(obj).__name__}; expected a Mesh, MeshSequence, BlendshapeRig, MarkerSequence, WeightSequence or Animation")
+    raise InputError(
+        f"cannot save a {type(obj).__name__}; expected a Mesh, MeshSequence, BlendshapeRig, MarkerSequence, WeightSequence or Animation"
+    )
 
 
 def _coerce(obj: Any, kind: str, want: set[str]):
@@ -181,7 +205,9 @@ def _coerce(obj: Any, kind: str, want: set[str]):
     return None, None
 
 
-def write(obj: Any, path, *, force: bool = False, inputs=(), format: str | None = None, **options) -> Path:
+def write(
+    obj: Any, path, *, force: bool = False, inputs=(), format: str | None = None, **options
+) -> Path:
     """Write a model object with the registered writer for the path's extension (or the one
     named ``format``), atomically; see :func:`faceretarget.io.save`, which also writes bundles."""
     p = Path(path)
@@ -190,12 +216,16 @@ def write(obj: Any, path, *, force: bool = False, inputs=(), format: str | None 
     if format is not None:
         candidates = formats.named("write", format)
         if not candidates:
-            raise UnknownNameError(f"no writer named {format!r}; writers: {', '.join(formats.names('write'))}")
+            raise UnknownNameError(
+                f"no writer named {format!r}; writers: {', '.join(formats.names('write'))}"
+            )
     else:
         ext = _ext(p, writing=True)
         candidates = formats.candidates("write", ext)
         if not candidates:
-            raise FileFormatError(f"{p}: no writer for '{ext}' files; writable: {', '.join(formats.extensions('write'))}")
+            raise FileFormatError(
+                f"{p}: no writer for '{ext}' files; writable: {', '.join(formats.extensions('write'))}"
+            )
     matching = [e for e in candidates if e.kind == kind]
     if not matching:
         coerced, new_kind = _coerce(obj, kind, {e.kind for e in candidates})
@@ -209,7 +239,9 @@ def write(obj: Any, path, *, force: bool = False, inputs=(), format: str | None 
     return p
 
 
-def _write_through(formats: FormatTable, entry: Entry, obj: Any, dest: Path, *, force: bool, inputs, options: dict) -> None:
+def _write_through(
+    formats: FormatTable, entry: Entry, obj: Any, dest: Path, *, force: bool, inputs, options: dict
+) -> None:
     """The one way any writer, built-in or a plugin's, reaches the disk: it is handed a
     temporary path beside ``dest`` (an empty file with ``dest``'s suffix, or an empty
     folder for a folder format) and, when it returns, the core checks the destination
@@ -245,7 +277,9 @@ def _write_through(formats: FormatTable, entry: Entry, obj: Any, dest: Path, *, 
 def _plugin_folder_suffixes(formats: FormatTable, writer: Writer) -> tuple[str, ...]:
     """Suffixes of the files an existing folder may hold for a plugin's folder writer to
     replace it: the file formats registered for the same kind (never other content)."""
-    exts = {x for kind in (writer.kind, "mesh") for x in formats.extensions("write", kind) if x != "/"}
+    exts = {
+        x for kind in (writer.kind, "mesh") for x in formats.extensions("write", kind) if x != "/"
+    }
     return tuple(sorted(exts | {".json"}))
 
 

@@ -17,11 +17,13 @@ This module knows no plugin, no format and no registry: :mod:`faceretarget.io.bu
 declares the built-in records, the registry collects every plugin's, and the dispatcher
 (:mod:`faceretarget.io.dispatch`) builds a table from them when it needs one.
 """
+
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 __all__ = ["Entry", "FormatTable", "MAGIC_BYTES", "ranked", "shadow_note"]
 
@@ -62,13 +64,17 @@ class Entry:
 def _entries(pairs: Iterable[tuple[Any, Any]]) -> list[Entry]:
     """``(record, info)`` pairs (``info`` has ``origin`` and ``builtin``, like the
     registry's ``PluginInfo``) as entries in load order."""
-    return [Entry(rec, str(info.origin), bool(info.builtin), i) for i, (rec, info) in enumerate(pairs)]
+    return [
+        Entry(rec, str(info.origin), bool(info.builtin), i) for i, (rec, info) in enumerate(pairs)
+    ]
 
 
 class FormatTable:
     """The readers and writers of one registry, looked up by name, extension and kind."""
 
-    def __init__(self, readers: Iterable[tuple[Any, Any]] = (), writers: Iterable[tuple[Any, Any]] = ()):
+    def __init__(
+        self, readers: Iterable[tuple[Any, Any]] = (), writers: Iterable[tuple[Any, Any]] = ()
+    ):
         self._entries = {"read": _entries(readers), "write": _entries(writers)}
 
     # -- lookups -------------------------------------------------------------------------
@@ -89,11 +95,15 @@ class FormatTable:
 
     def extensions(self, direction: str, kind: str | None = None) -> list[str]:
         """Every extension read/written (of ``kind`` when given), sorted."""
-        return sorted({x for e in self._entries[direction] if kind in (None, e.kind) for x in e.extensions})
+        return sorted(
+            {x for e in self._entries[direction] if kind in (None, e.kind) for x in e.extensions}
+        )
 
     def candidates(self, direction: str, ext: str, kind: str | None = None) -> list[Entry]:
         """The records for extension ``ext`` (of ``kind`` when given), in precedence order."""
-        return ranked(e for e in self._entries[direction] if ext in e.extensions and kind in (None, e.kind))
+        return ranked(
+            e for e in self._entries[direction] if ext in e.extensions and kind in (None, e.kind)
+        )
 
     # -- looking inside files --------------------------------------------------------------
     @staticmethod
@@ -128,7 +138,9 @@ class FormatTable:
         except OSError:
             return []
         return ranked(
-            e for e in self._entries["read"] if any(head.startswith(m) for m in getattr(e.record, "magic", ()) or ())
+            e
+            for e in self._entries["read"]
+            if any(head.startswith(m) for m in getattr(e.record, "magic", ()) or ())
         )
 
     # -- precedence ------------------------------------------------------------------------
@@ -151,12 +163,21 @@ class FormatTable:
                     shadowed_by.setdefault(loser.order, {})[ext] = winner.name
                     shadows.setdefault(winner.order, {}).setdefault(ext, []).append(loser.name)
             for e in entries:
-                rows.append({
-                    "direction": direction, "name": e.name, "kind": e.kind, "extensions": list(e.extensions),
-                    "description": e.record.description, "origin": e.origin, "builtin": e.builtin,
-                    "priority": e.priority, "declines": getattr(e.record, "accepts", None) is not None,
-                    "shadowed_by": shadowed_by.get(e.order, {}), "shadows": shadows.get(e.order, {}),
-                })
+                rows.append(
+                    {
+                        "direction": direction,
+                        "name": e.name,
+                        "kind": e.kind,
+                        "extensions": list(e.extensions),
+                        "description": e.record.description,
+                        "origin": e.origin,
+                        "builtin": e.builtin,
+                        "priority": e.priority,
+                        "declines": getattr(e.record, "accepts", None) is not None,
+                        "shadowed_by": shadowed_by.get(e.order, {}),
+                        "shadows": shadows.get(e.order, {}),
+                    }
+                )
         return rows
 
 
@@ -174,5 +195,10 @@ def shadow_note(row: dict[str, Any]) -> str:
         later = "; gets only files the winner declines" if row["direction"] == "read" else ""
         parts.append(f"shadowed by {by}{later}")
     if row["shadows"]:
-        parts.append("wins over " + ", ".join(f"{'/'.join(names)} ({ext})" for ext, names in sorted(row["shadows"].items())))
+        parts.append(
+            "wins over "
+            + ", ".join(
+                f"{'/'.join(names)} ({ext})" for ext, names in sorted(row["shadows"].items())
+            )
+        )
     return "; ".join(parts)

@@ -27,6 +27,7 @@ as float32 (the format's only float type). Provenance, the frame rate and exact 
 copies of the weights and head motion (in buffer views named by ``extras``) go into
 ``extras.faceretarget``, so a written animation reads back with its weights bit-exact.
 """
+
 from __future__ import annotations
 
 import base64
@@ -43,7 +44,18 @@ from .._json import jsonable
 from ..errors import InputError, OutputError
 from ..model import Animation, BlendshapeRig, Mesh, MeshSequence
 from ._atomic import note_input, write_bytes
-from ._common import bad, check_budget, check_regular, fps_from_times, guarded_reader, join_arrays, open_regular, read_bytes, split_arrays, to_float32
+from ._common import (
+    bad,
+    check_budget,
+    check_regular,
+    fps_from_times,
+    guarded_reader,
+    join_arrays,
+    open_regular,
+    read_bytes,
+    split_arrays,
+    to_float32,
+)
 
 __all__ = [
     "read_gltf_mesh",
@@ -104,7 +116,9 @@ class _Doc:
         if not isinstance(items, list):
             raise self.fail(f"'{array}' must be a list")
         if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(items):
-            raise self.fail(f"{where} refers to {array}[{index!r:.20}] but the file has {len(items)}")
+            raise self.fail(
+                f"{where} refers to {array}[{index!r:.20}] but the file has {len(items)}"
+            )
         value = items[index]
         if not isinstance(value, dict):
             raise self.fail(f"{array}[{index}] must be an object")
@@ -123,29 +137,45 @@ class _Doc:
         vw = f"bufferViews[{index}]"
         buf_index = self.get(view, "buffer", int, vw)
         if not 0 <= buf_index < len(self.buffers):
-            raise self.fail(f"{vw} refers to buffers[{buf_index}] but the file has {len(self.buffers)}")
+            raise self.fail(
+                f"{vw} refers to buffers[{buf_index}] but the file has {len(self.buffers)}"
+            )
         buf = self.buffers[buf_index]
         offset = self.get(view, "byteOffset", int, vw, 0)
         length = self.get(view, "byteLength", int, vw)
         stride = self.get(view, "byteStride", int, vw, None)
         if offset < 0 or length < 1 or offset + length > len(buf):
-            raise self.fail(f"{vw} (offset {offset}, length {length}) lies outside buffer {buf_index} ({len(buf)} bytes)")
+            raise self.fail(
+                f"{vw} (offset {offset}, length {length}) lies outside buffer {buf_index} ({len(buf)} bytes)"
+            )
         if stride is not None and not 4 <= stride <= 252:
             raise self.fail(f"{vw}.byteStride {stride} is outside 4..252")
         return buf, offset, length, stride
 
-    def _read_view_array(self, view_index: int, offset: int, count: int, ncomp: int, dtype: np.dtype, where: str) -> np.ndarray:
+    def _read_view_array(
+        self, view_index: int, offset: int, count: int, ncomp: int, dtype: np.dtype, where: str
+    ) -> np.ndarray:
         buf, v_off, v_len, stride = self.view_bytes(view_index, where)
         if offset < 0:
             raise self.fail(f"{where}.byteOffset is negative")
         elem = dtype.itemsize * ncomp
         stride = stride or elem
         if stride < elem:
-            raise self.fail(f"{where}: byteStride {stride} is smaller than one element ({elem} bytes)")
+            raise self.fail(
+                f"{where}: byteStride {stride} is smaller than one element ({elem} bytes)"
+            )
         need = offset + stride * (count - 1) + elem
         if need > v_len:
-            raise self.fail(f"{where}: {count} elements need {need} bytes but its buffer view has {v_len}")
-        arr = np.ndarray((count, ncomp), dtype=dtype, buffer=buf, offset=v_off + offset, strides=(stride, dtype.itemsize))
+            raise self.fail(
+                f"{where}: {count} elements need {need} bytes but its buffer view has {v_len}"
+            )
+        arr = np.ndarray(
+            (count, ncomp),
+            dtype=dtype,
+            buffer=buf,
+            offset=v_off + offset,
+            strides=(stride, dtype.itemsize),
+        )
         return np.array(arr)
 
     def accessor(self, index: Any, where: str, *, integer: bool = False) -> np.ndarray:
@@ -166,14 +196,18 @@ class _Doc:
         dtype = np.dtype(_COMPONENTS[ctype])
         normalized = bool(self.get(acc, "normalized", bool, aw, False))
         if "bufferView" in acc:
-            data = self._read_view_array(acc["bufferView"], self.get(acc, "byteOffset", int, aw, 0), count, ncomp, dtype, aw)
+            data = self._read_view_array(
+                acc["bufferView"], self.get(acc, "byteOffset", int, aw, 0), count, ncomp, dtype, aw
+            )
         else:
             data = np.zeros((count, ncomp), dtype=dtype)
         if "sparse" in acc:
             data = self._apply_sparse(acc["sparse"], data, dtype, ncomp, aw)
         if integer:
             if ctype == FLOAT or normalized:
-                raise self.fail(f"{aw} must hold integer indices, but its components are {'normalized' if normalized else 'floats'}")
+                raise self.fail(
+                    f"{aw} must hold integer indices, but its components are {'normalized' if normalized else 'floats'}"
+                )
             return data.astype(np.int64).reshape(count, ncomp)
         out = data.astype(np.float64)
         if normalized:
@@ -184,7 +218,9 @@ class _Doc:
             raise self.fail(f"{aw} holds NaN or infinite values")
         return out
 
-    def _apply_sparse(self, sparse: Any, data: np.ndarray, dtype: np.dtype, ncomp: int, aw: str) -> np.ndarray:
+    def _apply_sparse(
+        self, sparse: Any, data: np.ndarray, dtype: np.dtype, ncomp: int, aw: str
+    ) -> np.ndarray:
         if not isinstance(sparse, dict):
             raise self.fail(f"{aw}.sparse must be an object")
         sw = f"{aw}.sparse"
@@ -196,17 +232,29 @@ class _Doc:
         ictype = self.get(idx_info, "componentType", int, f"{sw}.indices")
         if ictype not in (UBYTE, USHORT, UINT):
             raise self.fail(f"{sw}.indices.componentType must be an unsigned integer type")
-        idx = self._read_view_array(
-            self.get(idx_info, "bufferView", int, f"{sw}.indices"),
-            self.get(idx_info, "byteOffset", int, f"{sw}.indices", 0),
-            n, 1, np.dtype(_COMPONENTS[ictype]), f"{sw}.indices",
-        ).ravel().astype(np.int64)
+        idx = (
+            self._read_view_array(
+                self.get(idx_info, "bufferView", int, f"{sw}.indices"),
+                self.get(idx_info, "byteOffset", int, f"{sw}.indices", 0),
+                n,
+                1,
+                np.dtype(_COMPONENTS[ictype]),
+                f"{sw}.indices",
+            )
+            .ravel()
+            .astype(np.int64)
+        )
         if np.any(idx >= data.shape[0]) or np.any(np.diff(idx) <= 0):
-            raise self.fail(f"{sw}.indices must be strictly increasing and below count {data.shape[0]}")
+            raise self.fail(
+                f"{sw}.indices must be strictly increasing and below count {data.shape[0]}"
+            )
         values = self._read_view_array(
             self.get(val_info, "bufferView", int, f"{sw}.values"),
             self.get(val_info, "byteOffset", int, f"{sw}.values", 0),
-            n, ncomp, dtype, f"{sw}.values",
+            n,
+            ncomp,
+            dtype,
+            f"{sw}.values",
         )
         data = np.array(data)
         data[idx] = values
@@ -229,7 +277,9 @@ class _Doc:
             return np.zeros(shape, dtype=dtype)
         buf, offset, length, _ = self.view_bytes(self.get(spec, "bufferView", int, where), where)
         if n * dtype.itemsize > length:
-            raise self.fail(f"{where}: shape {shape} needs {n * dtype.itemsize} bytes, the buffer view has {length}")
+            raise self.fail(
+                f"{where}: shape {shape} needs {n * dtype.itemsize} bytes, the buffer view has {length}"
+            )
         return np.frombuffer(buf, dtype=dtype, count=n, offset=offset).reshape(shape).copy()
 
     # -- meshes --------------------------------------------------------------------------
@@ -239,7 +289,9 @@ class _Doc:
         info = extras.get(_EXTRAS_KEY) if isinstance(extras, dict) else None
         return info if isinstance(info, dict) else {}
 
-    def primitive(self, prim: Any, where: str) -> tuple[np.ndarray, np.ndarray, list[np.ndarray | None]]:
+    def primitive(
+        self, prim: Any, where: str
+    ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray | None]]:
         if not isinstance(prim, dict):
             raise self.fail(f"{where} must be an object")
         attrs = self.get(prim, "attributes", dict, where)
@@ -256,12 +308,16 @@ class _Doc:
                 raise self.fail(f"{where}.indices must be SCALAR")
             idx = idx.ravel()
             if idx.size and (idx.max() >= n):
-                raise self.fail(f"{where}.indices uses vertex {int(idx.max())} but POSITION has {n}")
+                raise self.fail(
+                    f"{where}.indices uses vertex {int(idx.max())} but POSITION has {n}"
+                )
         else:
             idx = np.arange(n, dtype=np.int64)
         if mode == 4:
             if idx.size % 3:
-                raise self.fail(f"{where}: {idx.size} indices is not a multiple of 3 (mode TRIANGLES)")
+                raise self.fail(
+                    f"{where}: {idx.size} indices is not a multiple of 3 (mode TRIANGLES)"
+                )
             tris = idx.reshape(-1, 3)
         elif mode in (5, 6):
             if idx.size < 3:
@@ -271,7 +327,9 @@ class _Doc:
                 tris = np.stack([idx[k], idx[k + 1 + k % 2], idx[k + 2 - k % 2]], axis=1)
             else:
                 tris = np.stack([np.full(k.size, idx[0]), idx[k + 1], idx[k + 2]], axis=1)
-            keep = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])
+            keep = (
+                (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])
+            )
             tris = tris[keep]  # strips use repeated indices as restarts
         else:
             raise self.fail(f"{where}: primitive mode {mode} (points or lines) is not a surface")
@@ -284,7 +342,9 @@ class _Doc:
             if "POSITION" in target:
                 delta = self.accessor(target["POSITION"], f"{tw}.POSITION")
                 if delta.shape != (n, 3):
-                    raise self.fail(f"{tw}.POSITION has {delta.shape[0]} x {delta.shape[1]} values; POSITION has {n} x 3")
+                    raise self.fail(
+                        f"{tw}.POSITION has {delta.shape[0]} x {delta.shape[1]} values; POSITION has {n} x 3"
+                    )
                 targets.append(delta)
             else:
                 targets.append(None)
@@ -304,7 +364,9 @@ class _Doc:
             if n_targets is None:
                 n_targets = len(targets)
             elif len(targets) != n_targets:
-                raise self.fail(f"{where}: primitives have different numbers of morph targets ({n_targets} and {len(targets)})")
+                raise self.fail(
+                    f"{where}: primitives have different numbers of morph targets ({n_targets} and {len(targets)})"
+                )
             verts.append(pos)
             tris.append(tri + offset)
             deltas.append([np.zeros_like(pos) if d is None else d for d in targets])
@@ -325,7 +387,9 @@ class _Doc:
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
             raise self.fail(f"{where}.extras.targetNames must be a list of strings")
         if len(names) != n_targets:
-            raise self.fail(f"{where}.extras.targetNames lists {len(names)} names but the mesh has {n_targets} morph targets")
+            raise self.fail(
+                f"{where}.extras.targetNames lists {len(names)} names but the mesh has {n_targets} morph targets"
+            )
         return names
 
     def choose_mesh(self, option: Any, *, with_targets: bool) -> int:
@@ -338,7 +402,9 @@ class _Doc:
             for i in range(n):
                 if self.item("meshes", i, "the file").get("name") == option:
                     return i
-            raise self.fail(f"has no mesh {option!r}; meshes: {[self.item('meshes', i, 'the file').get('name', i) for i in range(n)]}")
+            raise self.fail(
+                f"has no mesh {option!r}; meshes: {[self.item('meshes', i, 'the file').get('name', i) for i in range(n)]}"
+            )
         if not with_targets:
             return 0
         counts = []
@@ -347,7 +413,9 @@ class _Doc:
             first = prims[0] if prims and isinstance(prims[0], dict) else {}
             counts.append(len(first.get("targets", []) or []))
         if max(counts) == 0:
-            raise self.fail("has no morph targets, so it is not a blendshape rig (read it as a mesh: kind='mesh')")
+            raise self.fail(
+                "has no morph targets, so it is not a blendshape rig (read it as a mesh: kind='mesh')"
+            )
         return int(np.argmax(counts))
 
 
@@ -360,14 +428,20 @@ def _parse_glb(data: bytes, path: Path) -> tuple[bytes, bytes | None]:
     if version != 2:
         raise bad(path, f"GLB version {version} is not supported (only glTF 2)")
     if length != len(data):
-        raise bad(path, f"the header declares {length} bytes but the file has {len(data)} (truncated or damaged)")
+        raise bad(
+            path,
+            f"the header declares {length} bytes but the file has {len(data)} (truncated or damaged)",
+        )
     pos = 12
     json_chunk, bin_chunk = None, None
     while pos + 8 <= length:
         chunk_len, chunk_type = struct.unpack_from("<II", data, pos)
         pos += 8
         if chunk_len > length - pos:
-            raise bad(path, f"a chunk declares {chunk_len} bytes but only {length - pos} remain (truncated)")
+            raise bad(
+                path,
+                f"a chunk declares {chunk_len} bytes but only {length - pos} remain (truncated)",
+            )
         chunk = data[pos : pos + chunk_len]
         if json_chunk is None:
             if chunk_type != CHUNK_JSON:
@@ -435,7 +509,9 @@ def _load(path: Path) -> _Doc:
         else:
             blob = _read_uri(path, uri, i)
         if len(blob) < declared:
-            raise bad(path, f"buffers[{i}] declares {declared} bytes but holds {len(blob)} (truncated)")
+            raise bad(
+                path, f"buffers[{i}] declares {declared} bytes but holds {len(blob)} (truncated)"
+            )
         buffers.append(blob)
     return _Doc(path, gltf, buffers)
 
@@ -458,7 +534,10 @@ def _read_uri(path: Path, uri: Any, i: int) -> bytes:
     root = path.resolve().parent
     target = (root / rel).resolve()
     if os.path.isabs(rel) or "://" in rel or not str(target).startswith(str(root) + os.sep):
-        raise bad(path, f"buffers[{i}].uri {uri!r:.60} points outside the glTF file's folder; only files beside it are read")
+        raise bad(
+            path,
+            f"buffers[{i}].uri {uri!r:.60} points outside the glTF file's folder; only files beside it are read",
+        )
     if not os.path.lexists(target):
         raise bad(path, f"buffers[{i}]: the buffer file {rel!r} does not exist")
     check_regular(target)  # a FIFO or a link to a device is refused, never read
@@ -497,7 +576,13 @@ def gltf_kind(path) -> str | None:
         return info["kind"]
     anims = doc.get("animations") or []
     if isinstance(anims, list) and any(
-        isinstance(a, dict) and any(isinstance(c, dict) and isinstance(c.get("target"), dict) and c["target"].get("path") == "weights" for c in a.get("channels", []) or [])
+        isinstance(a, dict)
+        and any(
+            isinstance(c, dict)
+            and isinstance(c.get("target"), dict)
+            and c["target"].get("path") == "weights"
+            for c in a.get("channels", []) or []
+        )
         for a in anims
     ):
         return "animation"
@@ -505,7 +590,9 @@ def gltf_kind(path) -> str | None:
     if isinstance(meshes, list):
         for m in meshes:
             prims = m.get("primitives", []) if isinstance(m, dict) else []
-            if isinstance(prims, list) and any(isinstance(p, dict) and p.get("targets") for p in prims):
+            if isinstance(prims, list) and any(
+                isinstance(p, dict) and p.get("targets") for p in prims
+            ):
                 return "rig"
     return "mesh"
 
@@ -515,17 +602,30 @@ def _local_matrix(doc: _Doc, node: dict, where: str) -> np.ndarray:
     out = np.eye(4)
     if "matrix" in node:
         m = node["matrix"]
-        if not isinstance(m, list) or len(m) != 16 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in m):
+        if (
+            not isinstance(m, list)
+            or len(m) != 16
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in m)
+        ):
             raise doc.fail(f"{where}.matrix must be 16 numbers")
         out = np.array(m, dtype=np.float64).reshape(4, 4).T
     else:
+
         def vec(key, n, default):
             v = node.get(key, default)
-            if not isinstance(v, list) or len(v) != n or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+            if (
+                not isinstance(v, list)
+                or len(v) != n
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+            ):
                 raise doc.fail(f"{where}.{key} must be {n} numbers")
             return np.array(v, dtype=np.float64)
 
-        t, q, sc = vec("translation", 3, [0, 0, 0]), vec("rotation", 4, [0, 0, 0, 1]), vec("scale", 3, [1, 1, 1])
+        t, q, sc = (
+            vec("translation", 3, [0, 0, 0]),
+            vec("rotation", 4, [0, 0, 0, 1]),
+            vec("scale", 3, [1, 1, 1]),
+        )
         if not np.linalg.norm(q) > 0:
             raise doc.fail(f"{where}.rotation is not a unit quaternion")
         out[:3, :3] = _quat_to_matrix(q[None])[0] * sc[None, :]
@@ -547,7 +647,9 @@ def _instances(doc: _Doc) -> list[tuple[int, int, np.ndarray]]:
         children = set()
         for i in range(n_nodes):
             kids = doc.item("nodes", i, "the file").get("children", [])
-            children.update(k for k in kids if isinstance(k, int)) if isinstance(kids, list) else None
+            children.update(k for k in kids if isinstance(k, int)) if isinstance(
+                kids, list
+            ) else None
         roots = [i for i in range(n_nodes) if i not in children]
     out: list[tuple[int, int, np.ndarray]] = []
     seen: set[int] = set()
@@ -556,7 +658,9 @@ def _instances(doc: _Doc) -> list[tuple[int, int, np.ndarray]]:
         index, parent, where = stack.pop()
         node = doc.item("nodes", index, where)
         if index in seen:
-            raise doc.fail(f"nodes[{index}] appears twice in the node hierarchy (a cycle or a shared child)")
+            raise doc.fail(
+                f"nodes[{index}] appears twice in the node hierarchy (a cycle or a shared child)"
+            )
         seen.add(index)
         world = parent @ _local_matrix(doc, node, f"nodes[{index}]")
         if "mesh" in node:
@@ -566,7 +670,9 @@ def _instances(doc: _Doc) -> list[tuple[int, int, np.ndarray]]:
     return out
 
 
-def _transform(world: np.ndarray, vertices: np.ndarray, deltas: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+def _transform(
+    world: np.ndarray, vertices: np.ndarray, deltas: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Vertices (and morph deltas: linear part only) in the scene's space."""
     if np.array_equal(world, np.eye(4)):
         return vertices, deltas
@@ -579,7 +685,9 @@ def _mesh_names(doc: _Doc) -> list:
     return [doc.item("meshes", i, "the file").get("name", i) for i in range(doc.count("meshes"))]
 
 
-def _select(doc: _Doc, option: Any, instances: list, *, with_targets: bool) -> tuple[int, np.ndarray]:
+def _select(
+    doc: _Doc, option: Any, instances: list, *, with_targets: bool
+) -> tuple[int, np.ndarray]:
     """(mesh index, world matrix) for ``mesh=`` (mesh index, mesh name or node name) or the default."""
     if option is not None and not isinstance(option, int):
         for node, m, world in instances:  # a node name selects that instance
@@ -635,7 +743,11 @@ def _rig_from(doc: _Doc, index: int, world: np.ndarray | None = None) -> Blendsh
     ours = extras.get(_EXTRAS_KEY) if isinstance(extras, dict) else None
     if isinstance(ours, dict) and ours.get("bounds") is not None:
         bounds = np.asarray(ours["bounds"], dtype=np.float64)
-    neutral = Mesh(vertices, triangles, name=mesh.get("name") if isinstance(mesh.get("name"), str) else doc.path.stem)
+    neutral = Mesh(
+        vertices,
+        triangles,
+        name=mesh.get("name") if isinstance(mesh.get("name"), str) else doc.path.stem,
+    )
     return BlendshapeRig(neutral, deltas, names, bounds=bounds)
 
 
@@ -679,10 +791,42 @@ def _matrix_to_quat(rot: np.ndarray) -> np.ndarray:
     trace = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
     cands = np.stack(
         [
-            np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1], 1 + trace], axis=1),
-            np.stack([1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2], m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0], m[:, 2, 1] - m[:, 1, 2]], axis=1),
-            np.stack([m[:, 0, 1] + m[:, 1, 0], 1 + m[:, 1, 1] - m[:, 0, 0] - m[:, 2, 2], m[:, 1, 2] + m[:, 2, 1], m[:, 0, 2] - m[:, 2, 0]], axis=1),
-            np.stack([m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1], 1 + m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1], m[:, 1, 0] - m[:, 0, 1]], axis=1),
+            np.stack(
+                [
+                    m[:, 2, 1] - m[:, 1, 2],
+                    m[:, 0, 2] - m[:, 2, 0],
+                    m[:, 1, 0] - m[:, 0, 1],
+                    1 + trace,
+                ],
+                axis=1,
+            ),
+            np.stack(
+                [
+                    1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
+                    m[:, 0, 1] + m[:, 1, 0],
+                    m[:, 0, 2] + m[:, 2, 0],
+                    m[:, 2, 1] - m[:, 1, 2],
+                ],
+                axis=1,
+            ),
+            np.stack(
+                [
+                    m[:, 0, 1] + m[:, 1, 0],
+                    1 + m[:, 1, 1] - m[:, 0, 0] - m[:, 2, 2],
+                    m[:, 1, 2] + m[:, 2, 1],
+                    m[:, 0, 2] - m[:, 2, 0],
+                ],
+                axis=1,
+            ),
+            np.stack(
+                [
+                    m[:, 0, 2] + m[:, 2, 0],
+                    m[:, 1, 2] + m[:, 2, 1],
+                    1 + m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1],
+                    m[:, 1, 0] - m[:, 0, 1],
+                ],
+                axis=1,
+            ),
         ],
         axis=1,
     )  # (F, 4 candidates, 4)
@@ -723,7 +867,9 @@ def _channels(doc: _Doc, node: int) -> dict[str, _Channel]:
                 raise doc.fail(f"{sw}.input: key times must be strictly increasing")
             interp = doc.get(samplers[s], "interpolation", str, sw, "LINEAR")
             if interp not in ("LINEAR", "STEP", "CUBICSPLINE"):
-                raise doc.fail(f"{sw}.interpolation {interp!r:.20} is not LINEAR, STEP or CUBICSPLINE")
+                raise doc.fail(
+                    f"{sw}.interpolation {interp!r:.20} is not LINEAR, STEP or CUBICSPLINE"
+                )
             values = doc.accessor(doc.get(samplers[s], "output", int, sw), f"{sw}.output")
             out[path] = _Channel(times, values, interp)
     return out
@@ -735,7 +881,9 @@ def _channel_values(doc: _Doc, ch: _Channel, width: int, where: str) -> np.ndarr
     k = ch.times.size
     per_key = 3 if ch.interpolation == "CUBICSPLINE" else 1
     if flat.size != k * width * per_key:
-        raise doc.fail(f"{where}: {flat.size} output values for {k} keys of {width} (expected {k * width * per_key})")
+        raise doc.fail(
+            f"{where}: {flat.size} output values for {k} keys of {width} (expected {k * width * per_key})"
+        )
     vals = flat.reshape(k, per_key, width)
     return vals[:, 1] if per_key == 3 else vals[:, 0]
 
@@ -758,7 +906,9 @@ def _tree(doc: _Doc, info: dict, key: str) -> dict:
 
     def fetch(i):
         if not 0 <= i < len(specs):
-            raise doc.fail(f"asset.extras.{_EXTRAS_KEY}.{key} refers to array {i} but {len(specs)} are stored")
+            raise doc.fail(
+                f"asset.extras.{_EXTRAS_KEY}.{key} refers to array {i} but {len(specs)} are stored"
+            )
         return doc.raw_view(specs[i], f"asset.extras.{_EXTRAS_KEY}.{key}_arrays[{i}]")
 
     return join_arrays(tree, fetch)
@@ -774,7 +924,9 @@ def _checked_fps(doc: _Doc, fps, what: str) -> float:
         raise doc.fail(f"{what} {fps!r:.40} is not a number")
     value = float(fps)
     if not math.isfinite(value) or not 0 < value <= MAX_FPS:
-        raise doc.fail(f"{what} {value:g} is not a frame rate (expected a number of frames per second in (0, {MAX_FPS:g}]); pass fps= (--fps) to override it")
+        raise doc.fail(
+            f"{what} {value:g} is not a frame rate (expected a number of frames per second in (0, {MAX_FPS:g}]); pass fps= (--fps) to override it"
+        )
     return value
 
 
@@ -791,7 +943,11 @@ def _animation_from(doc: _Doc, mesh_option, fps_option) -> Animation:
         if fps is not None:
             fps = _checked_fps(doc, fps, "the frame rate" if fps_option is None else "fps=")
         first_v, first_t, _, _ = doc.mesh(frames[0])
-        check_budget(doc.path, len(frames) * first_v.size * 8.0, f"{len(frames)} frames of {first_v.shape[0]} vertices")
+        check_budget(
+            doc.path,
+            len(frames) * first_v.size * 8.0,
+            f"{len(frames)} frames of {first_v.shape[0]} vertices",
+        )
         vertices = np.empty((len(frames),) + first_v.shape)
         vertices[0] = first_v
         for k, m in enumerate(frames[1:], 1):
@@ -802,8 +958,14 @@ def _animation_from(doc: _Doc, mesh_option, fps_option) -> Animation:
         weights = doc.raw_view(exact["weights"], "weights") if "weights" in exact else None
         names = info.get("weight_names") if weights is not None else None
         return Animation(
-            vertices=vertices, weights=weights, weight_names=names, triangles=first_t, head_motion=head,
-            fps=fps or DEFAULT_FPS, provenance=provenance, extras=extras,
+            vertices=vertices,
+            weights=weights,
+            weight_names=names,
+            triangles=first_t,
+            head_motion=head,
+            fps=fps or DEFAULT_FPS,
+            provenance=provenance,
+            extras=extras,
         )
     # a weight animation over morph targets
     index = doc.choose_mesh(mesh_option, with_targets=True)
@@ -834,7 +996,8 @@ def _animation_from(doc: _Doc, mesh_option, fps_option) -> Animation:
         n_grid = math.floor(span * fps + 1e-6) + 1
         n_head = 16 if ("translation" in channels or "rotation" in channels) else 0
         check_budget(
-            doc.path, float(n_grid) * 8.0 * (2 + rig.n_shapes + n_head),
+            doc.path,
+            float(n_grid) * 8.0 * (2 + rig.n_shapes + n_head),
             f"sampling the animation at {fps:g} fps over {span:g} s ({float(n_grid):.4g} frames of {rig.n_shapes} weights)",
         )
         grid = times[0] + np.arange(int(n_grid)) / fps
@@ -847,18 +1010,38 @@ def _animation_from(doc: _Doc, mesh_option, fps_option) -> Animation:
         head = np.tile(rest, (grid.size, 1, 1))  # a channel not animated keeps the node's own value
         if "rotation" in channels:
             rc = channels["rotation"]
-            q = _sample_keys(rc.times, _channel_values(doc, rc, 4, "the rotation channel"), grid, rc.interpolation == "STEP")
+            q = _sample_keys(
+                rc.times,
+                _channel_values(doc, rc, 4, "the rotation channel"),
+                grid,
+                rc.interpolation == "STEP",
+            )
             head[:, :3, :3] = _quat_to_matrix(q)
         if "translation" in channels:
             tc = channels["translation"]
-            head[:, :3, 3] = _sample_keys(tc.times, _channel_values(doc, tc, 3, "the translation channel"), grid, tc.interpolation == "STEP")
+            head[:, :3, 3] = _sample_keys(
+                tc.times,
+                _channel_values(doc, tc, 3, "the translation channel"),
+                grid,
+                tc.interpolation == "STEP",
+            )
         if not np.array_equal(parent, np.eye(4)):  # in scene space: parent @ [R T](t) @ parent^-1
             head = parent[None] @ head @ np.linalg.inv(parent)[None]
     names = info.get("weight_names") if isinstance(info.get("weight_names"), list) else None
-    return Animation(weights=weights, rig=rig, head_motion=head, fps=fps, weight_names=names, provenance=provenance, extras=extras)
+    return Animation(
+        weights=weights,
+        rig=rig,
+        head_motion=head,
+        fps=fps,
+        weight_names=names,
+        provenance=provenance,
+        extras=extras,
+    )
 
 
-def _animated_rig(doc: _Doc, index: int, node: int | None, moving: bool) -> tuple[BlendshapeRig, np.ndarray, np.ndarray]:
+def _animated_rig(
+    doc: _Doc, index: int, node: int | None, moving: bool
+) -> tuple[BlendshapeRig, np.ndarray, np.ndarray]:
     """The rig of a weight animation in scene space, the node's parent transform and its rest
     rigid transform ``[R T]`` (4, 4).
 
@@ -866,13 +1049,27 @@ def _animated_rig(doc: _Doc, index: int, node: int | None, moving: bool) -> tupl
     rig (as ``kind='rig'`` reads it). A moving node (head motion): the rig gets the parents'
     transforms and the node's own scale; rotation and translation become the head motion.
     """
-    world = next((w for n, _, w in _instances(doc) if n == node), np.eye(4)) if node is not None else np.eye(4)
+    world = (
+        next((w for n, _, w in _instances(doc) if n == node), np.eye(4))
+        if node is not None
+        else np.eye(4)
+    )
     if not moving:
         return _rig_from(doc, index, world), np.eye(4), np.eye(4)
     item = doc.item("nodes", node, "the file")
-    rest = _local_matrix(doc, {k: item[k] for k in ("translation", "rotation") if k in item}, f"nodes[{node}]")
-    scale = np.diag(np.append(np.asarray(item.get("scale", [1.0, 1.0, 1.0]), dtype=np.float64), 1.0)) if "matrix" not in item else np.eye(4)
-    parent = world @ np.linalg.inv(_local_matrix(doc, item, f"nodes[{node}]")) if "matrix" not in item else np.eye(4)
+    rest = _local_matrix(
+        doc, {k: item[k] for k in ("translation", "rotation") if k in item}, f"nodes[{node}]"
+    )
+    scale = (
+        np.diag(np.append(np.asarray(item.get("scale", [1.0, 1.0, 1.0]), dtype=np.float64), 1.0))
+        if "matrix" not in item
+        else np.eye(4)
+    )
+    parent = (
+        world @ np.linalg.inv(_local_matrix(doc, item, f"nodes[{node}]"))
+        if "matrix" not in item
+        else np.eye(4)
+    )
     return _rig_from(doc, index, parent @ scale), parent, rest
 
 
@@ -887,8 +1084,11 @@ def read_gltf_sequence(path: Path, *, mesh=None, fps=None, **options) -> MeshSeq
     """The animation of a glTF file as a :class:`MeshSequence` (world vertices per frame)."""
     anim = _animation_from(_load(path), mesh, fps)
     if anim.is_blendshape_based:  # the per-frame vertices are computed here: size them first
-        check_budget(path, float(anim.n_frames) * anim.rig.neutral.n_vertices * 3 * 8.0 * 2,
-                     f"{anim.n_frames} frames of {anim.rig.neutral.n_vertices} vertices")
+        check_budget(
+            path,
+            float(anim.n_frames) * anim.rig.neutral.n_vertices * 3 * 8.0 * 2,
+            f"{anim.n_frames} frames of {anim.rig.neutral.n_vertices} vertices",
+        )
     return MeshSequence(anim.vertices, anim.triangles, fps=anim.fps, name=path.stem)
 
 
@@ -913,7 +1113,17 @@ class _Builder:
         self.views.append(view)
         return len(self.views) - 1
 
-    def accessor(self, data: np.ndarray, atype: str, *, component: int = FLOAT, target: int | None = None, minmax: bool = False, view: int | None = None, offset: int = 0) -> int:
+    def accessor(
+        self,
+        data: np.ndarray,
+        atype: str,
+        *,
+        component: int = FLOAT,
+        target: int | None = None,
+        minmax: bool = False,
+        view: int | None = None,
+        offset: int = 0,
+    ) -> int:
         if component == FLOAT:
             arr = np.ascontiguousarray(to_float32(data, "glTF"))
         else:
@@ -922,7 +1132,12 @@ class _Builder:
         arr = arr.reshape(-1, ncomp)
         if view is None:
             view = self.view(arr.tobytes(), target=target)
-        acc = {"bufferView": view, "componentType": component, "count": int(arr.shape[0]), "type": atype}
+        acc = {
+            "bufferView": view,
+            "componentType": component,
+            "count": int(arr.shape[0]),
+            "type": atype,
+        }
         if offset:
             acc["byteOffset"] = offset
         if minmax:
@@ -935,41 +1150,64 @@ class _Builder:
         arr = np.asarray(array)
         dtype = "<i8" if arr.dtype.kind in "iub" else "<f8"
         arr = np.ascontiguousarray(arr, dtype=dtype)
-        if arr.size == 0:  # glTF buffer views hold at least one byte: an empty array is its shape alone
+        if (
+            arr.size == 0
+        ):  # glTF buffer views hold at least one byte: an empty array is its shape alone
             return {"dtype": dtype, "shape": list(arr.shape)}
-        return {"bufferView": self.view(arr.tobytes(), align=8), "dtype": dtype, "shape": list(arr.shape)}
+        return {
+            "bufferView": self.view(arr.tobytes(), align=8),
+            "dtype": dtype,
+            "shape": list(arr.shape),
+        }
 
 
 def _frame_times(n_frames: int, fps: float) -> np.ndarray:
     times = (np.arange(n_frames, dtype=np.float64) / fps).astype(np.float32)
     if n_frames > 1 and np.any(np.diff(times) <= 0):
-        raise OutputError(f"{n_frames} frames at {fps} fps cannot be given strictly increasing float32 times")
+        raise OutputError(
+            f"{n_frames} frames at {fps} fps cannot be given strictly increasing float32 times"
+        )
     return times
 
 
-def _add_geometry(b: _Builder, vertices: np.ndarray, indices_acc: int | None, triangles: np.ndarray) -> tuple[dict, int]:
+def _add_geometry(
+    b: _Builder, vertices: np.ndarray, indices_acc: int | None, triangles: np.ndarray
+) -> tuple[dict, int]:
     """A primitive dict for one frame/neutral (indices accessor shared when given)."""
     if indices_acc is None:
-        indices_acc = b.accessor(np.asarray(triangles).ravel(), "SCALAR", component=UINT, target=ELEMENT_ARRAY_BUFFER)
+        indices_acc = b.accessor(
+            np.asarray(triangles).ravel(), "SCALAR", component=UINT, target=ELEMENT_ARRAY_BUFFER
+        )
     pos = b.accessor(vertices, "VEC3", target=ARRAY_BUFFER, minmax=True)
     return {"attributes": {"POSITION": pos}, "indices": indices_acc, "mode": 4}, indices_acc
 
 
 def _rig_mesh(b: _Builder, rig: BlendshapeRig, name: str) -> dict:
     prim, _ = _add_geometry(b, rig.neutral.vertices, None, rig.neutral.triangles)
-    prim["targets"] = [{"POSITION": b.accessor(d, "VEC3", target=ARRAY_BUFFER, minmax=True)} for d in rig.deltas]
-    mesh = {"name": name, "primitives": [prim], "weights": [0.0] * rig.n_shapes, "extras": {"targetNames": list(rig.names)}}
+    prim["targets"] = [
+        {"POSITION": b.accessor(d, "VEC3", target=ARRAY_BUFFER, minmax=True)} for d in rig.deltas
+    ]
+    mesh = {
+        "name": name,
+        "primitives": [prim],
+        "weights": [0.0] * rig.n_shapes,
+        "extras": {"targetNames": list(rig.names)},
+    }
     if rig.bounds is not None:
         mesh["extras"][_EXTRAS_KEY] = {"bounds": rig.bounds.tolist()}
     return mesh
 
 
-def _head_channels(b: _Builder, head: np.ndarray, time_acc: int, node: int, samplers: list, channels: list) -> None:
+def _head_channels(
+    b: _Builder, head: np.ndarray, time_acc: int, node: int, samplers: list, channels: list
+) -> None:
     rot = head[:, :3, :3]
     u, _, vt = np.linalg.svd(rot)
     q = _matrix_to_quat(u @ vt)  # nearest rotation (the matrices are rigid up to rounding)
     for path, values, atype in (("translation", head[:, :3, 3], "VEC3"), ("rotation", q, "VEC4")):
-        samplers.append({"input": time_acc, "output": b.accessor(values, atype), "interpolation": "LINEAR"})
+        samplers.append(
+            {"input": time_acc, "output": b.accessor(values, atype), "interpolation": "LINEAR"}
+        )
         channels.append({"sampler": len(samplers) - 1, "target": {"node": node, "path": path}})
 
 
@@ -1007,7 +1245,13 @@ def glb_document(obj, *, name: str = "faceretarget") -> tuple[dict, bytes]:
             meshes.append(_rig_mesh(b, obj.rig, name))
             nodes.append({"name": name, "mesh": 0})
             time_acc = b.accessor(times, "SCALAR", minmax=True)
-            samplers = [{"input": time_acc, "output": b.accessor(obj.weights.ravel(), "SCALAR"), "interpolation": "LINEAR"}]
+            samplers = [
+                {
+                    "input": time_acc,
+                    "output": b.accessor(obj.weights.ravel(), "SCALAR"),
+                    "interpolation": "LINEAR",
+                }
+            ]
             channels = [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]
             exact["weights"] = b.raw(obj.weights)
             if tuple(obj.weight_names) != tuple(obj.rig.names):
@@ -1017,13 +1261,17 @@ def glb_document(obj, *, name: str = "faceretarget") -> tuple[dict, bytes]:
             animations.append({"name": "retarget", "samplers": samplers, "channels": channels})
         else:
             if obj.triangles is None:
-                raise InputError("a vertex animation needs triangles to be written as glTF meshes; pass Animation(triangles=...)")
+                raise InputError(
+                    "a vertex animation needs triangles to be written as glTF meshes; pass Animation(triangles=...)"
+                )
             info["layout"] = "frames"
             vertices = obj.vertices
             indices_acc = None
             frame_meshes, children = [], []
             for k in range(obj.n_frames):
-                prim, indices_acc = _add_geometry(b, np.asarray(vertices[k]), indices_acc, obj.triangles)
+                prim, indices_acc = _add_geometry(
+                    b, np.asarray(vertices[k]), indices_acc, obj.triangles
+                )
                 meshes.append({"name": f"frame_{k:05d}", "primitives": [prim]})
                 frame_meshes.append(k)
                 node = {"name": f"frame_{k:05d}", "mesh": k}
@@ -1042,10 +1290,16 @@ def glb_document(obj, *, name: str = "faceretarget") -> tuple[dict, bytes]:
             exact["head_motion"] = b.raw(obj.head_motion)
         info["arrays"] = exact
     else:
-        raise InputError(f"glTF writes a Mesh, BlendshapeRig, MeshSequence or Animation, got {type(obj).__name__}")
+        raise InputError(
+            f"glTF writes a Mesh, BlendshapeRig, MeshSequence or Animation, got {type(obj).__name__}"
+        )
     root = len(nodes) - 1
     doc: dict[str, Any] = {
-        "asset": {"version": "2.0", "generator": f"faceretarget {__version__}", "extras": {_EXTRAS_KEY: info}},
+        "asset": {
+            "version": "2.0",
+            "generator": f"faceretarget {__version__}",
+            "extras": {_EXTRAS_KEY: info},
+        },
         "scene": 0,
         "scenes": [{"nodes": [root]}],
         "nodes": nodes,
@@ -1109,12 +1363,16 @@ def final_stem(path) -> str:
     return Path(owner[0]).stem if owner is not None else p.stem
 
 
-def write_gltf(obj, path, *, force: bool = False, inputs=(), name: str | None = None, **options) -> None:
+def write_gltf(
+    obj, path, *, force: bool = False, inputs=(), name: str | None = None, **options
+) -> None:
     """Write ``obj`` as ``.glb`` (binary) or ``.gltf`` (JSON with an embedded buffer), atomically."""
     p = Path(path)
     doc, blob = glb_document(obj, name=name or final_stem(p) or "faceretarget")
     if p.suffix.lower() == ".gltf":
-        doc["buffers"][0]["uri"] = "data:application/octet-stream;base64," + base64.b64encode(blob).decode("ascii")
+        doc["buffers"][0]["uri"] = "data:application/octet-stream;base64," + base64.b64encode(
+            blob
+        ).decode("ascii")
         data = json.dumps(doc, indent=1, allow_nan=False).encode("utf-8")
     else:
         data = glb_bytes(doc, blob)

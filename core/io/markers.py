@@ -9,6 +9,7 @@ then ``NAME_x, NAME_y, NAME_z`` per marker (``_x``/``.x``/``:X``/`` X`` suffixes
 accepted; ``x, y`` only for 2D tracks). Text is written with shortest round-trip
 decimals, so CSV and TRC round trips are exact; C3D stores float32.
 """
+
 from __future__ import annotations
 
 import csv
@@ -23,9 +24,35 @@ import numpy as np
 from ..errors import FaceRetargetWarning, InputError
 from ..model import MarkerSequence
 from ._atomic import atomic_file, write_bytes
-from ._common import CHUNK_BYTES, chunk_work, TEXT_TOKEN_FACTOR, TextRows, bad, check_budget, fmt_float, fps_from_times, guarded_reader, iter_chunks, open_regular, parse_float, read_text, to_float32
+from ._common import (
+    CHUNK_BYTES,
+    TEXT_TOKEN_FACTOR,
+    TextRows,
+    bad,
+    check_budget,
+    chunk_work,
+    fmt_float,
+    fps_from_times,
+    guarded_reader,
+    iter_chunks,
+    open_regular,
+    parse_float,
+    read_text,
+    to_float32,
+)
 
-__all__ = ["read_c3d", "read_trc", "read_marker_csv", "write_c3d", "write_trc", "write_marker_csv", "csv_rows", "csv_kind", "is_marker_header", "META_COLUMNS"]
+__all__ = [
+    "read_c3d",
+    "read_trc",
+    "read_marker_csv",
+    "write_c3d",
+    "write_trc",
+    "write_marker_csv",
+    "csv_rows",
+    "csv_kind",
+    "is_marker_header",
+    "META_COLUMNS",
+]
 
 _DEFAULT_FPS = 30.0
 _AXIS = re.compile(r"^(?P<name>.+?)(?:[_.:/\s-])(?P<axis>[xyzXYZ])$")
@@ -62,7 +89,10 @@ def _cell(text: str, path, row: int, column: str) -> float:
         return np.nan
     value = parse_float(t, path, f"row {row}, column {column!r}")
     if not np.isfinite(value):
-        raise bad(path, f"row {row}, column {column!r}: infinite value (write missing samples as empty cells)")
+        raise bad(
+            path,
+            f"row {row}, column {column!r}: infinite value (write missing samples as empty cells)",
+        )
     return value
 
 
@@ -111,7 +141,9 @@ def csv_rows(path: Path) -> tuple[list[str], list[list[str]]]:
     measured (Python cells cost more than TEXT_TOKEN_FACTOR per byte of tiny cells)."""
     text = read_text(path, factor=TEXT_TOKEN_FACTOR)
     delimiter = _delimiter(text[:4096].split("\n", 1)[0])
-    rows = [r for r in csv.reader(io.StringIO(text), delimiter=delimiter) if any(c.strip() for c in r)]
+    rows = [
+        r for r in csv.reader(io.StringIO(text), delimiter=delimiter) if any(c.strip() for c in r)
+    ]
     if not rows:
         raise bad(path, "the file is empty")
     header = [h.strip() for h in rows[0]]
@@ -149,7 +181,14 @@ def _fast_block(lines: list[bytes], delimiter: bytes, width: int) -> np.ndarray 
     return values.reshape(len(lines), width)
 
 
-def _slow_block(path, lines: list[bytes], delimiter: str, header: list[str], row0: int, text_cols: tuple[int, ...]):
+def _slow_block(
+    path,
+    lines: list[bytes],
+    delimiter: str,
+    header: list[str],
+    row0: int,
+    text_cols: tuple[int, ...],
+):
     """The row-by-row parser of :func:`csv_table` for one chunk; errors name the row and column."""
     block = np.empty((len(lines), len(header)))
     texts = {c: [] for c in text_cols}
@@ -163,7 +202,11 @@ def _slow_block(path, lines: list[bytes], delimiter: str, header: list[str], row
                 block[r, c] = np.nan
                 continue
             t = cell.strip()
-            block[r, c] = np.nan if t.lower() in _MISSING else parse_float(t, path, f"row {row0 + r}, column {header[c]!r}")
+            block[r, c] = (
+                np.nan
+                if t.lower() in _MISSING
+                else parse_float(t, path, f"row {row0 + r}, column {header[c]!r}")
+            )
     return block, texts
 
 
@@ -191,8 +234,11 @@ def csv_table(path: Path, pick, *, text_cols=lambda header: ()):
                 raise bad(path, "holds binary data (NUL bytes), not text")
             n_rows += len(_data_lines(chunk, dsep))
         width = len(header)
-        check_budget(path, n_rows * (len(wanted) * 8.0 + len(texts_wanted) * 64.0) + chunk_work(fh),
-                     f"{n_rows} rows of {len(wanted)} numbers")
+        check_budget(
+            path,
+            n_rows * (len(wanted) * 8.0 + len(texts_wanted) * 64.0) + chunk_work(fh),
+            f"{n_rows} rows of {len(wanted)} numbers",
+        )
         numeric = np.empty((n_rows, len(wanted)))
         texts = {c: [] for c in texts_wanted}
         fh.seek(start)
@@ -262,9 +308,14 @@ def read_marker_csv(path: Path, *, fps=None, reference=None, **options) -> Marke
     def pick(header):
         cols = _marker_columns(header)
         if cols is None:
-            raise bad(path, "the header is not a marker layout: expected NAME_x, NAME_y, NAME_z columns (plus optional frame, time)")
+            raise bad(
+                path,
+                "the header is not a marker layout: expected NAME_x, NAME_y, NAME_z columns (plus optional frame, time)",
+            )
         found["names"], found["columns"] = cols[0], cols[1]
-        found["time"] = next((i for i, col in enumerate(header) if col.lower() in ("time", "timestamp")), None)
+        found["time"] = next(
+            (i for i, col in enumerate(header) if col.lower() in ("time", "timestamp")), None
+        )
         ids = [c for cs in cols[1] for c in cs]
         return ids + ([found["time"]] if found["time"] is not None else [])
 
@@ -277,12 +328,17 @@ def read_marker_csv(path: Path, *, fps=None, reference=None, **options) -> Marke
     if np.isinf(table).any():
         r, c = (int(x) for x in np.argwhere(np.isinf(table))[0])
         col = header[[i for cs in columns for i in cs][c]] if c < n_data else header[found["time"]]
-        raise bad(path, f"row {r + 2}, column {col!r}: infinite value (write missing samples as empty cells)")
+        raise bad(
+            path,
+            f"row {r + 2}, column {col!r}: infinite value (write missing samples as empty cells)",
+        )
     if found["time"] is not None:
         times = table[:, n_data]
         if np.isnan(times).any():
             raise bad(path, f"column {header[found['time']]!r} must hold times in seconds")
-        positions = table[:, :n_data].reshape(-1, len(names), dim)  # a copy only when there is a time column
+        positions = table[:, :n_data].reshape(
+            -1, len(names), dim
+        )  # a copy only when there is a time column
     else:
         times = None
         positions = table.reshape(-1, len(names), dim)
@@ -303,13 +359,19 @@ def _final_name(path) -> str:
 def _check_names(names, what: str, forbidden: str) -> None:
     for n in names:
         if any(ch in n for ch in forbidden):
-            raise InputError(f"{what}: marker name {n!r} contains a character the format cannot store ({forbidden!r})")
+            raise InputError(
+                f"{what}: marker name {n!r} contains a character the format cannot store ({forbidden!r})"
+            )
 
 
-def write_marker_csv(markers: MarkerSequence, path, *, force: bool = False, inputs=(), **options) -> None:
+def write_marker_csv(
+    markers: MarkerSequence, path, *, force: bool = False, inputs=(), **options
+) -> None:
     """Write markers as CSV: ``frame, time, NAME_x, NAME_y[, NAME_z]`` (empty cell = missing)."""
     if not isinstance(markers, MarkerSequence):
-        raise InputError(f"the marker CSV writer takes a MarkerSequence, got {type(markers).__name__}")
+        raise InputError(
+            f"the marker CSV writer takes a MarkerSequence, got {type(markers).__name__}"
+        )
     _check_names(markers.names, "marker CSV", "\n\r")
     axes = "xyz"[: markers.dim]
     buf = io.StringIO()
@@ -354,11 +416,19 @@ def read_trc(path: Path, *, fps=None, reference=None, **options) -> MarkerSequen
         except ValueError:
             raise bad(path, "NumFrames and NumMarkers must be whole numbers") from None
         if n_frames <= 0 or n_markers <= 0:
-            raise bad(path, f"declares {n_frames} frames and {n_markers} markers; both must be positive")
-        check_budget(path, n_frames * n_markers * 3 * 8.0 + chunk_work(fh), f"{n_frames} frames of {n_markers} markers")
+            raise bad(
+                path, f"declares {n_frames} frames and {n_markers} markers; both must be positive"
+            )
+        check_budget(
+            path,
+            n_frames * n_markers * 3 * 8.0 + chunk_work(fh),
+            f"{n_frames} frames of {n_markers} markers",
+        )
         names = [t.strip() for t in header[3].split("\t")[2:] if t.strip()]
         if len(names) != n_markers:
-            raise bad(path, f"NumMarkers is {n_markers} but the names line lists {len(names)} markers")
+            raise bad(
+                path, f"NumMarkers is {n_markers} but the names line lists {len(names)} markers"
+            )
         positions = np.full((n_frames, n_markers, 3), np.nan)
         width = 2 + 3 * n_markers
         fh.seek(data_start)
@@ -369,7 +439,9 @@ def read_trc(path: Path, *, fps=None, reference=None, **options) -> MarkerSequen
             if not block:
                 break
             if r + len(block) > n_frames:
-                raise bad(path, f"NumFrames is {n_frames} but the file has more data rows (wrong count)")
+                raise bad(
+                    path, f"NumFrames is {n_frames} but the file has more data rows (wrong count)"
+                )
             fast = _fast_block(block, b"\t", width)
             if fast is not None:
                 positions[r : r + len(block)] = fast[:, 2:].reshape(-1, n_markers, 3)
@@ -377,17 +449,26 @@ def read_trc(path: Path, *, fps=None, reference=None, **options) -> MarkerSequen
                 for k, line in enumerate(block):
                     cells = _decode_line(line, False).split("\t")
                     if len(cells) > width and any(c.strip() for c in cells[width:]):
-                        raise bad(path, f"data row {r + k + 1} has {len(cells)} fields; {width} expected")
+                        raise bad(
+                            path, f"data row {r + k + 1} has {len(cells)} fields; {width} expected"
+                        )
                     vals = [_cell(c, path, r + k + 6, "marker data") for c in cells[2:width]]
-                    positions[r + k] = np.asarray(vals + [np.nan] * (3 * n_markers - len(vals))).reshape(n_markers, 3)
+                    positions[r + k] = np.asarray(
+                        vals + [np.nan] * (3 * n_markers - len(vals))
+                    ).reshape(n_markers, 3)
             r += len(block)
             del block, fast
         if r != n_frames:
-            raise bad(path, f"NumFrames is {n_frames} but the file has {r} data rows (truncated or wrong count)")
+            raise bad(
+                path,
+                f"NumFrames is {n_frames} but the file has {r} data rows (truncated or wrong count)",
+            )
     return _markers(path, positions, names, fps if fps is not None else rate, reference)
 
 
-def write_trc(markers: MarkerSequence, path, *, force: bool = False, inputs=(), units: str = "mm", **options) -> None:
+def write_trc(
+    markers: MarkerSequence, path, *, force: bool = False, inputs=(), units: str = "mm", **options
+) -> None:
     """Write 3D markers as a tab-separated TRC file (exact decimals; empty cell = missing)."""
     if not isinstance(markers, MarkerSequence):
         raise InputError(f"the TRC writer takes a MarkerSequence, got {type(markers).__name__}")
@@ -429,8 +510,14 @@ def _c3d_param_frames(reader) -> int | None:
             if longer is not None:
                 if name == "TRIAL:ACTUAL_END_FIELD":
                     words = longer.uint16_array
-                    return int(words[0]) + int(words[1]) * 65536 - int(reader.header.first_frame) + 1
-                return int(longer.float_value) if longer.bytes_per_element >= 4 else int(longer.uint16_value)
+                    return (
+                        int(words[0]) + int(words[1]) * 65536 - int(reader.header.first_frame) + 1
+                    )
+                return (
+                    int(longer.float_value)
+                    if longer.bytes_per_element >= 4
+                    else int(longer.uint16_value)
+                )
     return value
 
 
@@ -445,12 +532,16 @@ def _not_c3d(path: Path, head: bytes) -> str | None:
         what = f"it starts with the text {shown.decode('ascii', 'replace')!r}"
     else:
         what = f"it starts with the bytes {shown[:8].hex(' ')}"
-    return (f"not a C3D file: a C3D file's second byte is 0x50 ('P'), this one's is "
-            f"0x{head[1]:02x} ({head[1]}) and {what}; check the file (or its extension)")
+    return (
+        f"not a C3D file: a C3D file's second byte is 0x50 ('P'), this one's is "
+        f"0x{head[1]:02x} ({head[1]}) and {what}; check the file (or its extension)"
+    )
 
 
 @guarded_reader
-def _read_c3d(path: Path, *, fps=None, reference=None, **options) -> tuple[MarkerSequence, list[str]]:
+def _read_c3d(
+    path: Path, *, fps=None, reference=None, **options
+) -> tuple[MarkerSequence, list[str]]:
     import c3d
 
     size = path.stat().st_size
@@ -465,33 +556,52 @@ def _read_c3d(path: Path, *, fps=None, reference=None, **options) -> tuple[Marke
         try:
             reader = c3d.Reader(fh)
         except (AssertionError, ValueError, KeyError, IndexError, struct.error) as exc:
-            raise bad(path, f"the C3D header or parameter section is damaged ({type(exc).__name__}: {str(exc).strip()[:120]})") from None
+            raise bad(
+                path,
+                f"the C3D header or parameter section is damaged ({type(exc).__name__}: {str(exc).strip()[:120]})",
+            ) from None
         n_points = int(reader.point_used)
         if n_points <= 0:
-            raise bad(path, f"declares {n_points} markers (POINT:USED); a marker file needs at least one")
+            raise bad(
+                path, f"declares {n_points} markers (POINT:USED); a marker file needs at least one"
+            )
         header_frames = int(reader.header.last_frame) - int(reader.header.first_frame) + 1
         param_frames = _c3d_param_frames(reader)
         # what ezc3d does: POINT:FRAMES counts the frames; the header's last-frame word
         # (16 bits, often stale or saturated) only when the parameter is absent
         declared = param_frames if param_frames is not None and param_frames > 0 else header_frames
         if param_frames is not None and param_frames > 0 and param_frames != header_frames:
-            notes.append(f"the header's frame range ({int(reader.header.first_frame)}..{int(reader.header.last_frame)}, "
-                         f"{header_frames} frames) disagrees with POINT:FRAMES ({param_frames}); POINT:FRAMES is used, as ezc3d does")
+            notes.append(
+                f"the header's frame range ({int(reader.header.first_frame)}..{int(reader.header.last_frame)}, "
+                f"{header_frames} frames) disagrees with POINT:FRAMES ({param_frames}); POINT:FRAMES is used, as ezc3d does"
+            )
         word = 4 if float(reader.point_scale) < 0 else 2
         per_frame = (n_points * 4 + int(reader.analog_used) * int(reader.analog_per_frame)) * word
         start = (int(reader.header.data_block) - 1) * 512
         if start < 0 or start >= size or per_frame <= 0:
-            raise bad(path, f"the data section starts at byte {start} but the file has {size}; the header is damaged")
+            raise bad(
+                path,
+                f"the data section starts at byte {start} but the file has {size}; the header is damaged",
+            )
         available = (size - start) // per_frame
         n_frames = min(declared, available) if declared > 0 else available
         if 0 < available < declared:
-            notes.append(f"declares {declared} frames but holds {available} complete ones (truncated?); read the {available} that are there")
+            notes.append(
+                f"declares {declared} frames but holds {available} complete ones (truncated?); read the {available} that are there"
+            )
         if n_frames <= 0:
-            raise bad(path, f"holds no complete frame of {n_points} markers ({size - start} data bytes, {per_frame} per frame)")
-        check_budget(path, n_frames * n_points * 3 * 8.0, f"{n_frames} frames of {n_points} markers")
+            raise bad(
+                path,
+                f"holds no complete frame of {n_points} markers ({size - start} data bytes, {per_frame} per frame)",
+            )
+        check_budget(
+            path, n_frames * n_points * 3 * 8.0, f"{n_frames} frames of {n_points} markers"
+        )
         labels = [str(lab).strip() for lab in list(reader.point_labels)[:n_points]]
         if len(labels) != n_points or any(not lab for lab in labels):
-            labels = [lab or f"marker{i}" for i, lab in enumerate(labels)] + [f"marker{i}" for i in range(len(labels), n_points)]
+            labels = [lab or f"marker{i}" for i, lab in enumerate(labels)] + [
+                f"marker{i}" for i in range(len(labels), n_points)
+            ]
         positions = np.full((n_frames, n_points, 3), np.nan)
         count = 0
         for count, (_, points, _) in enumerate(reader.read_frames(copy=False), 1):

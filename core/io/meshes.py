@@ -10,6 +10,7 @@ Writers are exact for OBJ, OFF (shortest round-trip decimal text) and PLY (binar
 float64); STL is exact for float32-representable meshes whose vertices are all used and
 numbered in order of first use.
 """
+
 from __future__ import annotations
 
 import os
@@ -21,7 +22,21 @@ import numpy as np
 
 from ..model import Mesh
 from ._atomic import write_bytes
-from ._common import CHUNK_BYTES, chunk_work, TextRows, bad, check_budget, fmt_float, guarded_reader, iter_chunks, number_block, open_regular, parse_int, read_bytes, to_float32
+from ._common import (
+    CHUNK_BYTES,
+    TextRows,
+    bad,
+    check_budget,
+    chunk_work,
+    fmt_float,
+    guarded_reader,
+    iter_chunks,
+    number_block,
+    open_regular,
+    parse_int,
+    read_bytes,
+    to_float32,
+)
 
 __all__ = [
     "mesh_arrays",
@@ -40,9 +55,43 @@ __all__ = [
 
 #: OBJ statements that carry no triangle geometry and are skipped
 _OBJ_IGNORED = {
-    "vt", "vn", "vp", "o", "g", "s", "mg", "usemtl", "mtllib", "l", "p", "cstype", "deg", "bmat",
-    "step", "curv", "curv2", "surf", "parm", "trim", "hole", "scrv", "sp", "end", "con", "bevel",
-    "c_interp", "d_interp", "lod", "shadow_obj", "trace_obj", "ctech", "stech", "maplib", "usemap", "call", "csh",
+    "vt",
+    "vn",
+    "vp",
+    "o",
+    "g",
+    "s",
+    "mg",
+    "usemtl",
+    "mtllib",
+    "l",
+    "p",
+    "cstype",
+    "deg",
+    "bmat",
+    "step",
+    "curv",
+    "curv2",
+    "surf",
+    "parm",
+    "trim",
+    "hole",
+    "scrv",
+    "sp",
+    "end",
+    "con",
+    "bevel",
+    "c_interp",
+    "d_interp",
+    "lod",
+    "shadow_obj",
+    "trace_obj",
+    "ctech",
+    "stech",
+    "maplib",
+    "usemap",
+    "call",
+    "csh",
 }
 
 
@@ -64,8 +113,6 @@ def _clean_polygon(poly: list[int]) -> list[int]:
     if len(out) > 1 and out[-1] == out[0]:
         out.pop()
     return out
-
-
 
 
 #: below this many vertices a sorted triangle packs into one int64 key (V**3 < 2**63)
@@ -94,7 +141,10 @@ def _mesh(path, vertices: np.ndarray, triangles: np.ndarray) -> Mesh:
     if same.any():
         k = int(keys[1:][same][0])
         dup = [k // (n * n), (k // n) % n, k % n]
-        raise bad(path, f"{int(np.count_nonzero(same))} triangle(s) appear more than once (e.g. vertices {dup}); remove duplicate triangles")
+        raise bad(
+            path,
+            f"{int(np.count_nonzero(same))} triangle(s) appear more than once (e.g. vertices {dup}); remove duplicate triangles",
+        )
     del keys, same
     return Mesh(vertices, triangles, name=path.stem, _trusted=True)
 
@@ -117,7 +167,11 @@ def _parse_obj_fast(lines: list[str], v0: int = 0) -> tuple[np.ndarray, np.ndarr
     statements, degenerate faces, relative indices out of range ...).
     """
     prefix = [ln[:2] for ln in lines]
-    others = {ln.split(None, 1)[0] for ln, p in zip(lines, prefix) if p not in ("v ", "f ") and ln.strip() and ln[0] != "#"}
+    others = {
+        ln.split(None, 1)[0]
+        for ln, p in zip(lines, prefix)
+        if p not in ("v ", "f ") and ln.strip() and ln[0] != "#"
+    }
     if not others <= _OBJ_IGNORED:
         raise _SlowPath
     v_body = [ln[2:] for ln, p in zip(lines, prefix) if p == "v "]
@@ -125,9 +179,13 @@ def _parse_obj_fast(lines: list[str], v0: int = 0) -> tuple[np.ndarray, np.ndarr
     del lines
     try:
         if v_body:
-            vertices = np.fromstring(" ".join(v_body), sep=" ")  # text mode: C parsing, not deprecated
+            vertices = np.fromstring(
+                " ".join(v_body), sep=" "
+            )  # text mode: C parsing, not deprecated
             if vertices.size != 3 * len(v_body):
-                vertices = np.loadtxt(v_body, usecols=(0, 1, 2), dtype=np.float64, ndmin=2, comments=None)
+                vertices = np.loadtxt(
+                    v_body, usecols=(0, 1, 2), dtype=np.float64, ndmin=2, comments=None
+                )
         else:
             vertices = np.zeros((0, 3))
         del v_body
@@ -206,7 +264,9 @@ def _obj_chunk(text: str, path, line0: int, v0: int) -> tuple[np.ndarray, np.nda
     return vertices, _polygons_to_triangles(ids, sizes), sizes.size
 
 
-def _checked_arrays(path, vertices: np.ndarray, triangles: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
+def _checked_arrays(
+    path, vertices: np.ndarray, triangles: np.ndarray, n_faces: int
+) -> tuple[np.ndarray, np.ndarray]:
     n_vertices = vertices.shape[0]
     if n_vertices == 0:
         raise bad(path, "holds no vertices")
@@ -217,7 +277,10 @@ def _checked_arrays(path, vertices: np.ndarray, triangles: np.ndarray, n_faces: 
         raise bad(path, f"vertex {row} has a NaN or infinite coordinate")
     if triangles.size and (triangles.min() < 0 or triangles.max() >= n_vertices):
         worst = int(triangles.max()) if triangles.max() >= n_vertices else int(triangles.min())
-        raise bad(path, f"a face uses vertex {worst} but the file has {n_vertices} vertices (0-based ids 0..{n_vertices - 1})")
+        raise bad(
+            path,
+            f"a face uses vertex {worst} but the file has {n_vertices} vertices (0-based ids 0..{n_vertices - 1})",
+        )
     return vertices, triangles
 
 
@@ -226,7 +289,10 @@ def parse_obj(text: str, path) -> tuple[np.ndarray, list[list[int]]]:
     vertices, polygons = _parse_obj_lines(text, path, 0, 0)
     for poly_id, poly in enumerate(polygons):
         if max(poly) >= len(vertices):
-            raise bad(path, f"face {poly_id + 1} uses vertex {max(poly) + 1} but the file has {len(vertices)} vertices")
+            raise bad(
+                path,
+                f"face {poly_id + 1} uses vertex {max(poly) + 1} but the file has {len(vertices)} vertices",
+            )
     return vertices, polygons
 
 
@@ -249,7 +315,9 @@ def _parse_obj_lines(text: str, path, line0: int, v0: int) -> tuple[np.ndarray, 
             vertex_rows.append(parts[1:4])
         elif key == "f":
             if len(parts) < 4:
-                raise bad(path, f"line {lineno}: a face needs at least 3 vertices, got {line[:60]!r}")
+                raise bad(
+                    path, f"line {lineno}: a face needs at least 3 vertices, got {line[:60]!r}"
+                )
             n_now = v0 + len(vertex_rows)
             poly = []
             for token in parts[1:]:
@@ -257,21 +325,31 @@ def _parse_obj_lines(text: str, path, line0: int, v0: int) -> tuple[np.ndarray, 
                 try:
                     idx = int(head)
                 except ValueError:
-                    raise bad(path, f"line {lineno}: bad face vertex {token[:30]!r} (expected an index like 7, 7/3 or 7//2)") from None
+                    raise bad(
+                        path,
+                        f"line {lineno}: bad face vertex {token[:30]!r} (expected an index like 7, 7/3 or 7//2)",
+                    ) from None
                 if idx > 0:
                     poly.append(idx - 1)
                 elif idx < 0:
                     if -idx > n_now:
-                        raise bad(path, f"line {lineno}: relative index {idx} points before the first vertex")
+                        raise bad(
+                            path,
+                            f"line {lineno}: relative index {idx} points before the first vertex",
+                        )
                     poly.append(n_now + idx)
                 else:
-                    raise bad(path, f"line {lineno}: face index 0 is invalid (OBJ indices start at 1)")
+                    raise bad(
+                        path, f"line {lineno}: face index 0 is invalid (OBJ indices start at 1)"
+                    )
             poly = _clean_polygon(poly)
             if len(poly) < 3 or len(set(poly)) != len(poly):
                 raise bad(path, f"line {lineno}: degenerate face {line[:60]!r} (a vertex repeats)")
             polygons.append(poly)
         elif key not in _OBJ_IGNORED:
-            raise bad(path, f"line {lineno}: unknown OBJ statement {key[:20]!r}; is this an OBJ file?")
+            raise bad(
+                path, f"line {lineno}: unknown OBJ statement {key[:20]!r}; is this an OBJ file?"
+            )
     try:
         vertices = np.array(vertex_rows, dtype=np.float64).reshape(-1, 3)
     except ValueError:
@@ -279,7 +357,9 @@ def _parse_obj_lines(text: str, path, line0: int, v0: int) -> tuple[np.ndarray, 
             try:
                 [float(x) for x in row]
             except ValueError:
-                raise bad(path, f"vertex {k}: coordinates {' '.join(row)[:60]!r} are not numbers") from None
+                raise bad(
+                    path, f"vertex {k}: coordinates {' '.join(row)[:60]!r} are not numbers"
+                ) from None
         raise
     return vertices, polygons
 
@@ -292,7 +372,11 @@ def _count_lines(chunk: bytes, key: bytes, pattern: re.Pattern) -> int:
     """Lines of ``chunk`` starting with statement ``key`` (b"v" or b"f")."""
     if chunk[:1] in (b" ", b"\t") or b"\n " in chunk or b"\n\t" in chunk:
         return len(pattern.findall(chunk))
-    return chunk.count(b"\n" + key + b" ") + chunk.count(b"\n" + key + b"\t") + (chunk[:2] in (key + b" ", key + b"\t"))
+    return (
+        chunk.count(b"\n" + key + b" ")
+        + chunk.count(b"\n" + key + b"\t")
+        + (chunk[:2] in (key + b" ", key + b"\t"))
+    )
 
 
 def _decode(chunk: bytes, first: bool) -> str:
@@ -340,12 +424,18 @@ def _obj_file_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
             verts, tris, faces = _obj_chunk(_decode(chunk, k == 0), path, line0, iv)
             line0 += chunk.count(b"\n")
             n_faces += faces
-            if iv + len(verts) > len(vertices):  # counted differently (cannot happen for plain lines)
+            if iv + len(verts) > len(
+                vertices
+            ):  # counted differently (cannot happen for plain lines)
                 vertices = np.concatenate([vertices[:iv], verts])
             else:
                 vertices[iv : iv + len(verts)] = verts
             if it + len(tris) > len(triangles):  # polygons with more than 3 corners
-                check_budget(path, (len(triangles) + len(tris)) * 24.0 * 2 + len(vertices) * 24.0, f"{n_v} vertices and {it + len(tris)} triangles")
+                check_budget(
+                    path,
+                    (len(triangles) + len(tris)) * 24.0 * 2 + len(vertices) * 24.0,
+                    f"{n_v} vertices and {it + len(tris)} triangles",
+                )
                 triangles = np.concatenate([triangles[:it], tris])
             else:
                 triangles[it : it + len(tris)] = tris
@@ -355,9 +445,14 @@ def _obj_file_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return _obj_checked(path, vertices[:iv], triangles[:it], n_faces)
 
 
-def _obj_checked(path, vertices: np.ndarray, triangles: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
+def _obj_checked(
+    path, vertices: np.ndarray, triangles: np.ndarray, n_faces: int
+) -> tuple[np.ndarray, np.ndarray]:
     if triangles.size and vertices.shape[0] and triangles.max() >= vertices.shape[0]:
-        raise bad(path, f"a face uses vertex {int(triangles.max()) + 1} but the file has {vertices.shape[0]} vertices (OBJ indices start at 1)")
+        raise bad(
+            path,
+            f"a face uses vertex {int(triangles.max()) + 1} but the file has {vertices.shape[0]} vertices (OBJ indices start at 1)",
+        )
     return _checked_arrays(path, vertices, triangles, n_faces)
 
 
@@ -370,8 +465,13 @@ def read_obj(path: Path, **options) -> Mesh:
 def obj_text(vertices: np.ndarray, triangles: np.ndarray, header: str = "") -> str:
     """OBJ text with exact (shortest round-trip) coordinates and 1-based triangles."""
     lines = [f"# {header}"] if header else []
-    lines.extend("v " + " ".join(map(fmt_float, row)) for row in np.asarray(vertices, dtype=np.float64).tolist())
-    lines.extend("f %d %d %d" % tuple(t) for t in (np.asarray(triangles, dtype=np.int64) + 1).tolist())
+    lines.extend(
+        "v " + " ".join(map(fmt_float, row))
+        for row in np.asarray(vertices, dtype=np.float64).tolist()
+    )
+    lines.extend(
+        "f {} {} {}".format(*t) for t in (np.asarray(triangles, dtype=np.int64) + 1).tolist()
+    )
     return "\n".join(lines) + "\n"
 
 
@@ -388,7 +488,12 @@ def write_obj(mesh: Mesh, path, *, force: bool = False, inputs=(), **options) ->
     mesh = _as_mesh(mesh, "the OBJ writer")
     from .._version import __version__
 
-    write_bytes(path, obj_text(mesh.vertices, mesh.triangles, f"faceretarget {__version__}").encode(), inputs=inputs, force=force)
+    write_bytes(
+        path,
+        obj_text(mesh.vertices, mesh.triangles, f"faceretarget {__version__}").encode(),
+        inputs=inputs,
+        force=force,
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -421,7 +526,11 @@ def _off_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
             raise bad(path, "the counts line needs 'n_vertices n_faces [n_edges]'")
         n_vertices = parse_int(_text(head[0]), path, "vertex count")
         n_faces = parse_int(_text(head[1]), path, "face count")
-        check_budget(path, (n_vertices * 3 + n_faces * 3) * 8.0 + chunk_work(fh), f"{n_vertices} vertices and {n_faces} faces")
+        check_budget(
+            path,
+            (n_vertices * 3 + n_faces * 3) * 8.0 + chunk_work(fh),
+            f"{n_vertices} vertices and {n_faces} faces",
+        )
         vertices = np.empty((n_vertices, 3))
         done = 0
         while done < n_vertices:
@@ -434,9 +543,14 @@ def _off_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
             vertices[done : done + len(block)] = values
             done += len(block)
             del block, values
-        triangles, polygons = _face_rows(path, rows, n_faces, lambda i, row: _off_face(path, i, row))
+        triangles, polygons = _face_rows(
+            path, rows, n_faces, lambda i, row: _off_face(path, i, row)
+        )
     if done < n_vertices or polygons < n_faces:
-        raise bad(path, f"truncated: declares {n_vertices} vertices and {n_faces} faces but has {done + polygons} data lines")
+        raise bad(
+            path,
+            f"truncated: declares {n_vertices} vertices and {n_faces} faces but has {done + polygons} data lines",
+        )
     return _checked_arrays(path, vertices, triangles, n_faces)
 
 
@@ -444,7 +558,9 @@ def _text(token: bytes) -> str:
     return token.decode("latin-1")
 
 
-def _rows_slow(path, rows: list[bytes], row0: int, width: int, what: str, values: str) -> np.ndarray:
+def _rows_slow(
+    path, rows: list[bytes], row0: int, width: int, what: str, values: str
+) -> np.ndarray:
     """``rows`` parsed one by one (the fast path refused them): errors name the row."""
     out = np.empty((len(rows), width))
     for k, row in enumerate(rows):
@@ -469,7 +585,9 @@ def _off_face(path, i: int, row: bytes) -> list[int]:
     return poly
 
 
-def _face_rows(path, rows: TextRows, n_faces: int, slow, fast: bool = True) -> tuple[np.ndarray, int]:
+def _face_rows(
+    path, rows: TextRows, n_faces: int, slow, fast: bool = True
+) -> tuple[np.ndarray, int]:
     """Triangles of ``n_faces`` face rows, streamed: rows ``3 i0 i1 i2`` are parsed in C
     into the result (when ``fast``), others by ``slow(face id, row)`` (which returns the
     cleaned polygon) and fan-triangulated. Returns (triangles, faces read)."""
@@ -482,9 +600,14 @@ def _face_rows(path, rows: TextRows, n_faces: int, slow, fast: bool = True) -> t
         ids = number_block(block, 4, np.int64) if fast else None
         if ids is not None and np.all(ids[:, 0] == 3):
             tris = ids[:, 1:]
-            repeated = (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])
+            repeated = (
+                (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])
+            )
             if repeated.any():
-                raise bad(path, f"face {done + int(np.flatnonzero(repeated)[0])}: degenerate (a vertex repeats)")
+                raise bad(
+                    path,
+                    f"face {done + int(np.flatnonzero(repeated)[0])}: degenerate (a vertex repeats)",
+                )
             if tris.size and tris.min() < 0:
                 i = int(np.flatnonzero((tris < 0).any(axis=1))[0])
                 raise bad(path, f"face {done + i}: negative vertex index {int(tris[i].min())}")
@@ -498,7 +621,9 @@ def _face_rows(path, rows: TextRows, n_faces: int, slow, fast: bool = True) -> t
             tris = fan_triangulate(polygons)
             del polygons
         if it + len(tris) > len(triangles):  # polygons with more than 3 corners
-            check_budget(path, (it + len(tris)) * 24.0 * 2 + rows.work, f"{it + len(tris)} triangles")
+            check_budget(
+                path, (it + len(tris)) * 24.0 * 2 + rows.work, f"{it + len(tris)} triangles"
+            )
             triangles = np.concatenate([triangles[:it], tris])
         else:
             triangles[it : it + len(tris)] = tris
@@ -513,7 +638,7 @@ def write_off(mesh: Mesh, path, *, force: bool = False, inputs=(), **options) ->
     mesh = _as_mesh(mesh, "the OFF writer")
     lines = ["OFF", f"{mesh.n_vertices} {mesh.n_triangles} 0"]
     lines.extend(" ".join(map(fmt_float, row)) for row in mesh.vertices.tolist())
-    lines.extend("3 %d %d %d" % tuple(t) for t in mesh.triangles.tolist())
+    lines.extend("3 {} {} {}".format(*t) for t in mesh.triangles.tolist())
     write_bytes(path, ("\n".join(lines) + "\n").encode(), inputs=inputs, force=force)
 
 
@@ -521,10 +646,22 @@ def write_off(mesh: Mesh, path, *, force: bool = False, inputs=(), **options) ->
 # PLY
 # ---------------------------------------------------------------------------------------
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 
 
@@ -547,7 +684,11 @@ def _ply_header(data: bytes, path) -> tuple[str, list[dict], int]:
         if not parts or parts[0] in ("comment", "obj_info"):
             continue
         if parts[0] == "format":
-            if len(parts) < 3 or parts[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
+            if len(parts) < 3 or parts[1] not in (
+                "ascii",
+                "binary_little_endian",
+                "binary_big_endian",
+            ):
                 raise bad(path, f"header line {lineno}: unknown format {line[:60]!r}")
             fmt = parts[1]
         elif parts[0] == "element":
@@ -559,7 +700,11 @@ def _ply_header(data: bytes, path) -> tuple[str, list[dict], int]:
             if not elements:
                 raise bad(path, f"header line {lineno}: a property before any element")
             if len(parts) == 5 and parts[1] == "list":
-                if parts[2] not in _PLY_TYPES or parts[3] not in _PLY_TYPES or _PLY_TYPES[parts[2]][0] == "f":
+                if (
+                    parts[2] not in _PLY_TYPES
+                    or parts[3] not in _PLY_TYPES
+                    or _PLY_TYPES[parts[2]][0] == "f"
+                ):
                     raise bad(path, f"header line {lineno}: bad list types {line[:60]!r}")
                 elements[-1]["props"].append((parts[4], _PLY_TYPES[parts[2]], _PLY_TYPES[parts[3]]))
             elif len(parts) == 3 and parts[1] in _PLY_TYPES:
@@ -581,7 +726,10 @@ def _ply_binary(data: bytes, pos: int, elements: list[dict], order: str, path) -
             dtype = np.dtype([(f"p{i}", order + p[2]) for i, p in enumerate(props)])
             need = dtype.itemsize * count
             if pos + need > len(data):
-                raise bad(path, f"truncated: element {el['name']!r} needs {need} bytes, {len(data) - pos} remain")
+                raise bad(
+                    path,
+                    f"truncated: element {el['name']!r} needs {need} bytes, {len(data) - pos} remain",
+                )
             arr = np.frombuffer(data, dtype=dtype, count=count, offset=pos)
             out[el["name"]] = {p[0]: arr[f"p{i}"] for i, p in enumerate(props)}
             pos += need
@@ -610,7 +758,9 @@ def _ply_binary(data: bytes, pos: int, elements: list[dict], order: str, path) -
                     size = np.dtype(itype).itemsize
                     if pos + size > len(data):
                         raise bad(path, f"truncated inside element {el['name']!r}")
-                    values[name].append(np.frombuffer(data, dtype=order + itype, count=1, offset=pos)[0])
+                    values[name].append(
+                        np.frombuffer(data, dtype=order + itype, count=1, offset=pos)[0]
+                    )
                     pos += size
                 else:
                     csize = np.dtype(ctype).itemsize
@@ -620,8 +770,12 @@ def _ply_binary(data: bytes, pos: int, elements: list[dict], order: str, path) -
                     pos += csize
                     isize = np.dtype(itype).itemsize
                     if k < 0 or pos + k * isize > len(data):
-                        raise bad(path, f"truncated or bad list length {k} in element {el['name']!r}")
-                    values[name].append(np.frombuffer(data, dtype=order + itype, count=k, offset=pos))
+                        raise bad(
+                            path, f"truncated or bad list length {k} in element {el['name']!r}"
+                        )
+                    values[name].append(
+                        np.frombuffer(data, dtype=order + itype, count=k, offset=pos)
+                    )
                     pos += k * isize
         out[el["name"]] = values
     return out
@@ -632,29 +786,37 @@ def _ply_row(path, el: dict, row_id: int, row: bytes) -> dict:
     tokens = row.split()
     pos = 0
     out = {}
-    for name, ctype, itype in el["props"]:
+    for name, ctype, _itype in el["props"]:
         if pos >= len(tokens):
             raise bad(path, f"element {el['name']!r} row {row_id}: too few values")
         if ctype is None:
             out[name] = tokens[pos]
             pos += 1
         else:
-            k = parse_int(_text(tokens[pos]), path, f"element {el['name']!r} row {row_id}: list length")
+            k = parse_int(
+                _text(tokens[pos]), path, f"element {el['name']!r} row {row_id}: list length"
+            )
             if pos + 1 + k > len(tokens):
-                raise bad(path, f"element {el['name']!r} row {row_id}: list declares {k} values, has {len(tokens) - pos - 1}")
+                raise bad(
+                    path,
+                    f"element {el['name']!r} row {row_id}: list declares {k} values, has {len(tokens) - pos - 1}",
+                )
             out[name] = tokens[pos + 1 : pos + 1 + k]
             pos += 1 + k
     return out
 
 
-def _ply_ascii(path, rows: TextRows, elements: list[dict], el_v: dict, el_f: dict, fprop: str) -> tuple[np.ndarray, np.ndarray, int]:
+def _ply_ascii(
+    path, rows: TextRows, elements: list[dict], el_v: dict, el_f: dict, fprop: str
+) -> tuple[np.ndarray, np.ndarray, int]:
     """(vertices, triangles, faces) of an ASCII PLY body, streamed chunk by chunk."""
     vertices = triangles = None
     n_faces = 0
     for el in elements:
         count = el["count"]
         if el is el_f:
-            def face(i, row):
+
+            def face(i, row, el=el):
                 values = _ply_row(path, el, i, row)[fprop]
                 try:
                     poly = [int(t) for t in values]
@@ -669,7 +831,10 @@ def _ply_ascii(path, rows: TextRows, elements: list[dict], el_v: dict, el_f: dic
 
             triangles, n_faces = _face_rows(path, rows, count, face, fast=len(el["props"]) == 1)
             if n_faces < count:
-                raise bad(path, f"truncated: element {el['name']!r} declares {count} rows, found {n_faces}")
+                raise bad(
+                    path,
+                    f"truncated: element {el['name']!r} declares {count} rows, found {n_faces}",
+                )
             continue
         names = [p[0] for p in el["props"]]
         simple = all(p[1] is None for p in el["props"])
@@ -701,7 +866,9 @@ def _ply_ascii(path, rows: TextRows, elements: list[dict], el_v: dict, el_f: dic
             done += len(block)
             del block
         if done < count:
-            raise bad(path, f"truncated: element {el['name']!r} declares {count} rows, found {done}")
+            raise bad(
+                path, f"truncated: element {el['name']!r} declares {count} rows, found {done}"
+            )
     return vertices, triangles, n_faces
 
 
@@ -733,9 +900,15 @@ def _ply_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
         el_v, el_f, fprop = _ply_layout(path, elements)
         if fmt == "ascii":  # streamed: the text is never held whole
             del head
-            check_budget(path, (el_v["count"] * 3 + el_f["count"] * 3) * 8.0 + chunk_work(fh), f"{el_v['count']} vertices and {el_f['count']} faces")
+            check_budget(
+                path,
+                (el_v["count"] * 3 + el_f["count"] * 3) * 8.0 + chunk_work(fh),
+                f"{el_v['count']} vertices and {el_f['count']} faces",
+            )
             fh.seek(body)
-            vertices, tris, n_faces = _ply_ascii(path, TextRows(path, fh), elements, el_v, el_f, fprop)
+            vertices, tris, n_faces = _ply_ascii(
+                path, TextRows(path, fh), elements, el_v, el_f, fprop
+            )
             return _checked_arrays(path, vertices, tris, n_faces)
     data = read_bytes(path)
     fmt, elements, body = _ply_header(data, path)
@@ -743,7 +916,9 @@ def _ply_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
     order = "<" if fmt == "binary_little_endian" else ">"
     parsed = _ply_binary(data, body, elements, order, path)
     try:
-        vertices = np.stack([np.asarray(parsed["vertex"][c], dtype=np.float64) for c in "xyz"], axis=1)
+        vertices = np.stack(
+            [np.asarray(parsed["vertex"][c], dtype=np.float64) for c in "xyz"], axis=1
+        )
     except ValueError:
         raise bad(path, "a vertex coordinate is not a number") from None
     return _ply_faces(path, vertices, parsed["face"][fprop])
@@ -755,11 +930,22 @@ def _ply_layout(path, elements: list[dict]) -> tuple[dict, dict, str]:
         raise bad(path, f"needs 'vertex' and 'face' elements, has {names}")
     el_v = elements[names.index("vertex")]
     el_f = elements[names.index("face")]
-    check_budget(path, (el_v["count"] * 3 + el_f["count"] * 4) * 8.0, f"{el_v['count']} vertices and {el_f['count']} faces")
+    check_budget(
+        path,
+        (el_v["count"] * 3 + el_f["count"] * 4) * 8.0,
+        f"{el_v['count']} vertices and {el_f['count']} faces",
+    )
     vprops = [p[0] for p in el_v["props"]]
     if not all(c in vprops for c in "xyz"):
         raise bad(path, f"vertex element needs x, y, z properties, has {vprops}")
-    fprop = next((p[0] for p in el_f["props"] if p[0] in ("vertex_indices", "vertex_index") and p[1] is not None), None)
+    fprop = next(
+        (
+            p[0]
+            for p in el_f["props"]
+            if p[0] in ("vertex_indices", "vertex_index") and p[1] is not None
+        ),
+        None,
+    )
     if fprop is None:
         raise bad(path, "face element needs a 'vertex_indices' list property")
     return el_v, el_f, fprop
@@ -768,9 +954,13 @@ def _ply_layout(path, elements: list[dict]) -> tuple[dict, dict, str]:
 def _ply_faces(path, vertices: np.ndarray, faces) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(faces, np.ndarray) and faces.ndim == 2 and faces.shape[1] == 3:
         tris = faces.astype(np.int64)  # triangles: checked as arrays, never as Python lists
-        repeated = (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])
+        repeated = (
+            (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])
+        )
         if repeated.any():
-            raise bad(path, f"face {int(np.flatnonzero(repeated)[0])}: degenerate (a vertex repeats)")
+            raise bad(
+                path, f"face {int(np.flatnonzero(repeated)[0])}: degenerate (a vertex repeats)"
+            )
         if tris.size and tris.min() < 0:
             i = int(np.flatnonzero((tris < 0).any(axis=1))[0])
             raise bad(path, f"face {i}: negative vertex index {int(tris[i].min())}")
@@ -862,15 +1052,24 @@ def _stl_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
     else:
         if not head.lstrip().lower().startswith(b"solid"):
             if len(head) >= 84:
-                raise bad(path, f"binary STL declares {n_tris} triangles ({84 + 50 * n_tris} bytes) but the file has {size} bytes")
+                raise bad(
+                    path,
+                    f"binary STL declares {n_tris} triangles ({84 + 50 * n_tris} bytes) but the file has {size} bytes",
+                )
             raise bad(path, "not an STL file (too short for binary STL, and no 'solid' header)")
         corners = _ascii_stl_corners(path)
     if not np.all(np.isfinite(corners)):
         raise bad(path, "a corner has a NaN or infinite coordinate")
     vertices, triangles = _weld(corners)
-    repeated = (triangles[:, 0] == triangles[:, 1]) | (triangles[:, 1] == triangles[:, 2]) | (triangles[:, 0] == triangles[:, 2])
+    repeated = (
+        (triangles[:, 0] == triangles[:, 1])
+        | (triangles[:, 1] == triangles[:, 2])
+        | (triangles[:, 0] == triangles[:, 2])
+    )
     if repeated.any():
-        raise bad(path, f"facet {int(np.flatnonzero(repeated)[0])} has two identical corners (degenerate)")
+        raise bad(
+            path, f"facet {int(np.flatnonzero(repeated)[0])} has two identical corners (degenerate)"
+        )
     return vertices, triangles
 
 
@@ -905,12 +1104,14 @@ def _ascii_stl_corners(path: Path) -> np.ndarray:
             idx = [i for i, t in enumerate(tokens) if t == b"vertex"]
             carry = []
             if idx and idx[-1] + 3 >= len(tokens):  # a vertex continued in the next chunk
-                carry = tokens[idx[-1]:]
+                carry = tokens[idx[-1] :]
                 idx.pop()
             if done + len(idx) > n:
                 raise bad(path, "the file changed while it was read")
             try:
-                coords[done : done + len(idx)] = [[float(t) for t in tokens[i + 1 : i + 4]] for i in idx]
+                coords[done : done + len(idx)] = [
+                    [float(t) for t in tokens[i + 1 : i + 4]] for i in idx
+                ]
             except ValueError:
                 raise bad(path, "a 'vertex' line does not hold 3 numbers") from None
             done += len(idx)
@@ -920,7 +1121,12 @@ def _ascii_stl_corners(path: Path) -> np.ndarray:
     return coords.reshape(-1, 3, 3)
 
 
-_ARRAY_READERS = {".obj": _obj_file_arrays, ".ply": _ply_arrays, ".off": _off_arrays, ".stl": _stl_arrays}
+_ARRAY_READERS = {
+    ".obj": _obj_file_arrays,
+    ".ply": _ply_arrays,
+    ".off": _off_arrays,
+    ".stl": _stl_arrays,
+}
 
 
 @guarded_reader
@@ -941,7 +1147,9 @@ def stl_bytes(vertices: np.ndarray, triangles: np.ndarray) -> bytes:
 
     records = np.zeros(len(triangles), dtype=_STL_RECORD)
     records["corners"] = to_float32(vertices, "STL")[triangles]
-    records["normal"] = face_normals(np.asarray(vertices, dtype=np.float64), triangles).astype(np.float32)
+    records["normal"] = face_normals(np.asarray(vertices, dtype=np.float64), triangles).astype(
+        np.float32
+    )
     header = b"faceretarget binary STL".ljust(80, b" ")
     return header + struct.pack("<I", len(triangles)) + records.tobytes()
 

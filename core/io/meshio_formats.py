@@ -22,6 +22,7 @@ Writing (every format but Nastran): one ``triangle`` cell block, through :func:`
 (meshio writes into a scratch folder; the result is copied into the atomic temporary),
 so a meshio writer never replaces a file without ``force`` or an input of this process.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -37,7 +38,18 @@ import numpy as np
 from ..errors import FaceRetargetError, FaceRetargetWarning, FileFormatError
 from ..hookspecs import Reader, Writer
 
-__all__ = ["MeshioFormat", "FORMATS", "PRIORITY", "meshio_readers", "meshio_writers", "reader_record", "writer_record", "read_mesh", "write_mesh", "surface_triangles"]
+__all__ = [
+    "MeshioFormat",
+    "FORMATS",
+    "PRIORITY",
+    "meshio_readers",
+    "meshio_writers",
+    "reader_record",
+    "writer_record",
+    "read_mesh",
+    "write_mesh",
+    "surface_triangles",
+]
 
 #: precedence of every meshio record: below the built-in readers and writers (0)
 PRIORITY = -1
@@ -87,13 +99,37 @@ class MeshioFormat:
 #: triangles in meshio 5.3.5),
 #: Tecplot (.dat: triangles become degenerate quads), Dolfin XML/WKT/SVG/TetGen.
 FORMATS: tuple[MeshioFormat, ...] = (
-    MeshioFormat("vtk", "vtk", (".vtk",), "VTK legacy unstructured grid, ASCII or binary (written binary)", magic=(b"# vtk DataFile",)),
+    MeshioFormat(
+        "vtk",
+        "vtk",
+        (".vtk",),
+        "VTK legacy unstructured grid, ASCII or binary (written binary)",
+        magic=(b"# vtk DataFile",),
+    ),
     MeshioFormat("vtu", "vtu", (".vtu",), "VTK XML unstructured grid (written binary, zlib)"),
-    MeshioFormat("gmsh", "gmsh", (".msh",), "Gmsh MSH 2.2/4.0/4.1, ASCII or binary (written 4.1 binary)", magic=(b"$MeshFormat",)),
-    MeshioFormat("medit", "medit", (".mesh", ".meshb"), "Medit / INRIA mesh, ASCII (.mesh) or binary (.meshb)", magic=(b"MeshVersionFormatted",)),
+    MeshioFormat(
+        "gmsh",
+        "gmsh",
+        (".msh",),
+        "Gmsh MSH 2.2/4.0/4.1, ASCII or binary (written 4.1 binary)",
+        magic=(b"$MeshFormat",),
+    ),
+    MeshioFormat(
+        "medit",
+        "medit",
+        (".mesh", ".meshb"),
+        "Medit / INRIA mesh, ASCII (.mesh) or binary (.meshb)",
+        magic=(b"MeshVersionFormatted",),
+    ),
     MeshioFormat("abaqus", "abaqus", (".inp",), "Abaqus input file"),
     # meshio 5.3.5's Nastran writer fails (AssertionError) on many float64 coordinates: read only
-    MeshioFormat("nastran", "nastran", (".bdf", ".fem", ".nas"), "Nastran bulk data; read only", writable=False),
+    MeshioFormat(
+        "nastran",
+        "nastran",
+        (".bdf", ".fem", ".nas"),
+        "Nastran bulk data; read only",
+        writable=False,
+    ),
     MeshioFormat("avsucd", "avsucd", (".avs",), "AVS-UCD"),
     MeshioFormat("permas", "permas", (".post", ".dato"), "PERMAS"),
     MeshioFormat("netgen", "netgen", (".vol",), "Netgen volume mesh (surface elements)"),
@@ -115,12 +151,27 @@ def meshio_writers() -> list[Writer]:
 
 def reader_record(fmt: MeshioFormat) -> Reader:
     """The registry record reading ``fmt`` through meshio, with ``priority`` :data:`PRIORITY`."""
-    return Reader(fmt.name, "mesh", fmt.extensions, _reader(fmt), f"{fmt.description}; via meshio", priority=PRIORITY, magic=fmt.magic)
+    return Reader(
+        fmt.name,
+        "mesh",
+        fmt.extensions,
+        _reader(fmt),
+        f"{fmt.description}; via meshio",
+        priority=PRIORITY,
+        magic=fmt.magic,
+    )
 
 
 def writer_record(fmt: MeshioFormat) -> Writer:
     """The registry record writing ``fmt`` through meshio, with ``priority`` :data:`PRIORITY`."""
-    return Writer(fmt.name, "mesh", fmt.extensions, _writer(fmt), f"{fmt.description}; via meshio", priority=PRIORITY)
+    return Writer(
+        fmt.name,
+        "mesh",
+        fmt.extensions,
+        _writer(fmt),
+        f"{fmt.description}; via meshio",
+        priority=PRIORITY,
+    )
 
 
 def _reader(fmt: MeshioFormat):
@@ -160,7 +211,11 @@ def _meshio_module(fmt: MeshioFormat):
 def _quiet():
     """Silence what meshio prints (it reports problems on stdout/stderr) and warns."""
     sink = io.StringIO()
-    with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink), warnings.catch_warnings():
+    with (
+        contextlib.redirect_stdout(sink),
+        contextlib.redirect_stderr(sink),
+        warnings.catch_warnings(),
+    ):
         warnings.simplefilter("ignore")
         yield sink
 
@@ -177,7 +232,11 @@ def read_mesh(path, fmt: MeshioFormat):
     """
     mesh, skipped = _read_guarded(Path(path), fmt=fmt)
     if skipped:
-        warnings.warn(f"{path}: skipped {skipped} (not surface cells); {SURFACE_HINT}", FaceRetargetWarning, stacklevel=3)
+        warnings.warn(
+            f"{path}: skipped {skipped} (not surface cells); {SURFACE_HINT}",
+            FaceRetargetWarning,
+            stacklevel=3,
+        )
     return mesh
 
 
@@ -228,7 +287,11 @@ def _read_error(path: Path, fmt: MeshioFormat, detail: str) -> FileFormatError:
     from ._common import sniff
 
     found = sniff(path)
-    looks = f"; it looks like {found[1]}" if found is not None and found[0] not in ("text", "xml") else ""
+    looks = (
+        f"; it looks like {found[1]}"
+        if found is not None and found[0] not in ("text", "xml")
+        else ""
+    )
     first = detail.strip().splitlines()[0][:200]
     return FileFormatError(f"{path}: not a readable {fmt.name} file (meshio: {first}){looks}")
 
@@ -239,7 +302,9 @@ def _vertices(path: Path, points) -> np.ndarray:
 
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] not in (2, 3) or pts.dtype.kind not in "fiu":
-        raise bad(path, f"points of shape {pts.shape} ({pts.dtype}); expected (V, 3) or (V, 2) numbers")
+        raise bad(
+            path, f"points of shape {pts.shape} ({pts.dtype}); expected (V, 3) or (V, 2) numbers"
+        )
     pts = pts.astype(np.float64)
     if pts.shape[1] == 2:
         pts = np.concatenate([pts, np.zeros((pts.shape[0], 1))], axis=1)
@@ -281,7 +346,9 @@ def _no_surface_error(path: Path, fmt: MeshioFormat, data) -> FileFormatError:
     for block in data.cells:
         counts[block.type] = counts.get(block.type, 0) + len(block.data)
     holds = _cell_summary(counts) or "no cells at all (a point cloud)"
-    return FileFormatError(f"{path}: this {fmt.name} file has {len(data.points)} points and {holds}, no surface to read; {SURFACE_HINT}")
+    return FileFormatError(
+        f"{path}: this {fmt.name} file has {len(data.points)} points and {holds}, no surface to read; {SURFACE_HINT}"
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -297,9 +364,19 @@ def write_mesh(mesh, path, fmt: MeshioFormat, *, force: bool = False, inputs=())
     module = _meshio_module(fmt)
     import meshio
 
-    data = meshio.Mesh(np.asarray(mesh.vertices, dtype=np.float64), [("triangle", np.asarray(mesh.triangles, dtype=np.int64))])
-    suffix = Path(path).suffix.lower() if Path(path).suffix.lower() in fmt.extensions else fmt.extensions[0]
-    with atomic_file(path, inputs=inputs, force=force) as fh, tempfile.TemporaryDirectory(prefix="faceretarget-meshio-") as scratch:
+    data = meshio.Mesh(
+        np.asarray(mesh.vertices, dtype=np.float64),
+        [("triangle", np.asarray(mesh.triangles, dtype=np.int64))],
+    )
+    suffix = (
+        Path(path).suffix.lower()
+        if Path(path).suffix.lower() in fmt.extensions
+        else fmt.extensions[0]
+    )
+    with (
+        atomic_file(path, inputs=inputs, force=force) as fh,
+        tempfile.TemporaryDirectory(prefix="faceretarget-meshio-") as scratch,
+    ):
         made = Path(scratch) / f"mesh{suffix}"
         _meshio_write(module, made, data, fmt, Path(path))
         with open(made, "rb") as src:

@@ -7,6 +7,7 @@ natural order. ``rig.json`` also keeps the exact shape names (file names are san
 their order and the weight bounds. Each shape must share the neutral's topology; the
 rig stores ``shape - neutral`` as its deltas.
 """
+
 from __future__ import annotations
 
 import json
@@ -22,7 +23,14 @@ from ._common import bad, check_budget, guarded_reader
 from .meshes import obj_text
 from .sequences import _load_mesh, _sidecar, folder_mesh_files, frame_arrays
 
-__all__ = ["read_rig_folder", "write_rig_folder", "folder_kind", "NEUTRAL_NAMES", "RIG_SIDECAR", "exact_positions"]
+__all__ = [
+    "read_rig_folder",
+    "write_rig_folder",
+    "folder_kind",
+    "NEUTRAL_NAMES",
+    "RIG_SIDECAR",
+    "exact_positions",
+]
 
 NEUTRAL_NAMES = ("neutral", "base", "basis", "rest", "default")
 RIG_SIDECAR = "rig.json"
@@ -33,7 +41,9 @@ def folder_kind(path: Path) -> str:
     neutral mesh (neutral/base/basis/rest/default), else ``"mesh_sequence"``."""
     path = Path(path)
     names = {p.stem.lower() for p in path.iterdir() if p.is_file()}
-    return "rig" if (path / RIG_SIDECAR).is_file() or names & set(NEUTRAL_NAMES) else "mesh_sequence"
+    return (
+        "rig" if (path / RIG_SIDECAR).is_file() or names & set(NEUTRAL_NAMES) else "mesh_sequence"
+    )
 
 
 def _neutral_file(path: Path, files: list[Path], neutral) -> Path:
@@ -41,7 +51,10 @@ def _neutral_file(path: Path, files: list[Path], neutral) -> Path:
         for f in files:
             if neutral in (f.name, f.stem):
                 return f
-        raise bad(path, f"no mesh file named {neutral!r} for the neutral; files: {[f.name for f in files][:10]}")
+        raise bad(
+            path,
+            f"no mesh file named {neutral!r} for the neutral; files: {[f.name for f in files][:10]}",
+        )
     found = [f for f in files if f.stem.lower() in NEUTRAL_NAMES]
     if len(found) != 1:
         raise bad(
@@ -64,7 +77,12 @@ def read_rig_folder(path: Path, *, neutral=None, **options) -> BlendshapeRig:
         shapes = side.get("shapes")
         if not isinstance(side.get("neutral"), str) or not isinstance(shapes, list) or not shapes:
             raise bad(where, "needs 'neutral' (a file name) and 'shapes' (a list of {name, file})")
-        if not all(isinstance(s, dict) and isinstance(s.get("name"), str) and isinstance(s.get("file"), str) for s in shapes):
+        if not all(
+            isinstance(s, dict)
+            and isinstance(s.get("name"), str)
+            and isinstance(s.get("file"), str)
+            for s in shapes
+        ):
             raise bad(where, "every entry of 'shapes' needs a 'name' and a 'file'")
         files = [side["neutral"]] + [s["file"] for s in shapes]
         if any(Path(f).name != f or f.startswith(".") for f in files):
@@ -82,14 +100,25 @@ def read_rig_folder(path: Path, *, neutral=None, **options) -> BlendshapeRig:
     if not shape_files:
         raise bad(path, "the folder holds a neutral but no blendshape files")
     base = _load_mesh(neutral_file)
-    check_budget(path, len(shape_files) * base.vertices.size * 8.0, f"{len(shape_files)} shapes of {base.n_vertices} vertices")
+    check_budget(
+        path,
+        len(shape_files) * base.vertices.size * 8.0,
+        f"{len(shape_files)} shapes of {base.n_vertices} vertices",
+    )
     deltas = np.empty((len(shape_files), base.n_vertices, 3))
     for k, f in enumerate(shape_files):
         verts, tris = frame_arrays(f)
         if verts.shape != base.vertices.shape or not np.array_equal(tris, base.triangles):
-            raise bad(f, f"shape {names[k]!r} has a different topology from the neutral ({verts.shape[0]} vs {base.n_vertices} vertices)")
+            raise bad(
+                f,
+                f"shape {names[k]!r} has a different topology from the neutral ({verts.shape[0]} vs {base.n_vertices} vertices)",
+            )
         deltas[k] = verts - base.vertices
-    neutral_mesh = Mesh(base.vertices, base.triangles, name=side.get("name") if isinstance(side.get("name"), str) else path.name)
+    neutral_mesh = Mesh(
+        base.vertices,
+        base.triangles,
+        name=side.get("name") if isinstance(side.get("name"), str) else path.name,
+    )
     return BlendshapeRig(neutral_mesh, deltas, names, bounds=bounds)
 
 
@@ -135,7 +164,9 @@ def write_rig_folder(rig, path, *, force: bool = False, inputs=(), **options) ->
     with atomic_dir(path, inputs=inputs, force=force, allowed_suffixes=(".obj", ".json")) as tmp:
         write_file_synced(tmp / "neutral.obj", obj_text(neutral, rig.neutral.triangles))
         for k, f in enumerate(files):
-            write_file_synced(tmp / f, obj_text(exact_positions(neutral, rig.deltas[k]), rig.neutral.triangles))
+            write_file_synced(
+                tmp / f, obj_text(exact_positions(neutral, rig.deltas[k]), rig.neutral.triangles)
+            )
         meta = {
             "format": "faceretarget.rig",
             "version": 1,

@@ -14,6 +14,7 @@ and the memory budget before anything is mapped or allocated.
 Writers: a folder of OBJ frames (``frame_00000.obj``... plus ``sequence.json`` with the
 frame rate), PC2, MDD and ``.npy``, all atomic. PC2/MDD store float32.
 """
+
 from __future__ import annotations
 
 import json
@@ -26,7 +27,18 @@ import numpy as np
 from ..errors import FileFormatError, InputError
 from ..model import Animation, Mesh, MeshSequence
 from ._atomic import atomic_dir, atomic_file, write_file_synced
-from ._common import TEXT_TOKEN_FACTOR, bad, check_budget, fps_from_times, guarded_reader, load_npy, natural_key, open_regular, read_text, to_float32
+from ._common import (
+    TEXT_TOKEN_FACTOR,
+    bad,
+    check_budget,
+    fps_from_times,
+    guarded_reader,
+    load_npy,
+    natural_key,
+    open_regular,
+    read_text,
+    to_float32,
+)
 from .meshes import obj_text
 
 __all__ = [
@@ -112,7 +124,9 @@ def resolve_topology(path: Path, topology, n_vertices: int) -> Mesh | np.ndarray
         return topology
     tris = np.asarray(topology)
     if tris.ndim != 2 or tris.shape[1] != 3:
-        raise InputError(f"topology: expected a Mesh, a mesh file or (T, 3) triangles, got shape {tris.shape}")
+        raise InputError(
+            f"topology: expected a Mesh, a mesh file or (T, 3) triangles, got shape {tris.shape}"
+        )
     return tris
 
 
@@ -128,12 +142,18 @@ def _sequence(path: Path, vertices: np.ndarray, topology, fps: float) -> MeshSeq
 def folder_mesh_files(path: Path) -> list[Path]:
     """Mesh files in a folder (hidden files skipped), natural order; one extension only."""
     exts = set(mesh_extensions())
-    files = [f for f in path.iterdir() if f.is_file() and not f.name.startswith(".") and f.suffix.lower() in exts]
+    files = [
+        f
+        for f in path.iterdir()
+        if f.is_file() and not f.name.startswith(".") and f.suffix.lower() in exts
+    ]
     if not files:
         raise bad(path, f"the folder holds no mesh files ({', '.join(sorted(exts))})")
     counts = Counter(f.suffix.lower() for f in files)
     if len(counts) > 1:
-        raise bad(path, f"the folder mixes mesh formats ({dict(counts)}); keep one format per sequence")
+        raise bad(
+            path, f"the folder mixes mesh formats ({dict(counts)}); keep one format per sequence"
+        )
     return sorted(files, key=lambda f: natural_key(f.name))
 
 
@@ -159,20 +179,29 @@ def read_mesh_folder(path: Path, *, fps=None, **options) -> MeshSequence:
     side = _sidecar(path, SEQUENCE_SIDECAR)
     if "frames" in side:
         names = side["frames"]
-        if not isinstance(names, list) or not all(isinstance(n, str) and "/" not in n and n == Path(n).name for n in names):
+        if not isinstance(names, list) or not all(
+            isinstance(n, str) and "/" not in n and n == Path(n).name for n in names
+        ):
             raise bad(path / SEQUENCE_SIDECAR, "'frames' must list file names inside the folder")
         files = [path / n for n in names]
         missing = [f.name for f in files if not f.is_file()]
         if missing:
             raise bad(path, f"{SEQUENCE_SIDECAR} lists frames that do not exist: {missing[:5]}")
     first = _load_mesh(files[0])
-    check_budget(path, len(files) * first.vertices.size * 8.0, f"{len(files)} frames of {first.n_vertices} vertices")
+    check_budget(
+        path,
+        len(files) * first.vertices.size * 8.0,
+        f"{len(files)} frames of {first.n_vertices} vertices",
+    )
     vertices = np.empty((len(files), first.n_vertices, 3))
     vertices[0] = first.vertices
     for k, f in enumerate(files[1:], 1):
         verts, tris = frame_arrays(f)
         if verts.shape != first.vertices.shape or not np.array_equal(tris, first.triangles):
-            raise bad(f, f"frame {k} has a different topology from {files[0].name} ({verts.shape[0]} vs {first.n_vertices} vertices)")
+            raise bad(
+                f,
+                f"frame {k} has a different topology from {files[0].name} ({verts.shape[0]} vs {first.n_vertices} vertices)",
+            )
         vertices[k] = verts
     if fps is None:
         fps = side.get("fps", _DEFAULT_FPS)
@@ -190,15 +219,25 @@ def as_sequence(obj) -> MeshSequence:
     raise InputError(f"expected a MeshSequence or an Animation, got {type(obj).__name__}")
 
 
-def write_obj_sequence(obj, path, *, force: bool = False, inputs=(), prefix: str = "frame_", **options) -> None:
+def write_obj_sequence(
+    obj, path, *, force: bool = False, inputs=(), prefix: str = "frame_", **options
+) -> None:
     """Write one OBJ per frame plus ``sequence.json`` (frame rate, order) into folder ``path``."""
     seq = as_sequence(obj)
     digits = max(5, len(str(seq.n_frames - 1)))
     names = [f"{prefix}{k:0{digits}d}.obj" for k in range(seq.n_frames)]
     with atomic_dir(path, inputs=inputs, force=force, allowed_suffixes=(".obj", ".json")) as tmp:
         for k, name in enumerate(names):
-            write_file_synced(tmp / name, obj_text(np.asarray(seq.vertices[k], dtype=np.float64), seq.triangles))
-        meta = {"format": "faceretarget.sequence", "version": 1, "fps": seq.fps, "name": seq.name, "frames": names}
+            write_file_synced(
+                tmp / name, obj_text(np.asarray(seq.vertices[k], dtype=np.float64), seq.triangles)
+            )
+        meta = {
+            "format": "faceretarget.sequence",
+            "version": 1,
+            "fps": seq.fps,
+            "name": seq.name,
+            "frames": names,
+        }
         write_file_synced(tmp / SEQUENCE_SIDECAR, json.dumps(meta, indent=1))
 
 
@@ -228,32 +267,49 @@ def write_npy(obj, path, *, force: bool = False, inputs=(), **options) -> None:
 # ---------------------------------------------------------------------------------------
 def _header(path: Path, size: int, need: int, what: str) -> bytes:
     if size < need:
-        raise bad(path, f"too short for a {what} header ({size} bytes, need {need})" if size else "the file is empty")
+        raise bad(
+            path,
+            f"too short for a {what} header ({size} bytes, need {need})"
+            if size
+            else "the file is empty",
+        )
     with open_regular(path) as fh:
         return fh.read(need)
 
 
-def _check_cache(path: Path, n_frames: int, n_points: int, offset: int, size: int, what: str) -> None:
+def _check_cache(
+    path: Path, n_frames: int, n_points: int, offset: int, size: int, what: str
+) -> None:
     if n_frames <= 0 or n_points <= 0:
-        raise bad(path, f"the {what} header declares {n_frames} frames of {n_points} points; both must be positive")
+        raise bad(
+            path,
+            f"the {what} header declares {n_frames} frames of {n_points} points; both must be positive",
+        )
     nbytes = n_frames * n_points * 12
     check_budget(path, nbytes, f"{n_frames} frames of {n_points} points")
     if size != offset + nbytes:
         state = "truncated" if size < offset + nbytes else "longer than declared"
-        raise bad(path, f"{state}: the header declares {n_frames} frames of {n_points} points ({offset + nbytes} bytes) but the file has {size}")
+        raise bad(
+            path,
+            f"{state}: the header declares {n_frames} frames of {n_points} points ({offset + nbytes} bytes) but the file has {size}",
+        )
 
 
 @guarded_reader
 def read_pc2(path: Path, *, topology=None, fps=_DEFAULT_FPS, **options) -> MeshSequence:
     """A PC2 point cache (memory-mapped float32) as a :class:`MeshSequence`."""
     size = path.stat().st_size
-    magic, version, n_points, start, rate, n_frames = PC2_HEADER.unpack(_header(path, size, PC2_HEADER.size, "PC2"))
+    magic, version, n_points, start, rate, n_frames = PC2_HEADER.unpack(
+        _header(path, size, PC2_HEADER.size, "PC2")
+    )
     if magic != PC2_MAGIC:
         raise bad(path, "wrong magic: not a PC2 point cache (expected 'POINTCACHE2')")
     if version != 1:
         raise bad(path, f"PC2 version {version} is not supported (only 1)")
     _check_cache(path, n_frames, n_points, PC2_HEADER.size, size, "PC2")
-    data = np.memmap(path, dtype="<f4", mode="r", offset=PC2_HEADER.size, shape=(n_frames, n_points, 3))
+    data = np.memmap(
+        path, dtype="<f4", mode="r", offset=PC2_HEADER.size, shape=(n_frames, n_points, 3)
+    )
     return _sequence(path, data, topology, fps)
 
 
@@ -263,10 +319,15 @@ def read_mdd(path: Path, *, topology=None, fps=None, **options) -> MeshSequence:
     size = path.stat().st_size
     n_frames, n_points = MDD_HEADER.unpack(_header(path, size, MDD_HEADER.size, "MDD"))
     if n_frames <= 0 or n_points <= 0:
-        raise bad(path, f"the MDD header declares {n_frames} frames of {n_points} points; both must be positive")
+        raise bad(
+            path,
+            f"the MDD header declares {n_frames} frames of {n_points} points; both must be positive",
+        )
     offset = MDD_HEADER.size + 4 * n_frames
     _check_cache(path, n_frames, n_points, offset, size, "MDD")
-    times = np.fromfile(path, dtype=">f4", count=n_frames, offset=MDD_HEADER.size).astype(np.float64)
+    times = np.fromfile(path, dtype=">f4", count=n_frames, offset=MDD_HEADER.size).astype(
+        np.float64
+    )
     if not np.all(np.isfinite(times)) or (n_frames > 1 and np.any(np.diff(times) <= 0)):
         raise bad(path, "the frame times are not finite and strictly increasing")
     if fps is None:
@@ -278,7 +339,11 @@ def read_mdd(path: Path, *, topology=None, fps=None, **options) -> MeshSequence:
 def _stream_frames(fh, vertices: np.ndarray, dtype: str) -> None:
     step = max(1, _WRITE_CHUNK // max(1, vertices.shape[1] * 3))
     for start in range(0, vertices.shape[0], step):
-        fh.write(np.ascontiguousarray(to_float32(vertices[start : start + step], "point cache", dtype)).tobytes())
+        fh.write(
+            np.ascontiguousarray(
+                to_float32(vertices[start : start + step], "point cache", dtype)
+            ).tobytes()
+        )
 
 
 def write_pc2(obj, path, *, force: bool = False, inputs=(), **options) -> None:
@@ -297,4 +362,3 @@ def write_mdd(obj, path, *, force: bool = False, inputs=(), **options) -> None:
         fh.write(MDD_HEADER.pack(seq.n_frames, seq.n_vertices))
         fh.write(times.tobytes())
         _stream_frames(fh, seq.vertices, ">f4")
-

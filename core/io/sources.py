@@ -7,6 +7,7 @@
 - :func:`load_target`: a rig or a mesh (or a bundle) as a TargetRig with its extras;
 - :func:`read_landmarks` (JSON, TXT, ``file.npz:KEY``) and :func:`read_feature_lines` (JSON).
 """
+
 from __future__ import annotations
 
 import json
@@ -16,7 +17,17 @@ from typing import Any
 from ..errors import FileFormatError, InputError
 from . import dispatch
 
-__all__ = ["load", "save", "save_bundle", "load_bundle", "is_case", "load_source", "load_target", "read_landmarks", "read_feature_lines"]
+__all__ = [
+    "load",
+    "save",
+    "save_bundle",
+    "load_bundle",
+    "is_case",
+    "load_source",
+    "load_target",
+    "read_landmarks",
+    "read_feature_lines",
+]
 
 
 def load(path, kind: str | None = None, *, format: str | None = None, **options) -> Any:
@@ -36,13 +47,17 @@ def load(path, kind: str | None = None, *, format: str | None = None, **options)
 
         check_regular(p)
         stored = npz_kind(p)
-        if stored is None or stored in BUNDLE_TYPES:  # a bundle, or let the npz reader say what is wrong
+        if (
+            stored is None or stored in BUNDLE_TYPES
+        ):  # a bundle, or let the npz reader say what is wrong
             note_input(p)
             return load_bundle(p)
     return dispatch.read(p, kind, format=format, **options)
 
 
-def save(obj: Any, path, *, force: bool = False, inputs=(), format: str | None = None, **options) -> Path:
+def save(
+    obj: Any, path, *, force: bool = False, inputs=(), format: str | None = None, **options
+) -> Path:
     """Write ``obj`` with the registered writer for the path's extension, atomically.
 
     A path without an extension is a folder (OBJ sequence or rig folder). Source,
@@ -87,8 +102,9 @@ def is_case(obj) -> bool:
     """Whether ``obj`` is a case (a Source ``.source`` and a TargetRig ``.target``)."""
     from ..model import Source, TargetRig
 
-    return isinstance(getattr(obj, "source", None), Source) and isinstance(getattr(obj, "target", None), TargetRig)
-
+    return isinstance(getattr(obj, "source", None), Source) and isinstance(
+        getattr(obj, "target", None), TargetRig
+    )
 
 
 def read_landmarks(spec, *, key: str | None = None):
@@ -121,7 +137,10 @@ def read_landmarks(spec, *, key: str | None = None):
             if k not in arrays:
                 raise bad(path, f"has no array {k!r}; arrays: {sorted(arrays)[:20]}")
             names = arrays.get(f"{k}_names")
-            return Landmarks(arrays[k].astype("int64") if arrays[k].dtype.kind in "iu" else arrays[k], names=None if names is None else names.tolist())
+            return Landmarks(
+                arrays[k].astype("int64") if arrays[k].dtype.kind in "iu" else arrays[k],
+                names=None if names is None else names.tolist(),
+            )
         raw = read_text(path, factor=TEXT_TOKEN_FACTOR)
         if suffix == ".json":
             try:
@@ -131,12 +150,23 @@ def read_landmarks(spec, *, key: str | None = None):
             if isinstance(data, list):
                 return Landmarks(data)
             if isinstance(data, dict) and "triangle_ids" in data:
-                return Landmarks(triangle_ids=data["triangle_ids"], barycentric=data.get("barycentric"), names=data.get("names"))
+                return Landmarks(
+                    triangle_ids=data["triangle_ids"],
+                    barycentric=data.get("barycentric"),
+                    names=data.get("names"),
+                )
             if isinstance(data, dict) and "vertex_ids" in data:
                 return Landmarks(data["vertex_ids"], names=data.get("names"))
-            if isinstance(data, dict) and data and all(isinstance(v, int) and not isinstance(v, bool) for v in data.values()):
+            if (
+                isinstance(data, dict)
+                and data
+                and all(isinstance(v, int) and not isinstance(v, bool) for v in data.values())
+            ):
                 return Landmarks(list(data.values()), names=list(data))
-            raise bad(path, "expected a list of vertex ids, {vertex_ids, names}, {triangle_ids, barycentric, names} or {name: id}")
+            raise bad(
+                path,
+                "expected a list of vertex ids, {vertex_ids, names}, {triangle_ids, barycentric, names} or {name: id}",
+            )
         ids, names = [], []
         for lineno, line in enumerate(raw.splitlines(), 1):
             parts = line.split("#", 1)[0].replace(",", " ").split()
@@ -151,7 +181,10 @@ def read_landmarks(spec, *, key: str | None = None):
                 ids.append(int(parts[0]))
                 names.append(parts[1])
             else:
-                raise bad(path, f"line {lineno}: expected 'ID', 'NAME ID' or 'ID NAME', got {line.strip()[:60]!r}")
+                raise bad(
+                    path,
+                    f"line {lineno}: expected 'ID', 'NAME ID' or 'ID NAME', got {line.strip()[:60]!r}",
+                )
         if names and len(names) != len(ids):
             raise bad(path, "either every landmark line has a name or none has")
         if not ids:
@@ -218,16 +251,36 @@ def _weights_onto_rig(weights, rig, path, mapping, preset):
     from .weights import LIVE_LINK_EXTRA
 
     explicit = dict(load_mapping(mapping) if isinstance(mapping, (str, Path)) else (mapping or {}))
-    rotations = [n for n in weights.names if n in LIVE_LINK_EXTRA and n not in rig.names and n not in explicit]
+    rotations = [
+        n
+        for n in weights.names
+        if n in LIVE_LINK_EXTRA and n not in rig.names and n not in explicit
+    ]
     if rotations:
-        warnings.warn(f"{path}: head/eye rotation columns are not blendshapes and are not used: {', '.join(rotations)}", stacklevel=3)
+        warnings.warn(
+            f"{path}: head/eye rotation columns are not blendshapes and are not used: {', '.join(rotations)}",
+            stacklevel=3,
+        )
         explicit.update({n: "" for n in rotations})
-    m = map_names(weights.names, rig.names, preset=preset, mapping=explicit).require_complete(f"{path}: weight curves")
+    m = map_names(weights.names, rig.names, preset=preset, mapping=explicit).require_complete(
+        f"{path}: weight curves"
+    )
     return m.apply(weights)
 
 
-def load_source(path, *, kind: str | None = None, landmarks=None, rig=None, head_motion=None, feature_lines=None,
-                examples=None, mapping=None, preset: str = "auto", **options):
+def load_source(
+    path,
+    *,
+    kind: str | None = None,
+    landmarks=None,
+    rig=None,
+    head_motion=None,
+    feature_lines=None,
+    examples=None,
+    mapping=None,
+    preset: str = "auto",
+    **options,
+):
     """A :class:`~faceretarget.model.Source` from user files.
 
     ``path``: a markers file (C3D/TRC/CSV), a mesh sequence (folder, npy, npz, PC2, MDD,
@@ -245,7 +298,14 @@ def load_source(path, *, kind: str | None = None, landmarks=None, rig=None, head
     """
     import numpy as np
 
-    from ..model import Animation, BlendshapeRig, MarkerSequence, MeshSequence, Source, WeightSequence
+    from ..model import (
+        Animation,
+        BlendshapeRig,
+        MarkerSequence,
+        MeshSequence,
+        Source,
+        WeightSequence,
+    )
 
     obj = load(path, kind=kind, **options)
     if is_case(obj):
@@ -253,13 +313,21 @@ def load_source(path, *, kind: str | None = None, landmarks=None, rig=None, head
     if isinstance(obj, Source):
         return obj
     if isinstance(obj, Animation):
-        obj = MeshSequence(obj.vertices, obj.triangles, fps=obj.fps) if obj.triangles is not None else WeightSequence(obj.weights, obj.weight_names, fps=obj.fps)
+        obj = (
+            MeshSequence(obj.vertices, obj.triangles, fps=obj.fps)
+            if obj.triangles is not None
+            else WeightSequence(obj.weights, obj.weight_names, fps=obj.fps)
+        )
     if not isinstance(obj, (MarkerSequence, MeshSequence, WeightSequence)):
-        raise FileFormatError(f"{path}: holds a {type(obj).__name__}, not a performance (markers, mesh sequence or weight curves)")
+        raise FileFormatError(
+            f"{path}: holds a {type(obj).__name__}, not a performance (markers, mesh sequence or weight curves)"
+        )
     if isinstance(rig, (str, Path)):
         rig = load(rig, kind="rig")
     if rig is not None and not isinstance(rig, BlendshapeRig):
-        raise InputError(f"load_source: rig must be a BlendshapeRig or a rig file, got {type(rig).__name__}")
+        raise InputError(
+            f"load_source: rig must be a BlendshapeRig or a rig file, got {type(rig).__name__}"
+        )
     if head_motion is None:  # a Live Link Face take carries the head rotation (weights.py)
         head_motion = getattr(obj, "head_motion", None)
     if isinstance(obj, WeightSequence) and rig is not None:
@@ -281,7 +349,9 @@ def load_source(path, *, kind: str | None = None, landmarks=None, rig=None, head
     )
 
 
-def load_target(path, landmarks=None, *, feature_lines=None, examples=None, kind: str | None = None, **options):
+def load_target(
+    path, landmarks=None, *, feature_lines=None, examples=None, kind: str | None = None, **options
+):
     """A :class:`~faceretarget.model.TargetRig` from a rig or mesh file (or a bundle).
 
     ``path``: a blendshape rig (folder, glTF with morph targets, npz) or a plain mesh;
@@ -307,9 +377,24 @@ def load_target(path, landmarks=None, *, feature_lines=None, examples=None, kind
             changes.update(examples=ex, example_names=ex_names)
         return obj.replace(**changes)
     if isinstance(obj, BlendshapeRig):
-        return TargetRig(obj.neutral, blendshapes=obj, landmarks=lm, feature_lines=lines, examples=ex, example_names=ex_names, name=Path(path).stem)
+        return TargetRig(
+            obj.neutral,
+            blendshapes=obj,
+            landmarks=lm,
+            feature_lines=lines,
+            examples=ex,
+            example_names=ex_names,
+            name=Path(path).stem,
+        )
     if isinstance(obj, Mesh):
-        return TargetRig(obj, landmarks=lm, feature_lines=lines, examples=ex, example_names=ex_names, name=Path(path).stem)
-    raise FileFormatError(f"{path}: holds a {type(obj).__name__}, not a character (a rig or a mesh)")
-
-
+        return TargetRig(
+            obj,
+            landmarks=lm,
+            feature_lines=lines,
+            examples=ex,
+            example_names=ex_names,
+            name=Path(path).stem,
+        )
+    raise FileFormatError(
+        f"{path}: holds a {type(obj).__name__}, not a character (a rig or a mesh)"
+    )

@@ -28,6 +28,7 @@ frames at the nominal rate ``round(fps)`` with a millisecond sub-frame field (so
 such as 59.96 is kept) and start at frame ``round(fps) - 1`` of second 0, so the nominal
 rate can be read back from the frame field even for short takes.
 """
+
 from __future__ import annotations
 
 import csv
@@ -40,14 +41,22 @@ import numpy as np
 from ..errors import InputError
 from ..model import WeightSequence
 from ._atomic import write_bytes
-from ._common import bad, check_budget, fmt_float, fps_from_times, guarded_reader, parse_float
+from ._common import bad, fmt_float, fps_from_times, guarded_reader
 from .markers import csv_table
 
 __all__ = ["read_weights_csv", "write_weights_csv", "LIVE_LINK_EXTRA", "timecode", "parse_timecode"]
 
 #: the non-blendshape columns a Live Link Face take ends with (head and eye rotations)
 LIVE_LINK_EXTRA = (
-    "HeadYaw", "HeadPitch", "HeadRoll", "LeftEyeYaw", "LeftEyePitch", "LeftEyeRoll", "RightEyeYaw", "RightEyePitch", "RightEyeRoll",
+    "HeadYaw",
+    "HeadPitch",
+    "HeadRoll",
+    "LeftEyeYaw",
+    "LeftEyePitch",
+    "LeftEyeRoll",
+    "RightEyeYaw",
+    "RightEyePitch",
+    "RightEyeRoll",
 )
 _STANDARD_RATES = (24, 25, 30, 48, 50, 60, 72, 90, 100, 120, 240)
 _TIMECODE = re.compile(r"^(\d+):(\d{1,2}):(\d{1,2})[:;.](\d+)(?:\.(\d+))?$")
@@ -78,10 +87,32 @@ def timecode(frame: float, nominal: int) -> str:
 def _rotation(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
     """(F, 4, 4): ``Ry(yaw) @ Rx(pitch) @ Rz(roll)`` (radians), no translation."""
     n = yaw.shape[0]
-    cy, sy, cp, sp, cr, sr = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
-    ry = np.zeros((n, 3, 3)); ry[:, 0, 0] = cy; ry[:, 0, 2] = sy; ry[:, 1, 1] = 1; ry[:, 2, 0] = -sy; ry[:, 2, 2] = cy
-    rx = np.zeros((n, 3, 3)); rx[:, 0, 0] = 1; rx[:, 1, 1] = cp; rx[:, 1, 2] = -sp; rx[:, 2, 1] = sp; rx[:, 2, 2] = cp
-    rz = np.zeros((n, 3, 3)); rz[:, 0, 0] = cr; rz[:, 0, 1] = -sr; rz[:, 1, 0] = sr; rz[:, 1, 1] = cr; rz[:, 2, 2] = 1
+    cy, sy, cp, sp, cr, sr = (
+        np.cos(yaw),
+        np.sin(yaw),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(roll),
+        np.sin(roll),
+    )
+    ry = np.zeros((n, 3, 3))
+    ry[:, 0, 0] = cy
+    ry[:, 0, 2] = sy
+    ry[:, 1, 1] = 1
+    ry[:, 2, 0] = -sy
+    ry[:, 2, 2] = cy
+    rx = np.zeros((n, 3, 3))
+    rx[:, 0, 0] = 1
+    rx[:, 1, 1] = cp
+    rx[:, 1, 2] = -sp
+    rx[:, 2, 1] = sp
+    rx[:, 2, 2] = cp
+    rz = np.zeros((n, 3, 3))
+    rz[:, 0, 0] = cr
+    rz[:, 0, 1] = -sr
+    rz[:, 1, 0] = sr
+    rz[:, 1, 1] = cr
+    rz[:, 2, 2] = 1
     out = np.tile(np.eye(4), (n, 1, 1))
     out[:, :3, :3] = ry @ rx @ rz
     return out
@@ -115,12 +146,18 @@ def read_weights_csv(path: Path, *, fps=None, **options) -> WeightSequence:
         lower = [h.lower() for h in header]
         weight_cols = [i for i, h in enumerate(lower) if h not in meta]
         if not weight_cols:
-            raise bad(path, "no weight columns: every column is Timecode/BlendShapeCount/Frame/Time")
+            raise bad(
+                path, "no weight columns: every column is Timecode/BlendShapeCount/Frame/Time"
+            )
         for i in weight_cols:
             if not header[i]:
                 raise bad(path, f"column {i + 1} has an empty name")
         count_col = lower.index("blendshapecount") if "blendshapecount" in lower else None
-        time_col = lower.index("time") if "time" in lower else (lower.index("timestamp") if "timestamp" in lower else None)
+        time_col = (
+            lower.index("time")
+            if "time" in lower
+            else (lower.index("timestamp") if "timestamp" in lower else None)
+        )
         layout.update(lower=lower, weight_cols=weight_cols, count_col=count_col, time_col=time_col)
         extra = [c for c in (count_col, time_col) if c is not None]
         return weight_cols + extra
@@ -138,14 +175,20 @@ def read_weights_csv(path: Path, *, fps=None, **options) -> WeightSequence:
     weights = table[:, :n]
     if not np.all(np.isfinite(weights)):
         r, j = (int(x) for x in np.argwhere(~np.isfinite(weights))[0])
-        raise bad(path, f"row {r + 2}, column {header[weight_cols[j]]!r}: {weights[r, j]} is not a finite weight (an empty cell is not a weight)")
+        raise bad(
+            path,
+            f"row {r + 2}, column {header[weight_cols[j]]!r}: {weights[r, j]} is not a finite weight (an empty cell is not a weight)",
+        )
     k = n
     if layout["count_col"] is not None:
         declared = table[:, k]
         after = len(header) - layout["count_col"] - 1
         wrong = np.flatnonzero(declared != after)
         if wrong.size:
-            raise bad(path, f"row {int(wrong[0]) + 2}: BlendShapeCount is '{declared[wrong[0]]:g}' but {after} weight columns follow it")
+            raise bad(
+                path,
+                f"row {int(wrong[0]) + 2}: BlendShapeCount is '{declared[wrong[0]]:g}' but {after} weight columns follow it",
+            )
         k += 1
     if fps is None:
         fps = _DEFAULT_FPS
@@ -157,13 +200,18 @@ def read_weights_csv(path: Path, *, fps=None, **options) -> WeightSequence:
         elif "timecode" in lower:
             cells = texts[lower.index("timecode")]
             codes = [parse_timecode(c, path, r + 2) for r, c in enumerate(cells)]
-            fps = _fps_from_timecodes(codes) if len(codes) > 1 or codes[0][1] > 0 else _LIVE_LINK_FPS
+            fps = (
+                _fps_from_timecodes(codes) if len(codes) > 1 or codes[0][1] > 0 else _LIVE_LINK_FPS
+            )
     rot_idx = [j for j, name in enumerate(names) if name in LIVE_LINK_EXTRA]
     channels: dict[str, np.ndarray] = {}
     if rot_idx:
         keep = [j for j in range(n) if j not in set(rot_idx)]
         if not keep:
-            raise bad(path, f"holds only head/eye rotation columns ({', '.join(names[j] for j in rot_idx)}), no blendshape weights")
+            raise bad(
+                path,
+                f"holds only head/eye rotation columns ({', '.join(names[j] for j in rot_idx)}), no blendshape weights",
+            )
         channels = {names[j]: np.array(weights[:, j]) for j in rot_idx}
         weights = weights[:, keep]
         names = [names[j] for j in keep]
@@ -174,7 +222,9 @@ def read_weights_csv(path: Path, *, fps=None, **options) -> WeightSequence:
     if channels:
         extras["channels"] = channels
         if all(h in channels for h in LIVE_LINK_EXTRA[:3]):
-            seq.head_motion = _rotation(channels["HeadYaw"], channels["HeadPitch"], channels["HeadRoll"])
+            seq.head_motion = _rotation(
+                channels["HeadYaw"], channels["HeadPitch"], channels["HeadRoll"]
+            )
     if "timecode" in lower:
         extras["live_link"] = {
             "timecodes": [c.strip() for c in texts[lower.index("timecode")]],
@@ -185,25 +235,46 @@ def read_weights_csv(path: Path, *, fps=None, **options) -> WeightSequence:
     return seq
 
 
-def write_weights_csv(weights: WeightSequence, path, *, force: bool = False, inputs=(), **options) -> None:
+def write_weights_csv(
+    weights: WeightSequence, path, *, force: bool = False, inputs=(), **options
+) -> None:
     """Write weight curves in the Live Link Face CSV layout (atomic)."""
     if not isinstance(weights, WeightSequence):
-        raise InputError(f"the weights CSV writer takes a WeightSequence, got {type(weights).__name__}")
-    bad_names = [n for n in weights.names if n.strip().lower() in ("timecode", "blendshapecount", "frame", "time") or "\n" in n]
+        raise InputError(
+            f"the weights CSV writer takes a WeightSequence, got {type(weights).__name__}"
+        )
+    bad_names = [
+        n
+        for n in weights.names
+        if n.strip().lower() in ("timecode", "blendshapecount", "frame", "time") or "\n" in n
+    ]
     if bad_names:
-        raise InputError(f"weights CSV: shape names {bad_names} clash with the layout's own columns; rename them")
+        raise InputError(
+            f"weights CSV: shape names {bad_names} clash with the layout's own columns; rename them"
+        )
     n_frames = weights.n_frames
     extras = getattr(weights, "extras", None) or {}
-    channels = {k: np.asarray(v, dtype=np.float64).reshape(-1) for k, v in (extras.get("channels") or {}).items()}
-    channels = {k: v for k, v in channels.items() if k in LIVE_LINK_EXTRA and v.shape == (n_frames,) and k not in weights.names}
+    channels = {
+        k: np.asarray(v, dtype=np.float64).reshape(-1)
+        for k, v in (extras.get("channels") or {}).items()
+    }
+    channels = {
+        k: v
+        for k, v in channels.items()
+        if k in LIVE_LINK_EXTRA and v.shape == (n_frames,) and k not in weights.names
+    }
     head = getattr(weights, "head_motion", None)
     if head is not None:
         head = np.asarray(head, dtype=np.float64)
         if head.shape != (n_frames, 4, 4):
-            raise InputError(f"weights CSV: head_motion has shape {head.shape}; expected ({n_frames}, 4, 4) for {n_frames} frames")
+            raise InputError(
+                f"weights CSV: head_motion has shape {head.shape}; expected ({n_frames}, 4, 4) for {n_frames} frames"
+            )
         stored = [channels.get(h) for h in LIVE_LINK_EXTRA[:3]]
         same = all(c is not None for c in stored) and np.array_equal(_rotation(*stored), head)
-        if not same:  # the head moved since it was read (or was never a column): write what it is now
+        if (
+            not same
+        ):  # the head moved since it was read (or was never a column): write what it is now
             ypr = _yaw_pitch_roll(head)
             channels.update({h: ypr[:, i] for i, h in enumerate(LIVE_LINK_EXTRA[:3])})
     if channels:  # Live Link Face always has all nine; the missing ones are zero
@@ -216,7 +287,11 @@ def write_weights_csv(weights: WeightSequence, path, *, force: bool = False, inp
     columns = {name: np.asarray(weights.weights)[:, j] for j, name in enumerate(weights.names)}
     columns.update(channels)
     codes = live.get("timecodes")
-    if not (isinstance(codes, list) and len(codes) == n_frames and all(isinstance(c, str) and _TIMECODE.match(c) for c in codes)):
+    if not (
+        isinstance(codes, list)
+        and len(codes) == n_frames
+        and all(isinstance(c, str) and _TIMECODE.match(c) for c in codes)
+    ):
         nominal = max(1, int(round(weights.fps)))
         step = nominal / float(weights.fps)
         codes = [timecode(nominal - 1 + f * step, nominal) for f in range(n_frames)]

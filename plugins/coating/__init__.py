@@ -9,6 +9,7 @@
 
 Importing this package does not import numba; kernels compile on first use.
 """
+
 from faceretarget.hookspecs import hookimpl
 
 __all__ = ["faceretarget_retargeters", "DetailEdit"]

@@ -1,4 +1,5 @@
 """numba kernels of the coating plugin (compiled lazily, cached)."""
+
 from __future__ import annotations
 
 import numba as nb
@@ -22,6 +23,12 @@ def rigid(points, motion, out, inverse):
             out[f, v, 1] = motion[f, 0, 1] * x + motion[f, 1, 1] * y + motion[f, 2, 1] * z
             out[f, v, 2] = motion[f, 0, 2] * x + motion[f, 1, 2] * y + motion[f, 2, 2] * z
         else:
-            out[f, v, 0] = motion[f, 0, 0] * x + motion[f, 0, 1] * y + motion[f, 0, 2] * z + motion[f, 0, 3]
-            out[f, v, 1] = motion[f, 1, 0] * x + motion[f, 1, 1] * y + motion[f, 1, 2] * z + motion[f, 1, 3]
-            out[f, v, 2] = motion[f, 2, 0] * x + motion[f, 2, 1] * y + motion[f, 2, 2] * z + motion[f, 2, 3]
+            out[f, v, 0] = (
+                motion[f, 0, 0] * x + motion[f, 0, 1] * y + motion[f, 0, 2] * z + motion[f, 0, 3]
+            )
+            out[f, v, 1] = (
+                motion[f, 1, 0] * x + motion[f, 1, 1] * y + motion[f, 1, 2] * z + motion[f, 1, 3]
+            )
+            out[f, v, 2] = (
+                motion[f, 2, 0] * x + motion[f, 2, 1] * y + motion[f, 2, 2] * z + motion[f, 2, 3]
+            )

@@ -45,6 +45,7 @@ scaled by a power of ten or moved rigidly (tested to 1e-6 relative). Head motion
 carried in world axes, its translation times ``u`` (a head turning in the source's world
 turns the target the same way in the target's world, as the parallel-rig cases define it).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -111,8 +112,14 @@ class RigidFit:
 
     def __init__(self, reference: np.ndarray, weights: np.ndarray | None = None):
         ref = np.asarray(reference, dtype=np.float64)
-        candidates = np.arange(ref.shape[0]) if weights is None else np.flatnonzero(np.asarray(weights) > 0)
-        pick = np.unique(np.linspace(0, candidates.size - 1, min(ALIGN_POINTS, candidates.size)).round().astype(np.int64))
+        candidates = (
+            np.arange(ref.shape[0]) if weights is None else np.flatnonzero(np.asarray(weights) > 0)
+        )
+        pick = np.unique(
+            np.linspace(0, candidates.size - 1, min(ALIGN_POINTS, candidates.size))
+            .round()
+            .astype(np.int64)
+        )
         self.ids = candidates[pick]
         self.reference = ref[self.ids]
         self.weights = None if weights is None else np.asarray(weights, dtype=np.float64)[self.ids]
@@ -122,7 +129,9 @@ class RigidFit:
 
     def reference_fit(self, points: np.ndarray) -> np.ndarray:
         """Motions ``(C, 4, 4)`` of frames already restricted to ``self.ids`` (``(C, len(ids), 3)``)."""
-        rot, trans, _ = fit_rigid(self.reference, np.asarray(points, dtype=np.float64), self.weights)
+        rot, trans, _ = fit_rigid(
+            self.reference, np.asarray(points, dtype=np.float64), self.weights
+        )
         return to_matrix(rot, trans)
 
 
@@ -156,7 +165,14 @@ def stable_weights(residual: np.ndarray, fraction: float) -> np.ndarray:
     return w if w.sum() >= 3 else np.ones_like(r)
 
 
-def stable_vertices(reference: np.ndarray, vertices, *, stable_fraction: float, chunk: int, motion: np.ndarray | None = None) -> np.ndarray:
+def stable_vertices(
+    reference: np.ndarray,
+    vertices,
+    *,
+    stable_fraction: float,
+    chunk: int,
+    motion: np.ndarray | None = None,
+) -> np.ndarray:
     """First pass: the stable-vertex weights ``(V,)`` (non-zero on stable vertices of an even
     subsample of at most ``ALIGN_POINTS``).
 
@@ -169,14 +185,20 @@ def stable_vertices(reference: np.ndarray, vertices, *, stable_fraction: float, 
     residual = ResidualMotion(np.asarray(reference, dtype=np.float64)[ids])
     for sl in frame_chunks(vertices.shape[0], chunk):
         frames = np.asarray(vertices[sl][:, ids])
-        m = fit.reference_fit(frames) if motion is None else np.asarray(motion[sl], dtype=np.float64)
+        m = (
+            fit.reference_fit(frames)
+            if motion is None
+            else np.asarray(motion[sl], dtype=np.float64)
+        )
         residual.add(to_local(m, frames))
     weights = np.zeros(np.asarray(reference).shape[0])
     weights[ids] = stable_weights(residual.rms(), stable_fraction)
     return weights
 
 
-def estimate_motion(reference: np.ndarray, vertices, stable: np.ndarray, *, chunk: int, window: int) -> tuple[np.ndarray, float]:
+def estimate_motion(
+    reference: np.ndarray, vertices, stable: np.ndarray, *, chunk: int, window: int
+) -> tuple[np.ndarray, float]:
     """Head motion ``(F, 4, 4)`` of world frames ``vertices (F, V, 3)`` and the gate's evidence.
 
     Each frame's motion is a Procrustes fit on the stable vertices (``stable``, from

@@ -14,11 +14,19 @@ on an even subsample of at most ``SELECTION_VERTICES`` vertices: the smooth mesh
 low-frequency, so the subsample error tracks the full one, and memory for the
 selection grows by only ``3 * SELECTION_VERTICES`` numbers a frame.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["SELECTION_VERTICES", "selection_vertices", "nnls_rows", "select_bases", "BasisSpace", "blend"]
+__all__ = [
+    "SELECTION_VERTICES",
+    "selection_vertices",
+    "nnls_rows",
+    "select_bases",
+    "BasisSpace",
+    "blend",
+]
 
 #: Vertices used to evaluate the greedy selection criterion.
 SELECTION_VERTICES = 2000
@@ -40,10 +48,17 @@ def nnls_rows(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 
 def _errors(gram, cross, sq, weights):
     """Squared residuals ``|B w_t - x_t|^2`` from Gram quantities."""
-    return np.maximum(sq - 2.0 * np.einsum("fk,fk->f", weights, cross) + np.einsum("fk,kl,fl->f", weights, gram, weights), 0.0)
+    return np.maximum(
+        sq
+        - 2.0 * np.einsum("fk,fk->f", weights, cross)
+        + np.einsum("fk,kl,fl->f", weights, gram, weights),
+        0.0,
+    )
 
 
-def select_bases(samples: np.ndarray, reference: np.ndarray, *, epsilon: float, max_bases: int, height: float):
+def select_bases(
+    samples: np.ndarray, reference: np.ndarray, *, epsilon: float, max_bases: int, height: float
+):
     """Greedy basis selection on subsampled, centred smooth frames.
 
     samples : (F, P) flattened smooth frames; reference : (P,) the smooth reference.
@@ -93,7 +108,9 @@ class BasisSpace:
         self.gram = self.matrix.T @ self.matrix
         self.adjoint_matrix = None
         if adjoint is not None:
-            self.adjoint_matrix = np.ascontiguousarray(adjoint(b).reshape(b.shape[0], -1).T)  # G^T B, (3V, K)
+            self.adjoint_matrix = np.ascontiguousarray(
+                adjoint(b).reshape(b.shape[0], -1).T
+            )  # G^T B, (3V, K)
 
     def weights(self, smooth: np.ndarray) -> np.ndarray:
         """(C, K) weights of ``smooth : (C, V, 3)`` (eq. 6)."""

@@ -32,6 +32,7 @@
    space of the change, by Lanczos), every spatial mode is one tridiagonal solve in
    time, so a window of 1,300 frames costs little beyond the eigen-decomposition.
 """
+
 from __future__ import annotations
 
 import time
@@ -47,7 +48,15 @@ from faceretarget.geometry.procrustes import apply as apply_transform
 from .alignment import to_local
 from .track import DetailLayer
 
-__all__ = ["DetailEdit", "select_region", "active_range", "scan_active_range", "propagate", "apply_detail_edit", "LAMBDA_RESHAPE"]
+__all__ = [
+    "DetailEdit",
+    "select_region",
+    "active_range",
+    "scan_active_range",
+    "propagate",
+    "apply_detail_edit",
+    "LAMBDA_RESHAPE",
+]
 
 #: Weight of the Laplacian term when reshaping a wrinkle to a drawn curve (paper: 0.2).
 LAMBDA_RESHAPE = 0.2
@@ -92,7 +101,9 @@ class DetailEdit:
 def _polyline(points, what) -> np.ndarray:
     arr = np.asarray(points, dtype=np.float64)
     if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] < 2:
-        raise ShapeError(f"coating detail edit: {what} must be an (n >= 2, 3) polyline, got shape {arr.shape}")
+        raise ShapeError(
+            f"coating detail edit: {what} must be an (n >= 2, 3) polyline, got shape {arr.shape}"
+        )
     if not np.isfinite(arr).all():
         raise NonFiniteError(f"coating detail edit: {what} holds NaN or infinite coordinates")
     return arr
@@ -103,7 +114,11 @@ def _distance_to_polyline(points: np.ndarray, line: np.ndarray) -> np.ndarray:
     a = line[:-1]
     ab = line[1:] - a
     ap = points[:, None, :] - a[None]
-    t = np.clip(np.einsum("vsd,sd->vs", ap, ab) / np.maximum(np.einsum("sd,sd->s", ab, ab), 1e-300), 0.0, 1.0)
+    t = np.clip(
+        np.einsum("vsd,sd->vs", ap, ab) / np.maximum(np.einsum("sd,sd->s", ab, ab), 1e-300),
+        0.0,
+        1.0,
+    )
     closest = a[None] + t[..., None] * ab[None]
     return np.linalg.norm(points[:, None, :] - closest, axis=-1).min(axis=1)
 
@@ -115,15 +130,21 @@ def select_region(points: np.ndarray, *, vertices=None, curve=None, radius=None)
         if ids.size == 0:
             raise InputError("coating detail edit: the vertex region is empty")
         if ids.min() < 0 or ids.max() >= points.shape[0]:
-            raise IndexRangeError(f"coating detail edit: region vertex ids must be in 0..{points.shape[0] - 1}")
+            raise IndexRangeError(
+                f"coating detail edit: region vertex ids must be in 0..{points.shape[0] - 1}"
+            )
         return ids
     if curve is None or radius is None:
-        raise InputError("coating detail edit: select the region by vertices= or by curve= with radius=")
+        raise InputError(
+            "coating detail edit: select the region by vertices= or by curve= with radius="
+        )
     if not (np.isfinite(radius) and radius > 0):
         raise ConfigError(f"coating detail edit: radius must be positive, got {radius!r}")
     ids = np.flatnonzero(_distance_to_polyline(points, curve) <= radius)
     if ids.size == 0:
-        raise InputError(f"coating detail edit: no vertex lies within {radius} of the curve at the key frame; draw it on the face or widen the radius")
+        raise InputError(
+            f"coating detail edit: no vertex lies within {radius} of the curve at the key frame; draw it on the face or widen the radius"
+        )
     return ids
 
 
@@ -142,7 +163,9 @@ def active_range(magnitude: np.ndarray, key: int, threshold: float) -> tuple[int
     return start, stop
 
 
-def scan_active_range(magnitude_of, key: int, n_frames: int, threshold: float, chunk: int) -> tuple[int, int]:
+def scan_active_range(
+    magnitude_of, key: int, n_frames: int, threshold: float, chunk: int
+) -> tuple[int, int]:
     """:func:`active_range` evaluated lazily: ``magnitude_of(frame ids) -> (n,)`` is asked for
     blocks of ``chunk`` frames outward from ``key`` until the magnitude falls to the threshold
     on both sides (the wrinkles cost a smoothing a frame, so only the range and one block
@@ -162,7 +185,14 @@ def scan_active_range(magnitude_of, key: int, n_frames: int, threshold: float, c
             if nxt not in known:
                 block = np.arange(nxt, nxt + direction * step, direction)
                 block = block[(block >= 0) & (block < n_frames)]
-                known.update(zip(block.tolist(), np.asarray(magnitude_of(np.sort(block)), dtype=np.float64)[np.argsort(np.argsort(block))].tolist()))
+                known.update(
+                    zip(
+                        block.tolist(),
+                        np.asarray(magnitude_of(np.sort(block)), dtype=np.float64)[
+                            np.argsort(np.argsort(block))
+                        ].tolist(),
+                    )
+                )
             if not known[nxt] > threshold * ref:
                 break
             t = nxt
@@ -249,7 +279,18 @@ def _spatial_modes(lap: sp.csr_matrix, vector: np.ndarray):
     return np.maximum(theta, 0.0), basis[:, :m] @ s, norm * s[0]
 
 
-def propagate(change: np.ndarray, edges: np.ndarray, key: int, n_frames: int, *, lambda_key: float, lambda_gradient: float, lambda_boundary: float, fix_start: bool, fix_end: bool) -> np.ndarray:
+def propagate(
+    change: np.ndarray,
+    edges: np.ndarray,
+    key: int,
+    n_frames: int,
+    *,
+    lambda_key: float,
+    lambda_gradient: float,
+    lambda_boundary: float,
+    fix_start: bool,
+    fix_end: bool,
+) -> np.ndarray:
     """Minimiser of eq. 18 for a key-frame change ``change : (P, 3)`` (common frame).
 
     edges : (E, 2) local indices of region edges; ``key`` is the key frame's position in
@@ -282,7 +323,9 @@ def propagate(change: np.ndarray, edges: np.ndarray, key: int, n_frames: int, *,
             sigma, modes, coef = _spatial_modes(lap, g[:, d])
         if sigma.size == 0:
             continue
-        z = _tridiagonal_impulse(base[:, None] + lambda_gradient * sigma[None, :], -lambda_gradient, key)  # (T, M)
+        z = _tridiagonal_impulse(
+            base[:, None] + lambda_gradient * sigma[None, :], -lambda_gradient, key
+        )  # (T, M)
         out[:, :, d] = (modes @ (lambda_key * coef[:, None] * z.T)).T
     return out
 
@@ -294,7 +337,13 @@ def _resample(line: np.ndarray, count: int) -> np.ndarray:
     return np.stack([np.interp(t, s, line[:, k]) for k in range(3)], axis=1)
 
 
-def _reshape(points: np.ndarray, adj: sp.csr_matrix, region: np.ndarray, curve: np.ndarray, target_curve: np.ndarray) -> np.ndarray:
+def _reshape(
+    points: np.ndarray,
+    adj: sp.csr_matrix,
+    region: np.ndarray,
+    curve: np.ndarray,
+    target_curve: np.ndarray,
+) -> np.ndarray:
     """Eq. 17: new positions ``(P, 3)`` of the region vertices, the wrinkle curve moved onto ``target_curve``."""
     from scipy.spatial import cKDTree
 
@@ -315,7 +364,15 @@ def _reshape(points: np.ndarray, adj: sp.csr_matrix, region: np.ndarray, curve: 
     return splu(lhs).solve(np.ascontiguousarray(rhs))
 
 
-def _copy_details(frames_key: np.ndarray, details_key: np.ndarray, src_ids, src_points, dst_points_all, rotation, spacing):
+def _copy_details(
+    frames_key: np.ndarray,
+    details_key: np.ndarray,
+    src_ids,
+    src_points,
+    dst_points_all,
+    rotation,
+    spacing,
+):
     """Destination ids and their copied local details.
 
     The moved source points are snapped to their nearest mesh vertices (so a region
@@ -342,11 +399,19 @@ def _copy_details(frames_key: np.ndarray, details_key: np.ndarray, src_ids, src_
 def apply_detail_edit(retargeter, track, animation, spec: DetailEdit):
     """Solve a fine-scale edit; returns ``(new track, changed frame ids, diagnostics)``."""
     if spec.operation not in _OPERATIONS:
-        raise ConfigError(f"coating detail edit: operation must be one of {_OPERATIONS}, got {spec.operation!r}")
+        raise ConfigError(
+            f"coating detail edit: operation must be one of {_OPERATIONS}, got {spec.operation!r}"
+        )
     n_frames = track.n_frames
     key = spec.frame
-    if isinstance(key, bool) or not isinstance(key, (int, np.integer)) or not 0 <= int(key) < n_frames:
-        raise IndexRangeError(f"coating detail edit: key frame {key!r} is outside the animation's {n_frames} frames")
+    if (
+        isinstance(key, bool)
+        or not isinstance(key, (int, np.integer))
+        or not 0 <= int(key) < n_frames
+    ):
+        raise IndexRangeError(
+            f"coating detail edit: key frame {key!r} is outside the animation's {n_frames} frames"
+        )
     key = int(key)
     start = time.perf_counter()
     model = track.model
@@ -355,27 +420,49 @@ def apply_detail_edit(retargeter, track, animation, spec: DetailEdit):
     motion_k = track.motion[key : key + 1]
     smooth_k = model.smooth_target(track.weights[key : key + 1], track.bases)
     frames_k = model.target.frames(smooth_k)[0]
-    points_k = model.target.reconstruct(smooth_k, model.target.reference_coating[None] + model.detail_scale * track.fine_motion([key]), frames_k[None])[0]
+    points_k = model.target.reconstruct(
+        smooth_k,
+        model.target.reference_coating[None] + model.detail_scale * track.fine_motion([key]),
+        frames_k[None],
+    )[0]
 
     def local_curve(c, what):
         return track.placement.to_model(to_local(motion_k, _polyline(c, what)[None])[0])
 
     curve = None if spec.curve is None else local_curve(spec.curve, "curve")
-    vertices = None if spec.vertices is None else track.target_vertex[np.asarray(spec.vertices, dtype=np.int64).ravel()]
-    if spec.vertices is not None and (np.min(spec.vertices) < 0 or np.max(spec.vertices) >= track.target_vertex.size):
-        raise IndexRangeError(f"coating detail edit: region vertex ids must be in 0..{track.target_vertex.size - 1}")
+    vertices = (
+        None
+        if spec.vertices is None
+        else track.target_vertex[np.asarray(spec.vertices, dtype=np.int64).ravel()]
+    )
+    if spec.vertices is not None and (
+        np.min(spec.vertices) < 0 or np.max(spec.vertices) >= track.target_vertex.size
+    ):
+        raise IndexRangeError(
+            f"coating detail edit: region vertex ids must be in 0..{track.target_vertex.size - 1}"
+        )
     region = select_region(points_k, vertices=vertices, curve=curve, radius=spec.radius)
 
     threshold = retargeter.detail_threshold if spec.threshold is None else float(spec.threshold)
     if spec.window is None:
-        ts, te = scan_active_range(lambda frames: np.linalg.norm(track.wrinkles(frames, region), axis=-1).sum(axis=1), key, n_frames, threshold, track.chunk)
+        ts, te = scan_active_range(
+            lambda frames: np.linalg.norm(track.wrinkles(frames, region), axis=-1).sum(axis=1),
+            key,
+            n_frames,
+            threshold,
+            track.chunk,
+        )
     else:
         try:
             ts, te = (int(x) for x in spec.window)
         except (TypeError, ValueError):
-            raise ShapeError(f"coating detail edit: window must be (first, last), got {spec.window!r}") from None
+            raise ShapeError(
+                f"coating detail edit: window must be (first, last), got {spec.window!r}"
+            ) from None
         if not 0 <= ts <= key <= te < n_frames:
-            raise IndexRangeError(f"coating detail edit: window {spec.window} must contain the key frame {key} and lie in 0..{n_frames - 1}")
+            raise IndexRangeError(
+                f"coating detail edit: window {spec.window} must contain the key frame {key} and lie in 0..{n_frames - 1}"
+            )
 
     details_k = track.wrinkles([key])[0]  # (V, 3) current wrinkles D'_tk (no basis-fit residual)
     edge_len = float(np.mean(np.linalg.norm(points_k[tri[:, [1, 2, 0]]] - points_k[tri], axis=-1)))
@@ -388,10 +475,14 @@ def apply_detail_edit(retargeter, track, animation, spec: DetailEdit):
         target[region] = factor * details_k[region]
     elif spec.operation == "paste":
         if spec.transform is None:
-            raise InputError("coating detail edit: 'paste' needs transform= (a 4x4 similarity moving the region onto its destination)")
+            raise InputError(
+                "coating detail edit: 'paste' needs transform= (a 4x4 similarity moving the region onto its destination)"
+            )
         m = np.asarray(spec.transform, dtype=np.float64)
         if m.shape != (4, 4) or not np.isfinite(m).all():
-            raise ShapeError(f"coating detail edit: transform must be a finite 4x4 matrix, got shape {m.shape}")
+            raise ShapeError(
+                f"coating detail edit: transform must be a finite 4x4 matrix, got shape {m.shape}"
+            )
         head = motion_k[0]
         local_m = track.placement.model_transform(np.linalg.inv(head) @ m @ head)
         lin = local_m[:3, :3]
@@ -399,15 +490,29 @@ def apply_detail_edit(retargeter, track, animation, spec: DetailEdit):
         if scale <= 0:
             raise InputError("coating detail edit: the paste transform is singular")
         moved = apply_transform(local_m[None], points_k[region])[0]
-        dst, copied = _copy_details(frames_k, details_k, region, moved, points_k, lin / scale, 0.75 * edge_len * max(scale, 1.0))
+        dst, copied = _copy_details(
+            frames_k,
+            details_k,
+            region,
+            moved,
+            points_k,
+            lin / scale,
+            0.75 * edge_len * max(scale, 1.0),
+        )
         target[dst] = copied
         edited = dst
     else:
         if curve is None or spec.target_curve is None:
-            raise InputError("coating detail edit: 'reshape' needs curve= (along the wrinkle), radius= and target_curve= (its new shape)")
-        new_pos = _reshape(points_k, model.adjacency, region, curve, local_curve(spec.target_curve, "target_curve"))
+            raise InputError(
+                "coating detail edit: 'reshape' needs curve= (along the wrinkle), radius= and target_curve= (its new shape)"
+            )
+        new_pos = _reshape(
+            points_k, model.adjacency, region, curve, local_curve(spec.target_curve, "target_curve")
+        )
         target[region] = 0.0
-        dst, copied = _copy_details(frames_k, details_k, region, new_pos, points_k, np.eye(3), 0.75 * edge_len)
+        dst, copied = _copy_details(
+            frames_k, details_k, region, new_pos, points_k, np.eye(3), 0.75 * edge_len
+        )
         target[dst] = copied
         edited = np.union1d(region, dst)
 
@@ -424,9 +529,15 @@ def apply_detail_edit(retargeter, track, animation, spec: DetailEdit):
     both = (position[e[:, 0]] >= 0) & (position[e[:, 1]] >= 0)
     local_edges = position[e[both]]
     delta_world = propagate(
-        change, local_edges, key - ts, te - ts + 1,
-        lambda_key=float(retargeter.lambda_key), lambda_gradient=float(retargeter.lambda_gradient),
-        lambda_boundary=float(retargeter.lambda_boundary), fix_start=True, fix_end=True,
+        change,
+        local_edges,
+        key - ts,
+        te - ts + 1,
+        lambda_key=float(retargeter.lambda_key),
+        lambda_gradient=float(retargeter.lambda_gradient),
+        lambda_boundary=float(retargeter.lambda_boundary),
+        fix_start=True,
+        fix_end=True,
     )
     delta = np.einsum("pji,tpj->tpi", frames_k[affected], delta_world)
     layer = DetailLayer(ts, te + 1, affected, delta)

@@ -45,6 +45,7 @@ Translation: ``N`` does not see translations, so the basis change is kept with z
 (stable-vertex weighted) mean per connected component: constraints are met by
 deforming the bases, never by sliding them.
 """
+
 from __future__ import annotations
 
 import time
@@ -58,7 +59,14 @@ from faceretarget.errors import ConfigError, IndexRangeError, InputError, NonFin
 from .alignment import to_local
 from .bases import nnls_rows
 
-__all__ = ["Constraint", "parse_constraints", "apply_large_scale", "solve_bases", "solve_weights", "velocity_metric"]
+__all__ = [
+    "Constraint",
+    "parse_constraints",
+    "apply_large_scale",
+    "solve_bases",
+    "solve_weights",
+    "velocity_metric",
+]
 
 _MODES = ("both", "bases", "weights")
 _MAX_ITER = 10
@@ -109,7 +117,9 @@ def _vertex(v, n_vertices, what):
 def _point(p, what):
     arr = np.asarray(p, dtype=np.float64)
     if arr.shape != (3,):
-        raise ShapeError(f"coating.edit: {what} position must be 3 numbers (x, y, z), got shape {arr.shape}")
+        raise ShapeError(
+            f"coating.edit: {what} position must be 3 numbers (x, y, z), got shape {arr.shape}"
+        )
     if not np.isfinite(arr).all():
         raise NonFiniteError(f"coating.edit: {what} position {arr.tolist()} is not finite")
     return arr
@@ -130,7 +140,9 @@ def parse_constraints(track, animation, smooth_at, *, points, distances, fixed) 
 
     def frame_data(t):
         if t not in cache:
-            local = track.placement.to_model(to_local(track.motion[t : t + 1], np.asarray(world[t : t + 1], dtype=np.float64))[0])
+            local = track.placement.to_model(
+                to_local(track.motion[t : t + 1], np.asarray(world[t : t + 1], dtype=np.float64))[0]
+            )
             cache[t] = (local, smooth_at(t))
         return cache[t]
 
@@ -139,7 +151,9 @@ def parse_constraints(track, animation, smooth_at, *, points, distances, fixed) 
         try:
             t, v, p = item
         except (TypeError, ValueError):
-            raise ShapeError(f"coating.edit: each point constraint is (frame, vertex, (x, y, z)), got {item!r}") from None
+            raise ShapeError(
+                f"coating.edit: each point constraint is (frame, vertex, (x, y, z)), got {item!r}"
+            ) from None
         t = _frame(t, n_frames, "point constraint")
         v = _vertex(v, n_target, "point constraint")
         p = _point(p, "point constraint")
@@ -147,40 +161,70 @@ def parse_constraints(track, animation, smooth_at, *, points, distances, fixed) 
         c = int(track.target_vertex[v])
         p_local = track.placement.to_model(to_local(track.motion[t : t + 1], p[None, None])[0, 0])
         offset = local[v] - smooth[c]
-        out.append(Constraint(t, np.array([c]), np.array([1.0]), p_local - offset, np.array([v]), p_local))
+        out.append(
+            Constraint(t, np.array([c]), np.array([1.0]), p_local - offset, np.array([v]), p_local)
+        )
     for item in distances or ():
         try:
             t, a, b, dist = item
         except (TypeError, ValueError):
-            raise ShapeError(f"coating.edit: each distance constraint is (frame, vertex_a, vertex_b, distance), got {item!r}") from None
+            raise ShapeError(
+                f"coating.edit: each distance constraint is (frame, vertex_a, vertex_b, distance), got {item!r}"
+            ) from None
         t = _frame(t, n_frames, "distance constraint")
         a = _vertex(a, n_target, "distance constraint")
         b = _vertex(b, n_target, "distance constraint")
         if a == b:
-            raise InputError(f"coating.edit: a distance constraint needs two different vertices, got {a} twice")
+            raise InputError(
+                f"coating.edit: a distance constraint needs two different vertices, got {a} twice"
+            )
         dist = float(dist)
         if not np.isfinite(dist) or dist < 0:
-            raise NonFiniteError(f"coating.edit: distance must be a finite number >= 0, got {dist!r}")
+            raise NonFiniteError(
+                f"coating.edit: distance must be a finite number >= 0, got {dist!r}"
+            )
         local, smooth = frame_data(t)
         direction = local[a] - local[b]
         norm = np.linalg.norm(direction)
         if norm <= 0:
-            raise InputError(f"coating.edit: vertices {a} and {b} coincide at frame {t}; a distance constraint needs a direction")
+            raise InputError(
+                f"coating.edit: vertices {a} and {b} coincide at frame {t}; a distance constraint needs a direction"
+            )
         ca, cb = int(track.target_vertex[a]), int(track.target_vertex[b])
         offset = (local[a] - smooth[ca]) - (local[b] - smooth[cb])
-        out.append(Constraint(t, np.array([ca, cb]), np.array([1.0, -1.0]), dist * direction / norm - offset, np.array([a, b]), dist * direction / norm))
+        out.append(
+            Constraint(
+                t,
+                np.array([ca, cb]),
+                np.array([1.0, -1.0]),
+                dist * direction / norm - offset,
+                np.array([a, b]),
+                dist * direction / norm,
+            )
+        )
     for item in fixed or ():
         try:
             t, ids = item
         except (TypeError, ValueError):
-            raise ShapeError(f"coating.edit: each fixed constraint is (frame, vertex_ids), got {item!r}") from None
+            raise ShapeError(
+                f"coating.edit: each fixed constraint is (frame, vertex_ids), got {item!r}"
+            ) from None
         t = _frame(t, n_frames, "fixed constraint")
         ids = np.atleast_1d(np.asarray(ids))
         local, smooth = frame_data(t)
         for v in ids.tolist():
             v = _vertex(v, n_target, "fixed constraint")
             c = int(track.target_vertex[v])
-            out.append(Constraint(t, np.array([c]), np.array([1.0]), smooth[c].copy(), np.array([v]), local[v].copy()))
+            out.append(
+                Constraint(
+                    t,
+                    np.array([c]),
+                    np.array([1.0]),
+                    smooth[c].copy(),
+                    np.array([v]),
+                    local[v].copy(),
+                )
+            )
     return out
 
 
@@ -188,7 +232,10 @@ def _achieved(track, constraints) -> np.ndarray:
     """(R, 3) the output-vertex combinations of the constraints on ``track`` (local coordinates)."""
     frames = sorted({c.frame for c in constraints})
     world = track.world_frames(frames)
-    local = {t: track.placement.to_model(to_local(track.motion[t : t + 1], world[i : i + 1])[0]) for i, t in enumerate(frames)}
+    local = {
+        t: track.placement.to_model(to_local(track.motion[t : t + 1], world[i : i + 1])[0])
+        for i, t in enumerate(frames)
+    }
     return np.stack([c.coeffs @ local[c.frame][c.target_vertices] for c in constraints])
 
 
@@ -198,7 +245,9 @@ def _functional(con: Constraint, n_vertices: int) -> np.ndarray:
     return f
 
 
-def _value(con: Constraint, bases: np.ndarray, center: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def _value(
+    con: Constraint, bases: np.ndarray, center: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
     """Current value of the constraint's left side on the smooth frame of ``weights``."""
     pts = center + np.einsum("k,kvd->vd", weights, bases[:, con.vertices] - center)
     return con.coeffs @ pts
@@ -209,7 +258,9 @@ def _basis_coefficients(bases0, center, weights, constraints, mu, lambda_b, gram
     ``coef : (R, K, 3)``; ``bases0`` only needs the constraints' vertices. Returns
     ``(coef, E_b)``."""
     w = np.stack([weights[c.frame] for c in constraints])  # (R, K)
-    resid = np.stack([c.value - _value(c, bases0, center, weights[c.frame]) for c in constraints])  # (R, 3)
+    resid = np.stack(
+        [c.value - _value(c, bases0, center, weights[c.frame]) for c in constraints]
+    )  # (R, 3)
     s = (w @ w.T) * gram  # (R, R)
     y = np.linalg.solve(lambda_b * np.eye(len(constraints)) + mu * s, mu * resid)  # (R, 3)
     return w[:, :, None] * y[:, None, :], float(np.einsum("rd,rs,sd->", y, s, y))
@@ -228,7 +279,9 @@ def solve_bases(bases0, center, weights, constraints, mu, lambda_b, influence):
     influence : :class:`Influence` of the constraints (the Woodbury columns).
     Returns ``(bases, E_b)``.
     """
-    coef, energy = _basis_coefficients(bases0, center, weights, constraints, mu, lambda_b, influence.gram)
+    coef, energy = _basis_coefficients(
+        bases0, center, weights, constraints, mu, lambda_b, influence.gram
+    )
     return _apply_change(bases0, influence.z, coef), energy
 
 
@@ -248,7 +301,13 @@ class Influence:
         self.functionals = np.stack(cols)  # (R, V)
         z = np.zeros((n, len(cols)))
         z[dt.free] = dt.factor.solve(self.functionals[:, dt.free].T)
-        means = np.stack([np.bincount(labels, weights=g * z[:, r], minlength=dt.n_components) for r in range(z.shape[1])], axis=1)
+        means = np.stack(
+            [
+                np.bincount(labels, weights=g * z[:, r], minlength=dt.n_components)
+                for r in range(z.shape[1])
+            ],
+            axis=1,
+        )
         self.z = z - means[labels]  # apply P: zero gauge-weighted mean per component
         self.gram = self.functionals @ self.z  # (R, R) l_r^T P N^-1 P^T l_s
 
@@ -258,7 +317,9 @@ def velocity_metric(bases, center, edge_len: float) -> np.ndarray:
     b = np.asarray(bases, dtype=np.float64)
     flat = (b - center).reshape(b.shape[0], -1)
     gram = flat @ flat.T / (b.shape[1] * float(edge_len) ** 2)
-    return gram + 1e-6 * max(float(np.trace(gram)) / gram.shape[0], np.finfo(float).tiny) * np.eye(gram.shape[0])
+    return gram + 1e-6 * max(float(np.trace(gram)) / gram.shape[0], np.finfo(float).tiny) * np.eye(
+        gram.shape[0]
+    )
 
 
 def solve_weights(bases, center, weights, constraints, window, mu, lambda_w, metric=None):
@@ -307,10 +368,14 @@ def solve_weights(bases, center, weights, constraints, window, mu, lambda_w, met
         extra = set()
         for seg in np.unique(segment[bad]):
             inside = np.flatnonzero(bad & (segment == seg))
-            extra.update(int(frames[i]) for i in (inside[0], inside[-1], inside[np.argmin(low[inside])]))
+            extra.update(
+                int(frames[i]) for i in (inside[0], inside[-1], inside[np.argmin(low[inside])])
+            )
         knots = sorted(set(knots) | extra)
     new = w[w0 : w1 + 1] + delta
-    if (new < -1e-12 * scale).any():  # still crossing: shrink the change where it would (the face change only shrinks)
+    if (
+        new < -1e-12 * scale
+    ).any():  # still crossing: shrink the change where it would (the face change only shrinks)
         neg = delta < 0
         room = np.where(neg, w[w0 : w1 + 1] / np.where(neg, -delta, 1.0), np.inf).min(axis=1)
         delta = delta * np.clip(room, 0.0, 1.0)[:, None]
@@ -322,15 +387,21 @@ def solve_weights(bases, center, weights, constraints, window, mu, lambda_w, met
     return out, float(lambda_w * np.einsum("tk,kl,tl->", velocity, g, velocity))
 
 
-def _knot_change(bases, center, weights, constraints, knots, window, mu, lambda_w, metric) -> np.ndarray:
+def _knot_change(
+    bases, center, weights, constraints, knots, window, mu, lambda_w, metric
+) -> np.ndarray:
     """(n, K) weight changes at ``knots`` minimising ``lambda_w E_w + mu E_c`` for a change linear
     in time between knots and the anchors, with the knots' new weights non-negative."""
     w0, w1 = window
     k = weights.shape[1]
     n = len(knots)
     x = np.asarray(knots, dtype=np.float64)
-    gap = 1.0 / np.diff(np.concatenate([[w0 - 1.0], x, [w1 + 1.0]]))  # anchors: zero change past both ends
-    lap = sp.diags([gap[:-1] + gap[1:], -gap[1:-1], -gap[1:-1]], [0, -1, 1], shape=(n, n), format="csr")
+    gap = 1.0 / np.diff(
+        np.concatenate([[w0 - 1.0], x, [w1 + 1.0]])
+    )  # anchors: zero change past both ends
+    lap = sp.diags(
+        [gap[:-1] + gap[1:], -gap[1:-1], -gap[1:-1]], [0, -1, 1], shape=(n, n), format="csr"
+    )
     gram = (lambda_w * sp.kron(lap, sp.csr_matrix(metric))).tolil() if n > 1 else None
     dense = lambda_w * np.kron(lap.toarray(), metric) if gram is None else None
     target = weights[knots].ravel()
@@ -351,7 +422,9 @@ def _knot_change(bases, center, weights, constraints, knots, window, mu, lambda_
         y = nnls_rows(dense, rhs[None])[0].reshape(n, k)
     else:
         for j, blk in blocks.items():
-            gram[j * k : (j + 1) * k, j * k : (j + 1) * k] = gram[j * k : (j + 1) * k, j * k : (j + 1) * k].toarray() + blk
+            gram[j * k : (j + 1) * k, j * k : (j + 1) * k] = (
+                gram[j * k : (j + 1) * k, j * k : (j + 1) * k].toarray() + blk
+            )
         y = _nnls_sparse(gram.tocsc(), rhs, np.maximum(target, 0.0)).reshape(n, k)
     return y - weights[knots]
 
@@ -389,10 +462,17 @@ def _nnls_sparse(hessian, rhs, start, max_iter: int = 100) -> np.ndarray:
 
 
 def _constraint_energy(bases, center, weights, constraints, mu):
-    return float(mu * sum(np.sum((c.value - _value(c, bases, center, weights[c.frame])) ** 2) for c in constraints))
+    return float(
+        mu
+        * sum(
+            np.sum((c.value - _value(c, bases, center, weights[c.frame])) ** 2) for c in constraints
+        )
+    )
 
 
-def apply_large_scale(retargeter, track, animation, *, points, distances, fixed, window, mode, lambdas):
+def apply_large_scale(
+    retargeter, track, animation, *, points, distances, fixed, window, mode, lambdas
+):
     """Solve a large-scale edit; returns ``(new track, changed frame ids, diagnostics)``."""
     if mode not in _MODES:
         raise ConfigError(f"coating.edit: mode must be one of {_MODES}, got {mode!r}")
@@ -405,9 +485,13 @@ def apply_large_scale(retargeter, track, animation, *, points, distances, fixed,
         try:
             w0, w1 = (int(x) for x in window)
         except (TypeError, ValueError):
-            raise ShapeError(f"coating.edit: window must be (first, last) frames, got {window!r}") from None
+            raise ShapeError(
+                f"coating.edit: window must be (first, last) frames, got {window!r}"
+            ) from None
         if not 0 <= w0 <= w1 < n_frames:
-            raise IndexRangeError(f"coating.edit: window {window} must satisfy 0 <= first <= last < {n_frames}")
+            raise IndexRangeError(
+                f"coating.edit: window {window} must satisfy 0 <= first <= last < {n_frames}"
+            )
     model = track.model
     center = model.target_center
 
@@ -415,7 +499,9 @@ def apply_large_scale(retargeter, track, animation, *, points, distances, fixed,
         return model.smooth_target(track.weights[t : t + 1], track.bases)[0]
 
     start = time.perf_counter()
-    constraints = parse_constraints(track, animation, smooth_at, points=points, distances=distances, fixed=fixed)
+    constraints = parse_constraints(
+        track, animation, smooth_at, points=points, distances=distances, fixed=fixed
+    )
     if not constraints:
         raise InputError("coating.edit: the constraints are empty")
     if window is None:  # edit_window seconds either side of the edited frames
@@ -423,7 +509,9 @@ def apply_large_scale(retargeter, track, animation, *, points, distances, fixed,
         frames = [c.frame for c in constraints]
         w0, w1 = max(0, min(frames) - half), min(n_frames - 1, max(frames) + half)
     if mode == "weights" and not any(w0 <= c.frame <= w1 for c in constraints):
-        raise InputError(f"coating.edit: mode 'weights' changes only frames in the window {w0}..{w1}, but no constraint lies there")
+        raise InputError(
+            f"coating.edit: mode 'weights' changes only frames in the window {w0}..{w1}, but no constraint lies there"
+        )
     dt = model.transfer
     edges = model.triangles
     ref = model.target.smooth_reference
@@ -439,35 +527,52 @@ def apply_large_scale(retargeter, track, animation, *, points, distances, fixed,
     requested = float(np.abs(goals - _achieved(track, constraints)).max())
     best = None
     for _ in range(_MAX_OUTER):
-        local = [Constraint(c.frame, np.searchsorted(used, c.vertices), c.coeffs, c.value) for c in constraints]
+        local = [
+            Constraint(c.frame, np.searchsorted(used, c.vertices), c.coeffs, c.value)
+            for c in constraints
+        ]
         weights = np.asarray(track.weights, dtype=np.float64).copy()
         sub = sub0
         coef = None
         energy_b = energy_w = 0.0
         history = []
         iterations = 0
-        for iterations in range(1, _MAX_ITER + 1):
+        for iterations in range(1, _MAX_ITER + 1):  # noqa: B007 (the count is read after the loop)
             if mode != "bases":
-                weights, energy_w = solve_weights(sub, center, track.weights, local, (w0, w1), mu, lambda_w, metric)
+                weights, energy_w = solve_weights(
+                    sub, center, track.weights, local, (w0, w1), mu, lambda_w, metric
+                )
             if mode != "weights":
-                coef, energy_b = _basis_coefficients(sub0, center, weights, local, mu, lambda_b, influence.gram)
+                coef, energy_b = _basis_coefficients(
+                    sub0, center, weights, local, mu, lambda_b, influence.gram
+                )
                 sub = _apply_change(sub0, influence.z[used], coef)
-            total = lambda_b * energy_b + energy_w + _constraint_energy(sub, center, weights, local, mu)
+            total = (
+                lambda_b * energy_b + energy_w + _constraint_energy(sub, center, weights, local, mu)
+            )
             history.append(total)
-            if mode != "both" or (len(history) > 1 and abs(history[-2] - total) <= _REL_STOP * max(abs(history[-2]), 1e-300)):
+            if mode != "both" or (
+                len(history) > 1
+                and abs(history[-2] - total) <= _REL_STOP * max(abs(history[-2]), 1e-300)
+            ):
                 break
         bases = bases0 if coef is None else _apply_change(bases0, influence.z, coef)
         # the output vertices are the smooth mesh plus a detail offset that turns with the
         # smooth mesh's frames: measure where they landed and correct the smooth targets
         miss = goals - _achieved(track.replace(bases=bases, weights=weights), constraints)
         size = float(np.abs(miss).max())
-        if best is not None and size >= best[0]:  # no better (e.g. out of the weights' reach): keep the best
+        if (
+            best is not None and size >= best[0]
+        ):  # no better (e.g. out of the weights' reach): keep the best
             size, bases, weights, coef, local, history, iterations = best
             break
         best = (size, bases, weights, coef, local, history, iterations)
         if size <= _OUTER_TOL * requested:
             break
-        constraints = [Constraint(c.frame, c.vertices, c.coeffs, c.value + m, c.target_vertices, c.goal) for c, m in zip(constraints, miss)]
+        constraints = [
+            Constraint(c.frame, c.vertices, c.coeffs, c.value + m, c.target_vertices, c.goal)
+            for c, m in zip(constraints, miss)
+        ]
     sub = bases[:, used]
     solve_s = time.perf_counter() - start
     changed_w = np.flatnonzero(np.any(weights != track.weights, axis=1))
@@ -477,7 +582,9 @@ def apply_large_scale(retargeter, track, animation, *, points, distances, fixed,
         reach = np.abs(np.einsum("tk,rkd->trd", weights, coef)).max(axis=(1, 2))
         uses = np.flatnonzero(reach > 1e-12 * max(float(reach.max()), np.finfo(float).tiny))
     changed = np.union1d(changed_w, uses).astype(np.int64)
-    residual = max(float(np.linalg.norm(c.value - _value(c, sub, center, weights[c.frame]))) for c in local)
+    residual = max(
+        float(np.linalg.norm(c.value - _value(c, sub, center, weights[c.frame]))) for c in local
+    )
     diagnostics = {
         "kind": "large_scale",
         "mode": mode,

@@ -26,16 +26,16 @@ and target local frames; with coatings stored in local coordinates that rotation
 ``F_T F_S^T`` applied implicitly: the same local coordinates are read in the target's
 frame. Source and target share the tangent neighbours, so their tangents correspond.
 """
+
 from __future__ import annotations
 
-import numpy as np
+from functools import cached_property
 
+import numpy as np
 import scipy.sparse as sp
 
 from faceretarget.geometry.deformation_gradients import DeformationTransfer
 from faceretarget.geometry.factorized import SPDFactor
-from functools import cached_property
-
 from faceretarget.geometry.local_frames import frame_neighbors
 from faceretarget.geometry.mesh_ops import face_areas, unique_edges, vertex_adjacency
 
@@ -43,7 +43,16 @@ from .alignment import frame_chunks
 from .bases import BasisSpace, blend, select_bases, selection_vertices
 from .multiscale import MultiScale
 
-__all__ = ["CoatingModel", "size_ratio", "face_size", "line_logs", "line_proportion", "weight_lines", "LINE_PROPORTION_SCALE", "canonical_axes"]
+__all__ = [
+    "CoatingModel",
+    "size_ratio",
+    "face_size",
+    "line_logs",
+    "line_proportion",
+    "weight_lines",
+    "LINE_PROPORTION_SCALE",
+    "canonical_axes",
+]
 
 #: Feature-line weight, per line: ``sigma_l = sigma * exp(-(d_l / LINE_PROPORTION_SCALE)^2)``
 #: with ``d_l`` the log-ratio of the target's to the source's length of line ``l``, relative
@@ -65,7 +74,13 @@ def face_size(vertices: np.ndarray, triangles: np.ndarray) -> float:
     return float(np.sqrt(face_areas(vertices, triangles).sum()))
 
 
-def line_logs(source: np.ndarray, target: np.ndarray, triangles: np.ndarray, source_lines: dict, target_lines: dict) -> dict[str, float]:
+def line_logs(
+    source: np.ndarray,
+    target: np.ndarray,
+    triangles: np.ndarray,
+    source_lines: dict,
+    target_lines: dict,
+) -> dict[str, float]:
     """``{line: log(L_target / (L_source * r))}``: how much each target feature line differs in
     proportion from the source's line of the same name (``L`` the chain lengths, ``r`` the
     face-size ratio :func:`size_ratio`); lines without a usable counterpart are left out."""
@@ -84,7 +99,13 @@ def line_logs(source: np.ndarray, target: np.ndarray, triangles: np.ndarray, sou
     return logs
 
 
-def line_proportion(source: np.ndarray, target: np.ndarray, triangles: np.ndarray, source_lines: dict, target_lines: dict) -> float:
+def line_proportion(
+    source: np.ndarray,
+    target: np.ndarray,
+    triangles: np.ndarray,
+    source_lines: dict,
+    target_lines: dict,
+) -> float:
     """RMS over the lines of :func:`line_logs`: how much the target's feature lines differ in
     proportion from the source's, overall; 0 without lines."""
     logs = list(line_logs(source, target, triangles, source_lines, target_lines).values())
@@ -101,13 +122,23 @@ def weight_lines(transfer: DeformationTransfer, sigmas: dict) -> None:
     """
     if transfer.line_operator is None or transfer.sigma != 1.0:
         return
-    per_segment = np.concatenate([np.full(max(len(chain) - 1, 0), float(sigmas.get(name, 0.0))) for name, chain in transfer.chains.items()])
+    per_segment = np.concatenate(
+        [
+            np.full(max(len(chain) - 1, 0), float(sigmas.get(name, 0.0)))
+            for name, chain in transfer.chains.items()
+        ]
+    )
     root = np.sqrt(per_segment)
     transfer.line_operator = (sp.diags(root) @ transfer.line_operator).tocsr()
     transfer._line_ref = transfer._line_ref * root[:, None]
-    normal = (transfer.reduced_operator.T @ transfer.reduced_operator + transfer.line_operator.T @ transfer.line_operator).tocsr()
+    normal = (
+        transfer.reduced_operator.T @ transfer.reduced_operator
+        + transfer.line_operator.T @ transfer.line_operator
+    ).tocsr()
     transfer.normal_matrix = normal
-    transfer.factor = SPDFactor(normal[transfer.free][:, transfer.free], what="deformation-transfer normal equations")
+    transfer.factor = SPDFactor(
+        normal[transfer.free][:, transfer.free], what="deformation-transfer normal equations"
+    )
 
 
 def canonical_axes(points: np.ndarray) -> np.ndarray:
@@ -125,7 +156,10 @@ def canonical_axes(points: np.ndarray) -> np.ndarray:
     vecs = vecs[:, ::-1]  # decreasing spread
     proj = x @ vecs
     spread = np.mean(proj**2, axis=0)
-    skew = np.mean(proj**3, axis=0) / np.maximum(spread, 1e-24 * max(float(spread.sum()), 1e-300)) ** 1.5
+    skew = (
+        np.mean(proj**3, axis=0)
+        / np.maximum(spread, 1e-24 * max(float(spread.sum()), 1e-300)) ** 1.5
+    )
     first = int(np.argmin(np.abs(skew)))
     rest = [i for i in range(3) if i != first]
     axes = [vecs[:, i] * (1.0 if skew[i] >= 0 else -1.0) for i in rest]
@@ -148,7 +182,21 @@ class CoatingModel:
     detail_scale : float or "auto" (the target/source size ratio, :func:`size_ratio`)
     """
 
-    def __init__(self, source_reference, target_reference, triangles, *, source_lines, target_lines, stable, iterations, laplacian, screening, sigma, detail_scale):
+    def __init__(
+        self,
+        source_reference,
+        target_reference,
+        triangles,
+        *,
+        source_lines,
+        target_lines,
+        stable,
+        iterations,
+        laplacian,
+        screening,
+        sigma,
+        detail_scale,
+    ):
         self.triangles = np.asarray(triangles, dtype=np.int64)
         src = np.asarray(source_reference, dtype=np.float64)
         tgt = np.asarray(target_reference, dtype=np.float64)
@@ -156,20 +204,47 @@ class CoatingModel:
         # the result, do not depend on how either mesh is oriented in space
         canonical = (src - tgt.mean(axis=0)) @ canonical_axes(tgt)
         neighbors = frame_neighbors(canonical, self.triangles)
-        self.source = MultiScale(src, triangles, iterations=iterations, laplacian=laplacian, screening=screening, neighbors=neighbors)
-        self.target = MultiScale(tgt, triangles, iterations=iterations, laplacian=laplacian, screening=screening, neighbors=neighbors)
+        self.source = MultiScale(
+            src,
+            triangles,
+            iterations=iterations,
+            laplacian=laplacian,
+            screening=screening,
+            neighbors=neighbors,
+        )
+        self.target = MultiScale(
+            tgt,
+            triangles,
+            iterations=iterations,
+            laplacian=laplacian,
+            screening=screening,
+            neighbors=neighbors,
+        )
         self.source_lines = {k: np.asarray(v) for k, v in source_lines.items()}
         self.target_lines = {k: np.asarray(v) for k, v in target_lines.items()}
         self.stable = np.asarray(stable, dtype=np.float64)
         logs = line_logs(src, tgt, self.triangles, self.source_lines, self.target_lines)
-        self.line_proportion = float(np.sqrt(np.mean(np.square(list(logs.values()))))) if logs else 0.0
+        self.line_proportion = (
+            float(np.sqrt(np.mean(np.square(list(logs.values()))))) if logs else 0.0
+        )
         # one weight per line: a line whose proportions (or shape) differ from the source's
         # gets no line term, without taking it from the lines that match
-        self.line_sigmas = {name: float(sigma) * float(np.exp(-((d / LINE_PROPORTION_SCALE) ** 2))) for name, d in logs.items()}
+        self.line_sigmas = {
+            name: float(sigma) * float(np.exp(-((d / LINE_PROPORTION_SCALE) ** 2)))
+            for name, d in logs.items()
+        }
         self.sigma = max(self.line_sigmas.values(), default=0.0)
-        self.transfer = DeformationTransfer(self.target.smooth_reference, triangles, feature_lines=self.target_lines or None, sigma=1.0, gauge_weights=self.stable)
+        self.transfer = DeformationTransfer(
+            self.target.smooth_reference,
+            triangles,
+            feature_lines=self.target_lines or None,
+            sigma=1.0,
+            gauge_weights=self.stable,
+        )
         weight_lines(self.transfer, self.line_sigmas)
-        self.ratio = size_ratio(self.source.smooth_reference, self.target.smooth_reference, triangles)
+        self.ratio = size_ratio(
+            self.source.smooth_reference, self.target.smooth_reference, triangles
+        )
         self.detail_scale = self.ratio if detail_scale == "auto" else float(detail_scale)
         self.source_center = self.source.smooth_reference.mean(axis=0)
         self.target_center = self.target.smooth_reference.mean(axis=0)
@@ -194,7 +269,9 @@ class CoatingModel:
         return vertex_adjacency(self.triangles, self.n_vertices)
 
     # -- fitting -------------------------------------------------------------------------
-    def fit_bases(self, vertices, local_of, *, epsilon: float, max_bases: int, chunk: int, max_frames: int) -> None:
+    def fit_bases(
+        self, vertices, local_of, *, epsilon: float, max_bases: int, chunk: int, max_frames: int
+    ) -> None:
         """Select source bases among the frames ``vertices (F, V, 3)`` and transfer them (sec. 4.1-4.2).
 
         ``local_of(frame_ids, frames) -> (n, V, 3)`` removes the head motion and brings the
@@ -206,7 +283,9 @@ class CoatingModel:
         height = face_size(self.source.reference, self.triangles)
         ids = selection_vertices(self.n_vertices)
         n_frames = vertices.shape[0]
-        candidates = np.unique(np.linspace(0, n_frames - 1, min(n_frames, int(max_frames))).round().astype(np.int64))
+        candidates = np.unique(
+            np.linspace(0, n_frames - 1, min(n_frames, int(max_frames))).round().astype(np.int64)
+        )
         samples = np.empty((candidates.size, 3 * ids.size))
         for sl in frame_chunks(candidates.size, chunk):
             picked = candidates[sl]
@@ -214,7 +293,9 @@ class CoatingModel:
             smooth = self.source.smooth(local_of(picked, frames))
             samples[sl] = (smooth[:, ids] - self.source_center).reshape(smooth.shape[0], -1)
         reference = (self.source.smooth_reference[ids] - self.source_center).ravel()
-        chosen, history = select_bases(samples, reference, epsilon=epsilon, max_bases=max_bases, height=height)
+        chosen, history = select_bases(
+            samples, reference, epsilon=epsilon, max_bases=max_bases, height=height
+        )
         frames = [int(candidates[i]) for i in chosen]
         self.basis_frames = frames
         self.selection_rms = history
@@ -229,15 +310,21 @@ class CoatingModel:
         """Use ``bases (K, V, 3)`` (smooth source meshes, the reference first) and transfer them."""
         self.source_bases = np.asarray(bases, dtype=np.float64)
         self.space = BasisSpace(self.source_bases, self.source_center, adjoint=self.source.adjoint)
-        self._source_flat = (self.source_bases - self.source_center).reshape(self.source_bases.shape[0], -1)
+        self._source_flat = (self.source_bases - self.source_center).reshape(
+            self.source_bases.shape[0], -1
+        )
         self.target_bases = self.transfer_bases(self.source_bases)
-        self._target_flat = (self.target_bases - self.target_center).reshape(self.target_bases.shape[0], -1)
+        self._target_flat = (self.target_bases - self.target_center).reshape(
+            self.target_bases.shape[0], -1
+        )
 
     def transfer_bases(self, bases: np.ndarray) -> np.ndarray:
         """Feature-preserving deformation transfer of smooth source meshes (eq. 9-11)."""
         ref = self.source.smooth_reference
         means = self.transfer.component_means(bases - ref) * self.ratio
-        return self.transfer.transfer(ref, bases, source_feature_lines=self.source_lines or None, mean_displacement=means)
+        return self.transfer.transfer(
+            ref, bases, source_feature_lines=self.source_lines or None, mean_displacement=means
+        )
 
     # -- per frame -------------------------------------------------------------------------
     def decompose(self, local: np.ndarray):
@@ -265,17 +352,26 @@ class CoatingModel:
         frames of ``B_t`` like :meth:`decompose` (which returns ``D_t + E_t``). One smoothing a frame."""
         smooth = self.source_smooth(weights)
         frames = self.source.frames(smooth)
-        return self.source.coating(local, self.source.smooth(local), frames) - self.source.reference_coating
+        return (
+            self.source.coating(local, self.source.smooth(local), frames)
+            - self.source.reference_coating
+        )
 
     def smooth_target(self, weights: np.ndarray, bases: np.ndarray | None = None) -> np.ndarray:
         """Target smooth frames ``T~_t`` (eq. 8) -> ``(C, V, 3)``."""
         if bases is None or bases is self.target_bases:
             w = np.asarray(weights, dtype=np.float64)
-            return (w @ self._target_flat).reshape(w.shape[0], self.n_vertices, 3) + self.target_center
+            return (w @ self._target_flat).reshape(
+                w.shape[0], self.n_vertices, 3
+            ) + self.target_center
         return blend(bases, self.target_center, weights)
 
-    def synthesize(self, weights: np.ndarray, details: np.ndarray, bases: np.ndarray | None = None) -> np.ndarray:
+    def synthesize(
+        self, weights: np.ndarray, details: np.ndarray, bases: np.ndarray | None = None
+    ) -> np.ndarray:
         """Target frames (local coordinates) from weights and fine-scale motion (eq. 5)."""
         smooth = self.smooth_target(weights, bases)
-        coating = self.target.reference_coating + self.detail_scale * np.asarray(details, dtype=np.float64)
+        coating = self.target.reference_coating + self.detail_scale * np.asarray(
+            details, dtype=np.float64
+        )
         return self.target.reconstruct(smooth, coating)

@@ -18,6 +18,7 @@ per-vertex rotations of the coating do not commute with ``M``, and with ``a -> 0
 error of that commutator would be amplified over the whole mesh (our reading of
 "L^-1" in eq. 2; the decomposition is exact for any ``a > 0``).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -53,7 +54,17 @@ class MultiScale:
         Precision of the batched smoothing kernel.
     """
 
-    def __init__(self, reference, triangles, *, iterations: int, laplacian: str, screening: float, neighbors=None, smooth_dtype=np.float32):
+    def __init__(
+        self,
+        reference,
+        triangles,
+        *,
+        iterations: int,
+        laplacian: str,
+        screening: float,
+        neighbors=None,
+        smooth_dtype=np.float32,
+    ):
         ref = np.asarray(reference, dtype=np.float64)
         tri = np.asarray(triangles, dtype=np.int64)
         n = ref.shape[0]
@@ -68,7 +79,9 @@ class MultiScale:
         else:
             raise ConfigError(f"laplacian must be 'uniform' or 'cotangent', got {laplacian!r}")
         if not screening > 0:
-            raise ConfigError(f"screening must be > 0 (it makes the Poisson system invertible), got {screening!r}")
+            raise ConfigError(
+                f"screening must be > 0 (it makes the Poisson system invertible), got {screening!r}"
+            )
         shift = float(screening) * float(np.mean(lap.diagonal()))
         self.poisson = (lap + shift * sp.identity(n, format="csr")).tocsr()
         self.poisson.sort_indices()
@@ -85,7 +98,9 @@ class MultiScale:
         """Smooth meshes ``(C, V, 3)`` -> ``(C, V, 3)`` float64."""
         return self.smoother(points)
 
-    def coating(self, points: np.ndarray, smooth: np.ndarray, frames: np.ndarray | None = None) -> np.ndarray:
+    def coating(
+        self, points: np.ndarray, smooth: np.ndarray, frames: np.ndarray | None = None
+    ) -> np.ndarray:
         """Local coating ``c = F(S~)^T M (S - S~)`` -> ``(C, V, 3)`` (eq. 1)."""
         s = np.asarray(smooth, dtype=np.float64)
         if frames is None:
@@ -94,10 +109,16 @@ class MultiScale:
         xi = np.stack([self.poisson @ d for d in diff])
         return to_local(frames, xi)
 
-    def reconstruct(self, smooth: np.ndarray, coating: np.ndarray, frames: np.ndarray | None = None) -> np.ndarray:
+    def reconstruct(
+        self, smooth: np.ndarray, coating: np.ndarray, frames: np.ndarray | None = None
+    ) -> np.ndarray:
         """``S = S~ + M^-1 (F(S~) c)`` for ``smooth, coating : (C, V, 3)`` (eq. 2 / 5)."""
         s = np.asarray(smooth, dtype=np.float64)
-        xi = self.frames.apply(s, coating, inverse=False) if frames is None else to_world(frames, coating)
+        xi = (
+            self.frames.apply(s, coating, inverse=False)
+            if frames is None
+            else to_world(frames, coating)
+        )
         return self.factor.solve_frames(xi, s)
 
     def decompose(self, points: np.ndarray):

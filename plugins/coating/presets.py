@@ -1,5 +1,6 @@
 """Xu et al. 2014 reproduced for the report: fig. 4 (propagation of a large-scale edit) and fig. 6
 (wrinkle motion transferred with the large-scale expressions, against deformation transfer)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -37,21 +38,28 @@ def _similar_frames(case, frame: int, candidates: np.ndarray) -> tuple[np.ndarra
 def _edit_frame(animation, case) -> int:
     truth = to_head_frame(np.asarray(case.truth.vertices, dtype=np.float64), case.truth.head_motion)
     amount = np.linalg.norm(truth - np.asarray(case.target.neutral.vertices), axis=-1).mean(axis=1)
-    middle = slice(animation.n_frames // 4, max(animation.n_frames // 4 + 1, 3 * animation.n_frames // 4))
+    middle = slice(
+        animation.n_frames // 4, max(animation.n_frames // 4 + 1, 3 * animation.n_frames // 4)
+    )
     return int(middle.start + np.argmax(amount[middle]))
 
 
 def _lower_lip_landmark(case) -> int:
     names = [n.lower() for n in case.target.landmarks.names]
     for i, n in enumerate(names):
-        if "lip" in n and ("lower" in n or "bottom" in n) and ("mid" in n or "center" in n or "centre" in n):
+        if (
+            "lip" in n
+            and ("lower" in n or "bottom" in n)
+            and ("mid" in n or "center" in n or "centre" in n)
+        ):
             return i
     for i, n in enumerate(names):
         if "lip" in n and ("lower" in n or "bottom" in n):
             return i
-    neutral = np.asarray(case.target.landmarks.positions(case.target.neutral.vertices, case.target.neutral.triangles))
+    neutral = np.asarray(
+        case.target.landmarks.positions(case.target.neutral.vertices, case.target.neutral.triangles)
+    )
     return int(np.argmin(neutral[:, 1] + 10 * np.abs(neutral[:, 0] - neutral[:, 0].mean())))
-
 
 
 def xu_fig4(cases: Cases, res: PresetResult) -> None:
@@ -68,7 +76,10 @@ def xu_fig4(cases: Cases, res: PresetResult) -> None:
     lower = _lower_lip_landmark(case)
     vertex = int(lm.vertex_ids[lower]) if lm.vertex_ids is not None else None
     if vertex is None:
-        res.status, res.reason = NOT_APPLICABLE, "the case's landmarks are barycentric; the edit needs a vertex"
+        res.status, res.reason = (
+            NOT_APPLICABLE,
+            "the case's landmarks are barycentric; the edit needs a vertex",
+        )
         return
     offset = np.array([0.0, -XU_EDIT * height, 0.0])
     if base.head_motion is not None:
@@ -79,26 +90,48 @@ def xu_fig4(cases: Cases, res: PresetResult) -> None:
     inside = (frames >= span[0]) & (frames <= span[1])
     similar, dissimilar = _similar_frames(case, frame, ~inside)
     series, measured = [], {}
-    for label, mode in (("bases only", "bases"), ("bases and weights", "both"), ("weights only", "weights")):
+    for label, mode in (
+        ("bases only", "bases"),
+        ("bases and weights", "both"),
+        ("weights only", "weights"),
+    ):
         edited = retargeter.edit(base, points=[(frame, vertex, goal)], window=span, mode=mode)
         moved = np.asarray(edited.vertices, dtype=np.float64)
-        change = 100.0 * np.linalg.norm(moved - np.asarray(base.vertices), axis=-1).mean(axis=1) / height
+        change = (
+            100.0 * np.linalg.norm(moved - np.asarray(base.vertices), axis=-1).mean(axis=1) / height
+        )
         series.append(Series(label, frames, change))
         row = {
             "mode": label,
-            "constraint error (% face height)": float(100.0 * np.linalg.norm(moved[frame, vertex] - goal) / height),
+            "constraint error (% face height)": float(
+                100.0 * np.linalg.norm(moved[frame, vertex] - goal) / height
+            ),
             "mean change inside window": float(change[inside].mean()),
             "mean change outside window": float(change[~inside].mean()) if (~inside).any() else 0.0,
             "max change outside window": float(change[~inside].max()) if (~inside).any() else 0.0,
-            "change of similar frames outside": float(change[similar].mean()) if similar.size else None,
-            "change of dissimilar frames outside": float(change[dissimilar].mean()) if dissimilar.size else None,
+            "change of similar frames outside": float(change[similar].mean())
+            if similar.size
+            else None,
+            "change of dissimilar frames outside": float(change[dissimilar].mean())
+            if dissimilar.size
+            else None,
             "frames changed": int((change > 1e-6).sum()),
         }
         res.table.append(row)
         measured[label] = row
-    res.plots.append(Plot(f"change from the unedited result (edit at frame {frame}, window {span[0]}-{span[1]})", series, xlabel="frame", ylabel="mean |change|, % face height"))
+    res.plots.append(
+        Plot(
+            f"change from the unedited result (edit at frame {frame}, window {span[0]}-{span[1]})",
+            series,
+            xlabel="frame",
+            ylabel="mean |change|, % face height",
+        )
+    )
     if not similar.size:
-        res.agrees, res.evidence = None, "not decided: the sequence has too few frames outside the window"
+        res.agrees, res.evidence = (
+            None,
+            "not decided: the sequence has too few frames outside the window",
+        )
         return
     limit = 100.0 * XU_CONSTRAINT_TOLERANCE * XU_EDIT
     errors = {k: v["constraint error (% face height)"] for k, v in measured.items()}
@@ -106,22 +139,42 @@ def xu_fig4(cases: Cases, res: PresetResult) -> None:
     set_verdict(
         res,
         [
-            ("constraint met within " + num(limit) + "% of the face height by every mode (" + ", ".join(f"{k} {num(e)}%" for k, e in errors.items()) + ")",
-             all(e <= limit for e in errors.values())),
-            (f"bases only changes similar frames outside the window more than dissimilar ones ({num(b['change of similar frames outside'])}% vs {num(b['change of dissimilar frames outside'])}%)",
-             b["change of similar frames outside"] > b["change of dissimilar frames outside"]),
-            (f"weights only leaves frames outside the window unchanged (max change {num(w['max change outside window'])}%)", w["max change outside window"] <= 1e-9),
-            (f"bases and weights changes frames inside ({num(j['mean change inside window'])}%) and outside ({num(j['mean change outside window'])}%) the window",
-             j["mean change inside window"] > 0 and j["mean change outside window"] > 0),
+            (
+                "constraint met within "
+                + num(limit)
+                + "% of the face height by every mode ("
+                + ", ".join(f"{k} {num(e)}%" for k, e in errors.items())
+                + ")",
+                all(e <= limit for e in errors.values()),
+            ),
+            (
+                f"bases only changes similar frames outside the window more than dissimilar ones ({num(b['change of similar frames outside'])}% vs {num(b['change of dissimilar frames outside'])}%)",
+                b["change of similar frames outside"] > b["change of dissimilar frames outside"],
+            ),
+            (
+                f"weights only leaves frames outside the window unchanged (max change {num(w['max change outside window'])}%)",
+                w["max change outside window"] <= 1e-9,
+            ),
+            (
+                f"bases and weights changes frames inside ({num(j['mean change inside window'])}%) and outside ({num(j['mean change outside window'])}%) the window",
+                j["mean change inside window"] > 0 and j["mean change outside window"] > 0,
+            ),
         ],
         "Changes are mean vertex displacements from the unedited result, % of the face height.",
     )
 
 
-
 def xu_fig6(cases: Cases, res: PresetResult) -> None:
-    detail_transfer(cases, res, "coating", {}, ablation=DETAIL_OFF, baseline="deformation_transfer",
-                    baseline_label="deformation transfer", large_scale=True)
+    detail_transfer(
+        cases,
+        res,
+        "coating",
+        {},
+        ablation=DETAIL_OFF,
+        baseline="deformation_transfer",
+        baseline_label="deformation transfer",
+        large_scale=True,
+    )
 
 
 XU_FIG4 = Preset(

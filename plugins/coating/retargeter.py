@@ -10,17 +10,24 @@ therefore does not depend on the units or the placement of either mesh. Frames a
 processed in chunks of ``chunk_frames``; :meth:`CoatingRetargeter.iter_retarget` and
 :meth:`CoatingRetargeter.retarget_to` stream sequences too long for memory.
 """
+
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import ClassVar, Iterator
+from typing import ClassVar
 
 import numpy as np
 
 from faceretarget import manifest
 from faceretarget.errors import InputError, OutputError, TopologyMismatchError
-from faceretarget.geometry.deformation_gradients import DeformationTransfer, check_triangles, gradient_columns, reference_inverse
+from faceretarget.geometry.deformation_gradients import (
+    DeformationTransfer,
+    check_triangles,
+    gradient_columns,
+    reference_inverse,
+)
 from faceretarget.model import Animation, MeshSequence, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
 from faceretarget.validation import Options, check_value, validate_params
@@ -45,8 +52,17 @@ class _MeshTransfer(Retargeter):
         if reason or target is None or not isinstance(source.performance, MeshSequence):
             return reason
         src_mesh, tgt_mesh = source.performance.reference, target.neutral
-        if not same_topology(src_mesh, tgt_mesh) and (source.landmarks is None or target.landmarks is None):
-            lacking = " and ".join(x for x, has in (("the Source", source.landmarks is not None), ("the TargetRig", target.landmarks is not None)) if not has)
+        if not same_topology(src_mesh, tgt_mesh) and (
+            source.landmarks is None or target.landmarks is None
+        ):
+            lacking = " and ".join(
+                x
+                for x, has in (
+                    ("the Source", source.landmarks is not None),
+                    ("the TargetRig", target.landmarks is not None),
+                )
+                if not has
+            )
             return (
                 f"{cls.name}: the target mesh ({tgt_mesh.n_vertices} vertices) has a different topology from the source "
                 f"({src_mesh.n_vertices} vertices); resampling it needs landmarks on both (corresponding points, same order), "
@@ -64,10 +80,18 @@ class _MeshTransfer(Retargeter):
         """Common topology and the stable vertices of the fit source (one pass over its frames)."""
         perf = source.performance
         check_triangles(perf.reference.vertices, perf.triangles, f"{self.name} (source reference)")
-        check_triangles(target.neutral.vertices, target.neutral.triangles, f"{self.name} (target neutral)")
+        check_triangles(
+            target.neutral.vertices, target.neutral.triangles, f"{self.name} (target neutral)"
+        )
         topo = common_topology(source, target, what=self.name)
         ref = np.asarray(perf.reference.vertices, dtype=np.float64)
-        stable = stable_vertices(ref, perf.vertices, stable_fraction=self.stable_fraction, chunk=int(self.chunk_frames), motion=source.head_motion)
+        stable = stable_vertices(
+            ref,
+            perf.vertices,
+            stable_fraction=self.stable_fraction,
+            chunk=int(self.chunk_frames),
+            motion=source.head_motion,
+        )
         self.topology_ = topo
         self.source_triangles_ = np.asarray(perf.triangles)
         self.source_reference_ = ref
@@ -80,7 +104,9 @@ class _MeshTransfer(Retargeter):
         perf = source.performance
         if not isinstance(perf, MeshSequence):
             raise InputError(f"{self.name}: expected a mesh-sequence source, got {source.kind}")
-        if perf.n_vertices != self.source_reference_.shape[0] or not np.array_equal(perf.triangles, self.source_triangles_):
+        if perf.n_vertices != self.source_reference_.shape[0] or not np.array_equal(
+            perf.triangles, self.source_triangles_
+        ):
             raise TopologyMismatchError(
                 f"{self.name}: this source has {perf.n_vertices} vertices / {perf.triangles.shape[0]} triangles but the retargeter "
                 f"was fitted on {self.source_reference_.shape[0]} / {self.source_triangles_.shape[0]}; fit on a source of this topology"
@@ -94,9 +120,18 @@ class _MeshTransfer(Retargeter):
         if source.head_motion is not None:
             return np.asarray(source.head_motion, dtype=np.float64), {"head_motion": "given"}
         window = max(1, int(round(float(source.fps or 30.0))))
-        motion, evidence = estimate_motion(self.source_reference_, source.performance.vertices, self.stable_, chunk=int(self.chunk_frames), window=window)
+        motion, evidence = estimate_motion(
+            self.source_reference_,
+            source.performance.vertices,
+            self.stable_,
+            chunk=int(self.chunk_frames),
+            window=window,
+        )
         detected = not np.array_equal(motion, np.broadcast_to(np.eye(4), motion.shape))
-        return motion, {"head_motion": "estimated" if detected else "none detected", "head_motion_evidence": evidence}
+        return motion, {
+            "head_motion": "estimated" if detected else "none detected",
+            "head_motion_evidence": evidence,
+        }
 
     def _local_chunks(self, source: Source, motion: np.ndarray):
         """One pass over the source: ``(slice, target head motion (n, 4, 4), local frames in the
@@ -104,7 +139,11 @@ class _MeshTransfer(Retargeter):
         perf = source.performance
         target_motion = self.placement_.target_motion(motion)
         for sl in frame_chunks(perf.n_frames, int(self.chunk_frames)):
-            yield sl, target_motion[sl], self.placement_.local(motion[sl], np.asarray(perf.vertices[sl]))
+            yield (
+                sl,
+                target_motion[sl],
+                self.placement_.local(motion[sl], np.asarray(perf.vertices[sl])),
+            )
 
     def iter_retarget(self, source: Source) -> Iterator[tuple[slice, np.ndarray]]:
         """Retarget chunk by chunk: yields ``(frames slice, target vertices (n, V_t, 3))``.
@@ -116,7 +155,14 @@ class _MeshTransfer(Retargeter):
         self._check_source(source)
         return ((item[0], item[2]) for item in self._chunks(source))
 
-    def _animation(self, vertices, source: Source, motion: np.ndarray, diagnostics: dict, extras: dict | None = None) -> Animation:
+    def _animation(
+        self,
+        vertices,
+        source: Source,
+        motion: np.ndarray,
+        diagnostics: dict,
+        extras: dict | None = None,
+    ) -> Animation:
         return Animation(
             vertices=vertices,
             head_motion=motion,
@@ -132,7 +178,10 @@ class CoatingRetargeter(_MeshTransfer):
 
     name: ClassVar[str] = "coating"
     capabilities: ClassVar[Capabilities] = Capabilities(
-        sources=("mesh",), needs=("feature_lines", "source_feature_lines"), outputs="vertices", edit=True
+        sources=("mesh",),
+        needs=("feature_lines", "source_feature_lines"),
+        outputs="vertices",
+        edit=True,
     )
     summary: ClassVar[str] = (
         "Multi-scale transfer of dense performances: smooth blendshape bases by feature-preserving deformation "
@@ -206,7 +255,11 @@ class CoatingRetargeter(_MeshTransfer):
         checked against the parameter's constraints."""
         return tuple(
             check_value(value, self.parameter_constraints[name], name, "coating.edit")
-            for name, value in (("lambda_b", lambda_b), ("lambda_w", lambda_w), ("lambda_c", lambda_c))
+            for name, value in (
+                ("lambda_b", lambda_b),
+                ("lambda_w", lambda_w),
+                ("lambda_c", lambda_c),
+            )
         )
 
     def _fit(self, source: Source, target: TargetRig) -> None:
@@ -228,7 +281,9 @@ class CoatingRetargeter(_MeshTransfer):
             laplacian=self.laplacian,
             screening=float(self.screening),
             sigma=float(self.sigma),
-            detail_scale=self.detail_scale if isinstance(self.detail_scale, str) else float(self.detail_scale),
+            detail_scale=self.detail_scale
+            if isinstance(self.detail_scale, str)
+            else float(self.detail_scale),
         )
         setup = time.perf_counter() - start
         start = time.perf_counter()
@@ -247,7 +302,11 @@ class CoatingRetargeter(_MeshTransfer):
         self.n_bases_ = len(model.source_bases)
         self.basis_frames_ = list(model.basis_frames)
         self.fit_head_motion_ = info
-        self.timings_ = {"stable_pass_s": prepare, "setup_s": setup, "bases_s": time.perf_counter() - start}
+        self.timings_ = {
+            "stable_pass_s": prepare,
+            "setup_s": setup,
+            "bases_s": time.perf_counter() - start,
+        }
 
     # -- retarget --------------------------------------------------------------------------
     def _diagnostics(self, motion_info: dict) -> dict:
@@ -300,7 +359,11 @@ class CoatingRetargeter(_MeshTransfer):
         out = np.empty((n_frames, n_target, 3))
         motion = np.empty((n_frames, 4, 4))
         weights = np.empty((n_frames, self.n_bases_))
-        details = np.empty((n_frames, self.model_.n_vertices, 3), dtype=np.float32) if self.cache_details else None
+        details = (
+            np.empty((n_frames, self.model_.n_vertices, 3), dtype=np.float32)
+            if self.cache_details
+            else None
+        )
         source_motion, info = self._source_motion(source)
         for sl, m, frames, w, d in self._chunks(source, source_motion):
             out[sl] = frames
@@ -309,7 +372,9 @@ class CoatingRetargeter(_MeshTransfer):
             if details is not None:
                 details[sl] = d
         track = self._track(source, source_motion, motion, weights, details)
-        return self._animation(out, source, motion, self._diagnostics(info), {"coating": track, "weights": weights})
+        return self._animation(
+            out, source, motion, self._diagnostics(info), {"coating": track, "weights": weights}
+        )
 
     def retarget_to(self, source: Source, path) -> Animation:
         """Retarget into a ``.npy`` file written chunk by chunk (float32, ``(F, V_t, 3)``).
@@ -323,15 +388,26 @@ class CoatingRetargeter(_MeshTransfer):
         if path.suffix != ".npy":
             raise OutputError(f"coating.retarget_to: the output must be a .npy file, got {path}")
         if not path.parent.is_dir():
-            raise OutputError(f"coating.retarget_to: folder {path.parent} does not exist; create it first")
+            raise OutputError(
+                f"coating.retarget_to: folder {path.parent} does not exist; create it first"
+            )
         perf = source.performance
-        source_file = getattr(getattr(perf.vertices, "base", None), "filename", None) or getattr(perf.vertices, "filename", None)
+        source_file = getattr(getattr(perf.vertices, "base", None), "filename", None) or getattr(
+            perf.vertices, "filename", None
+        )
         if source_file is not None and Path(source_file).resolve() == path.resolve():
-            raise OutputError(f"coating.retarget_to: {path} is the source's own file; write elsewhere")
+            raise OutputError(
+                f"coating.retarget_to: {path} is the source's own file; write elsewhere"
+            )
         self._check_source(source)
         start = time.perf_counter()
         tmp = path.with_name(path.name + ".part")
-        out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=(source.n_frames, self.target_.neutral.n_vertices, 3))
+        out = np.lib.format.open_memmap(
+            tmp,
+            mode="w+",
+            dtype=np.float32,
+            shape=(source.n_frames, self.target_.neutral.n_vertices, 3),
+        )
         motion = np.empty((source.n_frames, 4, 4))
         weights = np.empty((source.n_frames, self.n_bases_))
         source_motion, info = self._source_motion(source)
@@ -347,7 +423,13 @@ class CoatingRetargeter(_MeshTransfer):
         track = self._track(source, source_motion, motion, weights, None)
         diagnostics = self._diagnostics(info)
         diagnostics["written_to"] = str(path)
-        return self._stamp(self._animation(vertices, source, motion, diagnostics, {"coating": track, "weights": weights}), seconds, source)
+        return self._stamp(
+            self._animation(
+                vertices, source, motion, diagnostics, {"coating": track, "weights": weights}
+            ),
+            seconds,
+            source,
+        )
 
     # -- editing ---------------------------------------------------------------------------
     def edit(
@@ -391,18 +473,24 @@ class CoatingRetargeter(_MeshTransfer):
         curve at a key frame, scale / remove / copy-paste them or deform them to a drawn
         curve, and propagate the change through the detail's active frame range.
         """
-        from .editing import _MODES, apply_large_scale
         from .details import DetailEdit, apply_detail_edit
+        from .editing import _MODES, apply_large_scale
 
         self._check_fitted()
         track = animation.extras.get("coating") if isinstance(animation, Animation) else None
         if track is None or getattr(track, "model", None) is not self.model_:
-            raise InputError("coating.edit: the animation was not produced by this fitted coating retargeter (its extras['coating'] is missing or from another fit); retarget first")
+            raise InputError(
+                "coating.edit: the animation was not produced by this fitted coating retargeter (its extras['coating'] is missing or from another fit); retarget first"
+            )
         large = any(x is not None for x in (points, distances, fixed))
         if detail is not None and large:
-            raise InputError("coating.edit: give either large-scale constraints (points / distances / fixed) or detail=, not both in one call")
+            raise InputError(
+                "coating.edit: give either large-scale constraints (points / distances / fixed) or detail=, not both in one call"
+            )
         if detail is None and not large:
-            raise InputError("coating.edit: nothing to edit; give points=, distances=, fixed= or detail=")
+            raise InputError(
+                "coating.edit: nothing to edit; give points=, distances=, fixed= or detail="
+            )
         if detail is not None:
             spec = detail if isinstance(detail, DetailEdit) else DetailEdit(**dict(detail))
             new_track, changed, diagnostics = apply_detail_edit(self, track, animation, spec)
@@ -413,7 +501,17 @@ class CoatingRetargeter(_MeshTransfer):
                 self.lambda_w if lambda_w is None else lambda_w,
                 self.lambda_c if lambda_c is None else lambda_c,
             )
-            new_track, changed, diagnostics = apply_large_scale(self, track, animation, points=points, distances=distances, fixed=fixed, window=window, mode=mode, lambdas=lambdas)
+            new_track, changed, diagnostics = apply_large_scale(
+                self,
+                track,
+                animation,
+                points=points,
+                distances=distances,
+                fixed=fixed,
+                window=window,
+                mode=mode,
+                lambdas=lambdas,
+            )
         start = time.perf_counter()
         vertices = np.array(animation.vertices, dtype=np.float64)
         if changed.size:
@@ -435,7 +533,9 @@ class DeformationTransferRetargeter(_MeshTransfer):
 
     name: ClassVar[str] = "deformation_transfer"
     capabilities: ClassVar[Capabilities] = Capabilities(sources=("mesh",), outputs="vertices")
-    summary: ClassVar[str] = "Per-frame deformation transfer (Sumner & Popovic 2004): triangle deformation gradients solved on the target"
+    summary: ClassVar[str] = (
+        "Per-frame deformation transfer (Sumner & Popovic 2004): triangle deformation gradients solved on the target"
+    )
     parameter_constraints: ClassVar[dict] = manifest.constraints("deformation_transfer")
 
     def __init__(self, *, stable_fraction: float = 0.5, chunk_frames: int = 32):
@@ -448,11 +548,19 @@ class DeformationTransferRetargeter(_MeshTransfer):
         self._check_params()
         topo, stable = self._prepare(source, target)
         start = time.perf_counter()
-        self.transfer_ = DeformationTransfer(self.placement_.to_model(topo.target_reference), self.source_triangles_, gauge_weights=stable)
-        self.transfer_.factor.solve(np.zeros(self.transfer_.free.size))  # factorize now (one-time setup)
+        self.transfer_ = DeformationTransfer(
+            self.placement_.to_model(topo.target_reference),
+            self.source_triangles_,
+            gauge_weights=stable,
+        )
+        self.transfer_.factor.solve(
+            np.zeros(self.transfer_.free.size)
+        )  # factorize now (one-time setup)
         self.aligned_reference_ = self.placement_(self.source_reference_)
         self.inverse_ = reference_inverse(self.aligned_reference_, self.source_triangles_)
-        self.ratio_ = size_ratio(self.aligned_reference_, topo.target_reference, self.source_triangles_)
+        self.ratio_ = size_ratio(
+            self.aligned_reference_, topo.target_reference, self.source_triangles_
+        )
         self.timings_ = {"setup_s": time.perf_counter() - start}
 
     def _chunks(self, source: Source, source_motion: np.ndarray | None = None):
@@ -474,5 +582,10 @@ class DeformationTransferRetargeter(_MeshTransfer):
         for sl, m, frames in self._chunks(source, source_motion):
             out[sl] = frames
             motion[sl] = m
-        diagnostics = {"same_topology": self.topology_.same, "unit_scale": self.placement_.unit, **info, "fit_timings_s": dict(self.timings_)}
+        diagnostics = {
+            "same_topology": self.topology_.same,
+            "unit_scale": self.placement_.unit,
+            **info,
+            "fit_timings_s": dict(self.timings_),
+        }
         return self._animation(out, source, motion, diagnostics)

@@ -7,10 +7,12 @@ resampled in the source's topology by the landmark-guided non-rigid ICP of
 al. 2011), the whole transfer runs in the source topology, and the results are carried
 back to the target's own vertices.
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -21,7 +23,11 @@ __all__ = ["CommonTopology", "BackMap", "OutputMap", "common_topology", "same_to
 
 
 def same_topology(a: Mesh, b: Mesh) -> bool:
-    return a.n_vertices == b.n_vertices and a.triangles.shape == b.triangles.shape and np.array_equal(a.triangles, b.triangles)
+    return (
+        a.n_vertices == b.n_vertices
+        and a.triangles.shape == b.triangles.shape
+        and np.array_equal(a.triangles, b.triangles)
+    )
 
 
 @dataclass
@@ -56,7 +62,13 @@ def common_topology(source: Source, target: TargetRig, *, what: str) -> CommonTo
     src_mesh = source.performance.reference
     tgt_mesh = target.neutral
     if same_topology(src_mesh, tgt_mesh):
-        return CommonTopology(True, np.asarray(tgt_mesh.vertices, dtype=np.float64), dict(target.feature_lines), _identity, np.arange(tgt_mesh.n_vertices))
+        return CommonTopology(
+            True,
+            np.asarray(tgt_mesh.vertices, dtype=np.float64),
+            dict(target.feature_lines),
+            _identity,
+            np.arange(tgt_mesh.n_vertices),
+        )
     if source.landmarks is None or target.landmarks is None:
         raise CapabilityError(
             f"{what}: the target mesh ({tgt_mesh.n_vertices} vertices) has a different topology from the source "
@@ -77,7 +89,11 @@ def common_topology(source: Source, target: TargetRig, *, what: str) -> CommonTo
         ids = ids[keep]
         if ids.size >= 2:
             lines[name] = ids
-    back = BackMap(np.asarray(tgt_mesh.vertices, dtype=np.float64), verts, closest_point_transfer(tgt_mesh, resampled))
+    back = BackMap(
+        np.asarray(tgt_mesh.vertices, dtype=np.float64),
+        verts,
+        closest_point_transfer(tgt_mesh, resampled),
+    )
     info = report.as_dict() if hasattr(report, "as_dict") else dict(report)
     return CommonTopology(False, verts, lines, back, target_vertex, info)
 
@@ -95,7 +111,9 @@ class BackMap:
         self.correspondence = correspondence
 
     def __call__(self, frames: np.ndarray) -> np.ndarray:
-        return self.rest + self.correspondence.apply(np.asarray(frames, dtype=np.float64) - self.resampled)
+        return self.rest + self.correspondence.apply(
+            np.asarray(frames, dtype=np.float64) - self.resampled
+        )
 
 
 class OutputMap:

@@ -11,9 +11,11 @@ coating against the Taubin-smoothed source frame, computed for the frames asked)
 synthesis uses the whole transferred detail (:meth:`CoatingTrack.fine_motion`), in which
 the basis-fit residual ``E_t`` of eq. 7 is carried unchanged by detail edits.
 """
+
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace as dc_replace
+from dataclasses import dataclass, field
+from dataclasses import replace as dc_replace
 
 import numpy as np
 
@@ -52,7 +54,7 @@ class CoatingTrack:
     def n_frames(self) -> int:
         return int(self.weights.shape[0])
 
-    def replace(self, **changes) -> "CoatingTrack":
+    def replace(self, **changes) -> CoatingTrack:
         return dc_replace(self, **changes)
 
     def _index(self, frames) -> np.ndarray:
@@ -67,7 +69,9 @@ class CoatingTrack:
         order = np.argsort(idx)
         for sl in frame_chunks(idx.size, self.chunk):
             sel = idx[order[sl]]
-            local = self.placement.local(self.source_motion[sel], np.asarray(self.performance.vertices[sel]))
+            local = self.placement.local(
+                self.source_motion[sel], np.asarray(self.performance.vertices[sel])
+            )
             block = compute(local, sel)
             if out is None:
                 out = np.empty((idx.size,) + block.shape[1:])
@@ -81,11 +85,20 @@ class CoatingTrack:
         ``vertices`` (ids of the common topology) restricts the result to ``(n, P, 3)``.
         """
         idx = self._index(frames)
-        cols = np.arange(self.model.n_vertices) if vertices is None else np.asarray(vertices, dtype=np.int64)
+        cols = (
+            np.arange(self.model.n_vertices)
+            if vertices is None
+            else np.asarray(vertices, dtype=np.int64)
+        )
         if self.details is not None:
-            out = np.asarray(self.details[np.ix_(idx, cols)] if vertices is not None else self.details[idx], dtype=np.float64)
+            out = np.asarray(
+                self.details[np.ix_(idx, cols)] if vertices is not None else self.details[idx],
+                dtype=np.float64,
+            )
         elif idx.size:
-            out = self._source_frames(idx, lambda local, sel: self.model.decompose(local)[1][:, cols])
+            out = self._source_frames(
+                idx, lambda local, sel: self.model.decompose(local)[1][:, cols]
+            )
         else:
             out = np.empty((0, cols.size, 3))
         return self._with_layers(out, idx, cols)
@@ -95,9 +108,16 @@ class CoatingTrack:
         for ``vertices``): the source's coating against its Taubin-smoothed frames, with the
         detail edits' layers; without the basis-fit residual ``E_t``. One smoothing a frame."""
         idx = self._index(frames)
-        cols = np.arange(self.model.n_vertices) if vertices is None else np.asarray(vertices, dtype=np.int64)
+        cols = (
+            np.arange(self.model.n_vertices)
+            if vertices is None
+            else np.asarray(vertices, dtype=np.int64)
+        )
         if idx.size:
-            out = self._source_frames(idx, lambda local, sel: self.model.wrinkles(local, self.source_weights[sel])[:, cols])
+            out = self._source_frames(
+                idx,
+                lambda local, sel: self.model.wrinkles(local, self.source_weights[sel])[:, cols],
+            )
         else:
             out = np.empty((0, cols.size, 3))
         return self._with_layers(out, idx, cols)
@@ -111,7 +131,9 @@ class CoatingTrack:
             inside = where >= 0
             if hit.any() and inside.any():
                 rows = np.flatnonzero(hit)
-                out[rows[:, None], where[inside][None, :]] += layer.delta[idx[rows] - layer.start][:, inside]
+                out[rows[:, None], where[inside][None, :]] += layer.delta[idx[rows] - layer.start][
+                    :, inside
+                ]
         return out
 
     def local_frames(self, frames) -> np.ndarray:

@@ -5,9 +5,15 @@ The retargeter class lives in :mod:`.retargeter`; helpers that build the layered
 (``actor_layers_from_frames``, ``layered_rig_from_blendshapes``, ``default_masks``) in
 :mod:`.build`. Nothing here imports numba (kernels compile on first use).
 """
+
 from faceretarget.hookspecs import hookimpl
 
-__all__ = ["actor_layers_from_frames", "layered_rig_from_blendshapes", "default_masks", "LayersRetargeter"]
+__all__ = [
+    "actor_layers_from_frames",
+    "layered_rig_from_blendshapes",
+    "default_masks",
+    "LayersRetargeter",
+]
 
 
 @hookimpl

@@ -32,6 +32,7 @@ rigid / similarity parameters and ``L L^T = Jr^T Jr``, the data term is
 ``H' = H - U^T U``, ``g' = g - U^T q``, ``xx' = xx - |q|^2`` with ``U = L^-1 Jr^T M_l B``
 and ``q = L^-1 Jr^T x_hat`` (restricted to the observed coordinates of each frame).
 """
+
 from __future__ import annotations
 
 import numba as nb
@@ -65,7 +66,6 @@ def _downdate(H, Bt, Mc, miss, Ht):
                         continue
                     for b in range(K):
                         Ht[l, l2, a, b] -= wa * Bt[c, b]
-
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
@@ -121,8 +121,27 @@ def _penalties(alpha, W, layer_of, c_b, c_s, mouth, speech, closed, a_prev, w_pr
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def _gauss_newton_system(H, used, alpha, W, g, h, offsets, layer_of, c_d, c_b, c_s, mouth, speech, closed, a_prev, w_prev,
-                         additive, G, c):
+def _gauss_newton_system(
+    H,
+    used,
+    alpha,
+    W,
+    g,
+    h,
+    offsets,
+    layer_of,
+    c_d,
+    c_b,
+    c_s,
+    mouth,
+    speech,
+    closed,
+    a_prev,
+    w_prev,
+    additive,
+    G,
+    c,
+):
     """Convex model of E around (alpha, W): ``1/2 y^T G y - c^T y``, y = (alpha, W row-major).
 
     The data term is linearised as f(y) ~ J y - f(x) (f is bilinear, so J x = 2 f(x));
@@ -292,9 +311,41 @@ def _rigid_system(G, c, U, alpha, W, layer_of, offsets, cd, q, s, Vt):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def solve_frames(H, used, Bt, Mc, g, xx, miss, any_miss, c_d, c_b, c_s, layer_of, n_layers, mouth, speech, closed,
-                 w_init, a_init, has_prev, additive, start_w, start_a, use_start, Jr, JtJ, Uraw, qraw, max_iter, tol,
-                 out_w, out_a, out_obj, out_iter):
+def solve_frames(
+    H,
+    used,
+    Bt,
+    Mc,
+    g,
+    xx,
+    miss,
+    any_miss,
+    c_d,
+    c_b,
+    c_s,
+    layer_of,
+    n_layers,
+    mouth,
+    speech,
+    closed,
+    w_init,
+    a_init,
+    has_prev,
+    additive,
+    start_w,
+    start_a,
+    use_start,
+    Jr,
+    JtJ,
+    Uraw,
+    qraw,
+    max_iter,
+    tol,
+    out_w,
+    out_a,
+    out_obj,
+    out_iter,
+):
     """Extract (W, alpha) for every frame in order, each warm-started from the previous.
 
     Levenberg-Marquardt on the joint variables: each step minimises the Gauss-Newton
@@ -399,7 +450,9 @@ def solve_frames(H, used, Bt, Mc, g, xx, miss, any_miss, c_d, c_b, c_s, layer_of
             Hf = Ht
         xt = xx[t]
         if nr > 0:
-            U = _rigid_frame(miss[t], any_miss[t], Jr, JtJ, Uraw, qraw[t], Bt, Mc, Lf, Uf, Lt, JtJ_t, Ut, q)
+            U = _rigid_frame(
+                miss[t], any_miss[t], Jr, JtJ, Uraw, qraw[t], Bt, Mc, Lf, Uf, Lt, JtJ_t, Ut, q
+            )
             for i in range(nr):
                 xt -= q[i] * q[i]
         gt = g[t]
@@ -425,15 +478,37 @@ def solve_frames(H, used, Bt, Mc, g, xx, miss, any_miss, c_d, c_b, c_s, layer_of
             lin, quad = _evaluate(Hf, used, alpha, W, gt, layer_of, beta, h)
             if nr > 0:
                 quad -= _rigid_part(U, beta, q, srig) - _sq(q)
-            energy = cd * (xt - 2.0 * lin + quad) + _penalties(alpha, W, layer_of, cb, cs, mouth, speech, closed, a_prev, w_prev,
-                                                                  additive)
-            floor = tol * 1e-3 * (cd * xt + cb + cs) + 1e-300  # exact fits: accuracy relative to |x_hat|
+            energy = cd * (xt - 2.0 * lin + quad) + _penalties(
+                alpha, W, layer_of, cb, cs, mouth, speech, closed, a_prev, w_prev, additive
+            )
+            floor = (
+                tol * 1e-3 * (cd * xt + cb + cs) + 1e-300
+            )  # exact fits: accuracy relative to |x_hat|
             mu = 0.0
             it = 0
             while it < max_iter:
                 it += 1
-                _gauss_newton_system(Hf, used, alpha, W, gt, h, offsets, layer_of, cd, cb, cs, mouth, speech, closed, a_prev,
-                                     w_prev, additive, G, c)
+                _gauss_newton_system(
+                    Hf,
+                    used,
+                    alpha,
+                    W,
+                    gt,
+                    h,
+                    offsets,
+                    layer_of,
+                    cd,
+                    cb,
+                    cs,
+                    mouth,
+                    speech,
+                    closed,
+                    a_prev,
+                    w_prev,
+                    additive,
+                    G,
+                    c,
+                )
                 if nr > 0:
                     _rigid_part(U, beta, q, srig)
                     _rigid_system(G, c, U, alpha, W, layer_of, offsets, cd, q, srig, V)
@@ -460,8 +535,19 @@ def solve_frames(H, used, Bt, Mc, g, xx, miss, any_miss, c_d, c_b, c_s, layer_of
                     lin, quad = _evaluate(Hf, used, alpha_y, W_y, gt, layer_of, beta_y, h_y)
                     if nr > 0:
                         quad -= _rigid_part(U, beta_y, q, srig) - _sq(q)
-                    e_y = cd * (xt - 2.0 * lin + quad) + _penalties(alpha_y, W_y, layer_of, cb, cs, mouth, speech, closed, a_prev,
-                                                                       w_prev, additive)
+                    e_y = cd * (xt - 2.0 * lin + quad) + _penalties(
+                        alpha_y,
+                        W_y,
+                        layer_of,
+                        cb,
+                        cs,
+                        mouth,
+                        speech,
+                        closed,
+                        a_prev,
+                        w_prev,
+                        additive,
+                    )
                     if e_y <= energy:
                         accepted = True
                         break
@@ -516,7 +602,9 @@ def project(xhat, projector_t, g, xx):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def assemble(products, offsets, n_frames, neutral, vertex_ptr, entry_region, entry_col, motion, out):
+def assemble(
+    products, offsets, n_frames, neutral, vertex_ptr, entry_region, entry_col, motion, out
+):
     """Eq. 5 per vertex: ``out[f, v] = R_f (neutral_v + sum of its region products) + t_f``.
 
     ``products`` is flat: region l's ``(n_frames, w_l)`` product ``beta_l @ block_l`` starts

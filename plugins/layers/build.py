@@ -9,17 +9,30 @@
   artist posing them (an artist's poses are better; these are a starting point).
 - :func:`default_masks`: region masks from the blendshapes' spatial support.
 """
+
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from faceretarget.errors import CapabilityError, IndexRangeError, InputError, NonFiniteError, ShapeError
+from faceretarget.errors import (
+    CapabilityError,
+    IndexRangeError,
+    InputError,
+    NonFiniteError,
+    ShapeError,
+)
 from faceretarget.geometry.procrustes import fit_rigid
 from faceretarget.model import BlendshapeRig, LayeredRig, MarkerSequence, Source
 
-__all__ = ["actor_layers_from_frames", "layered_rig_from_blendshapes", "default_masks", "REGION_NAMES", "SHAPE_REGIONS"]
+__all__ = [
+    "actor_layers_from_frames",
+    "layered_rig_from_blendshapes",
+    "default_masks",
+    "REGION_NAMES",
+    "SHAPE_REGIONS",
+]
 
 #: Rounds of rigidity-weighted Procrustes when aligning hand-picked frames (after a plain fit).
 ALIGN_ROUNDS = 3
@@ -27,14 +40,30 @@ ALIGN_ROUNDS = 3
 REGION_NAMES = ("upper_face", "eyes", "mouth")
 #: ARKit name prefixes -> region (index into REGION_NAMES) for :func:`default_masks`.
 SHAPE_REGIONS = {
-    "brow": 0, "noseSneer": 0,
-    "eyeBlink": 1, "eyeLook": 1, "eyeSquint": 1, "eyeWide": 1, "cheekSquint": 1,
-    "jaw": 2, "mouth": 2, "cheekPuff": 2, "tongue": 2,
+    "brow": 0,
+    "noseSneer": 0,
+    "eyeBlink": 1,
+    "eyeLook": 1,
+    "eyeSquint": 1,
+    "eyeWide": 1,
+    "cheekSquint": 1,
+    "jaw": 2,
+    "mouth": 2,
+    "cheekPuff": 2,
+    "tongue": 2,
 }
 
 
-def actor_layers_from_frames(markers, frames: Mapping[str, object], masks=None, *, reference=None, region_names=None,
-                             head_motion=None, align: bool = True) -> LayeredRig:
+def actor_layers_from_frames(
+    markers,
+    frames: Mapping[str, object],
+    masks=None,
+    *,
+    reference=None,
+    region_names=None,
+    head_motion=None,
+    align: bool = True,
+) -> LayeredRig:
     """An actor :class:`~faceretarget.model.LayeredRig` from chosen frames of a performance.
 
     Parameters
@@ -63,33 +92,53 @@ def actor_layers_from_frames(markers, frames: Mapping[str, object], masks=None, 
     if isinstance(markers, Source):
         if head_motion is None:
             head_motion = markers.head_motion
-        positions, ref_default = np.asarray(markers.marker_positions(), float), np.asarray(markers.marker_reference(), float)
+        positions, ref_default = (
+            np.asarray(markers.marker_positions(), float),
+            np.asarray(markers.marker_reference(), float),
+        )
     elif isinstance(markers, MarkerSequence):
-        positions, ref_default = np.asarray(markers.positions, float), np.asarray(markers.reference, float)
+        positions, ref_default = (
+            np.asarray(markers.positions, float),
+            np.asarray(markers.reference, float),
+        )
     else:
         positions = np.asarray(markers, dtype=np.float64)
         ref_default = None
     if positions.ndim != 3 or positions.shape[-1] not in (2, 3):
-        raise ShapeError(f"actor_layers_from_frames: markers must be (F, N, 3) or (F, N, 2), got {positions.shape}")
+        raise ShapeError(
+            f"actor_layers_from_frames: markers must be (F, N, 3) or (F, N, 2), got {positions.shape}"
+        )
     n_frames, n_points, dim = positions.shape
     if reference is None:
         reference = ref_default if ref_default is not None else positions[0]
     ref = np.asarray(reference, dtype=np.float64)
     if ref.shape != (n_points, dim) or not np.all(np.isfinite(ref)):
-        raise ShapeError(f"actor_layers_from_frames: reference must be finite ({n_points}, {dim}), got {ref.shape}")
+        raise ShapeError(
+            f"actor_layers_from_frames: reference must be finite ({n_points}, {dim}), got {ref.shape}"
+        )
     if not isinstance(frames, Mapping) or not frames:
-        raise InputError("actor_layers_from_frames: frames must map each layer name to its frame indices")
+        raise InputError(
+            "actor_layers_from_frames: frames must map each layer name to its frame indices"
+        )
     layers, pose_names, chosen_frames = {}, {}, {}
     for layer, chosen in frames.items():
-        names, ids = (list(chosen.keys()), list(chosen.values())) if isinstance(chosen, Mapping) else (None, list(np.atleast_1d(chosen)))
+        names, ids = (
+            (list(chosen.keys()), list(chosen.values()))
+            if isinstance(chosen, Mapping)
+            else (None, list(np.atleast_1d(chosen)))
+        )
         if not ids:
             raise ShapeError(f"actor_layers_from_frames: layer {layer!r} has no frames")
         idx = np.asarray(ids)
         if idx.dtype.kind not in "iu":
-            raise ShapeError(f"actor_layers_from_frames: layer {layer!r}: frame indices must be integers, got {ids}")
+            raise ShapeError(
+                f"actor_layers_from_frames: layer {layer!r}: frame indices must be integers, got {ids}"
+            )
         bad = idx[(idx < 0) | (idx >= n_frames)]
         if bad.size:
-            raise IndexRangeError(f"actor_layers_from_frames: layer {layer!r}: frame {int(bad[0])} out of range 0..{n_frames - 1}")
+            raise IndexRangeError(
+                f"actor_layers_from_frames: layer {layer!r}: frame {int(bad[0])} out of range 0..{n_frames - 1}"
+            )
         poses = positions[idx]
         holes = np.isnan(poses).any(axis=-1)
         if holes.any():
@@ -101,7 +150,9 @@ def actor_layers_from_frames(markers, frames: Mapping[str, object], masks=None, 
         if head_motion is not None:
             motion = np.asarray(head_motion, dtype=np.float64)
             if dim != 3 or motion.shape != (n_frames, 4, 4):
-                raise ShapeError(f"actor_layers_from_frames: head_motion must be ({n_frames}, 4, 4) for 3D markers, got {motion.shape}")
+                raise ShapeError(
+                    f"actor_layers_from_frames: head_motion must be ({n_frames}, 4, 4) for 3D markers, got {motion.shape}"
+                )
             rot, trans = motion[idx, :3, :3], motion[idx, :3, 3]
             poses = np.einsum("fji,fpj->fpi", rot, poses - trans[:, None, :])
         elif align:
@@ -138,7 +189,7 @@ def _align_poses(ref: np.ndarray, frames: dict, dim: int, rounds: int = ALIGN_RO
         weights = 1.0 / ((config.HEAD_MOTION_RIGIDITY * size) ** 2 + motion2)
     out, start = {}, 0
     for n in names:
-        out[n] = aligned[start:start + len(frames[n])]
+        out[n] = aligned[start : start + len(frames[n])]
         start += len(frames[n])
     return out
 
@@ -146,18 +197,27 @@ def _align_poses(ref: np.ndarray, frames: dict, dim: int, rounds: int = ALIGN_RO
 def _recipe_tables(recipes):
     if recipes is not None:
         if not isinstance(recipes, Mapping) or not recipes:
-            raise InputError("layered_rig_from_blendshapes: recipes must map layer -> {pose: {ARKit shape: weight}}")
+            raise InputError(
+                "layered_rig_from_blendshapes: recipes must map layer -> {pose: {ARKit shape: weight}}"
+            )
         return recipes
     try:
         from faceretarget import recipes as library
     except ImportError:  # pragma: no cover - the recipe library ships with faceretarget
-        raise CapabilityError("layered_rig_from_blendshapes: no recipe library installed; pass recipes=") from None
+        raise CapabilityError(
+            "layered_rig_from_blendshapes: no recipe library installed; pass recipes="
+        ) from None
     return {"emotion": library.EMOTIONS, "speech": library.VISEMES, "blink": library.BLINKS}
 
 
-def layered_rig_from_blendshapes(rig: BlendshapeRig, recipes: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None,
-                                 masks=None, *, region_names: Sequence[str] | None = None,
-                                 on_unmapped: str = "warn") -> LayeredRig:
+def layered_rig_from_blendshapes(
+    rig: BlendshapeRig,
+    recipes: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None,
+    masks=None,
+    *,
+    region_names: Sequence[str] | None = None,
+    on_unmapped: str = "warn",
+) -> LayeredRig:
     """A character's :class:`~faceretarget.model.LayeredRig` from an ARKit-named blendshape rig.
 
     Parameters
@@ -178,13 +238,19 @@ def layered_rig_from_blendshapes(rig: BlendshapeRig, recipes: Mapping[str, Mappi
     from faceretarget.recipes import resolve
 
     if not isinstance(rig, BlendshapeRig):
-        raise InputError(f"layered_rig_from_blendshapes: expected a BlendshapeRig, got {type(rig).__name__}")
+        raise InputError(
+            f"layered_rig_from_blendshapes: expected a BlendshapeRig, got {type(rig).__name__}"
+        )
     tables = _recipe_tables(recipes)
     layers, pose_names = {}, {}
     for layer, table in tables.items():
         if not isinstance(table, Mapping) or not table:
-            raise InputError(f"layered_rig_from_blendshapes: layer {layer!r} needs at least one recipe")
-        weights = np.stack([resolve(table[name], rig.names, on_unmapped=on_unmapped) for name in table])
+            raise InputError(
+                f"layered_rig_from_blendshapes: layer {layer!r} needs at least one recipe"
+            )
+        weights = np.stack(
+            [resolve(table[name], rig.names, on_unmapped=on_unmapped) for name in table]
+        )
         layers[str(layer)] = rig.evaluate(weights)
         pose_names[str(layer)] = [str(n) for n in table]
     if masks is None:

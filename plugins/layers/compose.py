@@ -12,6 +12,7 @@ projecting [the mesh] onto a set of blendshapes created by the artist"): non-neg
 on the Gram matrix; the right-hand side is ``sum_l beta_l @ (block_l D_l^T)`` so the
 dense vertices never need forming.
 """
+
 from __future__ import annotations
 
 from contextlib import nullcontext
@@ -25,15 +26,29 @@ from .model import CharacterModel
 #: Frames per chunk: few BLAS calls, and a scratch of CHUNK x 3V floats (15 MB at 10K vertices).
 CHUNK = 64
 
-__all__ = ["CHUNK", "region_coefficients", "world_vertices", "ProjectionModel", "build_projection", "project"]
+__all__ = [
+    "CHUNK",
+    "region_coefficients",
+    "world_vertices",
+    "ProjectionModel",
+    "build_projection",
+    "project",
+]
 
-def region_coefficients(weights: np.ndarray, coefficients: np.ndarray, layer_of: np.ndarray) -> np.ndarray:
+
+def region_coefficients(
+    weights: np.ndarray, coefficients: np.ndarray, layer_of: np.ndarray
+) -> np.ndarray:
     """``beta (F, m, K)``: ``beta[t, l, a] = w[t, l, layer_of[a]] * alpha[t, a]``."""
     return weights[:, :, layer_of] * coefficients[:, None, :]
 
 
-def world_vertices(character: CharacterModel, beta: np.ndarray, head_motion: np.ndarray | None = None,
-                   extra: np.ndarray | None = None) -> np.ndarray:
+def world_vertices(
+    character: CharacterModel,
+    beta: np.ndarray,
+    head_motion: np.ndarray | None = None,
+    extra: np.ndarray | None = None,
+) -> np.ndarray:
     """Eq. 5: ``(F, V, 3)`` character vertices for ``beta (F, m, K)`` and head motion ``(F, 4, 4)``.
 
     Without ``head_motion`` the local (neutral-frame) vertices. ``extra (F, M)``: weights
@@ -47,7 +62,11 @@ def world_vertices(character: CharacterModel, beta: np.ndarray, head_motion: np.
 
     n_frames = beta.shape[0]
     out = np.empty((n_frames, character.n_vertices, 3))
-    motion = np.tile(np.eye(4), (n_frames, 1, 1)) if head_motion is None else np.ascontiguousarray(head_motion, dtype=np.float64)
+    motion = (
+        np.tile(np.eye(4), (n_frames, 1, 1))
+        if head_motion is None
+        else np.ascontiguousarray(head_motion, dtype=np.float64)
+    )
     offsets = character.offsets
     n_layer = beta.shape[1]
     scratch = np.empty(min(CHUNK, n_frames) * int(offsets[-1]))
@@ -57,7 +76,7 @@ def world_vertices(character: CharacterModel, beta: np.ndarray, head_motion: np.
         for l, (ids, block) in enumerate(character.regions):
             if not ids.size:
                 continue
-            dest = scratch[n * offsets[l]: n * offsets[l + 1]].reshape(n, block.shape[1])
+            dest = scratch[n * offsets[l] : n * offsets[l + 1]].reshape(n, block.shape[1])
             if l < n_layer:
                 coef = beta[start:stop, l, :]
             elif extra is not None:
@@ -70,10 +89,21 @@ def world_vertices(character: CharacterModel, beta: np.ndarray, head_motion: np.
                 if nz.size < 0.7 * coef.shape[1]:
                     np.matmul(coef[:, nz], block[nz], out=dest)
                     continue
-            with default_threaded_blas() if n > 1 else nullcontext():  # (CHUNK, K) x (K, 3V): worth the BLAS threads
+            with (
+                default_threaded_blas() if n > 1 else nullcontext()
+            ):  # (CHUNK, K) x (K, 3V): worth the BLAS threads
                 np.matmul(np.ascontiguousarray(coef), block, out=dest)
-        assemble(scratch, offsets, n, character.neutral, character.vertex_ptr, character.entry_region, character.entry_col,
-                 motion[start:stop], out[start:stop])
+        assemble(
+            scratch,
+            offsets,
+            n,
+            character.neutral,
+            character.vertex_ptr,
+            character.entry_region,
+            character.entry_col,
+            motion[start:stop],
+            out[start:stop],
+        )
     return out
 
 
@@ -93,7 +123,9 @@ def build_projection(character: CharacterModel, rig) -> ProjectionModel:
     deltas = np.asarray(rig.deltas, dtype=np.float64)  # (M, V, 3)
     flat = deltas.reshape(deltas.shape[0], -1)
     gram = flat @ flat.T
-    maps = [block @ deltas[:, ids, :].reshape(deltas.shape[0], -1).T for ids, block in character.regions]
+    maps = [
+        block @ deltas[:, ids, :].reshape(deltas.shape[0], -1).T for ids, block in character.regions
+    ]
     offset = flat @ (character.neutral - np.asarray(rig.neutral.vertices, dtype=np.float64)).ravel()
     if rig.bounds is None:
         lower, upper = np.zeros(rig.n_shapes), np.full(rig.n_shapes, np.inf)
@@ -102,7 +134,9 @@ def build_projection(character: CharacterModel, rig) -> ProjectionModel:
     return ProjectionModel(gram, maps, offset, lower, upper)
 
 
-def project(model: ProjectionModel, beta: np.ndarray, x0=None, extra: np.ndarray | None = None) -> np.ndarray:
+def project(
+    model: ProjectionModel, beta: np.ndarray, x0=None, extra: np.ndarray | None = None
+) -> np.ndarray:
     """Blendshape weights ``(F, M)`` closest to the layered output for ``beta (F, m, K)``
     (plus the residual block driven by ``extra (F, M_r)``, when the character has one)."""
     from faceretarget.geometry.nnls import bounded_lsq_gram

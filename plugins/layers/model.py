@@ -27,6 +27,7 @@ divides it by the number of observed points (a mean), so the bias and smoothing
 weights mean the same for 54 or 283 markers. This rescaling is ours (the paper gives
 sigma = .02, lambda = .2 in unstated units).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -37,7 +38,14 @@ from faceretarget import config
 from faceretarget.errors import DegenerateGeometryError, InputError, TopologyMismatchError
 from faceretarget.model import LayeredRig
 
-__all__ = ["ActorModel", "CharacterModel", "RigidProjection", "build_actor", "build_character", "match_layers"]
+__all__ = [
+    "ActorModel",
+    "CharacterModel",
+    "RigidProjection",
+    "build_actor",
+    "build_character",
+    "match_layers",
+]
 
 #: Mask products below this fraction of the largest are treated as zero (region pairs
 #: that do not overlap skip their Gram block).
@@ -112,7 +120,7 @@ class ActorModel:
         """(J + 1,) start of each layer in the stacked pose axis."""
         return np.concatenate([[0], np.cumsum(np.bincount(self.layer_of, minlength=self.n_layers))])
 
-    def rigid_projection(self, motion3d: bool, similarity2d: bool) -> "RigidProjection | None":
+    def rigid_projection(self, motion3d: bool, similarity2d: bool) -> RigidProjection | None:
         """The alignment's small motions, for the projected data term of the alignment passes.
 
         ``motion3d``: the 3D head motion is estimated (6 rigid parameters);
@@ -151,7 +159,7 @@ class RigidProjection:
     uraw: np.ndarray
 
 
-def _rigid_projection(actor: "ActorModel", motion3d: bool, similarity2d: bool) -> RigidProjection:
+def _rigid_projection(actor: ActorModel, motion3d: bool, similarity2d: bool) -> RigidProjection:
     n_coords = actor.basis_t.shape[0]
     cols = []
     if motion3d:
@@ -172,14 +180,18 @@ def _rigid_projection(actor: "ActorModel", motion3d: bool, similarity2d: bool) -
         block[:, :, 1] = -p  # scale
         block[:, :, 2:] = -np.eye(2)  # translation
         jac = np.zeros((n_coords, 4))
-        jac[3 * actor.n3:] = block.reshape(2 * actor.n2, 4) / actor.scale2d
+        jac[3 * actor.n3 :] = block.reshape(2 * actor.n2, 4) / actor.scale2d
         cols.append(jac)
     jac = np.ascontiguousarray(np.concatenate(cols, axis=1))
     m, K = actor.n_regions, actor.n_poses
     jtj = jac.T @ jac
     uraw = (jac.T @ actor.projector_t.T).reshape(-1, m, K)
-    return RigidProjection(jac=jac, jac_t=np.ascontiguousarray(jac.T), jtj=np.ascontiguousarray(jtj),
-                           uraw=np.ascontiguousarray(uraw))
+    return RigidProjection(
+        jac=jac,
+        jac_t=np.ascontiguousarray(jac.T),
+        jtj=np.ascontiguousarray(jtj),
+        uraw=np.ascontiguousarray(uraw),
+    )
 
 
 @dataclass
@@ -268,8 +280,14 @@ def _part(poses: list[np.ndarray], reference: np.ndarray, what: str):
     return disp, scale, rigid / rigid.mean()
 
 
-def build_actor(layers3d: LayeredRig, reference3d, layers2d: LayeredRig | None = None, reference2d=None,
-                names3d=(), names2d=()) -> ActorModel:
+def build_actor(
+    layers3d: LayeredRig,
+    reference3d,
+    layers2d: LayeredRig | None = None,
+    reference2d=None,
+    names3d=(),
+    names2d=(),
+) -> ActorModel:
     """Assemble the actor's bases, masks and Gram tensor (see :class:`ActorModel`)."""
     ref3 = np.asarray(reference3d, dtype=np.float64)
     if layers3d.dim != 3 or layers3d.n_points != ref3.shape[0]:
@@ -302,7 +320,9 @@ def build_actor(layers3d: LayeredRig, reference3d, layers2d: LayeredRig | None =
     gram = np.einsum("clm,ac,bc->lmab", products, basis, basis, optimize=True)
     biggest = float(np.abs(gram).max()) if gram.size else 0.0
     gram[np.abs(gram) <= _MASK_EPS * biggest] = 0.0
-    projector = (coord_masks[:, :, None] * basis.T[:, None, :]).reshape(basis.shape[1], m * basis.shape[0])
+    projector = (coord_masks[:, :, None] * basis.T[:, None, :]).reshape(
+        basis.shape[1], m * basis.shape[0]
+    )
     layer_of = np.repeat(np.arange(len(poses3)), [p.shape[0] for p in poses3]).astype(np.int64)
     return ActorModel(
         layer_names=tuple(layers3d.layer_names),
@@ -325,7 +345,9 @@ def build_actor(layers3d: LayeredRig, reference3d, layers2d: LayeredRig | None =
     )
 
 
-def build_character(layers: LayeredRig, neutral, actor_layers: LayeredRig, extra=None) -> CharacterModel:
+def build_character(
+    layers: LayeredRig, neutral, actor_layers: LayeredRig, extra=None
+) -> CharacterModel:
     """The character's masked displacement blocks, in the actor's layer/pose order.
 
     ``extra (M, V, 3)``: further displacements (the residual's blendshape deltas), one
@@ -337,7 +359,9 @@ def build_character(layers: LayeredRig, neutral, actor_layers: LayeredRig, extra
             f"TargetRig.layers: poses over {layers.n_points} {layers.dim}D points; the neutral has {base.shape[0]} vertices"
         )
     poses = match_layers(actor_layers, layers, "TargetRig.layers")
-    disp = np.concatenate([np.asarray(p, dtype=np.float64) - base[None] for p in poses], axis=0)  # (K, V, 3)
+    disp = np.concatenate(
+        [np.asarray(p, dtype=np.float64) - base[None] for p in poses], axis=0
+    )  # (K, V, 3)
     masks = np.asarray(layers.masks, dtype=np.float64)
     if not np.all(np.isfinite(disp)):
         raise InputError("TargetRig.layers: poses hold NaN or infinite values")
@@ -356,7 +380,11 @@ def build_character(layers: LayeredRig, neutral, actor_layers: LayeredRig, extra
         vertex_of.append(ids)
         region_of.append(np.full(ids.size, masks.shape[0]))
         columns.append(3 * np.arange(ids.size))
-    vertex_of, region_of, columns = np.concatenate(vertex_of), np.concatenate(region_of), np.concatenate(columns)
+    vertex_of, region_of, columns = (
+        np.concatenate(vertex_of),
+        np.concatenate(region_of),
+        np.concatenate(columns),
+    )
     order = np.argsort(vertex_of, kind="stable")
     ptr = np.zeros(base.shape[0] + 1, dtype=np.int64)
     np.add.at(ptr, vertex_of + 1, 1)
@@ -364,9 +392,18 @@ def build_character(layers: LayeredRig, neutral, actor_layers: LayeredRig, extra
     sizes = [block.size for _, block in regions]
     block_offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     block_data = np.concatenate([block.ravel() for _, block in regions]) if regions else np.zeros(0)
-    regions = [(ids, block_data[block_offsets[l]:block_offsets[l + 1]].reshape(block.shape))
-               for l, (ids, block) in enumerate(regions)]
-    return CharacterModel(neutral=base, regions=regions, block_data=block_data, block_offsets=block_offsets,
-                          offsets=np.concatenate([[0], np.cumsum(widths)]).astype(np.int64),
-                          vertex_ptr=np.cumsum(ptr), entry_region=region_of[order].astype(np.int64),
-                          entry_col=columns[order].astype(np.int64), n_layer_regions=int(masks.shape[0]))
+    regions = [
+        (ids, block_data[block_offsets[l] : block_offsets[l + 1]].reshape(block.shape))
+        for l, (ids, block) in enumerate(regions)
+    ]
+    return CharacterModel(
+        neutral=base,
+        regions=regions,
+        block_data=block_data,
+        block_offsets=block_offsets,
+        offsets=np.concatenate([[0], np.cumsum(widths)]).astype(np.int64),
+        vertex_ptr=np.cumsum(ptr),
+        entry_region=region_of[order].astype(np.int64),
+        entry_col=columns[order].astype(np.int64),
+        n_layer_regions=int(masks.shape[0]),
+    )

@@ -1,5 +1,6 @@
 """Kholgade et al. 2011 reproduced for the report: fig. 8, reconstruction error of the layered model
 against emotion-, speech- and blink-only models."""
+
 from __future__ import annotations
 
 import copy
@@ -8,7 +9,13 @@ from types import SimpleNamespace
 import numpy as np
 
 from faceretarget.evaluation.presets import NOT_APPLICABLE, Cases, PresetResult
-from faceretarget.evaluation.reproduction import noisy_markers, num, require, rms_per_frame, set_verdict
+from faceretarget.evaluation.reproduction import (
+    noisy_markers,
+    num,
+    require,
+    rms_per_frame,
+    set_verdict,
+)
 from faceretarget.hookspecs import Preset
 from faceretarget.model import LayeredRig
 
@@ -16,7 +23,12 @@ __all__ = ["PRESETS"]
 
 
 def _single_layer(rig: LayeredRig, layer: str) -> LayeredRig:
-    return LayeredRig({layer: rig.layers[layer]}, rig.masks, pose_names={layer: rig.pose_names[layer]}, region_names=rig.region_names)
+    return LayeredRig(
+        {layer: rig.layers[layer]},
+        rig.masks,
+        pose_names={layer: rig.pose_names[layer]},
+        region_names=rig.region_names,
+    )
 
 
 def _with_layer(case, layer: str, source=None):
@@ -24,7 +36,9 @@ def _with_layer(case, layer: str, source=None):
     source, target = copy.copy(case.source if source is None else source), copy.copy(case.target)
     source.actor_layers = _single_layer(source.actor_layers, layer)
     target.layers = _single_layer(case.target.layers, layer)
-    return SimpleNamespace(name=getattr(case, "name", "case"), source=source, target=target, truth=case.truth)
+    return SimpleNamespace(
+        name=getattr(case, "name", "case"), source=source, target=target, truth=case.truth
+    )
 
 
 def _source_height(source) -> float:
@@ -35,7 +49,6 @@ def _source_height(source) -> float:
     if height is None:
         height = float(np.ptp(np.asarray(source.marker_reference(), dtype=np.float64)[:, 1]))
     return float(height) or 1.0
-
 
 
 def kholgade_fig8(cases: Cases, res: PresetResult) -> None:
@@ -49,28 +62,61 @@ def kholgade_fig8(cases: Cases, res: PresetResult) -> None:
         return
     source, sigma = noisy_markers(case.source)
     height = _source_height(case.source)
-    variants = [("layered", SimpleNamespace(name=case.name, source=source, target=case.target, truth=case.truth))]
-    variants += [(f"{layer} only", _with_layer(case, layer, source)) for layer in source.actor_layers.layer_names]
+    variants = [
+        (
+            "layered",
+            SimpleNamespace(name=case.name, source=source, target=case.target, truth=case.truth),
+        )
+    ]
+    variants += [
+        (f"{layer} only", _with_layer(case, layer, source))
+        for layer in source.actor_layers.layer_names
+    ]
     curves, measure = {}, "actor"
     for label, variant in variants:
         retargeter = faceretarget.get("layers").fit(variant.source, variant.target)
         if hasattr(retargeter, "deconstruct"):
-            curves[label] = 100.0 * np.asarray(retargeter.deconstruct(variant.source)["rms_error"], dtype=np.float64) / height
+            curves[label] = (
+                100.0
+                * np.asarray(retargeter.deconstruct(variant.source)["rms_error"], dtype=np.float64)
+                / height
+            )
         else:  # an implementation without the actor side: the character against the ground truth
             measure = "character"
             curves[label] = rms_per_frame(retargeter.retarget(variant.source), variant)
-        res.table.append({"model": label, "mean RMS error (% face height)": float(np.nanmean(curves[label])), "frames where best": 0})
+        res.table.append(
+            {
+                "model": label,
+                "mean RMS error (% face height)": float(np.nanmean(curves[label])),
+                "frames where best": 0,
+            }
+        )
     stacked = np.stack(list(curves.values()))
     best = np.argmin(np.nan_to_num(stacked, nan=np.inf), axis=0)
     for i, row in enumerate(res.table):
         row["frames where best"] = int((best == i).sum())
     frames = np.arange(stacked.shape[1])
-    what = "the actor's markers (reconstruction)" if measure == "actor" else "the character against the ground truth"
-    res.plots.append(Plot(f"RMS reconstruction error per frame: {what}", [Series(k, frames, v) for k, v in curves.items()], xlabel="frame", ylabel="RMS error, % face height", log_y=True))
+    what = (
+        "the actor's markers (reconstruction)"
+        if measure == "actor"
+        else "the character against the ground truth"
+    )
+    res.plots.append(
+        Plot(
+            f"RMS reconstruction error per frame: {what}",
+            [Series(k, frames, v) for k, v in curves.items()],
+            xlabel="frame",
+            ylabel="RMS error, % face height",
+            log_y=True,
+        )
+    )
     mean = {k: float(np.nanmean(v)) for k, v in curves.items()}
     labels = list(curves)
     if not {"layered", "emotion only", "speech only", "blink only"} <= set(labels):
-        res.agrees, res.evidence = None, f"not decided: the case's layers are {labels[1:]}, not emotion, speech and blink"
+        res.agrees, res.evidence = (
+            None,
+            f"not decided: the case's layers are {labels[1:]}, not emotion, speech and blink",
+        )
         return
     n_best, n_frames = int((best == 0).sum()), stacked.shape[1]
     others = max(mean["layered"], mean["emotion only"], mean["speech only"])
@@ -78,12 +124,26 @@ def kholgade_fig8(cases: Cases, res: PresetResult) -> None:
         res,
         [
             (f"layered lowest in {n_best} of {n_frames} frames (majority)", n_best > n_frames / 2),
-            (f"emotion only worse than layered ({num(mean['emotion only'])} vs {num(mean['layered'])})", mean["emotion only"] > mean["layered"]),
-            (f"speech only worse than emotion only ({num(mean['speech only'])} vs {num(mean['emotion only'])})", mean["speech only"] > mean["emotion only"]),
-            (f"blink only highest ({num(mean['blink only'])} vs at most {num(others)})", mean["blink only"] > others),
+            (
+                f"emotion only worse than layered ({num(mean['emotion only'])} vs {num(mean['layered'])})",
+                mean["emotion only"] > mean["layered"],
+            ),
+            (
+                f"speech only worse than emotion only ({num(mean['speech only'])} vs {num(mean['emotion only'])})",
+                mean["speech only"] > mean["emotion only"],
+            ),
+            (
+                f"blink only highest ({num(mean['blink only'])} vs at most {num(others)})",
+                mean["blink only"] > others,
+            ),
         ],
         f"Mean RMS errors in % of the source face height; noise sigma {num(sigma)}"
-        + ("" if measure == "actor" else "; measured on the character (the retargeter has no deconstruct())") + ".",
+        + (
+            ""
+            if measure == "actor"
+            else "; measured on the character (the retargeter has no deconstruct())"
+        )
+        + ".",
     )
 
 

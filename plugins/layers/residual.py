@@ -25,6 +25,7 @@ alone 0.31, with the residual 0.145, the per-frame blendshape fit of the whole m
 transfer's errors (the same-named shapes moving differently), the spatial transfer only
 the small remainder.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -89,7 +90,9 @@ def pair_markers(source_names, target_names) -> np.ndarray | None:
     return None
 
 
-def build_residual(source_reference: np.ndarray, source_names, target_neutral, target_landmarks, blendshapes) -> tuple[ResidualModel | None, str]:
+def build_residual(
+    source_reference: np.ndarray, source_names, target_neutral, target_landmarks, blendshapes
+) -> tuple[ResidualModel | None, str]:
     """The residual transfer from the source's neutral markers to the character, or (None, why not)."""
     if blendshapes is None:
         return None, "the target has no blendshapes"
@@ -100,23 +103,42 @@ def build_residual(source_reference: np.ndarray, source_names, target_neutral, t
         return None, "the target's landmark names do not pair with the source's markers"
     if len(ids) < 4:
         return None, f"only {len(ids)} paired landmarks"
-    points = np.asarray(target_landmarks.positions(target_neutral.vertices, target_neutral.triangles), dtype=np.float64)
+    points = np.asarray(
+        target_landmarks.positions(target_neutral.vertices, target_neutral.triangles),
+        dtype=np.float64,
+    )
     src = np.asarray(source_reference, dtype=np.float64)[ids]
     rot, _, scale = fit_rigid(src, points, scale=True)
     angle = float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0))))
     transfer = float(scale) * (rot if angle > ROTATION_DEGREES else np.eye(3))
     deltas = np.asarray(blendshapes.deltas, dtype=np.float64)
-    deltas_at = np.asarray(target_landmarks.positions(deltas + target_neutral.vertices[None], target_neutral.triangles),
-                           dtype=np.float64) - points[None]
+    deltas_at = (
+        np.asarray(
+            target_landmarks.positions(
+                deltas + target_neutral.vertices[None], target_neutral.triangles
+            ),
+            dtype=np.float64,
+        )
+        - points[None]
+    )
     flat = deltas_at.reshape(len(deltas), -1)
     unit = float(np.sqrt(np.mean(np.sum(deltas_at**2, axis=-1))))
     if not np.isfinite(unit) or unit <= 0.0:
         return None, "the target's blendshapes do not move its landmarks"
     gram = flat @ flat.T / (len(ids) * unit**2)
     ridge = RIDGE * float(np.trace(gram)) / len(gram)
-    model = ResidualModel(marker_ids=ids, transfer=transfer, deltas_at=deltas_at, gram=gram, ridge=ridge, unit=unit,
-                          names=tuple(blendshapes.names), scale=float(scale), angle=angle,
-                          target_centroid=points.mean(axis=0))
+    model = ResidualModel(
+        marker_ids=ids,
+        transfer=transfer,
+        deltas_at=deltas_at,
+        gram=gram,
+        ridge=ridge,
+        unit=unit,
+        names=tuple(blendshapes.names),
+        scale=float(scale),
+        angle=angle,
+        target_centroid=points.mean(axis=0),
+    )
     return model, ""
 
 

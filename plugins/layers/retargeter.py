@@ -10,16 +10,23 @@ problem (Eq. 7), then the character by the same composition (Eq. 5) plus the res
 See ``model.py``, ``solver.py``, ``compose.py`` and ``docs/methods/layers.md`` for the
 equations as read from the paper and where (and why) the defaults depart from it.
 """
+
 from __future__ import annotations
 
-from typing import Iterable, Iterator
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
-from faceretarget._threads import blas_single_threaded, single_threaded_blas
 from faceretarget import manifest
+from faceretarget._threads import blas_single_threaded, single_threaded_blas
 from faceretarget._validate import short_repr
-from faceretarget.errors import CapabilityError, ConfigError, FaceRetargetError, ShapeError, TopologyMismatchError
+from faceretarget.errors import (
+    CapabilityError,
+    ConfigError,
+    FaceRetargetError,
+    ShapeError,
+    TopologyMismatchError,
+)
 from faceretarget.model import Animation, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
 from faceretarget.validation import Interval, check_value, validate_params
@@ -36,9 +43,13 @@ def _lip_markers(value):
     """``lip_markers`` as a pair: what its declared constraint (None or an array) cannot say."""
     if value is None:
         return None
-    message = ("lip_markers: expected None or a pair (upper, lower) of marker/track names or 3D marker indices, "
-               f"got {short_repr(value)}")
-    if not isinstance(value, (list, tuple, np.ndarray)) or (isinstance(value, np.ndarray) and value.ndim != 1):
+    message = (
+        "lip_markers: expected None or a pair (upper, lower) of marker/track names or 3D marker indices, "
+        f"got {short_repr(value)}"
+    )
+    if not isinstance(value, (list, tuple, np.ndarray)) or (
+        isinstance(value, np.ndarray) and value.ndim != 1
+    ):
         raise ConfigError(message)
     items = list(value)
     if len(items) != 2:
@@ -47,7 +58,9 @@ def _lip_markers(value):
     for item in items:
         if isinstance(item, str):
             out.append(str(item))
-        elif isinstance(item, (bool, np.bool_)) or not isinstance(item, (int, float, np.integer, np.floating)):
+        elif isinstance(item, (bool, np.bool_)) or not isinstance(
+            item, (int, float, np.integer, np.floating)
+        ):
             raise ConfigError(message)
         else:
             out.append(check_value(item, [Interval(int)], "lip_markers", "layers"))
@@ -94,7 +107,10 @@ def _motion_map(residual, actor_reference, character_neutral):
     k = power if (residual is None or abs(ratio / power - 1.0) < UNIT_TOLERANCE) else ratio
     if k == 1.0 and np.allclose(q, np.eye(3)):
         return None, f"as the actor's ({source} {ratio:.4g}: same units)"
-    return (q, float(k)), f"translation x {k:.6g} ({source} {ratio:.4g}){', rotation into the character frame' if not np.allclose(q, np.eye(3)) else ''}"
+    return (
+        (q, float(k)),
+        f"translation x {k:.6g} ({source} {ratio:.4g}){', rotation into the character frame' if not np.allclose(q, np.eye(3)) else ''}",
+    )
 
 
 class LayersRetargeter(Retargeter):
@@ -164,7 +180,9 @@ class LayersRetargeter(Retargeter):
     def _fit(self, source: Source, target: TargetRig) -> None:
         params = self._params()
         if params["project_blendshapes"] and target.blendshapes is None:
-            raise CapabilityError("project_blendshapes=True needs a TargetRig with blendshapes; this one has none")
+            raise CapabilityError(
+                "project_blendshapes=True needs a TargetRig with blendshapes; this one has none"
+            )
         layers3d = source.actor_layers
         ref3d = np.asarray(source.marker_reference(), dtype=np.float64)
         names3d = source.landmarks.names if source.kind == "mesh" else source.performance.names
@@ -176,36 +194,62 @@ class LayersRetargeter(Retargeter):
         actor = build_actor(layers3d, ref3d, layers2d, ref2d, names3d, names2d or ())
         residual, why = None, "off (residual='none')"
         if params["residual"] != "none":
-            residual, why = build_residual(ref3d, names3d, target.neutral, target.landmarks, target.blendshapes)
+            residual, why = build_residual(
+                ref3d, names3d, target.neutral, target.landmarks, target.blendshapes
+            )
             if residual is None:
                 if params["residual"] == "blendshapes":
-                    raise CapabilityError(f"layers: residual='blendshapes' needs a TargetRig with blendshapes and landmarks "
-                                          f"paired with the source's markers; {why}")
+                    raise CapabilityError(
+                        f"layers: residual='blendshapes' needs a TargetRig with blendshapes and landmarks "
+                        f"paired with the source's markers; {why}"
+                    )
                 why = f"off: {why}"
-        character = build_character(target.layers, target.neutral.vertices, layers3d,
-                                    extra=None if residual is None else target.blendshapes.deltas)
+        character = build_character(
+            target.layers,
+            target.neutral.vertices,
+            layers3d,
+            extra=None if residual is None else target.blendshapes.deltas,
+        )
         speech = params["speech_layer"]
         poses3 = np.asarray(layers3d.layers[speech], float) if speech in layers3d.layers else None
-        poses2 = np.asarray(layers2d.layers[speech], float) if (layers2d is not None and speech in layers2d.layers) else None
+        poses2 = (
+            np.asarray(layers2d.layers[speech], float)
+            if (layers2d is not None and speech in layers2d.layers)
+            else None
+        )
         lip = resolve_lip_bias(
-            actor, poses3, poses2,
-            lip_markers=params["lip_markers"], speech_layer=speech, closed_viseme=params["closed_viseme"],
-            mouth_region=params["mouth_region"], lip_sigma=params["lip_sigma"],
-            masks3d=np.asarray(layers3d.masks), masks2d=None if layers2d is None else np.asarray(layers2d.masks),
+            actor,
+            poses3,
+            poses2,
+            lip_markers=params["lip_markers"],
+            speech_layer=speech,
+            closed_viseme=params["closed_viseme"],
+            mouth_region=params["mouth_region"],
+            lip_sigma=params["lip_sigma"],
+            masks3d=np.asarray(layers3d.masks),
+            masks2d=None if layers2d is None else np.asarray(layers2d.masks),
         )
         self.actor_ = actor
         self.character_ = character
         self.lip_ = lip
         self.residual_ = residual
         self.motion_map_, self.motion_note_ = _motion_map(residual, ref3d, target.neutral.vertices)
-        self.residual_note_ = why or (f"blendshapes: {residual.n_shapes} shapes through {len(residual.marker_ids)} landmarks, "
-                                      f"scale {residual.scale:.6g}")
-        self.projection_ = compose.build_projection(character, target.blendshapes) if params["project_blendshapes"] else None
+        self.residual_note_ = why or (
+            f"blendshapes: {residual.n_shapes} shapes through {len(residual.marker_ids)} landmarks, "
+            f"scale {residual.scale:.6g}"
+        )
+        self.projection_ = (
+            compose.build_projection(character, target.blendshapes)
+            if params["project_blendshapes"]
+            else None
+        )
         self.rig_ = target.blendshapes if params["project_blendshapes"] else None
         self.triangles_ = np.asarray(target.neutral.triangles)
         # a mesh source can be streamed as raw vertices: keep how to sample its markers
         self.source_landmarks_ = source.landmarks if source.kind == "mesh" else None
-        self.source_triangles_ = np.asarray(source.performance.triangles) if source.kind == "mesh" else None
+        self.source_triangles_ = (
+            np.asarray(source.performance.triangles) if source.kind == "mesh" else None
+        )
         self.source_vertex_count_ = source.performance.n_vertices if source.kind == "mesh" else None
         # streaming cannot see a whole shot: it follows the significance test on the fit source
         self.stream_head_motion_ = True
@@ -215,11 +259,26 @@ class LayersRetargeter(Retargeter):
     # -- retarget --------------------------------------------------------------------
     def _settings(self) -> dict:
         """The retarget-time parameters, checked again (set_params may change them after fit)."""
-        p = {name: self._param(name) for name in
-             ("rigid_points", "smoothing", "gamma_max", "max_iter", "tol", "composition", "head_motion_refinement")}
+        p = {
+            name: self._param(name)
+            for name in (
+                "rigid_points",
+                "smoothing",
+                "gamma_max",
+                "max_iter",
+                "tol",
+                "composition",
+                "head_motion_refinement",
+            )
+        }
         return dict(
-            rigid_points=p["rigid_points"], smoothing=p["smoothing"], gamma_max=p["gamma_max"], max_iter=p["max_iter"],
-            tol=p["tol"], additive=p["composition"] == "additive", passes=1 + p["head_motion_refinement"],
+            rigid_points=p["rigid_points"],
+            smoothing=p["smoothing"],
+            gamma_max=p["gamma_max"],
+            max_iter=p["max_iter"],
+            tol=p["tol"],
+            additive=p["composition"] == "additive",
+            passes=1 + p["head_motion_refinement"],
         )
 
     def _solve(self, markers, tracks, head_motion, states=None, frame_offset=0, settings=None):
@@ -231,27 +290,54 @@ class LayersRetargeter(Retargeter):
         settings = self._settings() if settings is None else settings
         layer_states, residual_state = (None, None) if states is None else states
         residual = getattr(self, "residual_", None)
-        obs, params, layer_states = fit_block(self.actor_, self.lip_, markers, tracks, head_motion, states=layer_states,
-                                              frame_offset=frame_offset, keep_local=residual is not None,
-                                              **settings)
+        obs, params, layer_states = fit_block(
+            self.actor_,
+            self.lip_,
+            markers,
+            tracks,
+            head_motion,
+            states=layer_states,
+            frame_offset=frame_offset,
+            keep_local=residual is not None,
+            **settings,
+        )
         weights = None
         if residual is not None:
             recon, _ = reconstruct(self.actor_, params)
-            weights, residual_state = solve_residual(residual, obs.local3 - recon, settings["smoothing"], residual_state)
+            weights, residual_state = solve_residual(
+                residual, obs.local3 - recon, settings["smoothing"], residual_state
+            )
         return obs, params, weights, (layer_states, residual_state)
 
     def _observe(self, markers, tracks, head_motion, frame_offset=0):
         """Pass 0 only: alignment to the neutral (the paper's Eq. 6)."""
         rigid_points = self._param("rigid_points")
-        return observe(self.actor_, self.lip_, markers, tracks, head_motion, rigid_points=rigid_points,
-                       frame_offset=frame_offset)
+        return observe(
+            self.actor_,
+            self.lip_,
+            markers,
+            tracks,
+            head_motion,
+            rigid_points=rigid_points,
+            frame_offset=frame_offset,
+        )
 
     def _extract(self, obs, state=None, start=None, rigid=None):
         """One solve of Eq. 7 over the observed block (``rigid``: data modulo the alignment's motions)."""
         st = self._settings()
-        return extract(self.actor_, self.lip_, obs, smoothing=st["smoothing"], gamma_max=st["gamma_max"],
-                       max_iter=st["max_iter"], tol=st["tol"], state=state, additive=st["additive"], start=start,
-                       rigid=rigid)
+        return extract(
+            self.actor_,
+            self.lip_,
+            obs,
+            smoothing=st["smoothing"],
+            gamma_max=st["gamma_max"],
+            max_iter=st["max_iter"],
+            tol=st["tol"],
+            state=state,
+            additive=st["additive"],
+            start=start,
+            rigid=rigid,
+        )
 
     def _inputs(self, source: Source):
         """(markers, tracks, head motion, note) of a source; head motion: known (F, 4, 4), None
@@ -267,7 +353,9 @@ class LayersRetargeter(Retargeter):
         tracks = None
         if self.actor_.n2:
             if source.tracks2d is None:
-                raise CapabilityError(f"layers: the model was fitted with {self.actor_.n2} 2D tracks; this source has no tracks2d")
+                raise CapabilityError(
+                    f"layers: the model was fitted with {self.actor_.n2} 2D tracks; this source has no tracks2d"
+                )
             tracks = source.tracks2d.positions
         mode = self._param("head_motion")
         if mode == "none":
@@ -296,7 +384,9 @@ class LayersRetargeter(Retargeter):
         from faceretarget.geometry.head_motion import estimate_head_motion
 
         actor = self.actor_
-        basis = actor.basis_t[: 3 * actor.n3] * actor.scale3d  # (3 N3, K): every pose's displacement
+        basis = (
+            actor.basis_t[: 3 * actor.n3] * actor.scale3d
+        )  # (3 N3, K): every pose's displacement
         # the neutral poses (zero displacement) and repeated poses add nothing to the span
         norms = np.linalg.norm(basis, axis=0)
         keep = norms > 1e-9 * max(float(norms.max()), np.finfo(float).tiny)
@@ -317,14 +407,22 @@ class LayersRetargeter(Retargeter):
     def _retarget(self, source: Source) -> Animation:
         markers, tracks, known, note = self._inputs(source)
         obs, params, residual, _ = self._solve(markers, tracks, known)
-        beta = compose.region_coefficients(params.weights, params.coefficients, self.actor_.layer_of)
+        beta = compose.region_coefficients(
+            params.weights, params.coefficients, self.actor_.layer_of
+        )
         extras = self._extras(params, obs, residual)
-        common = dict(head_motion=self._character_motion(obs.head_motion), fps=source.fps, extras=extras,
-                      provenance={"diagnostics": self._diagnostics(params, note)})
+        common = dict(
+            head_motion=self._character_motion(obs.head_motion),
+            fps=source.fps,
+            extras=extras,
+            provenance={"diagnostics": self._diagnostics(params, note)},
+        )
         if self.projection_ is not None:
             weights = compose.project(self.projection_, beta, extra=residual)
             return Animation(weights=weights, rig=self.rig_, **common)
-        vertices = compose.world_vertices(self.character_, beta, common["head_motion"], extra=residual)
+        vertices = compose.world_vertices(
+            self.character_, beta, common["head_motion"], extra=residual
+        )
         return Animation(vertices=vertices, triangles=self.triangles_, **common)
 
     def deconstruct(self, source: Source) -> dict:
@@ -344,8 +442,11 @@ class LayersRetargeter(Retargeter):
         world = np.einsum("fij,fpj->fpi", rot, local) + trans[:, None, :]
         dist2 = np.sum((world - np.asarray(markers, dtype=np.float64)) ** 2, axis=-1)
         out = self._extras(params, obs, residual)
-        out.update(head_motion=obs.head_motion, reconstruction=world,
-                   rms_error=np.sqrt(np.nanmean(dist2, axis=1)))
+        out.update(
+            head_motion=obs.head_motion,
+            reconstruction=world,
+            rms_error=np.sqrt(np.nanmean(dist2, axis=1)),
+        )
         return out
 
     def _extras(self, params, obs=None, residual=None) -> dict:
@@ -356,8 +457,13 @@ class LayersRetargeter(Retargeter):
             "layer_weights": params.weights,
             "layer_names": actor.layer_names,
             "region_names": actor.region_names,
-            "coefficients": {n: params.coefficients[:, offsets[j]:offsets[j + 1]] for j, n in enumerate(actor.layer_names)},
-            "weighted_coefficients": {n: beta[:, :, offsets[j]:offsets[j + 1]] for j, n in enumerate(actor.layer_names)},
+            "coefficients": {
+                n: params.coefficients[:, offsets[j] : offsets[j + 1]]
+                for j, n in enumerate(actor.layer_names)
+            },
+            "weighted_coefficients": {
+                n: beta[:, :, offsets[j] : offsets[j + 1]] for j, n in enumerate(actor.layer_names)
+            },
             "lip_gamma": params.gamma,
             "objective": params.objective,
         }
@@ -412,12 +518,22 @@ class LayersRetargeter(Retargeter):
             else:
                 known = None
             with single_threaded_blas():
-                obs, params, residual, states = self._solve(markers[None], None if tracks is None else tracks[None], known,
-                                                            states, index, settings)
-                beta = compose.region_coefficients(params.weights, params.coefficients, self.actor_.layer_of)
+                obs, params, residual, states = self._solve(
+                    markers[None],
+                    None if tracks is None else tracks[None],
+                    known,
+                    states,
+                    index,
+                    settings,
+                )
+                beta = compose.region_coefficients(
+                    params.weights, params.coefficients, self.actor_.layer_of
+                )
                 motion = self._character_motion(obs.head_motion)
                 if self.projection_ is not None:
-                    local = self.rig_.evaluate(compose.project(self.projection_, beta, extra=residual))
+                    local = self.rig_.evaluate(
+                        compose.project(self.projection_, beta, extra=residual)
+                    )
                     rot, trans = motion[0, :3, :3], motion[0, :3, 3]
                     out = local[0] @ rot.T + trans
                 else:
@@ -427,21 +543,35 @@ class LayersRetargeter(Retargeter):
     def _parse_frame(self, item, index: int):
         tracks = head = None
         if isinstance(item, dict):
-            markers, tracks, head = item.get("markers"), item.get("tracks2d"), item.get("head_motion")
+            markers, tracks, head = (
+                item.get("markers"),
+                item.get("tracks2d"),
+                item.get("head_motion"),
+            )
         elif isinstance(item, tuple):
             if len(item) != 2:
-                raise ShapeError(f"stream: frame {index} is a tuple of {len(item)}; expected (markers, tracks2d)")
+                raise ShapeError(
+                    f"stream: frame {index} is a tuple of {len(item)}; expected (markers, tracks2d)"
+                )
             markers, tracks = item
         else:
             markers = item
         pts = np.asarray(markers, dtype=np.float64)
-        if (self.source_landmarks_ is not None and pts.ndim == 2 and pts.shape[0] == self.source_vertex_count_
-                and pts.shape[0] != self.actor_.n3):
+        if (
+            self.source_landmarks_ is not None
+            and pts.ndim == 2
+            and pts.shape[0] == self.source_vertex_count_
+            and pts.shape[0] != self.actor_.n3
+        ):
             pts = self.source_landmarks_.positions(pts, self.source_triangles_)
         if pts.ndim != 2 or pts.shape != (self.actor_.n3, 3):
-            raise ShapeError(f"stream: frame {index} has shape {pts.shape}; expected ({self.actor_.n3}, 3) markers")
+            raise ShapeError(
+                f"stream: frame {index} has shape {pts.shape}; expected ({self.actor_.n3}, 3) markers"
+            )
         if self.actor_.n2 and tracks is None:
-            raise CapabilityError(f"stream: the model uses {self.actor_.n2} 2D tracks; pass (markers, tracks2d) pairs")
+            raise CapabilityError(
+                f"stream: the model uses {self.actor_.n2} 2D tracks; pass (markers, tracks2d) pairs"
+            )
         if tracks is not None:
             tracks = np.asarray(tracks, dtype=np.float64)
             if not self.actor_.n2:
@@ -449,5 +579,7 @@ class LayersRetargeter(Retargeter):
         if head is not None:
             head = np.asarray(head, dtype=np.float64)
             if head.shape != (4, 4):
-                raise ShapeError(f"stream: frame {index} head_motion must be (4, 4), got {head.shape}")
+                raise ShapeError(
+                    f"stream: frame {index} head_motion must be (4, 4), got {head.shape}"
+                )
         return pts, tracks, head

@@ -52,6 +52,7 @@ smoothing term. Frames whose 3D markers are too few for the rigid fit (< 3) rais
 :class:`~faceretarget.errors.DegenerateGeometryError` when head motion must be
 estimated; 2D tracks with < 2 points in a frame are ignored for that frame.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -70,8 +71,19 @@ from faceretarget.errors import (
 
 from .model import ActorModel
 
-__all__ = ["LipBias", "Observations", "Extraction", "resolve_lip_bias", "observe", "extract", "uniform_state", "reconstruct",
-           "fit_block", "fit_to_frames", "realign"]
+__all__ = [
+    "LipBias",
+    "Observations",
+    "Extraction",
+    "resolve_lip_bias",
+    "observe",
+    "extract",
+    "uniform_state",
+    "reconstruct",
+    "fit_block",
+    "fit_to_frames",
+    "realign",
+]
 
 #: Lip pairs are found by name when names hold "lip" and one of these.
 _UPPER_WORDS = ("upper", "top", "sup")
@@ -107,7 +119,9 @@ def _config_number(value, name: str, **limits):
 
 def _index(value, name: str) -> int:
     """A whole-number index parameter (its range is checked by the caller)."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(
+        value, (int, float, np.integer, np.floating)
+    ):
         raise ConfigError(f"{name}: expected a name or a 0-based index, got {value!r}"[:200])
     return _config_number(value, name, integer=True)
 
@@ -134,7 +148,9 @@ def _pick_pair(names, speech_poses: np.ndarray, closed: int, lip_markers):
             else:
                 ids.append(_index(item, "lip_markers"))
         if any(i < 0 or i >= n for i in ids):
-            raise IndexRangeError(f"lip_markers: indices {ids} out of range for {n} points (valid: 0..{n - 1})")
+            raise IndexRangeError(
+                f"lip_markers: indices {ids} out of range for {n} points (valid: 0..{n - 1})"
+            )
         return ids[0], ids[1], np.inf
     low = [s.lower() for s in names]
     ups = [i for i, s in enumerate(low) if "lip" in s and any(w in s for w in _UPPER_WORDS)]
@@ -155,15 +171,32 @@ def _pick_pair(names, speech_poses: np.ndarray, closed: int, lip_markers):
     return int(upper[best]), int(lower[best]), float(score[best]) + bonus
 
 
-def resolve_lip_bias(actor: ActorModel, speech_poses3d, speech_poses2d, *, lip_markers, speech_layer, closed_viseme,
-                     mouth_region, lip_sigma, masks3d, masks2d) -> LipBias:
+def resolve_lip_bias(
+    actor: ActorModel,
+    speech_poses3d,
+    speech_poses2d,
+    *,
+    lip_markers,
+    speech_layer,
+    closed_viseme,
+    mouth_region,
+    lip_sigma,
+    masks3d,
+    masks2d,
+) -> LipBias:
     """Choose the lip pair, closed viseme and mouth region of the bias (see module doc).
 
     ``speech_poses3d (K_s, N3, 3)`` / ``speech_poses2d (K_s, N2, 2)``: absolute speech poses.
     """
     lip_sigma = _config_number(lip_sigma, "lip_sigma", low=0)
-    if lip_markers is not None and (not isinstance(lip_markers, (list, tuple, np.ndarray)) or len(lip_markers) != 2):
-        raise ConfigError(f"lip_markers must be a pair (upper, lower) of names or indices, got {lip_markers!r}"[:200])
+    if lip_markers is not None and (
+        not isinstance(lip_markers, (list, tuple, np.ndarray)) or len(lip_markers) != 2
+    ):
+        raise ConfigError(
+            f"lip_markers must be a pair (upper, lower) of names or indices, got {lip_markers!r}"[
+                :200
+            ]
+        )
     if speech_layer not in actor.layer_names:
         if closed_viseme is not None or lip_markers is not None:
             raise UnknownNameError(
@@ -179,16 +212,23 @@ def resolve_lip_bias(actor: ActorModel, speech_poses3d, speech_poses2d, *, lip_m
         k_closed = 0
     elif isinstance(closed_viseme, str):
         if closed_viseme not in names:
-            raise UnknownNameError(f"closed_viseme {closed_viseme!r} is not a pose of layer {speech_layer!r}: {', '.join(names)}")
+            raise UnknownNameError(
+                f"closed_viseme {closed_viseme!r} is not a pose of layer {speech_layer!r}: {', '.join(names)}"
+            )
         k_closed = names.index(closed_viseme)
     else:
         k_closed = _index(closed_viseme, "closed_viseme")
         if not 0 <= k_closed < len(names):
-            raise IndexRangeError(f"closed_viseme {closed_viseme} out of range for {len(names)} poses of {speech_layer!r} "
-                                  f"(valid: 0..{len(names) - 1} or a pose name: {', '.join(names)})")
+            raise IndexRangeError(
+                f"closed_viseme {closed_viseme} out of range for {len(names)} poses of {speech_layer!r} "
+                f"(valid: 0..{len(names) - 1} or a pose name: {', '.join(names)})"
+            )
     choices = []
     by_index = lip_markers is not None and not all(isinstance(v, str) for v in lip_markers)
-    for part, poses, pnames, masks in ((3, speech_poses3d, actor.names3d, masks3d), (2, speech_poses2d, actor.names2d, masks2d)):
+    for part, poses, pnames, masks in (
+        (3, speech_poses3d, actor.names3d, masks3d),
+        (2, speech_poses2d, actor.names2d, masks2d),
+    ):
         if poses is None or (by_index and part == 2):  # indices refer to the 3D markers
             continue
         found = _pick_pair(list(pnames), poses, k_closed, lip_markers)
@@ -203,21 +243,38 @@ def resolve_lip_bias(actor: ActorModel, speech_poses3d, speech_poses2d, *, lip_m
     closed_gap = float(gaps[k_closed])
     sigma = float(lip_sigma) * float(gaps.max() - closed_gap)
     if not (np.isfinite(sigma) and np.isfinite(sigma * sigma)):
-        raise ConfigError(f"lip_sigma: {lip_sigma!r} is too large (sigma = lip_sigma * widest lip opening overflows); "
-                          "pass a fraction of the opening, e.g. 0.1")
+        raise ConfigError(
+            f"lip_sigma: {lip_sigma!r} is too large (sigma = lip_sigma * widest lip opening overflows); "
+            "pass a fraction of the opening, e.g. 0.1"
+        )
     if mouth_region is None:
         mouth = int(np.argmax(masks[:, up] + masks[:, lo]))
     elif isinstance(mouth_region, str):
         if mouth_region not in actor.region_names:
-            raise UnknownNameError(f"mouth_region {mouth_region!r} is not a region: {', '.join(actor.region_names)}")
+            raise UnknownNameError(
+                f"mouth_region {mouth_region!r} is not a region: {', '.join(actor.region_names)}"
+            )
         mouth = actor.region_names.index(mouth_region)
     else:
         mouth = _index(mouth_region, "mouth_region")
         if not 0 <= mouth < actor.n_regions:
-            raise IndexRangeError(f"mouth_region {mouth_region} out of range for {actor.n_regions} regions "
-                                  f"(valid: 0..{actor.n_regions - 1} or a region name: {', '.join(actor.region_names)})")
+            raise IndexRangeError(
+                f"mouth_region {mouth_region} out of range for {actor.n_regions} regions "
+                f"(valid: 0..{actor.n_regions - 1} or a region name: {', '.join(actor.region_names)})"
+            )
     label = (pnames[up], pnames[lo]) if len(pnames) > max(up, lo) else (str(up), str(lo))
-    return LipBias(part, up, lo, closed_gap, sigma, mouth, speech, actor.pose_index(speech_layer, k_closed), label, "")
+    return LipBias(
+        part,
+        up,
+        lo,
+        closed_gap,
+        sigma,
+        mouth,
+        speech,
+        actor.pose_index(speech_layer, k_closed),
+        label,
+        "",
+    )
 
 
 @dataclass
@@ -257,12 +314,20 @@ def _check_points(arr, n: int, dim: int, what: str) -> np.ndarray:
     partial = np.isnan(a).any(axis=-1) & ~np.isnan(a).all(axis=-1)
     if partial.any():
         f, p = (int(i) for i in np.argwhere(partial)[0])
-        raise NonFiniteError(f"{what}: point {p} at frame {f} has some coordinates NaN; a missing sample is NaN in all")
+        raise NonFiniteError(
+            f"{what}: point {p} at frame {f} has some coordinates NaN; a missing sample is NaN in all"
+        )
     return a
 
 
-def fit_to_frames(reference: np.ndarray, frames: np.ndarray, weights=None, *, scale: bool = False,
-                  min_points: int = 0) -> np.ndarray:
+def fit_to_frames(
+    reference: np.ndarray,
+    frames: np.ndarray,
+    weights=None,
+    *,
+    scale: bool = False,
+    min_points: int = 0,
+) -> np.ndarray:
     """Rigid (or similarity) Procrustes of a reference onto each frame (``_kernels.kabsch``).
 
     ``reference (N, D)`` for all frames or ``(F, N, D)`` per frame (the model's
@@ -294,9 +359,21 @@ def _to_local(points: np.ndarray, transforms: np.ndarray) -> np.ndarray:
     return np.matmul(points - transforms[:, None, :dim, dim], lin) / scale2[:, None, None]
 
 
-def observe(actor: ActorModel, lip: LipBias, markers, tracks=None, head_motion=None, *, rigid_points: str = "stable",
-            frame_offset: int = 0, keep_xhat: bool = False, reference3d=None, reference2d=None,
-            checked: bool = False, rigid=None) -> Observations:
+def observe(
+    actor: ActorModel,
+    lip: LipBias,
+    markers,
+    tracks=None,
+    head_motion=None,
+    *,
+    rigid_points: str = "stable",
+    frame_offset: int = 0,
+    keep_xhat: bool = False,
+    reference3d=None,
+    reference2d=None,
+    checked: bool = False,
+    rigid=None,
+) -> Observations:
     """Align one block of frames and project it on the actor's bases.
 
     markers : (F, N3, 3) float, NaN = missing; tracks : (F, N2, 2) or None
@@ -329,7 +406,9 @@ def observe(actor: ActorModel, lip: LipBias, markers, tracks=None, head_motion=N
                 "at least 3: fill the gap (interpolate) or drop the frame"
             )
         weights = actor.rigid_weights3d if rigid_points == "stable" else None
-        motion = fit_to_frames(actor.reference3d if reference3d is None else reference3d, x3, weights)
+        motion = fit_to_frames(
+            actor.reference3d if reference3d is None else reference3d, x3, weights
+        )
         local3 = _to_local(x3, motion)  # R^T (x - t), Eq. 6
     else:
         motion = np.asarray(head_motion, dtype=np.float64)
@@ -343,7 +422,9 @@ def observe(actor: ActorModel, lip: LipBias, markers, tracks=None, head_motion=N
     local2 = align2 = None
     if actor.n2:
         if tracks is None:
-            raise ShapeError(f"the fitted model uses {actor.n2} 2D tracks; this input has none (pass tracks2d)")
+            raise ShapeError(
+                f"the fitted model uses {actor.n2} 2D tracks; this input has none (pass tracks2d)"
+            )
         x2 = tracks if checked else _check_points(tracks, actor.n2, 2, "tracks2d")
         if x2.shape[0] != n_frames:
             raise ShapeError(f"tracks2d: {x2.shape[0]} frames but the markers have {n_frames}")
@@ -351,7 +432,13 @@ def observe(actor: ActorModel, lip: LipBias, markers, tracks=None, head_motion=N
         usable = valid2.sum(axis=1) >= 2
         valid2 &= usable[:, None]
         w2 = actor.rigid_weights2d if rigid_points == "stable" else None
-        align2 = fit_to_frames(actor.reference2d if reference2d is None else reference2d, x2, w2, scale=True, min_points=2)
+        align2 = fit_to_frames(
+            actor.reference2d if reference2d is None else reference2d,
+            x2,
+            w2,
+            scale=True,
+            min_points=2,
+        )
         local2 = np.where(valid2[..., None], _to_local(x2, align2), np.nan)
         blocks.append(((local2 - actor.reference2d) / actor.scale2d).reshape(n_frames, -1))
         missing.append(np.repeat(~valid2, 2, axis=1))
@@ -388,18 +475,35 @@ def observe(actor: ActorModel, lip: LipBias, markers, tracks=None, head_motion=N
     )
 
 
-def realign(actor: ActorModel, obs: Observations, markers, tracks, head_motion, reference3d, reference2d, *,
-            rigid_points: str, keep_local: bool) -> Observations:
+def realign(
+    actor: ActorModel,
+    obs: Observations,
+    markers,
+    tracks,
+    head_motion,
+    reference3d,
+    reference2d,
+    *,
+    rigid_points: str,
+    keep_local: bool,
+) -> Observations:
     """``obs`` with the alignment refitted to per-frame references (the model's reconstruction):
     the 3D head motion when it is estimated (``head_motion`` None), the 2D similarity when
     there are tracks; and the aligned 3D markers when ``keep_local``. Nothing is projected."""
     motion = obs.head_motion
     if head_motion is None:
-        motion = fit_to_frames(reference3d, markers, actor.rigid_weights3d if rigid_points == "stable" else None)
+        motion = fit_to_frames(
+            reference3d, markers, actor.rigid_weights3d if rigid_points == "stable" else None
+        )
     align2 = obs.alignment2d
     if actor.n2 and tracks is not None:
-        align2 = fit_to_frames(reference2d, tracks, actor.rigid_weights2d if rigid_points == "stable" else None, scale=True,
-                               min_points=2)
+        align2 = fit_to_frames(
+            reference2d,
+            tracks,
+            actor.rigid_weights2d if rigid_points == "stable" else None,
+            scale=True,
+            min_points=2,
+        )
     local3 = _to_local(markers, motion) if keep_local else None  # NaN stays NaN
     return replace(obs, head_motion=motion, alignment2d=align2, local3=local3, xhat=None)
 
@@ -442,9 +546,20 @@ def bias_factor(lip: LipBias, gap: np.ndarray, gamma_max: float) -> np.ndarray:
     return np.minimum(np.where(np.isnan(gap), 0.0, gamma), gamma_max)
 
 
-def extract(actor: ActorModel, lip: LipBias, obs: Observations, *, smoothing: float, gamma_max: float,
-            max_iter: int, tol: float, state=None, additive: bool = False,
-            start=None, rigid=None) -> tuple[Extraction, tuple[np.ndarray, np.ndarray]]:
+def extract(
+    actor: ActorModel,
+    lip: LipBias,
+    obs: Observations,
+    *,
+    smoothing: float,
+    gamma_max: float,
+    max_iter: int,
+    tol: float,
+    state=None,
+    additive: bool = False,
+    start=None,
+    rigid=None,
+) -> tuple[Extraction, tuple[np.ndarray, np.ndarray]]:
     """Solve Eq. 7 frame after frame; ``state`` = (W, alpha) of the frame before, if any.
 
     ``start`` = (weights (F, m, J), coefficients (F, K)): where each frame's solve starts
@@ -459,14 +574,20 @@ def extract(actor: ActorModel, lip: LipBias, obs: Observations, *, smoothing: fl
     gamma_max = _config_number(gamma_max, "gamma_max", low=0, high=1)
     if gamma_max >= 1.0:
         raise ConfigError(f"gamma_max: expected a finite number >= 0 and < 1, got {gamma_max!r}")
-    max_iter = _config_number(max_iter, "max_iter", integer=True, low=1, high=np.iinfo(np.int64).max)
+    max_iter = _config_number(
+        max_iter, "max_iter", integer=True, low=1, high=np.iinfo(np.int64).max
+    )
     tol = _config_number(tol, "tol", low=0)
     n_frames = obs.g.shape[0]
     gamma = bias_factor(lip, obs.gap, gamma_max)
     smoothing = float(smoothing)
     if rigid is None:
         jac = np.empty((actor.basis_t.shape[0], 0))
-        jtj, uraw, qraw = np.empty((0, 0)), np.empty((0, actor.n_regions, actor.n_poses)), np.empty((n_frames, 0))
+        jtj, uraw, qraw = (
+            np.empty((0, 0)),
+            np.empty((0, actor.n_regions, actor.n_poses)),
+            np.empty((n_frames, 0)),
+        )
     else:
         jac, jtj, uraw, qraw = rigid.jac, rigid.jtj, rigid.uraw, obs.qraw
     c_d = (1.0 - gamma) / np.maximum(obs.n_valid, 1.0)
@@ -481,12 +602,46 @@ def extract(actor: ActorModel, lip: LipBias, obs: Observations, *, smoothing: fl
     if start is None:
         start_w, start_a, use_start = np.empty((1, m, J)), np.empty((1, K)), False
     else:
-        start_w, start_a, use_start = np.ascontiguousarray(start[0]), np.ascontiguousarray(start[1]), True
-    solve_frames(actor.gram, actor.pair_used, actor.basis_t, actor.coord_masks, obs.g, obs.xx, obs.missing, obs.any_missing,
-                 c_d, gamma, c_s, actor.layer_of, J, lip.mouth, lip.speech, lip.closed,
-                 np.ascontiguousarray(w0, dtype=np.float64), np.ascontiguousarray(a0, dtype=np.float64), has_prev,
-                 bool(additive), start_w, start_a, use_start, jac, jtj, uraw, qraw,
-                 int(max_iter), float(tol), out_w, out_a, out_obj, out_it)
+        start_w, start_a, use_start = (
+            np.ascontiguousarray(start[0]),
+            np.ascontiguousarray(start[1]),
+            True,
+        )
+    solve_frames(
+        actor.gram,
+        actor.pair_used,
+        actor.basis_t,
+        actor.coord_masks,
+        obs.g,
+        obs.xx,
+        obs.missing,
+        obs.any_missing,
+        c_d,
+        gamma,
+        c_s,
+        actor.layer_of,
+        J,
+        lip.mouth,
+        lip.speech,
+        lip.closed,
+        np.ascontiguousarray(w0, dtype=np.float64),
+        np.ascontiguousarray(a0, dtype=np.float64),
+        has_prev,
+        bool(additive),
+        start_w,
+        start_a,
+        use_start,
+        jac,
+        jtj,
+        uraw,
+        qraw,
+        int(max_iter),
+        float(tol),
+        out_w,
+        out_a,
+        out_obj,
+        out_it,
+    )
     result = Extraction(out_w, out_a, gamma, out_obj, out_it)
     return result, (out_w[-1].copy(), out_a[-1].copy())
 
@@ -503,9 +658,24 @@ def reconstruct(actor: ActorModel, params: Extraction):
     return local3, local2
 
 
-def fit_block(actor: ActorModel, lip: LipBias, markers, tracks, head_motion, *, passes: int, rigid_points: str,
-              smoothing: float, gamma_max: float, max_iter: int, tol: float, additive: bool, states=None,
-              frame_offset: int = 0, keep_local: bool = False):
+def fit_block(
+    actor: ActorModel,
+    lip: LipBias,
+    markers,
+    tracks,
+    head_motion,
+    *,
+    passes: int,
+    rigid_points: str,
+    smoothing: float,
+    gamma_max: float,
+    max_iter: int,
+    tol: float,
+    additive: bool,
+    states=None,
+    frame_offset: int = 0,
+    keep_local: bool = False,
+):
     """Alignment and extraction of one block of frames: Eq. 6 and Eq. 7 (see the module doc).
 
     Nothing to estimate (known 3D head motion or "none", no 2D tracks), or ``passes =
@@ -533,23 +703,62 @@ def fit_block(actor: ActorModel, lip: LipBias, markers, tracks, head_motion, *, 
     if tracks is not None and actor.n2:
         tracks = _check_points(tracks, actor.n2, 2, "tracks2d")
     common = dict(rigid_points=rigid_points, frame_offset=frame_offset, checked=True)
-    obs = observe(actor, lip, markers, tracks, head_motion, keep_xhat=keep_local and rigid is None, rigid=rigid, **common)
+    obs = observe(
+        actor,
+        lip,
+        markers,
+        tracks,
+        head_motion,
+        keep_xhat=keep_local and rigid is None,
+        rigid=rigid,
+        **common,
+    )
     out, start = [], None
     for k in range(n_rounds):
-        params, last = extract(actor, lip, obs, smoothing=smoothing, gamma_max=gamma_max, max_iter=max_iter, tol=tol,
-                               state=states[k] if n_rounds == requested else states[-1], additive=additive, start=start,
-                               rigid=rigid)
+        params, last = extract(
+            actor,
+            lip,
+            obs,
+            smoothing=smoothing,
+            gamma_max=gamma_max,
+            max_iter=max_iter,
+            tol=tol,
+            state=states[k] if n_rounds == requested else states[-1],
+            additive=additive,
+            start=start,
+            rigid=rigid,
+        )
         out.append(last)
         if rigid is None:
             break
         start = (params.weights, params.coefficients)
         ref3, ref2 = reconstruct(actor, params)
         if k == n_rounds - 1:
-            obs = realign(actor, obs, markers, tracks, head_motion, ref3, ref2, rigid_points=rigid_points,
-                          keep_local=keep_local)
+            obs = realign(
+                actor,
+                obs,
+                markers,
+                tracks,
+                head_motion,
+                ref3,
+                ref2,
+                rigid_points=rigid_points,
+                keep_local=keep_local,
+            )
         else:
-            obs = observe(actor, lip, markers, tracks, head_motion, reference3d=ref3 if estimate3 else None,
-                          reference2d=ref2, rigid=rigid, **common)
-    if len(out) < requested:  # (nothing to align in this block: every round continues from this one)
+            obs = observe(
+                actor,
+                lip,
+                markers,
+                tracks,
+                head_motion,
+                reference3d=ref3 if estimate3 else None,
+                reference2d=ref2,
+                rigid=rigid,
+                **common,
+            )
+    if (
+        len(out) < requested
+    ):  # (nothing to align in this block: every round continues from this one)
         out = [last] * (requested - len(out)) + out
     return obs, params, out

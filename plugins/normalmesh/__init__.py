@@ -1,5 +1,6 @@
 """Built-in retargeter plugin ``normalmesh``: Na & Jung 2004, Hierarchical Retargetting of Fine
 Facial Motions (normal meshes of Guskov et al. 2000). See ``docs/methods/normalmesh.md``."""
+
 from faceretarget.hookspecs import hookimpl
 
 

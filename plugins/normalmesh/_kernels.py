@@ -9,6 +9,7 @@ each odd vertex ``n_coarse + e`` lies on; ``tangent (E, 2)``, ``offset (E,)`` an
 displacement from its predicted position in the local frame (t1, t2, n) of the predicted
 mesh: n the vertex normal, t1 the coarse edge direction made perpendicular to n, t2 = n x t1.
 """
+
 from __future__ import annotations
 
 import numba as nb
@@ -178,7 +179,9 @@ def carry_points(X, corners, bary, frame_corners, local, out):
         fa, fb, fc = frame_corners[p, 0], frame_corners[p, 1], frame_corners[p, 2]
         if fa < 0:
             for k in range(3):
-                out[p, k] = bary[p, 0] * X[a, k] + bary[p, 1] * X[b, k] + bary[p, 2] * X[c, k] + local[p, k]
+                out[p, k] = (
+                    bary[p, 0] * X[a, k] + bary[p, 1] * X[b, k] + bary[p, 2] * X[c, k] + local[p, k]
+                )
             continue
         u0, u1, u2 = X[fb, 0] - X[fa, 0], X[fb, 1] - X[fa, 1], X[fb, 2] - X[fa, 2]
         n0, n1, n2 = _cross(X, fa, fb, fc)
@@ -193,13 +196,50 @@ def carry_points(X, corners, bary, frame_corners, local, out):
         w1 = n2 * u0 - n0 * u2
         w2 = n0 * u1 - n1 * u0
         l0, l1, l2 = local[p, 0], local[p, 1], local[p, 2]
-        out[p, 0] = bary[p, 0] * X[a, 0] + bary[p, 1] * X[b, 0] + bary[p, 2] * X[c, 0] + l0 * u0 + l1 * w0 + l2 * n0
-        out[p, 1] = bary[p, 0] * X[a, 1] + bary[p, 1] * X[b, 1] + bary[p, 2] * X[c, 1] + l0 * u1 + l1 * w1 + l2 * n1
-        out[p, 2] = bary[p, 0] * X[a, 2] + bary[p, 1] * X[b, 2] + bary[p, 2] * X[c, 2] + l0 * u2 + l1 * w2 + l2 * n2
+        out[p, 0] = (
+            bary[p, 0] * X[a, 0]
+            + bary[p, 1] * X[b, 0]
+            + bary[p, 2] * X[c, 0]
+            + l0 * u0
+            + l1 * w0
+            + l2 * n0
+        )
+        out[p, 1] = (
+            bary[p, 0] * X[a, 1]
+            + bary[p, 1] * X[b, 1]
+            + bary[p, 2] * X[c, 1]
+            + l0 * u1
+            + l1 * w1
+            + l2 * n1
+        )
+        out[p, 2] = (
+            bary[p, 0] * X[a, 2]
+            + bary[p, 1] * X[b, 2]
+            + bary[p, 2] * X[c, 2]
+            + l0 * u2
+            + l1 * w2
+            + l2 * n2
+        )
 
 
 @nb.njit(cache=True, nogil=True)
-def trace_level(vertices, triangles, neighbors, X, pred, normals, edges, n_coarse, skip, start, max_offset, max_steps, Y, status, found):
+def trace_level(
+    vertices,
+    triangles,
+    neighbors,
+    X,
+    pred,
+    normals,
+    edges,
+    n_coarse,
+    skip,
+    start,
+    max_offset,
+    max_steps,
+    Y,
+    status,
+    found,
+):
     """One level of a frame's normal mesh: each odd vertex's line along its normal, walked
     over the frame's mesh from ``start`` (the triangle the neutral's line hit).
 
@@ -221,9 +261,24 @@ def trace_level(vertices, triangles, neighbors, X, pred, normals, edges, n_coars
             continue
         v = n_coarse + e
         a, b = edges[e, 0], edges[e, 1]
-        length = np.sqrt((X[b, 0] - X[a, 0]) ** 2 + (X[b, 1] - X[a, 1]) ** 2 + (X[b, 2] - X[a, 2]) ** 2)
+        length = np.sqrt(
+            (X[b, 0] - X[a, 0]) ** 2 + (X[b, 1] - X[a, 1]) ** 2 + (X[b, 2] - X[a, 2]) ** 2
+        )
         n0, n1, n2 = normals[v, 0], normals[v, 1], normals[v, 2]
-        tri, t, _, _ = walk_one(vertices, triangles, neighbors, pred[v, 0], pred[v, 1], pred[v, 2], n0, n1, n2, start[e], max_offset * length, max_steps)
+        tri, t, _, _ = walk_one(
+            vertices,
+            triangles,
+            neighbors,
+            pred[v, 0],
+            pred[v, 1],
+            pred[v, 2],
+            n0,
+            n1,
+            n2,
+            start[e],
+            max_offset * length,
+            max_steps,
+        )
         if tri <= -2:  # left the mesh across its border, crossing too far away, or grazing a crease
             status[e] = TRACE_PIERCED
             continue
@@ -275,7 +330,11 @@ def slide(source, source_normals, material, target, target_normals, neighbour, s
     for v in range(source.shape[0]):
         s = _vertex_frame(source, source_normals, neighbour, v)
         t = _vertex_frame(target, target_normals, neighbour, v)
-        d0, d1, d2 = material[v, 0] - source[v, 0], material[v, 1] - source[v, 1], material[v, 2] - source[v, 2]
+        d0, d1, d2 = (
+            material[v, 0] - source[v, 0],
+            material[v, 1] - source[v, 1],
+            material[v, 2] - source[v, 2],
+        )
         l0 = s[0] * d0 + s[1] * d1 + s[2] * d2 - slide0[v, 0]
         l1 = s[3] * d0 + s[4] * d1 + s[5] * d2 - slide0[v, 1]
         l2 = s[6] * d0 + s[7] * d1 + s[8] * d2 - slide0[v, 2]
@@ -296,7 +355,11 @@ def multiquadric_maps(x, centers, weights, constant, c, linear, out):
             w0, w1, w2 = weights[i, j, 0], weights[i, j, 1], weights[i, j, 2]
             if w0 == 0.0 and w1 == 0.0 and w2 == 0.0:
                 continue
-            r2 = (x0 - centers[i, j, 0]) ** 2 + (x1 - centers[i, j, 1]) ** 2 + (x2 - centers[i, j, 2]) ** 2
+            r2 = (
+                (x0 - centers[i, j, 0]) ** 2
+                + (x1 - centers[i, j, 1]) ** 2
+                + (x2 - centers[i, j, 2]) ** 2
+            )
             h = np.sqrt(r2 + cc)
             out[i, 0] += w0 * h
             out[i, 1] += w1 * h

@@ -11,6 +11,7 @@ every wrinkle and jaw rotation (measured on the synthetic faces and ICT: transla
 is 10-30% closer to ground truth). Each frame, a vertex is the carried barycentric point
 plus its offset.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -55,10 +56,17 @@ def triangle_frames(X: np.ndarray, triangles: np.ndarray, tri: np.ndarray) -> np
 
 def _longest_edges(X: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     a, b, c = (X[triangles[:, k]] for k in range(3))
-    return np.sqrt(np.max(np.stack([np.sum((b - a) ** 2, 1), np.sum((c - b) ** 2, 1), np.sum((a - c) ** 2, 1)]), axis=0))
+    return np.sqrt(
+        np.max(
+            np.stack([np.sum((b - a) ** 2, 1), np.sum((c - b) ** 2, 1), np.sum((a - c) ** 2, 1)]),
+            axis=0,
+        )
+    )
 
 
-def _lowest_tied_triangle(triangles: np.ndarray, tri: np.ndarray, bary: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+def _lowest_tied_triangle(
+    triangles: np.ndarray, tri: np.ndarray, bary: np.ndarray, n_vertices: int
+) -> tuple[np.ndarray, np.ndarray]:
     """A closest point on an edge or a corner lies on every triangle sharing that edge or corner;
     which one the query returns depends on rounding (so on where the mesh is placed). Take
     the lowest-numbered of them, with the point's barycentric weights in it."""
@@ -70,7 +78,9 @@ def _lowest_tied_triangle(triangles: np.ndarray, tri: np.ndarray, bary: np.ndarr
     at_vertex = np.full(n_vertices, n_t, dtype=np.int64)
     np.minimum.at(at_vertex, triangles.ravel(), ids)
     # edges: the lowest triangle at each (sorted) edge, by key a * V + b
-    pairs = np.sort(np.stack([triangles, np.roll(triangles, -1, axis=1)], axis=2).reshape(-1, 2), axis=1).astype(np.int64)
+    pairs = np.sort(
+        np.stack([triangles, np.roll(triangles, -1, axis=1)], axis=2).reshape(-1, 2), axis=1
+    ).astype(np.int64)
     keys, inverse = np.unique(pairs[:, 0] * n_vertices + pairs[:, 1], return_inverse=True)
     at_edge = np.full(len(keys), n_t, dtype=np.int64)
     np.minimum.at(at_edge, inverse.ravel(), ids)
@@ -97,7 +107,9 @@ def _lowest_tied_triangle(triangles: np.ndarray, tri: np.ndarray, bary: np.ndarr
 def attach(points: np.ndarray, finest: np.ndarray, triangles: np.ndarray) -> Attachment:
     """Attach ``points (P, 3)`` to the finest level ``finest (V, 3)``, ``triangles (T, 3)``."""
     hits = closest_points(finest, triangles, points)
-    tri, bary = _lowest_tied_triangle(np.asarray(triangles), hits.triangle, hits.barycentric, len(finest))
+    tri, bary = _lowest_tied_triangle(
+        np.asarray(triangles), hits.triangle, hits.barycentric, len(finest)
+    )
     offset = points - np.einsum("pk,pkd->pd", bary, finest[triangles[tri]])
     turns = np.linalg.norm(offset, axis=1) <= LEVER * _longest_edges(finest, triangles)[tri]
     local = offset.copy()
@@ -117,7 +129,9 @@ def carry(att: Attachment, finest: np.ndarray) -> np.ndarray:
     return out
 
 
-def coverage(points: np.ndarray, att: Attachment, finest: np.ndarray, triangles: np.ndarray, band: float) -> np.ndarray:
+def coverage(
+    points: np.ndarray, att: Attachment, finest: np.ndarray, triangles: np.ndarray, band: float
+) -> np.ndarray:
     """(P,) weight of the normal mesh in the output of each attached point: 0 off the normal
     mesh, 1 on it farther than ``band`` from any point off it, a smoothstep in between.
 
@@ -127,7 +141,9 @@ def coverage(points: np.ndarray, att: Attachment, finest: np.ndarray, triangles:
     """
     from scipy.spatial import cKDTree
 
-    offset = np.linalg.norm(np.einsum("pk,pkd->pd", att.barycentric, finest[att.corners]) - points, axis=1)
+    offset = np.linalg.norm(
+        np.einsum("pk,pkd->pd", att.barycentric, finest[att.corners]) - points, axis=1
+    )
     on = offset <= COVERED * _longest_edges(finest, triangles)[att.triangle]
     weight = np.zeros(len(points))
     if not on.any():

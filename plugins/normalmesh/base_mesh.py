@@ -19,6 +19,7 @@ means the mesh's outward normal), Delaunay-triangulated, and then
 Every base triangle, given or built, must be non-degenerate and face the same way as the
 surface at its corners on both meshes, else :class:`DegenerateGeometryError` names it.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -45,8 +46,15 @@ MISMATCH_FRACTION = 0.1
 #: corner, so an edge along the rim of a convex hole still counts as over the surface while
 #: an edge across the hole does not).
 _SAMPLES = np.array(
-    [[1 / 3, 1 / 3, 1 / 3], [2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3],
-     [0.45, 0.45, 0.1], [0.1, 0.45, 0.45], [0.45, 0.1, 0.45]]
+    [
+        [1 / 3, 1 / 3, 1 / 3],
+        [2 / 3, 1 / 6, 1 / 6],
+        [1 / 6, 2 / 3, 1 / 6],
+        [1 / 6, 1 / 6, 2 / 3],
+        [0.45, 0.45, 0.1],
+        [0.1, 0.45, 0.45],
+        [0.45, 0.1, 0.45],
+    ]
 )
 
 
@@ -80,7 +88,9 @@ def nearest_vertices(landmarks, vertices: np.ndarray, triangles: np.ndarray) -> 
     if landmarks.vertex_ids is not None:
         return np.asarray(landmarks.vertex_ids, dtype=np.int64)
     corners = np.asarray(triangles)[landmarks.triangle_ids]
-    return corners[np.arange(len(corners)), np.argmax(landmarks.barycentric, axis=1)].astype(np.int64)
+    return corners[np.arange(len(corners)), np.argmax(landmarks.barycentric, axis=1)].astype(
+        np.int64
+    )
 
 
 def flatten(points: np.ndarray, mesh_vertices: np.ndarray, mesh_normals: np.ndarray) -> np.ndarray:
@@ -106,7 +116,9 @@ def _angles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     out = []
     for x, y, z in ((a, b, c), (b, c, a), (c, a, b)):
         u, w = y - x, z - x
-        cos = np.einsum("ij,ij->i", u, w) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1), np.finfo(float).tiny)
+        cos = np.einsum("ij,ij->i", u, w) / np.maximum(
+            np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1), np.finfo(float).tiny
+        )
         out.append(np.arccos(np.clip(cos, -1.0, 1.0)))
     return np.stack(out, axis=1)
 
@@ -118,7 +130,9 @@ def _hull_edges(tri: np.ndarray) -> set:
     return {tuple(x) for x in uniq[counts == 1]}
 
 
-def peel_slivers(tri: np.ndarray, p2: np.ndarray, max_degrees: float = HULL_SLIVER_DEGREES) -> np.ndarray:
+def peel_slivers(
+    tri: np.ndarray, p2: np.ndarray, max_degrees: float = HULL_SLIVER_DEGREES
+) -> np.ndarray:
     """Drop hull triangles whose angle opposite a hull edge exceeds ``max_degrees``, repeatedly."""
     limit = np.deg2rad(max_degrees)
     while len(tri) > 1:
@@ -144,8 +158,15 @@ def _cross2(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 def shape_ratio(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """(K,) 2 * area / longest_edge^2 of each triangle (0 for collinear or coincident corners)."""
     a, b, c = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
-    area2 = np.abs(_cross2(points, tri)) if points.shape[1] == 2 else np.linalg.norm(np.cross(b - a, c - a), axis=-1)
-    longest = np.max(np.stack([np.sum((b - a) ** 2, -1), np.sum((c - b) ** 2, -1), np.sum((a - c) ** 2, -1)]), axis=0)
+    area2 = (
+        np.abs(_cross2(points, tri))
+        if points.shape[1] == 2
+        else np.linalg.norm(np.cross(b - a, c - a), axis=-1)
+    )
+    longest = np.max(
+        np.stack([np.sum((b - a) ** 2, -1), np.sum((c - b) ** 2, -1), np.sum((a - c) ** 2, -1)]),
+        axis=0,
+    )
     return np.divide(area2, longest, out=np.zeros_like(area2), where=longest > 0)
 
 
@@ -164,13 +185,26 @@ def over_surface(tri: np.ndarray, points: np.ndarray, caster: RayCaster) -> np.n
     normal = np.cross(v[t[hits.triangle, 1]] - corner, v[t[hits.triangle, 2]] - corner)
     offset = samples - hits.points
     length = np.linalg.norm(offset, axis=1)
-    cos = np.abs(np.einsum("ij,ij->i", offset, normal)) / np.maximum(length * np.linalg.norm(normal, axis=1), np.finfo(float).tiny)
+    cos = np.abs(np.einsum("ij,ij->i", offset, normal)) / np.maximum(
+        length * np.linalg.norm(normal, axis=1), np.finfo(float).tiny
+    )
     size = np.linalg.norm(np.ptp(v, axis=0))
     ok = (cos >= OVER_SURFACE_COS) | (length <= 1e-9 * size)
     return ok.reshape(len(tri), len(_SAMPLES)).all(axis=1)
 
 
-def automatic_base_triangles(src_points, src_vertices, src_normals, src_caster, tgt_points, tgt_caster, src_point_normals=None, tgt_point_normals=None, names=None, surfaces=None) -> np.ndarray:
+def automatic_base_triangles(
+    src_points,
+    src_vertices,
+    src_normals,
+    src_caster,
+    tgt_points,
+    tgt_caster,
+    src_point_normals=None,
+    tgt_point_normals=None,
+    names=None,
+    surfaces=None,
+) -> np.ndarray:
     """Base connectivity over the feature points, shared by source and target (see module doc).
 
     ``src_normals`` are the source mesh's vertex normals (orienting the projection);
@@ -226,7 +260,14 @@ def canonical_triangles(tri: np.ndarray) -> np.ndarray:
     return tri[np.lexsort(tri.T[::-1])]
 
 
-def bridging_edges(tri: np.ndarray, points: np.ndarray, point_vertices: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, ratio: float = BRIDGE_RATIO) -> np.ndarray:
+def bridging_edges(
+    tri: np.ndarray,
+    points: np.ndarray,
+    point_vertices: np.ndarray,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    ratio: float = BRIDGE_RATIO,
+) -> np.ndarray:
     """(K,) whether a triangle has an edge that bridges a gap of the surface: the shortest path
     over the mesh's edges between its ends (from their nearest vertices ``point_vertices``) is
     more than ``ratio`` times their straight distance (or there is none). Such an edge jumps
@@ -244,12 +285,22 @@ def bridging_edges(tri: np.ndarray, points: np.ndarray, point_vertices: np.ndarr
     e = mesh_edges(triangles)
     w = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
     n = len(vertices)
-    graph = sp.csr_matrix((np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]]))), shape=(n, n))
+    graph = sp.csr_matrix(
+        (
+            np.concatenate([w, w]),
+            (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])),
+        ),
+        shape=(n, n),
+    )
     path = np.full(len(pairs), np.inf)
     # one search per feature point, only as far as its longest base edge needs
     for a in np.unique(pairs[:, 0]):
         rows = np.flatnonzero(pairs[:, 0] == a)
-        reach = dijkstra(graph, indices=point_vertices[a], limit=float(ratio) * float(straight[rows].max()) * (1 + 1e-9))
+        reach = dijkstra(
+            graph,
+            indices=point_vertices[a],
+            limit=float(ratio) * float(straight[rows].max()) * (1 + 1e-9),
+        )
         path[rows] = reach[point_vertices[pairs[rows, 1]]]
     bridge = ~(path <= ratio * straight)
     return bridge.reshape(3, len(tri)).any(axis=0)
@@ -259,10 +310,14 @@ def as_base_triangles(value, n_points: int) -> np.ndarray:
     """Validate user-given base connectivity ``(K, 3)`` over ``n_points`` feature points."""
     arr = np.asarray(value)
     if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] == 0 or arr.dtype.kind not in "iu":
-        raise ShapeError(f"normalmesh: base_triangles must be a (K, 3) integer array with K >= 1, got shape {arr.shape} dtype {arr.dtype}")
+        raise ShapeError(
+            f"normalmesh: base_triangles must be a (K, 3) integer array with K >= 1, got shape {arr.shape} dtype {arr.dtype}"
+        )
     arr = arr.astype(np.int64)
     if arr.min() < 0 or arr.max() >= n_points:
-        raise IndexRangeError(f"normalmesh: base_triangles index the {n_points} feature points (0..{n_points - 1}); got {arr.min()}..{arr.max()}")
+        raise IndexRangeError(
+            f"normalmesh: base_triangles index the {n_points} feature points (0..{n_points - 1}); got {arr.min()}..{arr.max()}"
+        )
     if ((arr[:, 0] == arr[:, 1]) | (arr[:, 1] == arr[:, 2]) | (arr[:, 0] == arr[:, 2])).any():
         raise DegenerateGeometryError("normalmesh: a base triangle repeats a feature point")
     return arr
@@ -274,7 +329,9 @@ def _facing(tri: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndar
     return np.einsum("ij,ij->i", np.cross(b - a, c - a), normals[tri].sum(axis=1))
 
 
-def check_base_triangles(tri: np.ndarray, points: np.ndarray, normals: np.ndarray, what: str, names) -> None:
+def check_base_triangles(
+    tri: np.ndarray, points: np.ndarray, normals: np.ndarray, what: str, names
+) -> None:
     """Raise DegenerateGeometryError for degenerate base triangles or ones facing against the surface."""
 
     def label(k):

@@ -24,6 +24,7 @@ nearest other one. Exactly coincident example displacements are merged (targets 
 The points are solved together (one batched ``(M + 2)``-square solve each), so the same map
 serves the base points and, as the dense fallback, thousands of target vertices.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -59,12 +60,22 @@ class BaseMap:
         from . import _kernels as k
 
         out = np.empty((len(displacement), 3))
-        k.multiquadric_maps(np.ascontiguousarray(displacement, dtype=np.float64), self.centers, self.weights, self.constant, self.c, self.linear, out)
+        k.multiquadric_maps(
+            np.ascontiguousarray(displacement, dtype=np.float64),
+            self.centers,
+            self.weights,
+            self.constant,
+            self.c,
+            self.linear,
+            out,
+        )
         return out
 
     def _rbf(self, x: np.ndarray) -> np.ndarray:
         r = np.sqrt(np.sum((x[:, :, None, :] - self.centers[None]) ** 2, axis=-1))  # (F, N, M)
-        return np.einsum("fnm,nmd->fnd", kernel_values(r, "multiquadric", self.c[None, :, None]), self.weights)
+        return np.einsum(
+            "fnm,nmd->fnd", kernel_values(r, "multiquadric", self.c[None, :, None]), self.weights
+        )
 
 
 def _solve_points(x: np.ndarray, y: np.ndarray, rbf_c: float, smoothing: float):
@@ -90,7 +101,9 @@ def _solve_points(x: np.ndarray, y: np.ndarray, rbf_c: float, smoothing: float):
     both = unique[:, :, None] & unique[:, None, :] & ~np.eye(m, dtype=bool)[None]
     nearest = np.where(both, d, np.inf).min(axis=2)
     n_unique = unique.sum(axis=1)
-    mean_nearest = np.where(unique, np.where(np.isfinite(nearest), nearest, 0.0), 0.0).sum(axis=1) / np.maximum(n_unique, 1)
+    mean_nearest = np.where(unique, np.where(np.isfinite(nearest), nearest, 0.0), 0.0).sum(
+        axis=1
+    ) / np.maximum(n_unique, 1)
     c = np.where(n_unique > 1, float(rbf_c) * mean_nearest, 1.0)
     h = kernel_values(d, "multiquadric", c[:, None, None])
     pair = unique[:, :, None] & unique[:, None, :]
@@ -108,7 +121,16 @@ def _solve_points(x: np.ndarray, y: np.ndarray, rbf_c: float, smoothing: float):
     return sol[:, :m], sol[:, m], c
 
 
-def fit_base_map(src_neutral, tgt_neutral, src_examples, tgt_examples, *, rbf_c: float, rbf_smoothing: float, linear=None) -> BaseMap:
+def fit_base_map(
+    src_neutral,
+    tgt_neutral,
+    src_examples,
+    tgt_examples,
+    *,
+    rbf_c: float,
+    rbf_smoothing: float,
+    linear=None,
+) -> BaseMap:
     """Fit the maps from ``src_neutral (N, 3)``, ``tgt_neutral (N, 3)`` and paired examples ``(M, N, 3)``.
 
     ``linear (3, 3)``: the default linear map F0 (default: the similarity aligning the two

@@ -31,6 +31,7 @@ with a BVH (refitted to the frame) for walks that fail. A piercing error in a fr
 repaired (``repair="surface"``) by the material point of the vertex's place on the neutral
 (its hit, or its repaired closest point: ``anchor``), carried by the frame's triangle.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -117,13 +118,15 @@ class Surface:
     loops: np.ndarray
 
     @classmethod
-    def of(cls, triangles: np.ndarray, n_vertices: int) -> "Surface":
+    def of(cls, triangles: np.ndarray, n_vertices: int) -> Surface:
         tri = np.asarray(triangles, dtype=np.int64)
         _, inverse, counts = edge_table(tri)
         seg = directed_edges(tri)[counts[inverse] == 1]  # in the triangle's orientation
         loops = np.zeros(len(seg), dtype=np.int64)
         if len(seg):
-            g = sp.csr_matrix((np.ones(len(seg)), (seg[:, 0], seg[:, 1])), shape=(n_vertices, n_vertices))
+            g = sp.csr_matrix(
+                (np.ones(len(seg)), (seg[:, 0], seg[:, 1])), shape=(n_vertices, n_vertices)
+            )
             _, label = connected_components(g, directed=False)
             loops = label[seg[:, 0]].astype(np.int64)
         return cls(tri, triangle_neighbors(tri), seg, loops)
@@ -174,7 +177,9 @@ def piercing_share(hierarchy: Hierarchy, kinds) -> np.ndarray:
     errors, for per-level odd-vertex kinds ``kinds`` (a NormalMesh's ``kind``, or a frame's)."""
     owner = base_triangle_of_vertices(hierarchy)
     n_base = len(hierarchy.base_triangles)
-    repaired = np.concatenate([np.zeros(hierarchy.n_base, dtype=bool)] + [np.asarray(k) == KIND_REPAIRED for k in kinds])
+    repaired = np.concatenate(
+        [np.zeros(hierarchy.n_base, dtype=bool)] + [np.asarray(k) == KIND_REPAIRED for k in kinds]
+    )
     used = owner >= 0
     total = np.bincount(owner[used], minlength=n_base).astype(float)
     bad = np.bincount(owner[used & repaired], minlength=n_base).astype(float)
@@ -217,11 +222,15 @@ def cast_agreeing(caster: RayCaster, origins: np.ndarray, normals: np.ndarray, l
     (triangle (-1: none), points, barycentric)."""
     hits = caster.cast(origins, normals, max_distance=limit)
     good = hits.hit.copy()
-    good[good] = _hit_faces_agree(caster.vertices, caster.triangles, hits.triangle[good], normals[good])
+    good[good] = _hit_faces_agree(
+        caster.vertices, caster.triangles, hits.triangle[good], normals[good]
+    )
     return np.where(good, hits.triangle, -1), hits.points, hits.barycentric
 
 
-def _segment_closest(points: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _segment_closest(
+    points: np.ndarray, p0: np.ndarray, p1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Closest points on segments (broadcast) and squared distances."""
     d = p1 - p0
     den = np.einsum("...j,...j->...", d, d)
@@ -230,7 +239,9 @@ def _segment_closest(points: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> tupl
     return q, np.einsum("...j,...j->...", points - q, points - q)
 
 
-def boundary_candidates(points, vertices, surface: Surface, loops: np.ndarray, k: int = BOUNDARY_CANDIDATES) -> np.ndarray:
+def boundary_candidates(
+    points, vertices, surface: Surface, loops: np.ndarray, k: int = BOUNDARY_CANDIDATES
+) -> np.ndarray:
     """(P, k) ids of the boundary segments nearest each point, nearest first (-1 pads).
 
     Only segments of loop ``loops[p]`` count where that is >= 0. Segments are preselected by
@@ -250,7 +261,9 @@ def boundary_candidates(points, vertices, surface: Surface, loops: np.ndarray, k
 
     def rank(rows, cand):
         _, d2 = _segment_closest(points[rows, None, :], p0[cand], p1[cand])
-        d2 = np.where((loops[rows, None] >= 0) & (surface.loops[cand] != loops[rows, None]), np.inf, d2)
+        d2 = np.where(
+            (loops[rows, None] >= 0) & (surface.loops[cand] != loops[rows, None]), np.inf, d2
+        )
         order = np.argsort(d2, axis=1, kind="stable")[:, :k]
         best = np.take_along_axis(cand, order, axis=1)
         best[np.isinf(np.take_along_axis(d2, order, axis=1))] = -1
@@ -267,7 +280,9 @@ def boundary_candidates(points, vertices, surface: Surface, loops: np.ndarray, k
     return out
 
 
-def closest_on_candidates(points, vertices, surface: Surface, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def closest_on_candidates(
+    points, vertices, surface: Surface, candidates: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Closest point of each point on its candidate boundary segments, and the distance."""
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros(0)
@@ -339,7 +354,9 @@ def _closest_placement(caster: RayCaster, limit: np.ndarray):
         normal = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
         offset = points[ok] - hits.points[ok]
         length = np.linalg.norm(offset, axis=1)
-        cos = np.abs(np.einsum("ij,ij->i", offset, normal)) / np.maximum(length * np.linalg.norm(normal, axis=1), np.finfo(float).tiny)
+        cos = np.abs(np.einsum("ij,ij->i", offset, normal)) / np.maximum(
+            length * np.linalg.norm(normal, axis=1), np.finfo(float).tiny
+        )
         ok[ok] = (cos >= OVER_SURFACE_COS) | (length <= 1e-9 * limit[e][ok])
         return hits.points, ok, hits.triangle, hits.barycentric
 
@@ -390,7 +407,9 @@ def build_normal_mesh(
         pred, normals = _predict(step, X)
         odd_pred, odd_n = pred[n0:], normals[n0:]
         a, b = step.edges[:, 0], step.edges[:, 1]
-        odd_loops = np.where(step.boundary_edge & (loops[a] >= 0) & (loops[a] == loops[b]), loops[a], -1)
+        odd_loops = np.where(
+            step.boundary_edge & (loops[a] >= 0) & (loops[a] == loops[b]), loops[a], -1
+        )
         kind = np.where(odd_loops >= 0, KIND_BOUNDARY, KIND_RAY).astype(np.int8)
         hit = np.full(n_odd, -1, dtype=np.int64)
         hit_bary = np.zeros((n_odd, 3))
@@ -442,7 +461,16 @@ class FrameDecomposer:
     #: Most line x triangle tests done by brute force before refitting a BVH instead.
     BRUTE_BUDGET = 4_000_000
 
-    def __init__(self, surface: Surface, reference: NormalMesh, hierarchy: Hierarchy, *, max_offset: float, neutral_vertices: np.ndarray, repair: str = "surface"):
+    def __init__(
+        self,
+        surface: Surface,
+        reference: NormalMesh,
+        hierarchy: Hierarchy,
+        *,
+        max_offset: float,
+        neutral_vertices: np.ndarray,
+        repair: str = "surface",
+    ):
         self.surface = surface
         self.reference = reference
         self.hierarchy = hierarchy
@@ -460,7 +488,9 @@ class FrameDecomposer:
             return RayCaster(vertices, self.surface.triangles, backend="brute")
         if self._bvh is None:
             self._bvh = build_bvh(self._neutral, self.surface.triangles)
-        return RayCaster(vertices, self.surface.triangles, backend="bvh", bvh=self._bvh.refit(vertices))
+        return RayCaster(
+            vertices, self.surface.triangles, backend="bvh", bvh=self._bvh.refit(vertices)
+        )
 
     def _anchor_placement(self, vertices: np.ndarray, level: int):
         """``place`` for :func:`_finish` in a frame: the material point of the neutral's anchor."""
@@ -498,13 +528,31 @@ class FrameDecomposer:
             found = np.empty(step.n_odd, dtype=np.int64)
             start = self._start[level]
             k.trace_level(
-                v, surf.triangles, surf.neighbors, X, pred, normals, step.edges, n0,
-                self._skip[level], start, self.max_offset, WALK_STEPS, Y, status, found,
+                v,
+                surf.triangles,
+                surf.neighbors,
+                X,
+                pred,
+                normals,
+                step.edges,
+                n0,
+                self._skip[level],
+                start,
+                self.max_offset,
+                WALK_STEPS,
+                Y,
+                status,
+                found,
             )
             lost = np.flatnonzero(status == k.TRACE_LOST)
             if lost.size:
                 odd = n0 + lost
-                tri, pts, _ = cast_agreeing(self._global(v, lost.size), pred[odd], normals[odd], _max_offsets(step, X, self.max_offset)[lost])
+                tri, pts, _ = cast_agreeing(
+                    self._global(v, lost.size),
+                    pred[odd],
+                    normals[odd],
+                    _max_offsets(step, X, self.max_offset)[lost],
+                )
                 good = tri >= 0
                 Y[odd[good]] = pts[good]
                 status[lost] = np.where(good, k.TRACE_HIT, k.TRACE_PIERCED)
@@ -512,7 +560,9 @@ class FrameDecomposer:
             self._start[level] = np.where(found >= 0, found, start)
             bnd = self._boundary[level]
             if bnd.size:
-                Y[n0 + bnd], _ = closest_on_candidates(pred[n0 + bnd], v, surf, ref.candidates[level][bnd])
+                Y[n0 + bnd], _ = closest_on_candidates(
+                    pred[n0 + bnd], v, surf, ref.candidates[level][bnd]
+                )
             flagged = status == k.TRACE_PIERCED
             place = self._anchor_placement(v, level) if self.repair == "surface" else None
             tangent, offset, _, _ = _finish(step, ring, pred, normals, Y, flagged, place)
@@ -528,7 +578,9 @@ class FrameDecomposer:
 # ----------------------------------------------------------------------------------------
 # reconstruction from base + local coordinates
 # ----------------------------------------------------------------------------------------
-def reconstruct(base: np.ndarray, hierarchy: Hierarchy, tangent, offset, *, levels: int | None = None) -> list[np.ndarray]:
+def reconstruct(
+    base: np.ndarray, hierarchy: Hierarchy, tangent, offset, *, levels: int | None = None
+) -> list[np.ndarray]:
     """Level positions ``[X_0, ..., X_L]`` of the normal mesh with the given coordinates
     (per level ``tangent (E, 2)`` and ``offset (E,)``)."""
     from . import _kernels as k
@@ -539,7 +591,15 @@ def reconstruct(base: np.ndarray, hierarchy: Hierarchy, tangent, offset, *, leve
     for level in range(n_levels):
         step = hierarchy.steps[level]
         pred, normals = _predict(step, X)
-        k.place_odd(pred, normals, step.edges, step.n_coarse, np.ascontiguousarray(tangent[level]), np.ascontiguousarray(offset[level]), pred)
+        k.place_odd(
+            pred,
+            normals,
+            step.edges,
+            step.n_coarse,
+            np.ascontiguousarray(tangent[level]),
+            np.ascontiguousarray(offset[level]),
+            pred,
+        )
         X = pred
         out.append(X)
     return out

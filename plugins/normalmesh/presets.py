@@ -1,12 +1,20 @@
 """Na & Jung 2004 reproduced for the report: table 1 (piercing errors of the normal meshes) and
 fig. 14 (wrinkles transferred by the normal-offset details)."""
+
 from __future__ import annotations
 
 import numpy as np
 
 from faceretarget.errors import PluginOutputError
 from faceretarget.evaluation.presets import Cases, PresetResult
-from faceretarget.evaluation.reproduction import detail_transfer, num, paper_params, require, run_method, set_verdict
+from faceretarget.evaluation.reproduction import (
+    detail_transfer,
+    num,
+    paper_params,
+    require,
+    run_method,
+    set_verdict,
+)
 from faceretarget.hookspecs import Preset
 
 __all__ = ["PRESETS"]
@@ -29,7 +37,9 @@ def najung_table1(cases: Cases, res: PresetResult) -> None:
             anim = run_method("normalmesh", cases(cname), **params)
         except Exception as exc:  # one mesh failing must not hide the others
             failures.append(exc)
-            res.table.append({"mesh": cname, "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"})
+            res.table.append(
+                {"mesh": cname, "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}"}
+            )
             continue
         diag = anim.provenance.get("diagnostics", {}).get("piercing_errors", {})
         total = diag.get("normal_mesh_vertices", diag.get("target_vertices"))
@@ -38,34 +48,73 @@ def najung_table1(cases: Cases, res: PresetResult) -> None:
                 "the normalmesh retargeter did not report provenance['diagnostics']['piercing_errors'] with "
                 f"'normal_mesh_vertices', 'target' and 'source_mean_per_frame'; it reported {sorted(diag)}"
             )
-        for mesh, key, when in ((f"{cname} source", "source_mean_per_frame", "average of all frames"), (f"{cname} target", "target", "init frame")):
+        for mesh, key, when in (
+            (f"{cname} source", "source_mean_per_frame", "average of all frames"),
+            (f"{cname} target", "target", "init frame"),
+        ):
             value = float(diag.get(key, np.nan))
             counts.append((mesh, value, total))
-            res.table.append({"mesh": mesh, "vertices": int(total), "vertices with piercing error": value, "when": when, "%": 100.0 * value / total})
+            res.table.append(
+                {
+                    "mesh": mesh,
+                    "vertices": int(total),
+                    "vertices with piercing error": value,
+                    "when": when,
+                    "%": 100.0 * value / total,
+                }
+            )
         per_frame = anim.extras.get("piercing_errors_per_frame")
         if per_frame is not None and cname == "synthetic-human":
-            res.plots.append(Plot("source piercing errors per frame (synthetic human)", [Series("source", np.arange(len(per_frame)), per_frame)], xlabel="frame", ylabel="vertices"))
+            res.plots.append(
+                Plot(
+                    "source piercing errors per frame (synthetic human)",
+                    [Series("source", np.arange(len(per_frame)), per_frame)],
+                    xlabel="frame",
+                    ylabel="vertices",
+                )
+            )
     if not counts:
         raise failures[0]
     if failures:
         res.reason = f"{len(failures)} case(s) failed; see the table"
-    res.plots.insert(0, Plot("vertices with piercing error, % of the normal mesh", [Series(m, [0], [100.0 * v / t]) for m, v, t in counts], ylabel="%", kind="bar"))
+    res.plots.insert(
+        0,
+        Plot(
+            "vertices with piercing error, % of the normal mesh",
+            [Series(m, [0], [100.0 * v / t]) for m, v, t in counts],
+            ylabel="%",
+            kind="bar",
+        ),
+    )
     shares = [(m, 100.0 * v / t) for m, v, t in counts]
     over = [(m, p) for m, p in shares if not p < NAJUNG_LIMIT_PERCENT]
     under = [p for _, p in shares if p < NAJUNG_LIMIT_PERCENT]
     if over:
-        what = f"{len(over)} of {len(shares)} meshes at or above {NAJUNG_LIMIT_PERCENT}%: " + ", ".join(f"{m} {num(p)}%" for m, p in over)
+        what = (
+            f"{len(over)} of {len(shares)} meshes at or above {NAJUNG_LIMIT_PERCENT}%: "
+            + ", ".join(f"{m} {num(p)}%" for m, p in over)
+        )
         if under:
             what += f" (the other {len(under)} at most {num(max(under))}%)"
     else:
-        what = f"all {len(shares)} meshes under {NAJUNG_LIMIT_PERCENT}% (at most {num(max(under))}%)"
+        what = (
+            f"all {len(shares)} meshes under {NAJUNG_LIMIT_PERCENT}% (at most {num(max(under))}%)"
+        )
     note = f"{len(failures)} case(s) failed and are not counted." if failures else ""
     set_verdict(res, [(what, not over)], note)
 
 
 def najung_fig14(cases: Cases, res: PresetResult) -> None:
-    detail_transfer(cases, res, "normalmesh", paper_params("normalmesh", {"levels": 4}), ablation=DETAIL_OFF,
-                    baseline="deformation_transfer", baseline_label="deformation transfer", large_scale=False)
+    detail_transfer(
+        cases,
+        res,
+        "normalmesh",
+        paper_params("normalmesh", {"levels": 4}),
+        ablation=DETAIL_OFF,
+        baseline="deformation_transfer",
+        baseline_label="deformation transfer",
+        large_scale=False,
+    )
 
 
 NAJUNG_TABLE1 = Preset(

@@ -36,6 +36,7 @@ retarget(source), per frame
     6. target vertices carried by their finest-level triangles, blended by coverage with the
        dense fallback.
 """
+
 from __future__ import annotations
 
 from typing import ClassVar
@@ -44,7 +45,12 @@ import numpy as np
 
 from faceretarget import manifest
 from faceretarget._validate import as_array
-from faceretarget.errors import DegenerateGeometryError, InputError, ShapeError, TopologyMismatchError
+from faceretarget.errors import (
+    DegenerateGeometryError,
+    InputError,
+    ShapeError,
+    TopologyMismatchError,
+)
 from faceretarget.geometry.procrustes import fit_rigid, to_matrix
 from faceretarget.geometry.raycast import RayCaster
 from faceretarget.model import Animation, Landmarks, MeshSequence, Source, TargetRig
@@ -107,7 +113,9 @@ class NormalMeshRetargeter(Retargeter):
         edit=False,
         same_topology=False,
     )
-    summary: ClassVar[str] = "example-based RBF on a base mesh, then normal-mesh offset details level by level"
+    summary: ClassVar[str] = (
+        "example-based RBF on a base mesh, then normal-mesh offset details level by level"
+    )
     #: Types, ranges and choices of the parameters, with their meanings: registry.toml.
     parameter_constraints: ClassVar[dict] = manifest.constraints("normalmesh")
 
@@ -158,11 +166,21 @@ class NormalMeshRetargeter(Retargeter):
         validate_params(self)
 
     def _feature_points(self, source: Source, target: TargetRig) -> tuple[Landmarks, Landmarks]:
-        src = self.source_feature_points if self.source_feature_points is not None else source.landmarks
-        tgt = self.target_feature_points if self.target_feature_points is not None else target.landmarks
+        src = (
+            self.source_feature_points
+            if self.source_feature_points is not None
+            else source.landmarks
+        )
+        tgt = (
+            self.target_feature_points
+            if self.target_feature_points is not None
+            else target.landmarks
+        )
         for lm, what in ((src, "source"), (tgt, "target")):
             if not isinstance(lm, Landmarks):
-                raise InputError(f"normalmesh: the {what} feature points must be a faceretarget.Landmarks, got {type(lm).__name__}")
+                raise InputError(
+                    f"normalmesh: the {what} feature points must be a faceretarget.Landmarks, got {type(lm).__name__}"
+                )
         src.validate_for(source.performance.reference, "normalmesh source feature points")
         tgt.validate_for(target.neutral, "normalmesh target feature points")
         if len(src) != len(tgt):
@@ -178,16 +196,22 @@ class NormalMeshRetargeter(Retargeter):
         return src, tgt
 
     @staticmethod
-    def _paired_examples(source: Source, target: TargetRig) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    def _paired_examples(
+        source: Source, target: TargetRig
+    ) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
         s_names, t_names = list(source.example_names), list(target.example_names)
         only_t = [n for n in t_names if n not in s_names]
         only_s = [n for n in s_names if n not in t_names]
         if only_t or only_s:
             parts = []
             if only_t:
-                parts.append(f"the target has {', '.join(map(repr, only_t[:8]))} which the source lacks")
+                parts.append(
+                    f"the target has {', '.join(map(repr, only_t[:8]))} which the source lacks"
+                )
             if only_s:
-                parts.append(f"the source has {', '.join(map(repr, only_s[:8]))} which the target lacks")
+                parts.append(
+                    f"the source has {', '.join(map(repr, only_s[:8]))} which the target lacks"
+                )
             raise TopologyMismatchError(
                 f"normalmesh: example poses are paired by example_names, but {'; '.join(parts)}; "
                 "give both sides the same example names"
@@ -195,8 +219,16 @@ class NormalMeshRetargeter(Retargeter):
         order = [s_names.index(n) for n in t_names]
         return np.asarray(source.examples)[order], np.asarray(target.examples), tuple(t_names)
 
-    def _levels(self, base_tri: np.ndarray, src_pts: np.ndarray, src_v: np.ndarray, src_tri: np.ndarray,
-                tgt_pts: np.ndarray | None = None, tgt_v: np.ndarray | None = None, tgt_tri: np.ndarray | None = None) -> int:
+    def _levels(
+        self,
+        base_tri: np.ndarray,
+        src_pts: np.ndarray,
+        src_v: np.ndarray,
+        src_tri: np.ndarray,
+        tgt_pts: np.ndarray | None = None,
+        tgt_v: np.ndarray | None = None,
+        tgt_tri: np.ndarray | None = None,
+    ) -> int:
         """``levels``, or with "auto" the fewest halvings of the base mesh's median edge that
         reach ``LEVEL_EDGE`` times the *sampling edge* ``h = clip(h_t / 2, h_s / 2, h_s)``
         (``h_s``, ``h_t`` the source and target meshes' median edges, measured on each side
@@ -227,14 +259,32 @@ class NormalMeshRetargeter(Retargeter):
         for rnd in range(PRUNE_ROUNDS + 1):
             hierarchy = make_hierarchy(base_tri, len(src["points"]), levels)
             nms = [
-                build_normal_mesh(m["vertices"], m["surface"], m["points"], m["loops"], hierarchy, max_offset=max_offset, caster=m["caster"], repair=self.repair)
+                build_normal_mesh(
+                    m["vertices"],
+                    m["surface"],
+                    m["points"],
+                    m["loops"],
+                    hierarchy,
+                    max_offset=max_offset,
+                    caster=m["caster"],
+                    repair=self.repair,
+                )
                 for m in (src, tgt)
             ]
             if self.max_piercing >= 1.0 or levels == 0 or rnd == PRUNE_ROUNDS:
                 break
-            share = np.maximum(piercing_share(hierarchy, nms[0].kind), piercing_share(hierarchy, nms[1].kind))
+            share = np.maximum(
+                piercing_share(hierarchy, nms[0].kind), piercing_share(hierarchy, nms[1].kind)
+            )
             for example in src_examples:
-                decomposer = FrameDecomposer(src["surface"], nms[0], hierarchy, max_offset=max_offset, neutral_vertices=src["vertices"], repair=self.repair)
+                decomposer = FrameDecomposer(
+                    src["surface"],
+                    nms[0],
+                    hierarchy,
+                    max_offset=max_offset,
+                    neutral_vertices=src["vertices"],
+                    repair=self.repair,
+                )
                 decomposer(example, src["landmarks"].positions(example, src["triangles"]))
                 share = np.maximum(share, piercing_share(hierarchy, decomposer.flagged))
             drop = share > float(self.max_piercing)
@@ -262,10 +312,18 @@ class NormalMeshRetargeter(Retargeter):
 
         if same_topology:
             return np.repeat(ids[:, None], 3, axis=1), np.tile([1.0, 0.0, 0.0], (len(ids), 1))
-        level = max([l for l in range(hierarchy.levels + 1) if hierarchy.n_vertices(l) <= WARP_PAIRS] or [0])
+        level = max(
+            [l for l in range(hierarchy.levels + 1) if hierarchy.n_vertices(l) <= WARP_PAIRS] or [0]
+        )
         keep = np.ones(hierarchy.n_vertices(level), dtype=bool)
         for nm in (src_nm, tgt_nm):
-            off = np.concatenate([np.zeros(hierarchy.n_base, dtype=bool)] + [(k == KIND_REPAIRED) & (a < 0) for k, a in zip(nm.kind[:level], nm.anchor[:level])])
+            off = np.concatenate(
+                [np.zeros(hierarchy.n_base, dtype=bool)]
+                + [
+                    (k == KIND_REPAIRED) & (a < 0)
+                    for k, a in zip(nm.kind[:level], nm.anchor[:level])
+                ]
+            )
             keep &= ~off
         t_pairs, s_pairs = tgt_nm.positions[level][keep], src_nm.positions[level][keep]
         t_c, s_c = tgt["vertices"].mean(axis=0), src["vertices"].mean(axis=0)
@@ -289,25 +347,62 @@ class NormalMeshRetargeter(Retargeter):
             v = np.asarray(mesh.vertices, dtype=np.float64)
             pts = lm.positions(v, mesh.triangles)
             surface = Surface.of(mesh.triangles, mesh.n_vertices)
-            sides.append(dict(
-                vertices=v, triangles=np.asarray(mesh.triangles), points=pts, landmarks=lm, surface=surface,
-                loops=feature_point_loops(pts, v, surface), caster=RayCaster(v, mesh.triangles, backend=self.backend),
-                normals=bm.point_normals(lm, mesh.vertex_normals, mesh.triangles),
-            ))
+            sides.append(
+                dict(
+                    vertices=v,
+                    triangles=np.asarray(mesh.triangles),
+                    points=pts,
+                    landmarks=lm,
+                    surface=surface,
+                    loops=feature_point_loops(pts, v, surface),
+                    caster=RayCaster(v, mesh.triangles, backend=self.backend),
+                    normals=bm.point_normals(lm, mesh.vertex_normals, mesh.triangles),
+                )
+            )
         src, tgt = sides
-        src_v, tgt_v, src_pts, tgt_pts = src["vertices"], tgt["vertices"], src["points"], tgt["points"]
+        src_v, tgt_v, src_pts, tgt_pts = (
+            src["vertices"],
+            tgt["vertices"],
+            src["points"],
+            tgt["points"],
+        )
         if self.base_triangles is None:
-            surfaces = [(m["points"], bm.nearest_vertices(m["landmarks"], m["vertices"], m["triangles"]), m["vertices"], m["triangles"]) for m in sides]
+            surfaces = [
+                (
+                    m["points"],
+                    bm.nearest_vertices(m["landmarks"], m["vertices"], m["triangles"]),
+                    m["vertices"],
+                    m["triangles"],
+                )
+                for m in sides
+            ]
             base_tri = bm.automatic_base_triangles(
-                src_pts, src_v, src_mesh.vertex_normals, src["caster"], tgt_pts, tgt["caster"], src["normals"], tgt["normals"], src_lm.names, surfaces=surfaces
+                src_pts,
+                src_v,
+                src_mesh.vertex_normals,
+                src["caster"],
+                tgt_pts,
+                tgt["caster"],
+                src["normals"],
+                tgt["normals"],
+                src_lm.names,
+                surfaces=surfaces,
             )
         else:
-            base_tri = bm.as_base_triangles(as_array(self.base_triangles, "normalmesh.base_triangles"), len(src_lm))
+            base_tri = bm.as_base_triangles(
+                as_array(self.base_triangles, "normalmesh.base_triangles"), len(src_lm)
+            )
         bm.check_base_triangles(base_tri, src_pts, src["normals"], "source", src_lm.names)
         bm.check_base_triangles(base_tri, tgt_pts, tgt["normals"], "target", tgt_lm.names)
-        levels = self._levels(base_tri, src_pts, src_v, src["triangles"], tgt_pts, tgt_v, tgt["triangles"])
-        hierarchy, src_nm, tgt_nm, base_tri, removed = self._normal_meshes(base_tri, levels, src, tgt, src_ex)
-        removed_share = _area(tgt_pts, removed) / max(_area(tgt_pts, removed) + _area(tgt_pts, base_tri), np.finfo(float).tiny)
+        levels = self._levels(
+            base_tri, src_pts, src_v, src["triangles"], tgt_pts, tgt_v, tgt["triangles"]
+        )
+        hierarchy, src_nm, tgt_nm, base_tri, removed = self._normal_meshes(
+            base_tri, levels, src, tgt, src_ex
+        )
+        removed_share = _area(tgt_pts, removed) / max(
+            _area(tgt_pts, removed) + _area(tgt_pts, base_tri), np.finfo(float).tiny
+        )
         if removed_share > REMOVED_WARNING:
             import warnings
 
@@ -324,34 +419,64 @@ class NormalMeshRetargeter(Retargeter):
                 stacklevel=3,
             )
         max_offset = float(self.max_offset)
-        decomposer = FrameDecomposer(src["surface"], src_nm, hierarchy, max_offset=max_offset, neutral_vertices=src_v, repair=self.repair)
+        decomposer = FrameDecomposer(
+            src["surface"],
+            src_nm,
+            hierarchy,
+            max_offset=max_offset,
+            neutral_vertices=src_v,
+            repair=self.repair,
+        )
         src_offsets0, src_pierced0, src_levels0 = decomposer(src_v, src_pts, keep_positions=True)
 
-        ratio = normal_mesh_area(tgt_nm, hierarchy) / max(normal_mesh_area(src_nm, hierarchy), np.finfo(float).tiny)
+        ratio = normal_mesh_area(tgt_nm, hierarchy) / max(
+            normal_mesh_area(src_nm, hierarchy), np.finfo(float).tiny
+        )
         ds = self.detail_scale
         delta = np.sqrt(ratio) if ds == "length" else (ratio if ds == "area" else float(ds))
 
         src_ex_pts = src_lm.positions(src_ex, src["triangles"])
         tgt_ex_pts = tgt_lm.positions(tgt_ex, tgt["triangles"])
-        base_map = fit_base_map(src_pts, tgt_pts, src_ex_pts, tgt_ex_pts, rbf_c=float(self.rbf_c), rbf_smoothing=float(self.rbf_smoothing))
+        base_map = fit_base_map(
+            src_pts,
+            tgt_pts,
+            src_ex_pts,
+            tgt_ex_pts,
+            rbf_c=float(self.rbf_c),
+            rbf_smoothing=float(self.rbf_smoothing),
+        )
 
         n_levels = hierarchy.levels
         finest_tri = hierarchy.triangles(n_levels)
         finest = reconstruct(tgt_pts, hierarchy, tgt_nm.tangent, tgt_nm.offset)[-1]
         attachment = attach(tgt_v, finest, finest_tri)
         if self.fallback == "examples":
-            band = BAND * max(bm.median_edge(finest, finest_tri), bm.median_edge(tgt_v, tgt["triangles"]))
+            band = BAND * max(
+                bm.median_edge(finest, finest_tri), bm.median_edge(tgt_v, tgt["triangles"])
+            )
             weight = coverage(tgt_v, attachment, finest, finest_tri, band)
         else:
             weight = np.ones(len(tgt_v))
         dense_ids = np.flatnonzero(weight < 1.0)
         same_topology = (
-            len(src_v) == len(tgt_v) and np.array_equal(src["triangles"], tgt["triangles"]) and _same_landmarks(src_lm, tgt_lm)
+            len(src_v) == len(tgt_v)
+            and np.array_equal(src["triangles"], tgt["triangles"])
+            and _same_landmarks(src_lm, tgt_lm)
         )
-        corners, bary = self._correspondence(dense_ids, src, tgt, src_nm, tgt_nm, hierarchy, same_topology)
+        corners, bary = self._correspondence(
+            dense_ids, src, tgt, src_nm, tgt_nm, hierarchy, same_topology
+        )
         src_at = np.einsum("pk,pkd->pd", bary, src_v[corners])
         src_ex_at = np.einsum("pk,mpkd->mpd", bary, src_ex[:, corners])
-        dense_map = fit_base_map(src_at, tgt_v[dense_ids], src_ex_at, tgt_ex[:, dense_ids], rbf_c=float(self.rbf_c), rbf_smoothing=float(self.rbf_smoothing), linear=base_map.linear)
+        dense_map = fit_base_map(
+            src_at,
+            tgt_v[dense_ids],
+            src_ex_at,
+            tgt_ex[:, dense_ids],
+            rbf_c=float(self.rbf_c),
+            rbf_smoothing=float(self.rbf_smoothing),
+            linear=base_map.linear,
+        )
 
         # sliding: the source material point under each finest-level vertex of the neutral
         neighbour = frame_neighbours(finest_tri, hierarchy.n_vertices(n_levels))
@@ -379,7 +504,9 @@ class NormalMeshRetargeter(Retargeter):
         self.target_base0_ = tgt_pts
         self.base_map_ = base_map
         self.delta_ = float(delta)
-        self.target_coords0_ = [np.column_stack([t, o]) for t, o in zip(tgt_nm.tangent, tgt_nm.offset)]
+        self.target_coords0_ = [
+            np.column_stack([t, o]) for t, o in zip(tgt_nm.tangent, tgt_nm.offset)
+        ]
         keep_initial = self.boundary_motion == "initial"
         self.detail_masks_ = [
             (1.0 if level < n_detail else 0.0)
@@ -432,7 +559,9 @@ class NormalMeshRetargeter(Retargeter):
             return np.asarray(source.head_motion, dtype=np.float64)
         reference = self.source_neutral_[self.head_vertices_]
         motion = estimate_head_motion(reference, stable_frames, self.head_weights_)
-        if self.head_motion == "auto" and not significant_motion(reference, stable_frames, self.head_weights_, motion):
+        if self.head_motion == "auto" and not significant_motion(
+            reference, stable_frames, self.head_weights_, motion
+        ):
             return np.repeat(np.eye(4)[None], len(stable_frames), axis=0)
         return motion
 
@@ -459,26 +588,34 @@ class NormalMeshRetargeter(Retargeter):
         from concurrent.futures import ThreadPoolExecutor
 
         perf = self._check_source(source)
-        motion = self._head_motion(source, np.asarray(perf.vertices[:, self.head_vertices_], dtype=np.float64))
+        motion = self._head_motion(
+            source, np.asarray(perf.vertices[:, self.head_vertices_], dtype=np.float64)
+        )
         target_motion = motion.copy()
         target_motion[:, :3, 3] *= self.unit_ratio_
         n_frames, hier = perf.n_frames, self.hierarchy_
         out = {
             "vertices": np.empty((n_frames, len(self.attachment_.triangle), 3)),
             "base": np.empty((n_frames, hier.n_base, 3)),
-            "normal_mesh": None if level is None else np.empty((n_frames, hier.n_vertices(level), 3)),
+            "normal_mesh": None
+            if level is None
+            else np.empty((n_frames, hier.n_vertices(level), 3)),
             "pierced": np.zeros(n_frames, dtype=np.int64),
             "source_motion": motion,
             "motion": target_motion,
         }
-        chunks = [range(a, min(a + CHUNK_FRAMES, n_frames)) for a in range(0, n_frames, CHUNK_FRAMES)]
+        chunks = [
+            range(a, min(a + CHUNK_FRAMES, n_frames)) for a in range(0, n_frames, CHUNK_FRAMES)
+        ]
         workers = max(1, min(len(chunks), os.cpu_count() or 1))
         if workers == 1:
             for chunk in chunks:
                 self._run_chunk(perf, chunk, level, out)
         else:
             with ThreadPoolExecutor(workers) as pool:
-                for done in [pool.submit(self._run_chunk, perf, chunk, level, out) for chunk in chunks]:
+                for done in [
+                    pool.submit(self._run_chunk, perf, chunk, level, out) for chunk in chunks
+                ]:
                     done.result()
         return out
 
@@ -487,7 +624,12 @@ class NormalMeshRetargeter(Retargeter):
 
         lm, tri, hier = self.source_feature_points_, perf.triangles, self.hierarchy_
         decomposer = FrameDecomposer(
-            self.source_surface_, self.source_normal_mesh_, hier, max_offset=float(self.max_offset), neutral_vertices=self.source_neutral_, repair=self.repair
+            self.source_surface_,
+            self.source_normal_mesh_,
+            hier,
+            max_offset=float(self.max_offset),
+            neutral_vertices=self.source_neutral_,
+            repair=self.repair,
         )
         finest_tri = hier.triangles(hier.levels)
         sliding = self.sliding == "transfer"
@@ -495,26 +637,52 @@ class NormalMeshRetargeter(Retargeter):
         w = self.coverage_[dense][:, None]
         for f in frames:
             rot = np.ascontiguousarray(out["source_motion"][f, :3, :3])
-            local = (np.asarray(perf.vertices[f], dtype=np.float64) - out["source_motion"][f, :3, 3]) @ rot
+            local = (
+                np.asarray(perf.vertices[f], dtype=np.float64) - out["source_motion"][f, :3, 3]
+            ) @ rot
             s_base = lm.positions(local, tri)
-            offsets, out["pierced"][f], positions = decomposer(local, s_base, keep_positions=sliding)
+            offsets, out["pierced"][f], positions = decomposer(
+                local, s_base, keep_positions=sliding
+            )
             t_base = self.target_base0_ + self.base_map_((s_base - self.source_base0_)[None])[0]
             # Eq. 8: TN_k = TN_0 + delta * (SN_k - SN_0), level by level (with tangent parts)
-            coords = [c0 + self.delta_ * m * (sk - s0) for c0, m, sk, s0 in zip(self.target_coords0_, self.detail_masks_, offsets, self.source_offsets0_)]
-            levels = reconstruct(t_base, hier, [c[:, :2] for c in coords], [c[:, 2] for c in coords])
+            coords = [
+                c0 + self.delta_ * m * (sk - s0)
+                for c0, m, sk, s0 in zip(
+                    self.target_coords0_, self.detail_masks_, offsets, self.source_offsets0_
+                )
+            ]
+            levels = reconstruct(
+                t_base, hier, [c[:, :2] for c in coords], [c[:, 2] for c in coords]
+            )
             finest = levels[-1]
             if sliding:
                 y = np.ascontiguousarray(positions[-1])
-                material = np.einsum("pk,pkd->pd", self.slide_barycentric_, local[self.slide_corners_])
+                material = np.einsum(
+                    "pk,pkd->pd", self.slide_barycentric_, local[self.slide_corners_]
+                )
                 y_normals, t_normals = np.empty_like(y), np.empty_like(finest)
                 k.vertex_normals(y, finest_tri, y_normals)
                 k.vertex_normals(finest, finest_tri, t_normals)
                 slid = np.empty_like(finest)
-                k.slide(y, y_normals, material, finest, t_normals, self.frame_neighbours_, self.slide0_, self.delta_, slid)
+                k.slide(
+                    y,
+                    y_normals,
+                    material,
+                    finest,
+                    t_normals,
+                    self.frame_neighbours_,
+                    self.slide0_,
+                    self.delta_,
+                    slid,
+                )
                 finest = slid
             result = carry(self.attachment_, finest)
             if dense.size:
-                moved = np.einsum("pk,pkd->pd", self.dense_barycentric_, local[self.dense_corners_]) - self.dense_source0_
+                moved = (
+                    np.einsum("pk,pkd->pd", self.dense_barycentric_, local[self.dense_corners_])
+                    - self.dense_source0_
+                )
                 fallback = self.target_neutral_[dense] + self.dense_map_.one(moved)
                 result[dense] = w * result[dense] + (1.0 - w) * fallback
             rot_t = np.ascontiguousarray(out["motion"][f, :3, :3].T)
@@ -528,14 +696,22 @@ class NormalMeshRetargeter(Retargeter):
         run = self._run(source)
         diagnostics = dict(self.piercing_errors_)
         diagnostics["source_mean_per_frame"] = float(np.mean(run["pierced"]))
-        diagnostics["source_share_per_frame"] = diagnostics["source_mean_per_frame"] / self.piercing_errors_["normal_mesh_vertices"]
+        diagnostics["source_share_per_frame"] = (
+            diagnostics["source_mean_per_frame"] / self.piercing_errors_["normal_mesh_vertices"]
+        )
         diagnostics["delta"] = self.delta_
         return Animation(
             vertices=run["vertices"],
             head_motion=run["motion"],
             triangles=self.target_.neutral.triangles,
             fps=source.fps,
-            provenance={"diagnostics": {"piercing_errors": diagnostics, "coverage": dict(self.coverage_stats_), "levels": self.levels_}},
+            provenance={
+                "diagnostics": {
+                    "piercing_errors": diagnostics,
+                    "coverage": dict(self.coverage_stats_),
+                    "levels": self.levels_,
+                }
+            },
             extras={
                 "base_triangles": self.base_triangles_,
                 "base_vertices": run["base"],
@@ -552,7 +728,9 @@ class NormalMeshRetargeter(Retargeter):
         if not 0 <= level <= self.hierarchy_.levels:
             raise InputError(f"normalmesh: level must be 0..{self.hierarchy_.levels}, got {level}")
         frames = self._run(source, level)["normal_mesh"]
-        return MeshSequence(frames, self.hierarchy_.triangles(level), fps=source.fps, reference=frames[0])
+        return MeshSequence(
+            frames, self.hierarchy_.triangles(level), fps=source.fps, reference=frames[0]
+        )
 
 
 def _area(points: np.ndarray, triangles: np.ndarray) -> float:
@@ -568,7 +746,9 @@ def _same_landmarks(a: Landmarks, b: Landmarks) -> bool:
     if a.vertex_ids is not None and b.vertex_ids is not None:
         return np.array_equal(a.vertex_ids, b.vertex_ids)
     if a.vertex_ids is None and b.vertex_ids is None:
-        return np.array_equal(a.triangle_ids, b.triangle_ids) and np.array_equal(a.barycentric, b.barycentric)
+        return np.array_equal(a.triangle_ids, b.triangle_ids) and np.array_equal(
+            a.barycentric, b.barycentric
+        )
     return False
 
 
@@ -593,20 +773,28 @@ def local_frames(X: np.ndarray, triangles: np.ndarray, neighbour: np.ndarray) ->
     return out
 
 
-def stable_vertices(neutral: np.ndarray, examples: np.ndarray, count: int = HEAD_VERTICES) -> tuple[np.ndarray, np.ndarray]:
+def stable_vertices(
+    neutral: np.ndarray, examples: np.ndarray, count: int = HEAD_VERTICES
+) -> tuple[np.ndarray, np.ndarray]:
     """The ``count`` source vertices the example poses move least, and their weights.
 
     Weights ``1 / (1 + (d / s)^2)`` of each vertex's largest example displacement ``d``, with
     ``s`` the displacement of the least-moving 20% of the vertices (at least 0.1% of the
     largest displacement), so rigid parts (forehead, temples, nose bridge) dominate the fit.
     """
-    d = np.linalg.norm(examples - neutral, axis=-1).max(axis=0) if len(examples) else np.zeros(len(neutral))
+    d = (
+        np.linalg.norm(examples - neutral, axis=-1).max(axis=0)
+        if len(examples)
+        else np.zeros(len(neutral))
+    )
     ids = np.sort(np.argsort(d, kind="stable")[: min(count, len(neutral))])
     scale = max(float(np.percentile(d, 20)), 1e-3 * float(d.max()), np.finfo(float).tiny)
     return ids, 1.0 / (1.0 + (d[ids] / scale) ** 2)
 
 
-def estimate_head_motion(reference: np.ndarray, frames: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def estimate_head_motion(
+    reference: np.ndarray, frames: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
     """(F, 4, 4) rigid motion of points ``frames (F, N, 3)`` from ``reference (N, 3)``.
 
     Weighted Procrustes, then ``HEAD_REWEIGHTS`` rounds down-weighting points by their residual
@@ -623,7 +811,9 @@ def estimate_head_motion(reference: np.ndarray, frames: np.ndarray, weights: np.
     return to_matrix(rot, trans)
 
 
-def significant_motion(reference: np.ndarray, frames: np.ndarray, weights: np.ndarray, motion: np.ndarray) -> bool:
+def significant_motion(
+    reference: np.ndarray, frames: np.ndarray, weights: np.ndarray, motion: np.ndarray
+) -> bool:
     """Whether the rigid ``motion (F, 4, 4)`` removes more than ``HEAD_SIGNIFICANCE`` of the
     weighted squared motion of ``frames (F, N, 3)`` away from ``reference (N, 3)`` over the
     shot. A source without head motion still gets a small rigid fit of its expressions (on

@@ -5,6 +5,7 @@ paper's per-frame baselines ``spacetime_noconst``, ``spacetime_rangepf`` and
 ``spacetime_priorpf``. Importing this package does not import numba: the kernels compile
 on first use.
 """
+
 from faceretarget.hookspecs import hookimpl
 
 

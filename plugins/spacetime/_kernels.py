@@ -15,6 +15,7 @@ Dense Cholesky and the per-frame bounded least squares ("Range PF") are not here
 the shared kernels of :mod:`faceretarget.geometry._nnls_kernels` (through
 ``geometry.nnls.bounded_lsq_frames`` for the latter).
 """
+
 from __future__ import annotations
 
 import numba as nb
@@ -128,7 +129,30 @@ def tridiagonal_modes(r, lam, known, yk, y, scratch):
 
 
 @nb.njit(cache=True)
-def admm_box(r0, lam, known, yk, phi, phi_t, rho, scale, relax, lo, hi, l1, z, u, w, max_iter, eps_abs, eps_rel, dual_unit, ex, y, scratch):
+def admm_box(
+    r0,
+    lam,
+    known,
+    yk,
+    phi,
+    phi_t,
+    rho,
+    scale,
+    relax,
+    lo,
+    hi,
+    l1,
+    z,
+    u,
+    w,
+    max_iter,
+    eps_abs,
+    eps_rel,
+    dual_unit,
+    ex,
+    y,
+    scratch,
+):
     """ADMM for movement matching with box bounds and an L1 term on the weights.
 
     Minimizes ``1/2 w^T H w - r^T w + sum_j l1_j |w_j|`` subject to ``lo <= w <= hi`` over the unknown
@@ -221,7 +245,21 @@ def _edge_gram(gram, marker_grams, miss_a, miss_b):
 
 
 @nb.njit(cache=True)
-def block_thomas(gram, marker_grams, k0, missing, pos_weights, use_pos, rhs, known, wk, ridge, pivot_rtol, out, coupling):
+def block_thomas(
+    gram,
+    marker_grams,
+    k0,
+    missing,
+    pos_weights,
+    use_pos,
+    rhs,
+    known,
+    wk,
+    ridge,
+    pivot_rtol,
+    out,
+    coupling,
+):
     """Exact block-tridiagonal solve of the movement-matching normal equations.
 
     Parameters
@@ -248,7 +286,9 @@ def block_thomas(gram, marker_grams, k0, missing, pos_weights, use_pos, rhs, kno
     """
     n_frames, m = rhs.shape
     n_markers = marker_grams.shape[0]
-    ext = np.empty((m + 1, m))  # rows: the columns of -A[t, t+1] = -g_next, then the right-hand side
+    ext = np.empty(
+        (m + 1, m)
+    )  # rows: the columns of -A[t, t+1] = -g_next, then the right-hand side
     fac = np.empty((m, m))
     g_prev = np.zeros((m, m))
     for t in range(n_frames):

@@ -8,6 +8,7 @@
   applied to the target's landmark positions on every blendshape, ``b*_ij = d(b_ij)``.
 - :func:`face_size`: the size used to scale ``alpha``.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -73,7 +74,12 @@ def check_spread(points: np.ndarray, what: str) -> None:
         )
 
 
-def warp_blendshapes(target_neutral: np.ndarray, target_deltas: np.ndarray, source_neutral: np.ndarray, kernel: str = "linear"):
+def warp_blendshapes(
+    target_neutral: np.ndarray,
+    target_deltas: np.ndarray,
+    source_neutral: np.ndarray,
+    kernel: str = "linear",
+):
     """Scale-proportion matching (sec. 3.2).
 
     Parameters
@@ -136,7 +142,9 @@ def refine_head_motion(reference, markers, motion, weights, basis, ridge):
     mask = np.repeat(valid, 3, axis=1)
     target = np.where(mask, (local - ref).reshape(n_frames, -1), 0.0)
     centre = ref.mean(axis=0)
-    shape = ref[None] if weights is None else ref + (weights @ basis.T).reshape(n_frames, n_markers, 3)
+    shape = (
+        ref[None] if weights is None else ref + (weights @ basis.T).reshape(n_frames, n_markers, 3)
+    )
     q = np.broadcast_to(shape - centre, (n_frames, n_markers, 3))
     gen = np.zeros((n_frames, n_markers, 3, 6))
     # d(theta x q)/d theta = -[q]_x ; translation: identity
@@ -156,7 +164,11 @@ def refine_head_motion(reference, markers, motion, weights, basis, ridge):
     partial = ~valid.all(axis=1)
     full = ~partial
     factor = scipy.linalg.cho_factor(gram)
-    solved[full] = scipy.linalg.cho_solve(factor, stacked[full].transpose(1, 0, 2).reshape(m, -1)).reshape(m, -1, 7).transpose(1, 0, 2)
+    solved[full] = (
+        scipy.linalg.cho_solve(factor, stacked[full].transpose(1, 0, 2).reshape(m, -1))
+        .reshape(m, -1, 7)
+        .transpose(1, 0, 2)
+    )
     if partial.any():
         rows = basis.reshape(n_markers, 3, m)
         grams = np.einsum("nki,nkj->nij", rows, rows)
@@ -164,7 +176,9 @@ def refine_head_motion(reference, markers, motion, weights, basis, ridge):
         solved[partial] = np.linalg.solve(blocks, stacked[partial])
     x, w0 = solved[..., :6], solved[..., 6]
     schur = rigid_normal - np.matmul(coupling.transpose(0, 2, 1), x)
-    increment = np.linalg.solve(schur, (rhs_r - np.einsum("fmk,fm->fk", x, rhs_w))[..., None])[..., 0]
+    increment = np.linalg.solve(schur, (rhs_r - np.einsum("fmk,fm->fk", x, rhs_w))[..., None])[
+        ..., 0
+    ]
     new_weights = w0 - np.einsum("fmk,fk->fm", x, increment)
     d_rot = Rotation.from_rotvec(increment[:, :3]).as_matrix()
     rot = motion[:, :3, :3]
@@ -176,7 +190,9 @@ def refine_head_motion(reference, markers, motion, weights, basis, ridge):
     return out, new_weights
 
 
-def to_local(motion: np.ndarray | None, markers: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
+def to_local(
+    motion: np.ndarray | None, markers: np.ndarray, reference: np.ndarray | None = None
+) -> np.ndarray:
     """World markers ``(F, N, 3)`` -> neutral-frame coordinates (NaN rows stay NaN); with
     ``reference (N, 3)``, the displacements from it (a new array)."""
     if motion is None:
@@ -204,12 +220,22 @@ class Transfer:
     phi(r) = r kernel has a kink at every centre and markers sit on the centres.
     """
 
-    def __init__(self, how: str, warp=None, scale: float = 1.0, rotation=None, translation=None, angle: float = 0.0):
+    def __init__(
+        self,
+        how: str,
+        warp=None,
+        scale: float = 1.0,
+        rotation=None,
+        translation=None,
+        angle: float = 0.0,
+    ):
         self.how = how
         self.warp = warp
         self.scale = float(scale)
         self.rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
-        self.translation = np.zeros(3) if translation is None else np.asarray(translation, dtype=np.float64)
+        self.translation = (
+            np.zeros(3) if translation is None else np.asarray(translation, dtype=np.float64)
+        )
         self.angle = float(angle)  # degrees, of the fitted similarity's rotation
 
     def points(self, points: np.ndarray) -> np.ndarray:
@@ -228,7 +254,12 @@ class Transfer:
         return self.scale * d @ self.rotation.T
 
 
-def fit_transfer(target_landmarks: np.ndarray, source_landmarks: np.ndarray, how: str = "scale", kernel: str = "linear") -> Transfer:
+def fit_transfer(
+    target_landmarks: np.ndarray,
+    source_landmarks: np.ndarray,
+    how: str = "scale",
+    kernel: str = "linear",
+) -> Transfer:
     """A :class:`Transfer` from corresponding neutral landmarks ``(N, 3)`` of target and source."""
     if how == "rbf":
         return Transfer(how, warp=fit_rbf(target_landmarks, source_landmarks, kernel=kernel))

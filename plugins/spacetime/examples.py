@@ -15,6 +15,7 @@ Pauly 2010, reduced to a linear least-squares problem per row)::
 so a shape is cheap to change where it moves and expensive where it does not. Each row is
 an independent (M, M) system; all are solved in one batched call.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,7 +24,9 @@ import numpy as np
 FLOOR = 0.01
 
 
-def example_weights(target_deltas: np.ndarray, target_displacements: np.ndarray, lower=None, upper=None) -> np.ndarray:
+def example_weights(
+    target_deltas: np.ndarray, target_displacements: np.ndarray, lower=None, upper=None
+) -> np.ndarray:
     """Target weights (E, M) of example displacements (E, V, 3) on deltas (M, V, 3): least
     squares, clipped to the bounds when given (the examples are poses of the rig itself)."""
     d = np.asarray(target_deltas, dtype=np.float64).reshape(len(target_deltas), -1)
@@ -36,7 +39,9 @@ def example_weights(target_deltas: np.ndarray, target_displacements: np.ndarray,
     return w
 
 
-def adapt_basis(basis: np.ndarray, weights: np.ndarray, displacements: np.ndarray, mu: float) -> np.ndarray:
+def adapt_basis(
+    basis: np.ndarray, weights: np.ndarray, displacements: np.ndarray, mu: float
+) -> np.ndarray:
     """The corrected basis ``B'`` (3P, M).
 
     basis : (3P, M) transferred blendshapes at the points (x-y-z interleaved per point)
@@ -48,7 +53,9 @@ def adapt_basis(basis: np.ndarray, weights: np.ndarray, displacements: np.ndarra
     w = np.asarray(weights, dtype=np.float64)
     s = np.asarray(displacements, dtype=np.float64)
     n_rows, m = b.shape
-    motion = np.repeat((b.reshape(-1, 3, m) ** 2).sum(axis=1), 3, axis=0)  # (3P, M) |b_ij|^2 per row
+    motion = np.repeat(
+        (b.reshape(-1, 3, m) ** 2).sum(axis=1), 3, axis=0
+    )  # (3P, M) |b_ij|^2 per row
     typical = motion.mean(axis=0)
     c = 1.0 / (motion / np.where(typical > 0, typical, 1.0) + FLOOR)  # (3P, M)
     gram = w.T @ w  # (M, M), shared by all rows

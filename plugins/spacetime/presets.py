@@ -1,12 +1,20 @@
 """Seol et al. 2012 reproduced for the report: fig. 11, velocity error of the per-frame baselines
 (No Const, Range PF, Prior PF) against movement matching."""
+
 from __future__ import annotations
 
 import numpy as np
 
 from faceretarget.errors import PluginOutputError
 from faceretarget.evaluation.presets import Cases, PresetResult
-from faceretarget.evaluation.reproduction import noisy_markers, num, paper_params, require, run_method, set_verdict
+from faceretarget.evaluation.reproduction import (
+    noisy_markers,
+    num,
+    paper_params,
+    require,
+    run_method,
+    set_verdict,
+)
 from faceretarget.hookspecs import Preset
 
 __all__ = ["PRESETS", "SEOL_PAPER_PARAMS", "seol_params"]
@@ -39,13 +47,19 @@ SEOL_PAPER_PARAMS = {
 SEOL_ALPHA = {"spacetime": 0.01, "spacetime_priorpf": 0.5}
 
 
-_SEOL = (("No Const", "spacetime_noconst"), ("Range PF", "spacetime_rangepf"), ("Prior PF", "spacetime_priorpf"), ("movement matching", "spacetime"))
+_SEOL = (
+    ("No Const", "spacetime_noconst"),
+    ("Range PF", "spacetime_rangepf"),
+    ("Prior PF", "spacetime_priorpf"),
+    ("movement matching", "spacetime"),
+)
 
 
 def seol_params(name: str) -> dict:
     """The paper's parameters of ``spacetime`` / a baseline variant (those the installed version accepts)."""
-    return paper_params(name, {**SEOL_PAPER_PARAMS, "alpha": SEOL_ALPHA.get(name, SEOL_ALPHA["spacetime"])})
-
+    return paper_params(
+        name, {**SEOL_PAPER_PARAMS, "alpha": SEOL_ALPHA.get(name, SEOL_ALPHA["spacetime"])}
+    )
 
 
 def seol_fig11(cases: Cases, res: PresetResult) -> None:
@@ -62,7 +76,9 @@ def seol_fig11(cases: Cases, res: PresetResult) -> None:
         anim = run_method(name, case, source=source, **params)
         diag = anim.provenance.get("diagnostics", {})
         if diag.get("velocity_error") is None:
-            raise PluginOutputError(f"{name} did not report provenance['diagnostics']['velocity_error'] (the paper's fig. 11 measure)")
+            raise PluginOutputError(
+                f"{name} did not report provenance['diagnostics']['velocity_error'] (the paper's fig. 11 measure)"
+            )
         paper[label] = float(diag["velocity_error"])
         inside[label] = diag.get("fraction_in_range")
         curves[label] = landmark_velocity_curve(anim.vertices, case.truth, case.target)
@@ -70,7 +86,9 @@ def seol_fig11(cases: Cases, res: PresetResult) -> None:
             {
                 "method": label,
                 "retargeter": name,
-                "alpha": params.get("alpha") if name in ("spacetime", "spacetime_priorpf") else None,
+                "alpha": params.get("alpha")
+                if name in ("spacetime", "spacetime_priorpf")
+                else None,
                 "paper velocity error (vs source)": paper[label],
                 "added over No Const": paper[label] - paper["No Const"],
                 "velocity error (vs truth)": float(curves[label].sum()),
@@ -78,19 +96,32 @@ def seol_fig11(cases: Cases, res: PresetResult) -> None:
             }
         )
     added = {k: v - paper["No Const"] for k, v in paper.items()}
-    res.plots.append(Plot("(a) sum of velocity errors ||D(BW)^T - DS^T||^2 (paper's measure)", [Series(k, [0], [v]) for k, v in paper.items()], ylabel="sum over frames", kind="bar"))
+    res.plots.append(
+        Plot(
+            "(a) sum of velocity errors ||D(BW)^T - DS^T||^2 (paper's measure)",
+            [Series(k, [0], [v]) for k, v in paper.items()],
+            ylabel="sum over frames",
+            kind="bar",
+        )
+    )
     frames = np.arange(1, len(curves["No Const"]) + 1)
     res.plots.append(
         Plot(
             "(b) velocity error minus No Const's, per frame (against the ground truth)",
-            [Series(k, frames, v - curves["No Const"], dashed=k in ("Range PF", "Prior PF")) for k, v in curves.items() if k != "No Const"],
+            [
+                Series(k, frames, v - curves["No Const"], dashed=k in ("Range PF", "Prior PF"))
+                for k, v in curves.items()
+                if k != "No Const"
+            ],
             xlabel="frame",
             ylabel="delta ||DP - DQ||^2 / H^2",
         )
     )
     binds = inside["No Const"]
-    setting = (f"{source.n_frames} frames, {source.performance.n_markers} markers, noise sigma {num(sigma)}; "
-               f"No Const's weights in [-0.5, 1.5]: {num(100 * binds) if binds is not None else '?'}%")
+    setting = (
+        f"{source.n_frames} frames, {source.performance.n_markers} markers, noise sigma {num(sigma)}; "
+        f"No Const's weights in [-0.5, 1.5]: {num(100 * binds) if binds is not None else '?'}%"
+    )
     if binds is not None and binds >= 1.0:
         res.agrees = None
         res.evidence = f"not decided: the range constraint does not bind on this case ({setting}), so it is not the paper's setting."
@@ -99,8 +130,14 @@ def seol_fig11(cases: Cases, res: PresetResult) -> None:
     set_verdict(
         res,
         [
-            (f"movement matching adds less than Range PF ({num(mm)} vs {num(added['Range PF'])})", mm < added["Range PF"]),
-            (f"movement matching adds less than Prior PF ({num(mm)} vs {num(added['Prior PF'])})", mm < added["Prior PF"]),
+            (
+                f"movement matching adds less than Range PF ({num(mm)} vs {num(added['Range PF'])})",
+                mm < added["Range PF"],
+            ),
+            (
+                f"movement matching adds less than Prior PF ({num(mm)} vs {num(added['Prior PF'])})",
+                mm < added["Prior PF"],
+            ),
         ],
         f"Velocity error added over No Const's {num(paper['No Const'])}; {setting}.",
     )

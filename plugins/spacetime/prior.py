@@ -13,6 +13,7 @@ Scale: ``Q`` and ``q`` are unit-free (eigenvalues scale with the square of the f
 like ``(E^T B w)^2``), whereas the matching term grows with the square of the face size;
 the retargeter therefore scales ``alpha`` with the face size (see ``retargeter``).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -48,7 +49,9 @@ class Prior:
         return np.einsum("fk,fk->f", v, v)
 
 
-def fit_prior(samples: np.ndarray, basis: np.ndarray, neutral: np.ndarray, center: str = "neutral") -> Prior:
+def fit_prior(
+    samples: np.ndarray, basis: np.ndarray, neutral: np.ndarray, center: str = "neutral"
+) -> Prior:
     """PCA prior from face samples.
 
     Parameters
@@ -95,7 +98,9 @@ def fit_prior(samples: np.ndarray, basis: np.ndarray, neutral: np.ndarray, cente
     keep = lam > config.RANK_RTOL * (lam.max() if lam.size else 0.0)
     if not keep.any():
         m = b.shape[1]
-        return Prior(np.zeros((m, m)), np.zeros(m), np.zeros((0, m)), np.zeros(0), np.zeros(0), n_samples)
+        return Prior(
+            np.zeros((m, m)), np.zeros(m), np.zeros((0, m)), np.zeros(0), np.zeros(0), n_samples
+        )
     e = (centred.T @ v[:, keep]) / np.sqrt(sig2[keep])
     inv_sqrt = 1.0 / np.sqrt(lam[keep])
     factor = inv_sqrt[:, None] * (e.T @ b)

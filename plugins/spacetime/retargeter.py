@@ -11,6 +11,7 @@ The per-frame baselines of the paper's comparisons (fig. 7, 9, 11) are the modes
 four are plain subclasses that change only defaults (their ``mode``, the paper's settings
 :data:`PAPER`, and the paper's ``alpha = 0.5`` for ``spacetime_priorpf``).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -19,6 +20,9 @@ from typing import ClassVar
 
 import numpy as np
 
+from faceretarget import manifest, naming
+from faceretarget._threads import blas_single_threaded
+from faceretarget._validate import as_array, short_repr
 from faceretarget.errors import (
     CapabilityError,
     ConfigError,
@@ -29,9 +33,6 @@ from faceretarget.errors import (
     TopologyMismatchError,
     UnknownNameError,
 )
-from faceretarget._threads import blas_single_threaded
-from faceretarget._validate import as_array, short_repr
-from faceretarget import manifest, naming
 from faceretarget.model import Animation, Source, TargetRig
 from faceretarget.retargeter import Capabilities, Retargeter
 from faceretarget.validation import Interval, check_value, validate_params
@@ -39,7 +40,15 @@ from faceretarget.validation import Interval, check_value, validate_params
 from . import calibration
 from .examples import adapt_basis, example_weights
 from .prior import fit_prior
-from .solver import BoundedStats, System, energy_terms, solve_bounded, solve_movement, solve_movement_bounded, solve_per_frame
+from .solver import (
+    BoundedStats,
+    System,
+    energy_terms,
+    solve_bounded,
+    solve_movement,
+    solve_movement_bounded,
+    solve_per_frame,
+)
 
 
 class SpacetimeRetargeter(Retargeter):
@@ -99,7 +108,9 @@ class SpacetimeRetargeter(Retargeter):
     """
 
     name: ClassVar[str] = "spacetime"
-    summary: ClassVar[str] = "match marker velocities with blendshape weights over the whole shot (Poisson in time) under a PCA prior; spacetime editing"
+    summary: ClassVar[str] = (
+        "match marker velocities with blendshape weights over the whole shot (Poisson in time) under a PCA prior; spacetime editing"
+    )
     capabilities: ClassVar[Capabilities] = Capabilities(
         sources=("markers", "mesh"),
         needs=("blendshapes", "landmarks", "source_landmarks"),
@@ -170,10 +181,14 @@ class SpacetimeRetargeter(Retargeter):
         pairs = calibration.pair_markers(source_names, landmarks.names)
         source_neutral = np.asarray(source.marker_reference(), dtype=np.float64)
         if source_neutral.ndim != 2 or source_neutral.shape[1] != 3:
-            raise ShapeError(f"spacetime: needs 3D markers (N, 3); this source's markers are {source_neutral.shape[1:]}")
+            raise ShapeError(
+                f"spacetime: needs 3D markers (N, 3); this source's markers are {source_neutral.shape[1:]}"
+            )
         source_neutral = source_neutral[pairs]
         if not np.isfinite(source_neutral).all():
-            raise NonFiniteError("spacetime: the source's neutral markers contain NaN; give a complete reference pose")
+            raise NonFiniteError(
+                "spacetime: the source's neutral markers contain NaN; give a complete reference pose"
+            )
         tris = rig.neutral.triangles
         target_neutral = landmarks.positions(rig.neutral.vertices, tris)
         calibration.check_spread(source_neutral, "source neutral markers")
@@ -184,7 +199,9 @@ class SpacetimeRetargeter(Retargeter):
         else:
             ids = self.dense_.target_ids
             points, point_deltas = rig.neutral.vertices[ids], rig.deltas[:, ids]
-        self.transfer_ = calibration.fit_transfer(target_neutral, source_neutral, params["transfer"], self.rbf_kernel)
+        self.transfer_ = calibration.fit_transfer(
+            target_neutral, source_neutral, params["transfer"], self.rbf_kernel
+        )
         self.frame_ = calibration.similarity_matrix(target_neutral, source_neutral)
         neutral = self.transfer_.points(points)
         deltas = self.transfer_.deltas(points, point_deltas)
@@ -207,8 +224,14 @@ class SpacetimeRetargeter(Retargeter):
         self.n_points_ = n_points
         self.source_neutral_ = source_neutral
         self.basis_ = basis
-        self.marker_basis_ = basis if self.dense_ is None else (
-            self.transfer_.deltas(target_neutral, landmarks.positions(rig.deltas, tris)).reshape(n_shapes, -1).T
+        self.marker_basis_ = (
+            basis
+            if self.dense_ is None
+            else (
+                self.transfer_.deltas(target_neutral, landmarks.positions(rig.deltas, tris))
+                .reshape(n_shapes, -1)
+                .T
+            )
         )
         self.prior_ = fit_prior(samples, basis, neutral.ravel(), self.prior_center)
         self.face_size_ = calibration.face_size(source_neutral)
@@ -220,7 +243,9 @@ class SpacetimeRetargeter(Retargeter):
         self.system_ = self._system(source.fps if self.mode == "movement" else None)
         self.alpha_effective_ = self.system_.alpha
 
-    def _adapt_to_examples(self, source: Source, target: TargetRig, basis, pairs, points) -> np.ndarray:
+    def _adapt_to_examples(
+        self, source: Source, target: TargetRig, basis, pairs, points
+    ) -> np.ndarray:
         """The basis corrected by the example pose pairs both sides have (see ``examples.py``)."""
         if source.examples is None or target.examples is None:
             return basis
@@ -231,22 +256,35 @@ class SpacetimeRetargeter(Retargeter):
         t_idx = [target.example_names.index(n) for n in common]
         s_idx = [source.example_names.index(n) for n in common]
         bounds = self.resolved_bounds_
-        weights = example_weights(rig.deltas, target.examples[t_idx] - rig.neutral.vertices, *(bounds or (None, None)))
+        weights = example_weights(
+            rig.deltas, target.examples[t_idx] - rig.neutral.vertices, *(bounds or (None, None))
+        )
         if self.dense_ is not None:
             corr = self.dense_.source
-            source_pts = corr.apply(source.examples[s_idx]) - corr.apply(source.performance.reference.vertices)[None]
+            source_pts = (
+                corr.apply(source.examples[s_idx])
+                - corr.apply(source.performance.reference.vertices)[None]
+            )
         elif source.kind == "mesh":
             ref = source.performance.reference.vertices
             tris = source.performance.triangles
-            source_pts = (source.landmarks.positions(source.examples[s_idx], tris) - source.landmarks.positions(ref, tris)[None])[:, pairs]
+            source_pts = (
+                source.landmarks.positions(source.examples[s_idx], tris)
+                - source.landmarks.positions(ref, tris)[None]
+            )[:, pairs]
         else:
             if source.examples.shape[1] != len(source.performance.names):
                 return basis
-            source_pts = source.examples[s_idx][:, pairs] - np.asarray(source.marker_reference())[pairs][None]
+            source_pts = (
+                source.examples[s_idx][:, pairs]
+                - np.asarray(source.marker_reference())[pairs][None]
+            )
         if not np.isfinite(source_pts).all():
             return basis
         self.examples_used_ = tuple(common)
-        return adapt_basis(basis, weights, source_pts.reshape(len(common), -1), self.params_["example_weight"])
+        return adapt_basis(
+            basis, weights, source_pts.reshape(len(common), -1), self.params_["example_weight"]
+        )
 
     def _dense_pairs(self, source: Source, rig, target_landmarks, source_landmarks):
         """Dense target-source pairs for a mesh source (``samples``), or None for landmarks only."""
@@ -263,7 +301,13 @@ class SpacetimeRetargeter(Retargeter):
         from faceretarget.correspond.dense import dense_pairs
 
         reference = source.performance.reference
-        return dense_pairs(rig.neutral, target_landmarks, reference, source_landmarks, max_points=self.params_["max_samples"])
+        return dense_pairs(
+            rig.neutral,
+            target_landmarks,
+            reference,
+            source_landmarks,
+            max_points=self.params_["max_samples"],
+        )
 
     def _resolve_bounds(self, rig):
         """(lower (M,), upper (M,)) weight bounds of the whole-sequence solve, or None (paper)."""
@@ -282,7 +326,9 @@ class SpacetimeRetargeter(Retargeter):
         if arr.shape == (2,):
             arr = np.broadcast_to(arr, (m, 2))
         if arr.shape != (m, 2) or np.isnan(arr).any() or np.any(arr[:, 0] > arr[:, 1]):
-            raise ShapeError(f"spacetime: bounds must be 'rig', None, (lower, upper) or an ({m}, 2) array with lower <= upper, got {short_repr(value)}")
+            raise ShapeError(
+                f"spacetime: bounds must be 'rig', None, (lower, upper) or an ({m}, 2) array with lower <= upper, got {short_repr(value)}"
+            )
         return arr[:, 0].copy(), arr[:, 1].copy()
 
     def _system(self, fps: float | None) -> System:
@@ -299,7 +345,14 @@ class SpacetimeRetargeter(Retargeter):
             # the prior is per frame, the data terms sum over points: same balance with any count
             alpha *= self.n_points_ / self.n_markers_
             prior = self.prior_
-            system = System(self.basis_, alpha * prior.matrix, alpha * prior.vector, beta, self.marker_weights_, alpha=alpha)
+            system = System(
+                self.basis_,
+                alpha * prior.matrix,
+                alpha * prior.vector,
+                beta,
+                self.marker_weights_,
+                alpha=alpha,
+            )
             # per-shape L1 weight relative to the shape's own position term: an isolated shape
             # held still is shrunk by `sparsity` (whatever its size)
             system.l1 = params["sparsity"] * beta * np.diag(system.gram).copy()
@@ -333,9 +386,26 @@ class SpacetimeRetargeter(Retargeter):
                     "give beta > 0 (Sobolev term), or use boundary='per_frame' / 'neutral'"
                 )
         else:
-            _float_array(self.boundary, "boundary", "one of 'per_frame', 'neutral', 'none' or a (2, M) array of weights")
-        keep = ("mode", "alpha", "beta", "scale_alpha", "lower", "upper", "remove_head_motion", "head_motion_refinement",
-                "transfer", "samples", "max_samples", "sparsity", "example_weight")
+            _float_array(
+                self.boundary,
+                "boundary",
+                "one of 'per_frame', 'neutral', 'none' or a (2, M) array of weights",
+            )
+        keep = (
+            "mode",
+            "alpha",
+            "beta",
+            "scale_alpha",
+            "lower",
+            "upper",
+            "remove_head_motion",
+            "head_motion_refinement",
+            "transfer",
+            "samples",
+            "max_samples",
+            "sparsity",
+            "example_weight",
+        )
         self.params_ = {k: p[k] for k in keep}
 
     def _prior_samples(self, rig, landmarks, neutral, basis) -> np.ndarray:
@@ -351,11 +421,14 @@ class SpacetimeRetargeter(Retargeter):
         samples = [neutral.ravel()[None] + basis.T[index]]
         if self.prior_animations is not None:
             anim = _float_array(
-                self.prior_animations, "prior_animations",
+                self.prior_animations,
+                "prior_animations",
                 f"None, (K, {rig.n_shapes}) weights or (K, {rig.neutral.n_vertices}, 3) target vertices",
             )
             if anim.ndim in (2, 3) and not np.isfinite(anim).all():
-                raise NonFiniteError("spacetime: prior_animations contain NaN or infinity; give finite weights or vertices")
+                raise NonFiniteError(
+                    "spacetime: prior_animations contain NaN or infinity; give finite weights or vertices"
+                )
             if anim.ndim == 2 and anim.shape[1] == rig.n_shapes:
                 samples.append(neutral.ravel()[None] + anim @ basis.T)
             elif anim.ndim == 3 and anim.shape[1:] == (rig.neutral.n_vertices, 3):
@@ -397,21 +470,37 @@ class SpacetimeRetargeter(Retargeter):
         if isinstance(mw, Mapping):
             unknown = [k for k in mw if k not in names]
             if unknown:
-                raise TopologyMismatchError(f"spacetime: marker_weights name unknown markers: {', '.join(map(str, unknown[:8]))}")
+                raise TopologyMismatchError(
+                    f"spacetime: marker_weights name unknown markers: {', '.join(map(str, unknown[:8]))}"
+                )
             weight = [Interval(float, 0, None)]
-            out = np.array([check_value(mw.get(n, 0.0), weight, f"marker_weights[{n!r}]", "spacetime") for n in names], dtype=np.float64)
+            out = np.array(
+                [
+                    check_value(mw.get(n, 0.0), weight, f"marker_weights[{n!r}]", "spacetime")
+                    for n in names
+                ],
+                dtype=np.float64,
+            )
             frame = None
         else:
-            arr = _float_array(mw, "marker_weights", f"None, ({n_markers},) or (F, {n_markers}) weights, or {{marker name: weight}}")
+            arr = _float_array(
+                mw,
+                "marker_weights",
+                f"None, ({n_markers},) or (F, {n_markers}) weights, or {{marker name: weight}}",
+            )
             if arr.ndim == 1 and arr.shape[0] == n_markers:
                 out, frame = arr, None
             elif arr.ndim == 2 and arr.shape[1] == n_markers:
                 out, frame = np.ones(n_markers), arr
             else:
-                raise ShapeError(f"spacetime: marker_weights must be ({n_markers},) or (F, {n_markers}), got {arr.shape}")
+                raise ShapeError(
+                    f"spacetime: marker_weights must be ({n_markers},) or (F, {n_markers}), got {arr.shape}"
+                )
         check = out if frame is None else frame
         if not np.isfinite(check).all() or (check < 0).any():
-            raise ConfigError("spacetime: marker_weights must be finite and >= 0 (0 = marker ignored by the Sobolev term)")
+            raise ConfigError(
+                "spacetime: marker_weights must be finite and >= 0 (0 = marker ignored by the Sobolev term)"
+            )
         return out, frame
 
     # ------------------------------------------------------------------------------------
@@ -423,7 +512,9 @@ class SpacetimeRetargeter(Retargeter):
         n_frames = markers.shape[0]
         frame_weights = self.frame_weights_
         if frame_weights is not None and frame_weights.shape[0] != n_frames:
-            raise ShapeError(f"spacetime: marker_weights has {frame_weights.shape[0]} frames but the source has {n_frames}")
+            raise ShapeError(
+                f"spacetime: marker_weights has {frame_weights.shape[0]} frames but the source has {n_frames}"
+            )
         known, known_weights = self._known_frames(n_frames)
         params = self.params_
         if source.head_motion is not None:
@@ -434,7 +525,11 @@ class SpacetimeRetargeter(Retargeter):
             from faceretarget.geometry.head_motion import estimate_head_motion
 
             motion, found = estimate_head_motion(
-                reference, markers, basis=self.marker_basis_, window=max(1, round(source.fps)), return_info=True
+                reference,
+                markers,
+                basis=self.marker_basis_,
+                window=max(1, round(source.fps)),
+                return_info=True,
             )
             how = "estimated" if found.detected else "none detected"
         else:
@@ -443,7 +538,9 @@ class SpacetimeRetargeter(Retargeter):
         if how == "estimated":
             fitted = None
             for _ in range(params["head_motion_refinement"]):
-                motion, fitted = calibration.refine_head_motion(reference, markers, motion, fitted, self.marker_basis_, system.ridge)
+                motion, fitted = calibration.refine_head_motion(
+                    reference, markers, motion, fitted, self.marker_basis_, system.ridge
+                )
         deltas = self._local_deltas(source, motion, markers, reference)
         del markers  # (F, N, 3), not needed past here: the solve's scratch takes its place
         stats = BoundedStats()
@@ -452,7 +549,9 @@ class SpacetimeRetargeter(Retargeter):
         inside = (weights >= params["lower"]) & (weights <= params["upper"])
         lo, hi = self.bounds_ if self.bounds_ is not None else (-np.inf, np.inf)
         diagnostics = {
-            "fraction_outside_bounds": float(np.mean((weights < lo - 1e-9) | (weights > hi + 1e-9))),
+            "fraction_outside_bounds": float(
+                np.mean((weights < lo - 1e-9) | (weights > hi + 1e-9))
+            ),
             "bounds": None if self.bounds_ is None else [float(np.min(lo)), float(np.max(hi))],
             "admm_iterations": stats.iterations,
             "admm_converged": stats.converged,
@@ -469,8 +568,12 @@ class SpacetimeRetargeter(Retargeter):
             "prior_decay_frames": system.decay_frames(),
             "face_size": self.face_size_,
             "head_motion": how,
-            "solver": "per_frame" if self.mode != "movement" else (
-                "structured" if not np.isnan(deltas).any() and frame_weights is None else "block_tridiagonal"
+            "solver": "per_frame"
+            if self.mode != "movement"
+            else (
+                "structured"
+                if not np.isnan(deltas).any() and frame_weights is None
+                else "block_tridiagonal"
             ),
         }
         extras = {}
@@ -494,7 +597,9 @@ class SpacetimeRetargeter(Retargeter):
         if self.dense_ is None:
             return calibration.to_local(motion, markers, reference)
         if source.kind != "mesh":
-            raise CapabilityError("spacetime: this retargeter was fitted to a mesh source (dense samples); retarget a mesh source, or fit with samples='landmarks'")
+            raise CapabilityError(
+                "spacetime: this retargeter was fitted to a mesh source (dense samples); retarget a mesh source, or fit with samples='landmarks'"
+            )
         perf = source.performance
         corr = self.dense_.source
         if perf.n_vertices != corr.n_vertices:
@@ -529,7 +634,9 @@ class SpacetimeRetargeter(Retargeter):
         else:
             out = _float_array(value, name, f"({rig.n_shapes},) weights or {{shape name: weight}}")
             if out.shape != (rig.n_shapes,):
-                raise ShapeError(f"spacetime: {name}: constraint weights must be ({rig.n_shapes},) or {{shape name: weight}}, got {out.shape}")
+                raise ShapeError(
+                    f"spacetime: {name}: constraint weights must be ({rig.n_shapes},) or {{shape name: weight}}, got {out.shape}"
+                )
         if not np.isfinite(out).all():
             raise NonFiniteError(f"spacetime: {name}: constraint weights contain NaN or infinity")
         return out
@@ -550,9 +657,15 @@ class SpacetimeRetargeter(Retargeter):
                     if boundary == "neutral":
                         values[ends] = 0.0
             else:
-                given = _float_array(self.boundary, "boundary", f"one of 'per_frame', 'neutral', 'none' or a (2, {m}) array of weights")
+                given = _float_array(
+                    self.boundary,
+                    "boundary",
+                    f"one of 'per_frame', 'neutral', 'none' or a (2, {m}) array of weights",
+                )
                 if given.shape != (2, m) or not np.isfinite(given).all():
-                    raise ShapeError(f"spacetime: boundary weights must be a finite (2, {m}) array [first, last], got {given.shape}")
+                    raise ShapeError(
+                        f"spacetime: boundary weights must be a finite (2, {m}) array [first, last], got {given.shape}"
+                    )
                 known[ends] = True
                 values[0], values[-1] = given[0], given[1]
         for frame, value in (self.constraints or {}).items():
@@ -561,7 +674,14 @@ class SpacetimeRetargeter(Retargeter):
             values[f] = self._constraint_weights(value, frame)
         return known, values
 
-    def _solve(self, system: System, deltas: np.ndarray, known: np.ndarray, values: np.ndarray, stats: BoundedStats | None = None) -> np.ndarray:
+    def _solve(
+        self,
+        system: System,
+        deltas: np.ndarray,
+        known: np.ndarray,
+        values: np.ndarray,
+        stats: BoundedStats | None = None,
+    ) -> np.ndarray:
         """Weights (F, M) for local marker deltas (F, N, 3); fills per-frame boundary values."""
         if self.mode == "movement":
             todo = known & np.isnan(values[:, 0])
@@ -570,7 +690,9 @@ class SpacetimeRetargeter(Retargeter):
                 if self.bounds_ is None:
                     values[todo] = solve_per_frame(self._system(None), deltas[todo], use_prior=True)
                 else:
-                    values[todo] = solve_bounded(self._system(None), deltas[todo], *self.bounds_, use_prior=True)
+                    values[todo] = solve_bounded(
+                        self._system(None), deltas[todo], *self.bounds_, use_prior=True
+                    )
             return self._solve_movement(system, deltas, known, values, self.frame_weights_, stats)
         if self.mode == "rangepf":
             weights = solve_bounded(system, deltas, self.params_["lower"], self.params_["upper"])
@@ -579,19 +701,33 @@ class SpacetimeRetargeter(Retargeter):
         weights[known] = values[known]
         return weights
 
-    def _solve_movement(self, system, deltas, known, values, frame_weights, stats=None) -> np.ndarray:
+    def _solve_movement(
+        self, system, deltas, known, values, frame_weights, stats=None
+    ) -> np.ndarray:
         """Movement matching, bounded (ADMM) when the retargeter has bounds or an L1 term."""
         if self.bounds_ is None and not np.any(system.l1):
             return solve_movement(system, deltas, known, values, frame_weights)
         m = system.n_shapes
-        lo, hi = self.bounds_ if self.bounds_ is not None else (np.full(m, -np.inf), np.full(m, np.inf))
-        return solve_movement_bounded(system, deltas, known, values, lo, hi, system.l1, frame_weights, stats)
+        lo, hi = (
+            self.bounds_ if self.bounds_ is not None else (np.full(m, -np.inf), np.full(m, np.inf))
+        )
+        return solve_movement_bounded(
+            system, deltas, known, values, lo, hi, system.l1, frame_weights, stats
+        )
 
     def _fingerprint(self) -> list[float]:
         """Numbers identifying the fitted calibration (kept in the Animation; survive saving)."""
         b = self.basis_
         params = self.params_
-        return [float(b.shape[0]), float(b.shape[1]), float(b.sum()), float(np.abs(b).sum()), params["alpha"], float(params["scale_alpha"]), params["beta"]]
+        return [
+            float(b.shape[0]),
+            float(b.shape[1]),
+            float(b.sum()),
+            float(np.abs(b).sum()),
+            params["alpha"],
+            float(params["scale_alpha"]),
+            params["beta"],
+        ]
 
     # ------------------------------------------------------------------------------------
     # spacetime editing (sec. 6)
@@ -618,16 +754,24 @@ class SpacetimeRetargeter(Retargeter):
         """
         self._check_fitted()
         if self.mode != "movement":
-            raise CapabilityError(f"spacetime: edit needs mode='movement' (this retargeter uses mode={self.mode!r})")
+            raise CapabilityError(
+                f"spacetime: edit needs mode='movement' (this retargeter uses mode={self.mode!r})"
+            )
         if frame is None or weights is None:
-            raise InputError("spacetime.edit: give frame= (the edited frame) and weights= (its new weights)")
+            raise InputError(
+                "spacetime.edit: give frame= (the edited frame) and weights= (its new weights)"
+            )
         state = animation.extras.get("spacetime") if isinstance(animation, Animation) else None
         if state is None or animation.weights is None:
-            raise InputError("spacetime.edit: the animation must come from spacetime's retarget() or edit()")
+            raise InputError(
+                "spacetime.edit: the animation must come from spacetime's retarget() or edit()"
+            )
         mine = np.asarray(self._fingerprint())
         theirs = np.asarray(state.get("fingerprint", ()), dtype=np.float64).ravel()
         if theirs.shape != mine.shape or not np.allclose(theirs, mine, rtol=1e-12, atol=0.0):
-            raise InputError("spacetime.edit: this animation was produced by a spacetime retargeter fitted to another rig or calibration")
+            raise InputError(
+                "spacetime.edit: this animation was produced by a spacetime retargeter fitted to another rig or calibration"
+            )
         current = np.array(animation.weights, dtype=np.float64)
         n_frames, m = current.shape
         frames = [_frame_index(f, n_frames) for f in np.atleast_1d(np.asarray(frame, dtype=object))]
@@ -636,13 +780,17 @@ class SpacetimeRetargeter(Retargeter):
             start, stop = 0, n_frames - 1
         else:
             if len(window) != 2:
-                raise ShapeError(f"spacetime.edit: window must be (first, last) frames, got {window!r}")
+                raise ShapeError(
+                    f"spacetime.edit: window must be (first, last) frames, got {window!r}"
+                )
             start, stop = (_frame_index(w, n_frames) for w in window)
             if start > stop:
                 raise InputError(f"spacetime.edit: window start {start} is after its end {stop}")
             outside = [f for f in frames if not start <= f <= stop]
             if outside:
-                raise IndexRangeError(f"spacetime.edit: edited frame(s) {outside} lie outside the window [{start}, {stop}]")
+                raise IndexRangeError(
+                    f"spacetime.edit: edited frame(s) {outside} lie outside the window [{start}, {stop}]"
+                )
         known = np.zeros(n_frames, dtype=bool)
         known[state["known_frames"]] = True
         if window is not None:
@@ -654,11 +802,23 @@ class SpacetimeRetargeter(Retargeter):
         span = slice(start, stop + 1)
         frame_weights = None if self.frame_weights_ is None else self.frame_weights_[span]
         result = current.copy()
-        result[span] = self._solve_movement(self._system(animation.fps), state["deltas"][span], known[span], values[span], frame_weights)
+        result[span] = self._solve_movement(
+            self._system(animation.fps),
+            state["deltas"][span],
+            known[span],
+            values[span],
+            frame_weights,
+        )
         new_state = dict(state, known_frames=np.union1d(state["known_frames"], frames))
         provenance = dict(animation.provenance)
-        provenance["edits"] = list(provenance.get("edits", [])) + [{"frames": frames, "window": [start, stop]}]
-        return animation.replace(weights=result, extras=dict(animation.extras, spacetime=new_state), provenance=provenance)
+        provenance["edits"] = list(provenance.get("edits", [])) + [
+            {"frames": frames, "window": [start, stop]}
+        ]
+        return animation.replace(
+            weights=result,
+            extras=dict(animation.extras, spacetime=new_state),
+            provenance=provenance,
+        )
 
     def _edit_values(self, weights, current: np.ndarray, frames: list[int]) -> np.ndarray:
         m = current.shape[1]
@@ -671,7 +831,9 @@ class SpacetimeRetargeter(Retargeter):
             if out.shape == (m,):
                 out = np.broadcast_to(out, (len(frames), m)).copy()
             if out.shape != (len(frames), m):
-                raise ShapeError(f"spacetime.edit: weights must be ({m},) or ({len(frames)}, {m}), got {out.shape}")
+                raise ShapeError(
+                    f"spacetime.edit: weights must be ({m},) or ({len(frames)}, {m}), got {out.shape}"
+                )
         if not np.isfinite(out).all():
             raise NonFiniteError("spacetime.edit: weights contain NaN or infinity")
         return out
@@ -682,7 +844,9 @@ def _marker_names(source: Source) -> tuple[str, ...]:
     if source.kind == "markers":
         return tuple(source.performance.names)
     if source.landmarks is None:
-        raise CapabilityError("spacetime needs a mesh-sequence source with landmarks (Source(..., landmarks=...)) to sample markers")
+        raise CapabilityError(
+            "spacetime needs a mesh-sequence source with landmarks (Source(..., landmarks=...)) to sample markers"
+        )
     return tuple(source.landmarks.names)
 
 
@@ -691,7 +855,9 @@ def _frame_index(frame, n_frames: int, what: str = "frame") -> int:
         f = int(frame)
         whole = bool(f == frame)
     except (TypeError, ValueError, OverflowError):
-        raise IndexRangeError(f"spacetime: {what} {short_repr(frame)} is not an integer frame index") from None
+        raise IndexRangeError(
+            f"spacetime: {what} {short_repr(frame)} is not an integer frame index"
+        ) from None
     if not whole or not -n_frames <= f < n_frames:
         raise IndexRangeError(
             f"spacetime: {what} {short_repr(frame)} out of range for {n_frames} frames (valid {-n_frames}..{n_frames - 1})"
@@ -727,8 +893,15 @@ _PER_FRAME_CAPABILITIES = dataclasses.replace(SpacetimeRetargeter.capabilities, 
 #: or L1 term, boundary values from per-frame solves, scale-proportion matching by the RBF
 #: warp on the landmarks only. The variants below spell these defaults out in their
 #: signatures (registry.toml repeats them; the registry checks that both agree).
-PAPER = dict(bounds=None, beta=0.0, sparsity=0.0, boundary="per_frame", transfer="rbf", samples="landmarks",
-             example_weight=0.0)
+PAPER = dict(
+    bounds=None,
+    beta=0.0,
+    sparsity=0.0,
+    boundary="per_frame",
+    transfer="rbf",
+    samples="landmarks",
+    example_weight=0.0,
+)
 
 
 def _arguments(local_vars: dict) -> dict:
@@ -746,11 +919,31 @@ class SpacetimePaper(SpacetimeRetargeter):
         "prior_center='mean' for Eq. 3 as printed)"
     )
 
-    def __init__(self, *, mode="movement", alpha=0.01, scale_alpha=True, beta=0.0, marker_weights=None,
-                 prior_shapes=None, prior_animations=None, prior_center="neutral", boundary="per_frame",
-                 constraints=None, remove_head_motion=True, head_motion_refinement=0, rbf_kernel="linear",
-                 lower=-0.5, upper=1.5, bounds=None, sparsity=0.0, transfer="rbf", samples="landmarks",
-                 max_samples=1000, example_weight=0.0):
+    def __init__(
+        self,
+        *,
+        mode="movement",
+        alpha=0.01,
+        scale_alpha=True,
+        beta=0.0,
+        marker_weights=None,
+        prior_shapes=None,
+        prior_animations=None,
+        prior_center="neutral",
+        boundary="per_frame",
+        constraints=None,
+        remove_head_motion=True,
+        head_motion_refinement=0,
+        rbf_kernel="linear",
+        lower=-0.5,
+        upper=1.5,
+        bounds=None,
+        sparsity=0.0,
+        transfer="rbf",
+        samples="landmarks",
+        max_samples=1000,
+        example_weight=0.0,
+    ):
         super().__init__(**_arguments(locals()))
 
 
@@ -763,11 +956,31 @@ class SpacetimeNoconst(SpacetimeRetargeter):
     )
     capabilities: ClassVar[Capabilities] = _PER_FRAME_CAPABILITIES
 
-    def __init__(self, *, mode="noconst", alpha=0.01, scale_alpha=True, beta=0.0, marker_weights=None,
-                 prior_shapes=None, prior_animations=None, prior_center="neutral", boundary="per_frame",
-                 constraints=None, remove_head_motion=True, head_motion_refinement=0, rbf_kernel="linear",
-                 lower=-0.5, upper=1.5, bounds=None, sparsity=0.0, transfer="rbf", samples="landmarks",
-                 max_samples=1000, example_weight=0.0):
+    def __init__(
+        self,
+        *,
+        mode="noconst",
+        alpha=0.01,
+        scale_alpha=True,
+        beta=0.0,
+        marker_weights=None,
+        prior_shapes=None,
+        prior_animations=None,
+        prior_center="neutral",
+        boundary="per_frame",
+        constraints=None,
+        remove_head_motion=True,
+        head_motion_refinement=0,
+        rbf_kernel="linear",
+        lower=-0.5,
+        upper=1.5,
+        bounds=None,
+        sparsity=0.0,
+        transfer="rbf",
+        samples="landmarks",
+        max_samples=1000,
+        example_weight=0.0,
+    ):
         super().__init__(**_arguments(locals()))
 
 
@@ -781,11 +994,31 @@ class SpacetimeRangepf(SpacetimeRetargeter):
     )
     capabilities: ClassVar[Capabilities] = _PER_FRAME_CAPABILITIES
 
-    def __init__(self, *, mode="rangepf", alpha=0.01, scale_alpha=True, beta=0.0, marker_weights=None,
-                 prior_shapes=None, prior_animations=None, prior_center="neutral", boundary="per_frame",
-                 constraints=None, remove_head_motion=True, head_motion_refinement=0, rbf_kernel="linear",
-                 lower=-0.5, upper=1.5, bounds=None, sparsity=0.0, transfer="rbf", samples="landmarks",
-                 max_samples=1000, example_weight=0.0):
+    def __init__(
+        self,
+        *,
+        mode="rangepf",
+        alpha=0.01,
+        scale_alpha=True,
+        beta=0.0,
+        marker_weights=None,
+        prior_shapes=None,
+        prior_animations=None,
+        prior_center="neutral",
+        boundary="per_frame",
+        constraints=None,
+        remove_head_motion=True,
+        head_motion_refinement=0,
+        rbf_kernel="linear",
+        lower=-0.5,
+        upper=1.5,
+        bounds=None,
+        sparsity=0.0,
+        transfer="rbf",
+        samples="landmarks",
+        max_samples=1000,
+        example_weight=0.0,
+    ):
         super().__init__(**_arguments(locals()))
 
 
@@ -793,15 +1026,43 @@ class SpacetimePriorpf(SpacetimeRetargeter):
     """The paper's baseline "Prior PF": ``mode="priorpf"``, ``alpha=0.5`` and the defaults :data:`PAPER`."""
 
     name: ClassVar[str] = "spacetime_priorpf"
-    summary: ClassVar[str] = "Seol et al. 2012 baseline 'Prior PF': per-frame least squares with the PCA prior"
+    summary: ClassVar[str] = (
+        "Seol et al. 2012 baseline 'Prior PF': per-frame least squares with the PCA prior"
+    )
     capabilities: ClassVar[Capabilities] = _PER_FRAME_CAPABILITIES
 
-    def __init__(self, *, mode="priorpf", alpha=0.5, scale_alpha=True, beta=0.0, marker_weights=None,
-                 prior_shapes=None, prior_animations=None, prior_center="neutral", boundary="per_frame",
-                 constraints=None, remove_head_motion=True, head_motion_refinement=0, rbf_kernel="linear",
-                 lower=-0.5, upper=1.5, bounds=None, sparsity=0.0, transfer="rbf", samples="landmarks",
-                 max_samples=1000, example_weight=0.0):
+    def __init__(
+        self,
+        *,
+        mode="priorpf",
+        alpha=0.5,
+        scale_alpha=True,
+        beta=0.0,
+        marker_weights=None,
+        prior_shapes=None,
+        prior_animations=None,
+        prior_center="neutral",
+        boundary="per_frame",
+        constraints=None,
+        remove_head_motion=True,
+        head_motion_refinement=0,
+        rbf_kernel="linear",
+        lower=-0.5,
+        upper=1.5,
+        bounds=None,
+        sparsity=0.0,
+        transfer="rbf",
+        samples="landmarks",
+        max_samples=1000,
+        example_weight=0.0,
+    ):
         super().__init__(**_arguments(locals()))
 
 
-RETARGETERS = [SpacetimeRetargeter, SpacetimePaper, SpacetimeNoconst, SpacetimeRangepf, SpacetimePriorpf]
+RETARGETERS = [
+    SpacetimeRetargeter,
+    SpacetimePaper,
+    SpacetimeNoconst,
+    SpacetimeRangepf,
+    SpacetimePriorpf,
+]

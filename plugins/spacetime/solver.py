@@ -28,6 +28,7 @@ When frames differ (missing markers or per-frame Sobolev weights) the Kronecker 
 is lost; the same normal equations are then solved exactly as a block-tridiagonal system
 (block Thomas, O(F m^3) time, F m^2 memory) over the frames concerned.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -39,6 +40,7 @@ import scipy.linalg
 from faceretarget import config
 from faceretarget._threads import blas_single_threaded
 from faceretarget.errors import DegenerateGeometryError, NumericalError
+
 
 @dataclass
 class System:
@@ -65,7 +67,9 @@ class System:
     _marker_grams: np.ndarray | None = field(default=None, init=False, repr=False)
     _shifted: dict = field(default_factory=dict, init=False, repr=False)
     _sobolev: np.ndarray | None = field(default=None, init=False, repr=False)
-    l1: float | np.ndarray = field(default=0.0, init=False)  # L1 weight(s) of the bounded solve (normal-equation units)
+    l1: float | np.ndarray = field(
+        default=0.0, init=False
+    )  # L1 weight(s) of the bounded solve (normal-equation units)
 
     def __post_init__(self):
         b = np.ascontiguousarray(self.basis, dtype=np.float64)
@@ -146,10 +150,17 @@ class System:
             try:
                 lam, phi = scipy.linalg.eigh(k, mass)
             except (np.linalg.LinAlgError, scipy.linalg.LinAlgError) as exc:
-                raise NumericalError(f"spacetime: generalized eigendecomposition failed ({exc})") from None
+                raise NumericalError(
+                    f"spacetime: generalized eigendecomposition failed ({exc})"
+                ) from None
             if len(cache) > 8:
                 cache.clear()
-            cache[rho] = (np.ascontiguousarray(phi), np.ascontiguousarray(phi.T), np.clip(lam, 0.0, 1.0), mass @ phi)
+            cache[rho] = (
+                np.ascontiguousarray(phi),
+                np.ascontiguousarray(phi.T),
+                np.clip(lam, 0.0, 1.0),
+                mass @ phi,
+            )
         return cache[rho]
 
     @property
@@ -161,7 +172,9 @@ class System:
             try:
                 lam, phi = scipy.linalg.eigh(k, mass)
             except (np.linalg.LinAlgError, scipy.linalg.LinAlgError) as exc:
-                raise NumericalError(f"spacetime: generalized eigendecomposition failed ({exc})") from None
+                raise NumericalError(
+                    f"spacetime: generalized eigendecomposition failed ({exc})"
+                ) from None
             lam = np.clip(lam, 0.0, 1.0)
             p = np.repeat(self.marker_weights, 3)
             bphi = self.basis @ phi
@@ -183,7 +196,13 @@ def flatten_deltas(deltas: np.ndarray) -> np.ndarray:
 
 
 @blas_single_threaded
-def solve_movement(system: System, deltas: np.ndarray, known: np.ndarray, known_weights: np.ndarray, frame_weights: np.ndarray | None = None) -> np.ndarray:
+def solve_movement(
+    system: System,
+    deltas: np.ndarray,
+    known: np.ndarray,
+    known_weights: np.ndarray,
+    frame_weights: np.ndarray | None = None,
+) -> np.ndarray:
     """Movement matching with the prior and Sobolev terms (Eq. 4 + sec. 7.1).
 
     Parameters
@@ -322,7 +341,9 @@ def _normal_rhs(system: System, s: np.ndarray, known: np.ndarray) -> np.ndarray:
     return r_w
 
 
-def _modal_solve(system: System, r_w: np.ndarray, known: np.ndarray, wk: np.ndarray, rho: float) -> np.ndarray:
+def _modal_solve(
+    system: System, r_w: np.ndarray, known: np.ndarray, wk: np.ndarray, rho: float
+) -> np.ndarray:
     """Solve ``(H + rho I) w = r_w`` with known frames fixed, through the shifted eigenpairs."""
     from ._kernels import tridiagonal_modes
 
@@ -347,8 +368,28 @@ def _admm_structured(system, r_w, known, wk, lo, hi, l1, z, u, stats) -> None:
         yk = wk @ mass_phi
         chunk = min(ADMM_CHUNK, ADMM_MAX_ITER - done)
         it, primal, dual, eps_p, eps_d = admm_box(
-            r0, lam, known, yk, phi, phi_t, rho, scale, ADMM_RELAX, lo, hi, l1, z, u, work[0], chunk,
-            ADMM_EPS_ABS, ADMM_EPS_REL, unit, work[1], work[2], work[3],
+            r0,
+            lam,
+            known,
+            yk,
+            phi,
+            phi_t,
+            rho,
+            scale,
+            ADMM_RELAX,
+            lo,
+            hi,
+            l1,
+            z,
+            u,
+            work[0],
+            chunk,
+            ADMM_EPS_ABS,
+            ADMM_EPS_REL,
+            unit,
+            work[1],
+            work[2],
+            work[3],
         )
         done += abs(it)
         stats.iterations, stats.rho, stats.primal, stats.dual = done, rho, primal, dual
@@ -386,7 +427,9 @@ def _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, l1, z, u
         dual = rho * float(np.linalg.norm((scale * (znew - z))[free]))
         z[free] = znew[free]
         root = np.sqrt(max(free.sum() * m, 1))
-        eps_p = ADMM_EPS_ABS * root + ADMM_EPS_REL * max(np.linalg.norm(w[free]), np.linalg.norm(z[free]))
+        eps_p = ADMM_EPS_ABS * root + ADMM_EPS_REL * max(
+            np.linalg.norm(w[free]), np.linalg.norm(z[free])
+        )
         eps_d = ADMM_EPS_ABS * root * unit + ADMM_EPS_REL * rho * np.linalg.norm((scale * u)[free])
         stats.iterations, stats.rho, stats.primal, stats.dual = done, rho, primal, dual
         if primal <= eps_p and dual <= eps_d:
@@ -397,11 +440,15 @@ def _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, l1, z, u
             if new != rho:
                 u *= rho / new
                 rho = new
-                shifted = dataclasses.replace(system, prior_matrix=system.prior_matrix + rho * np.diag(scale))
+                shifted = dataclasses.replace(
+                    system, prior_matrix=system.prior_matrix + rho * np.diag(scale)
+                )
     stats.converged = False
 
 
-def _solve_structured(system: System, s: np.ndarray, known: np.ndarray, wk: np.ndarray) -> np.ndarray:
+def _solve_structured(
+    system: System, s: np.ndarray, known: np.ndarray, wk: np.ndarray
+) -> np.ndarray:
     from ._kernels import modal_sweep
 
     phi_t, lam, bphi, pbphi, c0, mass_phi = system.modal
@@ -452,7 +499,9 @@ def _solve_general(system, s, missing, known, wk, frame_weights, prior_vector=No
         coupling,
     )
     if not ok or not np.isfinite(out).all():
-        raise NumericalError("spacetime: the block-tridiagonal solve met a singular frame block (no markers and no prior?)")
+        raise NumericalError(
+            "spacetime: the block-tridiagonal solve met a singular frame block (no markers and no prior?)"
+        )
     return out
 
 
@@ -504,7 +553,14 @@ def _factor(mat: np.ndarray, ridge: float):
     raise NumericalError("spacetime: a per-frame system is singular even after regularization")
 
 
-def solve_bounded(system: System, deltas: np.ndarray, lower: np.ndarray, upper: np.ndarray, *, use_prior: bool = False) -> np.ndarray:
+def solve_bounded(
+    system: System,
+    deltas: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    *,
+    use_prior: bool = False,
+) -> np.ndarray:
     """Per-frame bounded least squares "Range PF": ``min ||B w - s_t||^2, lower <= w <= upper``
     (plus the prior with ``use_prior``: the boundary values of bounded movement matching).
 
@@ -522,8 +578,15 @@ def solve_bounded(system: System, deltas: np.ndarray, lower: np.ndarray, upper: 
         rhs += system.prior_vector
     gram = system.gram + (system.position_matrix if use_prior else system.ridge_matrix)
     try:
-        return bounded_lsq_frames(gram, rhs, lower, upper, dropped=missing, block_grams=system.marker_grams,
-                                  ridge=system.ridge)
+        return bounded_lsq_frames(
+            gram,
+            rhs,
+            lower,
+            upper,
+            dropped=missing,
+            block_grams=system.marker_grams,
+            ridge=system.ridge,
+        )
     except NumericalError as exc:
         raise NumericalError(
             f"spacetime: the bounded per-frame solve failed ({exc}); check for (near-)duplicate blendshapes"
@@ -557,7 +620,9 @@ def energy_terms(system: System, deltas: np.ndarray, weights: np.ndarray) -> dic
         else:
             resid -= np.where(valid, s[sl], 0.0)
             resid[~valid] = 0.0
-        position[start : sl.stop] = np.einsum("fk,fk->f", resid[start - first :], resid[start - first :])
+        position[start : sl.stop] = np.einsum(
+            "fk,fk->f", resid[start - first :], resid[start - first :]
+        )
         dv = resid[1:] - resid[:-1]
         dv *= valid[1:] & valid[:-1]
         velocity[first + 1 : sl.stop] = np.einsum("fk,fk->f", dv, dv)

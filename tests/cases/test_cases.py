@@ -1,4 +1,5 @@
 """Evaluation cases: ground truth, determinism, rig parts, topology and semantics."""
+
 import numpy as np
 import pytest
 
@@ -19,7 +20,9 @@ def ict_case():
 
 def _rigid_apply(motion, points):
     """Head motion applied frame by frame (independent of model.apply_head_motion)."""
-    return np.stack([points[f] @ motion[f, :3, :3].T + motion[f, :3, 3] for f in range(len(motion))])
+    return np.stack(
+        [points[f] @ motion[f, :3, :3].T + motion[f, :3, 3] for f in range(len(motion))]
+    )
 
 
 def _check_truth(case):
@@ -30,7 +33,9 @@ def _check_truth(case):
     np.testing.assert_allclose(case.truth.local_vertices, local, atol=1e-9)
     src = case.source.rig
     src_local = np.stack([src.neutral.vertices + np.tensordot(wf, src.deltas, axes=1) for wf in w])
-    np.testing.assert_allclose(case.source.performance.vertices, _rigid_apply(motion, src_local), atol=1e-9)
+    np.testing.assert_allclose(
+        case.source.performance.vertices, _rigid_apply(motion, src_local), atol=1e-9
+    )
     assert case.truth.weight_names == rig.names
     assert case.meta["weight_names"] == src.names == rig.names
 
@@ -47,8 +52,12 @@ def _check_layers_exact(case):
     tl, al = case.target.layers, case.source.actor_layers
     ids = case.source.landmarks.vertex_ids
     for layer, poses in tl.layers.items():
-        np.testing.assert_allclose(poses, case.target.blendshapes.evaluate(layer_w[layer]), atol=1e-9)
-        np.testing.assert_allclose(al.layers[layer], case.source.rig.evaluate(layer_w[layer])[:, ids], atol=1e-9)
+        np.testing.assert_allclose(
+            poses, case.target.blendshapes.evaluate(layer_w[layer]), atol=1e-9
+        )
+        np.testing.assert_allclose(
+            al.layers[layer], case.source.rig.evaluate(layer_w[layer])[:, ids], atol=1e-9
+        )
     for masks in (tl.masks, al.masks):
         assert (masks >= 0).all()
         np.testing.assert_allclose(masks.sum(axis=0), 1.0, atol=1e-9)
@@ -100,7 +109,11 @@ def test_every_part_is_present_and_paired(synth):
     assert len(src.landmarks) == len(tgt.landmarks) == 54
     assert src.landmarks.names == tgt.landmarks.names
     assert src.marker_positions().shape == (synth.source.n_frames, 54, 3)
-    assert set(src.feature_lines) == set(tgt.feature_lines) == {"eye_L", "eye_R", "mouth_inner", "mouth_outer"}
+    assert (
+        set(src.feature_lines)
+        == set(tgt.feature_lines)
+        == {"eye_L", "eye_R", "mouth_inner", "mouth_outer"}
+    )
     assert src.example_names == tgt.example_names and len(src.example_names) == 7
     assert src.examples.shape == (7, src.performance.n_vertices, 3)
     assert tgt.examples.shape == (7, tgt.neutral.n_vertices, 3)
@@ -122,8 +135,10 @@ def _loop_is_closed_chain(mesh, loop):
 
 def test_holes_at_eyes_and_mouth(synth, ict_case):
     for case in (synth, ict_case):
-        for mesh, lines in ((case.source.performance.reference, case.source.feature_lines),
-                            (case.target.neutral, case.target.feature_lines)):
+        for mesh, lines in (
+            (case.source.performance.reference, case.source.feature_lines),
+            (case.target.neutral, case.target.feature_lines),
+        ):
             boundary = set(mesh.boundary_vertices.tolist())
             for k in ("eye_L", "eye_R", "mouth_inner"):
                 loop = lines[k]
@@ -138,10 +153,15 @@ def test_holes_at_eyes_and_mouth(synth, ict_case):
 
 def test_shapes_mean_the_same_on_both_rigs(synth):
     ids = dict(zip(synth.target.landmarks.names, range(54)))
-    for rig, lm in ((synth.source.rig, synth.source.landmarks), (synth.target.blendshapes, synth.target.landmarks)):
-        def moved(shape, marker):
+    for rig, lm in (
+        (synth.source.rig, synth.source.landmarks),
+        (synth.target.blendshapes, synth.target.landmarks),
+    ):
+
+        def moved(shape, marker, lm=lm, rig=rig):
             d = rig.deltas[rig.index(shape)]
             return d[lm.vertex_ids[ids[marker]]]
+
         height = rig.neutral.height
         assert moved("jawOpen", "chin")[1] < -0.05 * height
         assert abs(moved("jawOpen", "forehead_C")).max() < 1e-3 * height
@@ -175,17 +195,32 @@ def test_stylized_target_has_larger_eyes_and_a_snout():
         assert v[case.target.landmarks.vertex_ids[tip], 2] > factor * np.median(v[:, 2])
     zs = styl.target.neutral.vertices[styl.target.landmarks.vertex_ids[tip], 2]
     zh = human.target.neutral.vertices[human.target.landmarks.vertex_ids[tip], 2]
-    assert zs - np.median(styl.target.neutral.vertices[:, 2]) > zh - np.median(human.target.neutral.vertices[:, 2])
+    assert zs - np.median(styl.target.neutral.vertices[:, 2]) > zh - np.median(
+        human.target.neutral.vertices[:, 2]
+    )
 
 
 def test_head_motion_is_rigid_smooth_and_starts_at_identity(synth):
     h = synth.meta["head_motion"]
     np.testing.assert_allclose(h[0], np.eye(4), atol=1e-12)
     rot = h[:, :3, :3]
-    np.testing.assert_allclose(rot @ rot.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rot.shape), atol=1e-12)
+    np.testing.assert_allclose(
+        rot @ rot.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rot.shape), atol=1e-12
+    )
     angle = np.degrees(np.arccos(np.clip((np.trace(rot, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     assert 2.0 < angle.max() < 20.0
-    assert np.degrees(np.arccos(np.clip((np.trace(rot[1:] @ rot[:-1].transpose(0, 2, 1), axis1=1, axis2=2) - 1) / 2, -1, 1))).max() < 2.0
+    assert (
+        np.degrees(
+            np.arccos(
+                np.clip(
+                    (np.trace(rot[1:] @ rot[:-1].transpose(0, 2, 1), axis1=1, axis2=2) - 1) / 2,
+                    -1,
+                    1,
+                )
+            )
+        ).max()
+        < 2.0
+    )
     still = cases.synthetic(resolution=400, n_frames=10, head_motion=False)
     np.testing.assert_array_equal(still.meta["head_motion"], np.tile(np.eye(4), (10, 1, 1)))
 
@@ -193,14 +228,20 @@ def test_head_motion_is_rigid_smooth_and_starts_at_identity(synth):
 def test_wrinkles_are_high_frequency_normal_offsets():
     smooth = cases.synthetic(resolution=6000, n_frames=2, wrinkles=False)
     wrinkled = cases.synthetic(resolution=6000, n_frames=2, wrinkles=True)
-    for a, b in ((smooth.source.rig, wrinkled.source.rig), (smooth.target.blendshapes, wrinkled.target.blendshapes)):
+    for a, b in (
+        (smooth.source.rig, wrinkled.source.rig),
+        (smooth.target.blendshapes, wrinkled.target.blendshapes),
+    ):
         k = a.index("browInnerUp")
         diff = b.deltas[k] - a.deltas[k]
         normals = a.neutral.vertex_normals
         along = np.einsum("vi,vi->v", diff, normals)
         assert np.abs(along).max() > 0.002 * a.neutral.height
         # offsets lie along the (analytic) surface normal
-        assert np.linalg.norm(diff - along[:, None] * normals, axis=1).max() < 0.1 * np.abs(along).max()
+        assert (
+            np.linalg.norm(diff - along[:, None] * normals, axis=1).max()
+            < 0.1 * np.abs(along).max()
+        )
         # high frequency: the field changes sign many times along the forehead
         fore = np.abs(along) > 0.3 * np.abs(along).max()
         assert fore.sum() > 20

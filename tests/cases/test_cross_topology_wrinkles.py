@@ -1,5 +1,6 @@
 """``cases.cross_topology(wrinkles=True)``: a denser source of another topology whose wrinkles
 reach the truth through the case's exact correspondence, defined without any method."""
+
 import numpy as np
 import pytest
 
@@ -20,8 +21,10 @@ FRAMES = 40
 
 @pytest.fixture(scope="module")
 def pair():
-    return (cases.cross_topology(n_frames=FRAMES, wrinkles=True),
-            cases.cross_topology(n_frames=FRAMES, wrinkles=False, source_subdivisions=1))
+    return (
+        cases.cross_topology(n_frames=FRAMES, wrinkles=True),
+        cases.cross_topology(n_frames=FRAMES, wrinkles=False, source_subdivisions=1),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -43,11 +46,22 @@ def test_subdivided_source_is_the_same_surface_and_motion(pair, plain):
     surface points and the truth are those of the default case."""
     _, twin = pair
     ref = _source(twin).reference
-    assert ref.n_vertices == 9313 and len(ref.triangles) == 4 * len(_source(plain).reference.triangles)
+    assert ref.n_vertices == 9313 and len(ref.triangles) == 4 * len(
+        _source(plain).reference.triangles
+    )
     n = _source(plain).reference.n_vertices
-    np.testing.assert_allclose(np.asarray(_source(twin).vertices)[:, :n], np.asarray(_source(plain).vertices), atol=1e-9)
-    np.testing.assert_allclose(np.asarray(twin.truth.vertices), np.asarray(plain.truth.vertices), atol=1e-12)
-    at = [c.source.landmarks.positions(c.source.performance.reference.vertices, c.source.performance.reference.triangles) for c in (twin, plain)]
+    np.testing.assert_allclose(
+        np.asarray(_source(twin).vertices)[:, :n], np.asarray(_source(plain).vertices), atol=1e-9
+    )
+    np.testing.assert_allclose(
+        np.asarray(twin.truth.vertices), np.asarray(plain.truth.vertices), atol=1e-12
+    )
+    at = [
+        c.source.landmarks.positions(
+            c.source.performance.reference.vertices, c.source.performance.reference.triangles
+        )
+        for c in (twin, plain)
+    ]
     np.testing.assert_allclose(at[0], at[1], atol=1e-9)
     # the construction stays exact: source = W @ (identity + blinks) + offset, W interpolated
     W, W0 = twin.meta["source_weights"], plain.meta["source_weights"]
@@ -66,10 +80,14 @@ def test_landmarks_move_into_the_right_child_triangle():
     new_ids, new_bary = _subdivided_landmarks(ids, bary)
     assert (new_bary >= -1e-12).all() and np.allclose(new_bary.sum(axis=1), 1.0)
     want = np.einsum("pk,pkd->pd", bary, v[tri[ids]])
-    np.testing.assert_allclose(np.einsum("pk,pkd->pd", new_bary, fine[children[new_ids]]), want, atol=1e-12)
+    np.testing.assert_allclose(
+        np.einsum("pk,pkd->pd", new_bary, fine[children[new_ids]]), want, atol=1e-12
+    )
     # children keep the parent's orientation
     n_parent = np.cross(v[tri[:, 1]] - v[tri[:, 0]], v[tri[:, 2]] - v[tri[:, 0]])
-    n_child = np.cross(fine[children[:, 1]] - fine[children[:, 0]], fine[children[:, 2]] - fine[children[:, 0]])
+    n_child = np.cross(
+        fine[children[:, 1]] - fine[children[:, 0]], fine[children[:, 2]] - fine[children[:, 0]]
+    )
     assert (np.einsum("td,td->t", np.repeat(n_parent, 4, axis=0), n_child) > 0).all()
 
 
@@ -85,18 +103,31 @@ def test_one_wrinkle_field_through_the_exact_correspondence(pair):
     s_ref, t_ref = case.source.rig.neutral, case.target.neutral
     s_fields = _cross_topology_wrinkle_fields(W @ generic, names)
     t_fields = _cross_topology_wrinkle_fields(generic, names)
-    assert set(s_fields) == {"browDown_L", "browDown_R", "mouthPress_L", "mouthPress_R", "mouthPucker"}
+    assert set(s_fields) == {
+        "browDown_L",
+        "browDown_R",
+        "mouthPress_L",
+        "mouthPress_R",
+        "mouthPucker",
+    }
     s_depth = sum(np.outer(w[:, names.index(k)], f * (region == 0)) for k, f in s_fields.items())
     t_depth = sum(np.outer(w[:, names.index(k)], f) for k, f in t_fields.items())
-    got_s = np.asarray(case.source.performance.vertices) - np.asarray(twin.source.performance.vertices)
-    np.testing.assert_allclose(got_s, s_depth[:, :, None] * vertex_normals(s_ref.vertices, s_ref.triangles), atol=1e-9)
+    got_s = np.asarray(case.source.performance.vertices) - np.asarray(
+        twin.source.performance.vertices
+    )
+    np.testing.assert_allclose(
+        got_s, s_depth[:, :, None] * vertex_normals(s_ref.vertices, s_ref.triangles), atol=1e-9
+    )
     got_t = np.asarray(case.truth.vertices) - np.asarray(twin.truth.vertices)
     t_normals = vertex_normals(t_ref.vertices, t_ref.triangles)
     ratio = float(np.sum(got_t * t_normals[None] * t_depth[:, :, None]) / np.sum(t_depth**2))
     np.testing.assert_allclose(got_t, ratio * t_depth[:, :, None] * t_normals, atol=1e-9)
     assert 1.1 < ratio < 1.2, ratio  # the target identity is larger: RMS spread ratio 1.14
     # the field is not a method's output: the same material point gives the same depth
-    np.testing.assert_allclose(_cross_topology_wrinkle_fields(generic[:50], names)["mouthPucker"], t_fields["mouthPucker"][:50])
+    np.testing.assert_allclose(
+        _cross_topology_wrinkle_fields(generic[:50], names)["mouthPucker"],
+        t_fields["mouthPucker"][:50],
+    )
 
 
 def test_wrinkles_are_active_and_resolved(pair):
@@ -105,19 +136,33 @@ def test_wrinkles_are_active_and_resolved(pair):
     the source in every window, and at least 3.5 on the target."""
     case, twin = pair
     height = float(case.target.neutral.height)
-    d = normal_detail(np.asarray(case.truth.vertices) - np.asarray(twin.truth.vertices), case.target.neutral.triangles,
-                      np.asarray(case.target.neutral.vertices))
+    d = normal_detail(
+        np.asarray(case.truth.vertices) - np.asarray(twin.truth.vertices),
+        case.target.neutral.triangles,
+        np.asarray(case.target.neutral.vertices),
+    )
     assert 100.0 * np.sqrt(np.mean(d**2)) / height > 1e-3  # % of the face height; measured 0.004
     generic = _load_ict_fixture()["neutral"]
     names = list(case.meta["weight_names"])
     W = case.meta["source_weights"]
-    for mesh, material, least in ((case.source.rig.neutral, W @ generic, 4.0), (case.target.neutral, generic, 3.5)):
+    for mesh, material, least in (
+        (case.source.rig.neutral, W @ generic, 4.0),
+        (case.target.neutral, generic, 3.5),
+    ):
         edges = unique_edges(np.asarray(mesh.triangles))
         length = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1)
         for name, field in _cross_topology_wrinkle_fields(material, names).items():
             window = np.abs(field) > 0.3 * np.abs(field).max()
-            assert CROSS_TOPOLOGY_WRINKLE_WAVELENGTH / np.median(length[window[edges[:, 0]]]) >= least, name
-        assert np.mean(case.meta["weights"][:, [names.index(n) for n in ("browDown_L", "mouthPress_L")]] > 0.2) > 0.3
+            assert (
+                CROSS_TOPOLOGY_WRINKLE_WAVELENGTH / np.median(length[window[edges[:, 0]]]) >= least
+            ), name
+        assert (
+            np.mean(
+                case.meta["weights"][:, [names.index(n) for n in ("browDown_L", "mouthPress_L")]]
+                > 0.2
+            )
+            > 0.3
+        )
 
 
 def test_arguments(pair):

@@ -1,4 +1,5 @@
 """Expression recipes: ARKit name normalization, resolution onto rigs, reporting of unmapped names."""
+
 import itertools
 import warnings
 
@@ -39,21 +40,40 @@ def test_recipes_use_arkit_names_and_stay_in_range():
             assert shape in recipes.ARKIT_NAMES and shape in recipes.RECIPE_SHAPES, (name, shape)
             assert 0.0 < w <= 1.0
     # an emotion, a viseme and a blink together never push a shape past 1
-    for e, v, b in itertools.product(recipes.EMOTIONS.values(), recipes.VISEMES.values(), recipes.BLINKS.values()):
+    for e, v, b in itertools.product(
+        recipes.EMOTIONS.values(), recipes.VISEMES.values(), recipes.BLINKS.values()
+    ):
         total = {}
         for r in (e, v, b):
             for k, w in r.items():
                 total[k] = total.get(k, 0.0) + w
         assert max(total.values(), default=0.0) <= 1.0 + 1e-12
     assert list(recipes.VISEMES)[0] == "MBP" and len(recipes.VISEMES) >= 10
-    assert {"happiness", "sadness", "anger", "surprise", "fear", "disgust", "contempt", "neutral"} <= set(recipes.EMOTIONS)
+    assert {
+        "happiness",
+        "sadness",
+        "anger",
+        "surprise",
+        "fear",
+        "disgust",
+        "contempt",
+        "neutral",
+    } <= set(recipes.EMOTIONS)
     assert recipes.EMOTIONS["neutral"] == {} and recipes.BLINKS["open"] == {}
     # FACS: happiness = cheek raiser (AU6) + lip corner puller (AU12)
     assert {"cheekSquintLeft", "mouthSmileLeft"} <= set(recipes.EMOTIONS["happiness"])
 
 
 def test_resolve_on_ict_style_names():
-    names = ["browInnerUp_L", "browInnerUp_R", "mouthSmile_L", "mouthSmile_R", "jawOpen", "eyeBlink_L", "eyeBlink_R"]
+    names = [
+        "browInnerUp_L",
+        "browInnerUp_R",
+        "mouthSmile_L",
+        "mouthSmile_R",
+        "jawOpen",
+        "eyeBlink_L",
+        "eyeBlink_R",
+    ]
     w = recipes.resolve({"browInnerUp": 0.7, "mouthSmileLeft": 0.8, "jawOpen": 0.3}, names)
     np.testing.assert_allclose(w, [0.7, 0.7, 0.8, 0.0, 0.3, 0.0, 0.0])
     closed = recipes.resolve(recipes.BLINKS["closed"], names)
@@ -61,7 +81,10 @@ def test_resolve_on_ict_style_names():
 
 
 def test_resolve_onto_merged_shapes_and_case_variants():
-    w = recipes.resolve({"mouthSmileLeft": 0.8, "mouthSmileRight": 0.6, "EyeBlinkLeft": 1.0}, ["mouthSmile", "eye_blink_left"])
+    w = recipes.resolve(
+        {"mouthSmileLeft": 0.8, "mouthSmileRight": 0.6, "EyeBlinkLeft": 1.0},
+        ["mouthSmile", "eye_blink_left"],
+    )
     np.testing.assert_allclose(w, [0.7, 1.0])
 
 

@@ -1,4 +1,5 @@
 """Greedy basis selection and non-negative weights (eq. 6-8)."""
+
 import numpy as np
 
 from faceretarget.plugins.coating.bases import BasisSpace, blend, select_bases

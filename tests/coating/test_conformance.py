@@ -1,4 +1,5 @@
 """Both retargeters of the coating plugin pass the conformance kit."""
+
 from faceretarget.plugins.coating.retargeter import CoatingRetargeter, DeformationTransferRetargeter
 from faceretarget.testing import parametrize_with_checks
 

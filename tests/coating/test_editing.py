@@ -1,4 +1,5 @@
 """Spacetime editing of coating results: large-scale (bases / weights) and fine-scale details."""
+
 import numpy as np
 import pytest
 from naive.coating import bases_edit as naive_bases_edit
@@ -13,7 +14,13 @@ from faceretarget.errors import ConfigError, IndexRangeError, InputError, NonFin
 from faceretarget.geometry.deformation_gradients import DeformationTransfer
 from faceretarget.plugins.coating import DetailEdit
 from faceretarget.plugins.coating.details import active_range, propagate, select_region
-from faceretarget.plugins.coating.editing import Constraint, Influence, _knot_change, solve_bases, solve_weights
+from faceretarget.plugins.coating.editing import (
+    Constraint,
+    Influence,
+    _knot_change,
+    solve_bases,
+    solve_weights,
+)
 from faceretarget.plugins.coating.retargeter import CoatingRetargeter
 
 HALF = 25
@@ -25,7 +32,9 @@ def setup():
     """The performance played twice: frame t and t + HALF show the same expression."""
     case = fr.cases.synthetic(seed=2, resolution=900, n_frames=HALF)
     perf = case.source.performance
-    twice = fr.MeshSequence(np.concatenate([perf.vertices, perf.vertices]), perf.triangles, reference=perf.reference)
+    twice = fr.MeshSequence(
+        np.concatenate([perf.vertices, perf.vertices]), perf.triangles, reference=perf.reference
+    )
     source = fr.Source(twice, feature_lines=case.source.feature_lines)
     r = CoatingRetargeter().fit(source, case.target)
     anim = r.retarget(source)
@@ -36,7 +45,9 @@ def setup():
 
 def _edit_frame(anim):
     w = anim.extras["weights"]
-    return int(np.argmax(np.abs(w[5:20, 1:]).sum(axis=1))) + 5  # an expressive frame of the first half
+    return (
+        int(np.argmax(np.abs(w[5:20, 1:]).sum(axis=1))) + 5
+    )  # an expressive frame of the first half
 
 
 def test_bases_mode_meets_the_constraint_and_reaches_similar_expressions(setup):
@@ -78,7 +89,9 @@ def test_both_mode_and_distance_and_fixed(setup):
     h = case.target.neutral.height
     goal = anim.vertices[t, v] + np.array([0.01 * h, 0.01 * h, 0.0])
     out = r.edit(anim, points=[(t, v, goal)], mode="both")
-    assert np.linalg.norm(out.vertices[t, v] - goal) < 0.05 * np.linalg.norm(goal - anim.vertices[t, v])
+    assert np.linalg.norm(out.vertices[t, v] - goal) < 0.05 * np.linalg.norm(
+        goal - anim.vertices[t, v]
+    )
     # distance constraint between the lip corners
     names = list(case.target.landmarks.names)
     other = int(case.target.landmarks.vertex_ids[names.index("mouth_corner_R")])
@@ -110,7 +123,9 @@ def test_edits_chain_and_keep_the_input(setup):
     once = r.edit(anim, points=[(t, v, goal)], mode="bases")
     twice = r.edit(once, points=[(t + 5, v, once.vertices[t + 5, v])], mode="bases")
     np.testing.assert_array_equal(anim.vertices, before)
-    assert np.linalg.norm(twice.vertices[t, v] - goal) < 0.1 * 0.01 * case.target.neutral.height * np.sqrt(3)
+    assert np.linalg.norm(
+        twice.vertices[t, v] - goal
+    ) < 0.1 * 0.01 * case.target.neutral.height * np.sqrt(3)
     assert twice.provenance["edits"] == ["large_scale", "large_scale"]
 
 
@@ -128,7 +143,17 @@ def test_bases_step_matches_the_assembled_solve():
         Constraint(3, np.array([18, 6]), np.array([1.0, -1.0]), v[18] - v[6] + [0.0, 0.1, 0.0]),
     ]
     got, _ = solve_bases(bases, center, weights, cons, 30.0, 2.0, Influence(dt, cons))
-    want = naive_bases_edit(dt.normal_matrix.toarray(), dt.gauge_weights, bases, center, weights, cons, 30.0, 2.0, dt.free)
+    want = naive_bases_edit(
+        dt.normal_matrix.toarray(),
+        dt.gauge_weights,
+        bases,
+        center,
+        weights,
+        cons,
+        30.0,
+        2.0,
+        dt.free,
+    )
     np.testing.assert_allclose(got, want, atol=1e-9)
 
 
@@ -138,7 +163,10 @@ def test_weights_step_matches_the_full_temporal_problem():
     bases = rng.normal(size=(k, 6, 3))
     center = np.zeros(3)
     weights = rng.uniform(0.5, 1.0, size=(n_frames, k))
-    cons = [Constraint(5, np.array([2]), np.array([1.0]), np.array([0.3, -0.2, 0.1])), Constraint(8, np.array([4]), np.array([1.0]), np.array([0.0, 0.2, 0.1]))]
+    cons = [
+        Constraint(5, np.array([2]), np.array([1.0]), np.array([0.3, -0.2, 0.1])),
+        Constraint(8, np.array([4]), np.array([1.0]), np.array([0.0, 0.2, 0.1])),
+    ]
     window, mu, lam = (2, 10), 0.5, 1.0
     got, _ = solve_weights(bases, center, weights, cons, window, mu, lam)
     # dense: unknowns are every window frame's weights; velocity terms include the fixed neighbours
@@ -179,22 +207,32 @@ def test_weights_step_is_the_bounded_problem_with_anchors_and_metric():
     for trial in range(12):
         bases = rng.normal(size=(k, 6, 3))
         center = rng.normal(size=3)
-        weights = rng.uniform(0.0, 1.0, size=(n_frames, k)) * (rng.uniform(size=(n_frames, k)) > 0.4)
+        weights = rng.uniform(0.0, 1.0, size=(n_frames, k)) * (
+            rng.uniform(size=(n_frames, k)) > 0.4
+        )
         m = rng.normal(size=(k, k))
         metric = m @ m.T + 0.1 * np.eye(k)
-        cons = [Constraint(f, np.array([int(rng.integers(0, 6))]), np.array([1.0]), rng.normal(size=3)) for f in (3 + trial % 5, 9)]
+        cons = [
+            Constraint(f, np.array([int(rng.integers(0, 6))]), np.array([1.0]), rng.normal(size=3))
+            for f in (3 + trial % 5, 9)
+        ]
         window = [(0, n_frames - 1), (2, 11), (0, 9), (3, n_frames - 1)][trial % 4]
         got, _ = solve_weights(bases, center, weights, cons, window, 0.7, 1.0, metric)
         want = naive_weights_edit(bases, center, weights, cons, window, 0.7, 1.0, metric)
         np.testing.assert_allclose(got[window[0] : window[1] + 1], want, atol=1e-8)
-        np.testing.assert_array_equal(np.delete(got, np.arange(window[0], window[1] + 1), axis=0), np.delete(weights, np.arange(window[0], window[1] + 1), axis=0))
+        np.testing.assert_array_equal(
+            np.delete(got, np.arange(window[0], window[1] + 1), axis=0),
+            np.delete(weights, np.arange(window[0], window[1] + 1), axis=0),
+        )
         # would the change linear between the edited frames alone have crossed zero?
         knots = sorted({c.frame for c in cons if window[0] <= c.frame <= window[1]})
         step = _knot_change(bases, center, weights, cons, knots, window, 0.7, 1.0, metric)
         xs = [window[0] - 1] + knots + [window[1] + 1]
         ys = np.concatenate([np.zeros((1, k)), step, np.zeros((1, k))])
         frames = np.arange(window[0], window[1] + 1)
-        plain = weights[frames] + np.stack([np.interp(frames, xs, ys[:, i]) for i in range(k)], axis=1)
+        plain = weights[frames] + np.stack(
+            [np.interp(frames, xs, ys[:, i]) for i in range(k)], axis=1
+        )
         active += int(plain.min() < -1e-9)
     assert active >= 3  # bounds that the plain interpolation would cross were met
 
@@ -230,7 +268,10 @@ def test_default_edits_leave_far_frames_alone(long, mode):
             assert move[t] > 0.3 * size
         else:
             assert np.linalg.norm(out.vertices[t, v] - goal) < 0.05 * size
-            assert move[far].max() < 0.7 * size and np.median(move[far]) < 0.15 * size, (move[far].max() / size, np.median(move[far]) / size)
+            assert move[far].max() < 0.7 * size and np.median(move[far]) < 0.15 * size, (
+                move[far].max() / size,
+                np.median(move[far]) / size,
+            )
 
 
 def test_weights_edit_over_the_whole_sequence_fades_from_the_edit(long):
@@ -242,9 +283,18 @@ def test_weights_edit_over_the_whole_sequence_fades_from_the_edit(long):
     size = 0.015 * case.target.neutral.height
     for name, t in (("brow_L_2", 60), ("chin", 30), ("lip_upper_1", 90)):
         v = int(case.target.landmarks.vertex_ids[names.index(name)])
-        out = r.edit(anim, points=[(t, v, anim.vertices[t, v] + size * np.array([1.0, 0.0, 0.0]))], mode="weights", window=(0, anim.n_frames - 1))
+        out = r.edit(
+            anim,
+            points=[(t, v, anim.vertices[t, v] + size * np.array([1.0, 0.0, 0.0]))],
+            mode="weights",
+            window=(0, anim.n_frames - 1),
+        )
         move = np.linalg.norm(out.vertices - anim.vertices, axis=-1).max(axis=1)
-        assert move.max() <= move[t] * (1 + 1e-9) and move[0] < 0.1 * move[t] and move[-1] < 0.1 * move[t], (name, move.max() / size, move[t] / size)
+        assert (
+            move.max() <= move[t] * (1 + 1e-9)
+            and move[0] < 0.1 * move[t]
+            and move[-1] < 0.1 * move[t]
+        ), (name, move.max() / size, move[t] / size)
 
 
 def test_propagation_matches_the_assembled_system():
@@ -252,7 +302,17 @@ def test_propagation_matches_the_assembled_system():
     change = rng.normal(size=(5, 3))
     edges = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [0, 2]])
     for key in (0, 3, 6):
-        got = propagate(change, edges, key, 7, lambda_key=1.0, lambda_gradient=0.1, lambda_boundary=1.0, fix_start=True, fix_end=True)
+        got = propagate(
+            change,
+            edges,
+            key,
+            7,
+            lambda_key=1.0,
+            lambda_gradient=0.1,
+            lambda_boundary=1.0,
+            fix_start=True,
+            fix_end=True,
+        )
         want = naive_propagate(change, edges, key, 7, 1.0, 0.1, 1.0)
         np.testing.assert_allclose(got, want, atol=1e-12)
 
@@ -263,8 +323,14 @@ def test_large_regions_use_lanczos_close_to_the_dense_solve(monkeypatch):
 
     v, t = grid_mesh(16, seed=3)
     edges = unique_edges(t)
-    g = np.sin(25 * v[:, 1])[:, None] * np.exp(-((v[:, 0] - 0.5) ** 2) / 0.05)[:, None] * [0.1, 0.2, 1.0]
-    kw = dict(lambda_key=1.0, lambda_gradient=0.1, lambda_boundary=1.0, fix_start=True, fix_end=True)
+    g = (
+        np.sin(25 * v[:, 1])[:, None]
+        * np.exp(-((v[:, 0] - 0.5) ** 2) / 0.05)[:, None]
+        * [0.1, 0.2, 1.0]
+    )
+    kw = dict(
+        lambda_key=1.0, lambda_gradient=0.1, lambda_boundary=1.0, fix_start=True, fix_end=True
+    )
     dense = propagate(g, edges, 20, 60, **kw)
     monkeypatch.setattr(details, "DENSE_REGION", 50)
     monkeypatch.setattr(details, "LANCZOS_STEPS", 60)
@@ -314,27 +380,41 @@ def test_wrinkle_layer_is_the_coating_against_the_smoothed_frame(wrinkled):
     model = track.model
     src = model.source
     for t in (key, 75):
-        local = track.placement.local(track.source_motion[t : t + 1], case.source.performance.vertices[t : t + 1])
+        local = track.placement.local(
+            track.source_motion[t : t + 1], case.source.performance.vertices[t : t + 1]
+        )
         blend = model.source_smooth(track.source_weights[t : t + 1])[0]
         smooth = src.smooth(local)[0]
         poisson = src.poisson.toarray()
-        want = naive_coating(local[0], blend, model.triangles, poisson, src.neighbors) - naive_coating(smooth, blend, model.triangles, poisson, src.neighbors) - src.reference_coating
+        want = (
+            naive_coating(local[0], blend, model.triangles, poisson, src.neighbors)
+            - naive_coating(smooth, blend, model.triangles, poisson, src.neighbors)
+            - src.reference_coating
+        )
         got = track.wrinkles([t])[0]
         np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
         residual = naive_coating(smooth, blend, model.triangles, poisson, src.neighbors)
-        np.testing.assert_allclose(track.fine_motion([t])[0] - got, residual, atol=1e-5 * np.abs(want).max())  # float32 cache
-        assert np.linalg.norm(residual) > 0.05 * np.linalg.norm(got)  # the residual is there, and not in D_t
+        np.testing.assert_allclose(
+            track.fine_motion([t])[0] - got, residual, atol=1e-5 * np.abs(want).max()
+        )  # float32 cache
+        assert np.linalg.norm(residual) > 0.05 * np.linalg.norm(
+            got
+        )  # the residual is there, and not in D_t
 
 
 def test_detail_scale_acts_on_the_wrinkles_only(wrinkled):
     case, r, anim, region, key = wrinkled
     track = anim.extras["coating"]
-    out = r.edit(anim, detail=DetailEdit(frame=key, vertices=region, operation="scale", factor=2.0, blend=0))
+    out = r.edit(
+        anim, detail=DetailEdit(frame=key, vertices=region, operation="scale", factor=2.0, blend=0)
+    )
     new = out.extras["coating"]
     ts, te = out.provenance["diagnostics"]["last_edit"]["window"]
     assert ts < key < te
     old_w = track.wrinkles([key], region)[0]
-    np.testing.assert_allclose(new.wrinkles([key], region)[0], 2.0 * old_w, atol=2e-3 * np.abs(old_w).max())
+    np.testing.assert_allclose(
+        new.wrinkles([key], region)[0], 2.0 * old_w, atol=2e-3 * np.abs(old_w).max()
+    )
     # what changed is the wrinkle layer: the transferred detail moved by D_t, not by D_t + E_t
     change = new.fine_motion([key], region)[0] - track.fine_motion([key], region)[0]
     np.testing.assert_allclose(change, old_w, atol=2e-3 * np.abs(old_w).max())
@@ -376,14 +456,19 @@ def _paste_correlations(wrinkled):
     track = anim.extras["coating"]
     shift = np.eye(4)
     shift[1, 3] = -2.0
-    out = r.edit(anim, detail=DetailEdit(frame=key, vertices=region, operation="paste", transform=shift, blend=0))
+    out = r.edit(
+        anim,
+        detail=DetailEdit(frame=key, vertices=region, operation="paste", transform=shift, blend=0),
+    )
     assert out.provenance["diagnostics"]["last_edit"]["operation"] == "paste"
     pts = anim.vertices[key]
     moved = pts[region] + [0.0, -2.0, 0.0]
     dst = np.unique(cKDTree(pts).query(moved)[1])
     want = _world_wrinkles(track, key, region)[cKDTree(moved).query(pts[dst])[1]]
     assert dst.size > 20
-    return _corr(_world_wrinkles(out.extras["coating"], key, dst), want), _corr(_world_wrinkles(track, key, dst), want)
+    return _corr(_world_wrinkles(out.extras["coating"], key, dst), want), _corr(
+        _world_wrinkles(track, key, dst), want
+    )
 
 
 def test_detail_paste_carries_the_moved_wrinkles(wrinkled):
@@ -402,7 +487,9 @@ def test_a_no_op_paste_fails_the_paste_check(wrinkled, monkeypatch):
     real = details._copy_details
 
     def keep(frames_key, details_key, src_ids, src_points, dst_points_all, rotation, spacing):
-        dst, _ = real(frames_key, details_key, src_ids, src_points, dst_points_all, rotation, spacing)
+        dst, _ = real(
+            frames_key, details_key, src_ids, src_points, dst_points_all, rotation, spacing
+        )
         return dst, details_key[dst]
 
     monkeypatch.setattr(details, "_copy_details", keep)
@@ -424,7 +511,17 @@ def _reshape_correlations(wrinkled):
     line = np.argsort(np.abs(uv[:, 1] - 0.72) + 10 * (np.abs(uv[:, 0]) > 0.2))[:6]
     curve = pts[line[np.argsort(uv[line, 0])]]
     up = np.array([0.0, 0.5, 0.0])
-    out = r.edit(anim, detail=DetailEdit(frame=key, curve=curve, radius=1.2, operation="reshape", target_curve=curve + up, blend=0))
+    out = r.edit(
+        anim,
+        detail=DetailEdit(
+            frame=key,
+            curve=curve,
+            radius=1.2,
+            operation="reshape",
+            target_curve=curve + up,
+            blend=0,
+        ),
+    )
     assert out.provenance["diagnostics"]["last_edit"]["region_vertices"] > 0
     inner = np.flatnonzero(_distance_to_polyline(pts, curve) <= 0.7)
     new = _world_wrinkles(out.extras["coating"], key, inner)
@@ -445,7 +542,9 @@ def test_a_no_op_reshape_fails_the_reshape_check(wrinkled, monkeypatch):
     re-pastes the wrinkles where they were."""
     from faceretarget.plugins.coating import details
 
-    monkeypatch.setattr(details, "_reshape", lambda points, adj, region, curve, target_curve: points[region])
+    monkeypatch.setattr(
+        details, "_reshape", lambda points, adj, region, curve, target_curve: points[region]
+    )
     moved, here = _reshape_correlations(wrinkled)
     assert here > 0.5 and moved < 0.3
 

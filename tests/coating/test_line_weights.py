@@ -7,6 +7,7 @@ lines, the weight fell to 3e-10 and the mouth lines lost their term too; per lin
 keeps 69-95 and the eyes get none. Measured (60 frames, % of face height): coating 0.1665 ->
 0.1629, deformation_transfer 0.1631.
 """
+
 import numpy as np
 import pytest
 
@@ -19,7 +20,12 @@ from faceretarget.plugins.coating.retargeter import CoatingRetargeter
 def _sheet(n=12):
     xs, ys = np.meshgrid(np.linspace(-1, 1, n), np.linspace(-1, 1, n))
     idx = np.arange(n * n).reshape(n, n)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+    )
     tri = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
     ref = np.stack([xs.ravel(), ys.ravel(), 0.1 * xs.ravel() ** 2], axis=1)
     return ref, tri, idx
@@ -32,11 +38,20 @@ def test_per_line_weights_equal_separate_terms():
     lines = {"a": idx[3, 2:9], "b": idx[8, 1:10]}
     rng = np.random.default_rng(0)
     src_ref = ref + 0.05 * rng.normal(size=ref.shape)
-    deformed = src_ref + 0.1 * np.sin(3 * src_ref[:, :1]) * [0.0, 1.0, 0.5] + 0.02 * rng.normal(size=ref.shape)
-    for weights, alone, sigma in (({"a": 100.0, "b": 0.0}, {"a": lines["a"]}, 100.0), ({"a": 30.0, "b": 30.0}, lines, 30.0)):
+    deformed = (
+        src_ref
+        + 0.1 * np.sin(3 * src_ref[:, :1]) * [0.0, 1.0, 0.5]
+        + 0.02 * rng.normal(size=ref.shape)
+    )
+    for weights, alone, sigma in (
+        ({"a": 100.0, "b": 0.0}, {"a": lines["a"]}, 100.0),
+        ({"a": 30.0, "b": 30.0}, lines, 30.0),
+    ):
         weighted = DeformationTransfer(ref, tri, feature_lines=lines, sigma=1.0)
         weight_lines(weighted, weights)
-        want = DeformationTransfer(ref, tri, feature_lines=alone, sigma=sigma).transfer(src_ref, deformed, source_feature_lines=alone)
+        want = DeformationTransfer(ref, tri, feature_lines=alone, sigma=sigma).transfer(
+            src_ref, deformed, source_feature_lines=alone
+        )
         got = weighted.transfer(src_ref, deformed, source_feature_lines=lines)
         np.testing.assert_allclose(got, want, atol=1e-10 * np.abs(want).max())
 
@@ -46,10 +61,24 @@ def _mouth_residual(r):
     model = r.model_
     names = [k for k in sorted(model.target_lines) if k.startswith("mouth")]
     src_chains = [model.source_lines[k] for k in names]
-    d = feature_line_gradients(model.source.smooth_reference, model.source_bases, model.triangles, src_chains)
-    picks = model.transfer.line_targets(model.source.smooth_reference, model.source_bases, model.source_lines)
-    seg = np.concatenate([np.stack([model.target_lines[k][:-1], model.target_lines[k][1:]], axis=1) for k in sorted(model.target_lines)])
-    keep = np.concatenate([np.full(len(model.target_lines[k]) - 1, k.startswith("mouth")) for k in sorted(model.target_lines)])
+    d = feature_line_gradients(
+        model.source.smooth_reference, model.source_bases, model.triangles, src_chains
+    )
+    picks = model.transfer.line_targets(
+        model.source.smooth_reference, model.source_bases, model.source_lines
+    )
+    seg = np.concatenate(
+        [
+            np.stack([model.target_lines[k][:-1], model.target_lines[k][1:]], axis=1)
+            for k in sorted(model.target_lines)
+        ]
+    )
+    keep = np.concatenate(
+        [
+            np.full(len(model.target_lines[k]) - 1, k.startswith("mouth"))
+            for k in sorted(model.target_lines)
+        ]
+    )
     ref = model.target.smooth_reference
     e_ref = (ref[seg[:, 1]] - ref[seg[:, 0]])[keep]
     want = np.einsum("ksij,sj->ksi", picks[:, keep], e_ref)
@@ -67,7 +96,9 @@ def test_a_mismatched_line_does_not_switch_off_the_others(cross):
     r = CoatingRetargeter().fit(cross.source, cross.target)
     assert r.n_bases_ > 1  # bases that move the mouth
     sig = r.model_.line_sigmas
-    assert sig["eye_L"] < 1.0 and sig["eye_R"] < 1.0, sig  # closed-eye slit vs open rim: no line term
+    assert sig["eye_L"] < 1.0 and sig["eye_R"] < 1.0, (
+        sig
+    )  # closed-eye slit vs open rim: no line term
     assert sig["mouth_inner"] > 50 and sig["mouth_outer"] > 50, sig
     off = CoatingRetargeter(sigma=1e-9).fit(cross.source, cross.target)
     # the mouth lines of the target bases follow the source's line deformation (eq. 11):

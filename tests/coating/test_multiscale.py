@@ -1,4 +1,5 @@
 """Multi-scale decomposition: exact reconstruction, rigid invariance, kernels vs naive loops."""
+
 import numpy as np
 import pytest
 from naive.coating import coating as naive_coating
@@ -32,25 +33,33 @@ def test_decomposition_reconstructs_exactly(laplacian):
     smooth, coating = ms.decompose(frames)
     back = ms.reconstruct(smooth, coating)
     assert np.abs(back - frames).max() < 1e-10 * np.abs(v).max()
-    np.testing.assert_allclose(ms.reconstruct(ms.smooth_reference[None], ms.reference_coating[None])[0], v, atol=1e-10)
+    np.testing.assert_allclose(
+        ms.reconstruct(ms.smooth_reference[None], ms.reference_coating[None])[0], v, atol=1e-10
+    )
 
 
 def test_coating_is_invariant_to_rigid_motion():
     v, t = _mesh(seed=1)
     r = _rotation()
     moved = v @ r.T + [0.5, -1.0, 2.0]
-    exact = MultiScale(v, t, iterations=40, laplacian="uniform", screening=0.1, smooth_dtype=np.float64)
+    exact = MultiScale(
+        v, t, iterations=40, laplacian="uniform", screening=0.1, smooth_dtype=np.float64
+    )
     a = exact.decompose(v[None])[1][0]
     b = exact.decompose(moved[None])[1][0]
     np.testing.assert_allclose(b, a, atol=1e-12 * np.abs(v).max())
     fast = MultiScale(v, t, iterations=40, laplacian="uniform", screening=0.1)  # float32 smoothing
-    np.testing.assert_allclose(fast.decompose(moved[None])[1][0], a, atol=1e-4 * np.abs(a).max())  # float32 rounding
+    np.testing.assert_allclose(
+        fast.decompose(moved[None])[1][0], a, atol=1e-4 * np.abs(a).max()
+    )  # float32 rounding
     assert np.abs(a).max() > 1e-3  # the wrinkles are in the coating
 
 
 def test_coating_matches_per_vertex_loop():
     v, t = _mesh(8, seed=2)
-    ms = MultiScale(v, t, iterations=10, laplacian="cotangent", screening=0.1, smooth_dtype=np.float64)
+    ms = MultiScale(
+        v, t, iterations=10, laplacian="cotangent", screening=0.1, smooth_dtype=np.float64
+    )
     frame = v + 0.01 * np.random.default_rng(3).normal(size=v.shape)
     smooth, coating = ms.decompose(frame[None])
     want = naive_coating(frame, smooth[0], t, ms.poisson.toarray(), ms.neighbors)

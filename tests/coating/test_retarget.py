@@ -1,9 +1,9 @@
 """The coating and deformation_transfer retargeters on synthetic parallel rigs."""
+
 import numpy as np
 import pytest
 
 import faceretarget as fr
-from faceretarget.geometry.smoothing import TaubinSmoother
 from faceretarget.errors import (
     CapabilityError,
     ConfigError,
@@ -12,6 +12,7 @@ from faceretarget.errors import (
     OutputError,
     TopologyMismatchError,
 )
+from faceretarget.geometry.smoothing import TaubinSmoother
 from faceretarget.model import Mesh, MeshSequence, Source, TargetRig
 from faceretarget.plugins.coating.retargeter import CoatingRetargeter, DeformationTransferRetargeter
 
@@ -29,7 +30,12 @@ def _rms(a, b, height):
 
 @pytest.fixture(scope="module")
 def cases():
-    return {w: fr.cases.synthetic(seed=1, resolution=RES, n_frames=FRAMES, target="stylized", wrinkles=w) for w in (True, False)}
+    return {
+        w: fr.cases.synthetic(
+            seed=1, resolution=RES, n_frames=FRAMES, target="stylized", wrinkles=w
+        )
+        for w in (True, False)
+    }
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +58,9 @@ def test_large_scale_and_wrinkles_against_ground_truth(cases, results):
     """Large scale: the case without wrinkles. Wrinkles: the fine-scale part (minus its
     Taubin-smoothed version) of (with wrinkles) - (without), for the truth and each method."""
     height = cases[True].target.neutral.height
-    smoother = TaubinSmoother(cases[True].target.neutral.triangles, cases[True].target.neutral.n_vertices)
+    smoother = TaubinSmoother(
+        cases[True].target.neutral.triangles, cases[True].target.neutral.n_vertices
+    )
 
     def fine(x):
         return x - smoother(x)
@@ -63,7 +71,9 @@ def test_large_scale_and_wrinkles_against_ground_truth(cases, results):
         large = _rms(results[name, False].vertices, cases[False].truth.vertices, height)
         assert large < LARGE_SCALE_BOUND, f"{name}: large-scale error {large:.4f}"
         got_w = fine(results[name, True].local_vertices - results[name, False].local_vertices)
-        corr[name] = float(np.sum(got_w * truth_w) / np.linalg.norm(got_w) / np.linalg.norm(truth_w))
+        corr[name] = float(
+            np.sum(got_w * truth_w) / np.linalg.norm(got_w) / np.linalg.norm(truth_w)
+        )
     assert corr["coating"] > WRINKLE_CORRELATION, corr
     assert corr["coating"] > corr["deformation_transfer"] + 0.01, corr
 
@@ -72,7 +82,10 @@ def test_diagnostics_and_weights(results):
     anim = results["coating", True]
     diag = anim.provenance["diagnostics"]
     assert diag["n_bases"] == len(diag["basis_frames"]) + 1
-    assert diag["selection_rms"][-1] <= CoatingRetargeter().epsilon or diag["n_bases"] == CoatingRetargeter().max_bases
+    assert (
+        diag["selection_rms"][-1] <= CoatingRetargeter().epsilon
+        or diag["n_bases"] == CoatingRetargeter().max_bases
+    )
     w = anim.extras["weights"]
     assert w.shape == (FRAMES, diag["n_bases"]) and (w >= 0).all()
 
@@ -96,10 +109,16 @@ def test_rigid_motion_is_carried_exactly(cases):
     motion = case.meta["head_motion"]
     ref = np.asarray(perf.reference.vertices)
     frames = np.einsum("fij,vj->fvi", motion[:, :3, :3], ref) + motion[:, None, :3, 3]
-    source = Source(MeshSequence(frames, perf.triangles, reference=perf.reference), feature_lines=case.source.feature_lines)
+    source = Source(
+        MeshSequence(frames, perf.triangles, reference=perf.reference),
+        feature_lines=case.source.feature_lines,
+    )
     for cls in (CoatingRetargeter, DeformationTransferRetargeter):
         anim = cls().fit(source, case.target).retarget(source)
-        want = np.einsum("fij,vj->fvi", motion[:, :3, :3], case.target.neutral.vertices) + motion[:, None, :3, 3]
+        want = (
+            np.einsum("fij,vj->fvi", motion[:, :3, :3], case.target.neutral.vertices)
+            + motion[:, None, :3, 3]
+        )
         assert _rms(anim.vertices, want, case.target.neutral.height) < 1e-6, cls.name
 
 
@@ -122,7 +141,10 @@ def test_memory_mapped_source(cases, tmp_path):
     perf = case.source.performance
     path = tmp_path / "src.npy"
     np.save(path, np.asarray(perf.vertices, dtype=np.float32))
-    mapped = Source(MeshSequence(np.load(path, mmap_mode="r"), perf.triangles, reference=perf.reference), feature_lines=case.source.feature_lines)
+    mapped = Source(
+        MeshSequence(np.load(path, mmap_mode="r"), perf.triangles, reference=perf.reference),
+        feature_lines=case.source.feature_lines,
+    )
     r = CoatingRetargeter(chunk_frames=8).fit(mapped, case.target)
     anim = r.retarget(mapped)
     assert _rms(anim.vertices, case.truth.vertices, case.target.neutral.height) < RMS_BOUND
@@ -131,11 +153,16 @@ def test_memory_mapped_source(cases, tmp_path):
 def test_one_frame_sequence(cases):
     case = cases[True]
     perf = case.source.performance
-    one = Source(MeshSequence(perf.vertices[12:13], perf.triangles, reference=perf.reference), feature_lines=case.source.feature_lines)
+    one = Source(
+        MeshSequence(perf.vertices[12:13], perf.triangles, reference=perf.reference),
+        feature_lines=case.source.feature_lines,
+    )
     for cls in (CoatingRetargeter, DeformationTransferRetargeter):
         anim = cls().fit(one, case.target).retarget(one)
         assert anim.vertices.shape == (1, case.target.neutral.n_vertices, 3)
-        assert _rms(anim.vertices, case.truth.vertices[12:13], case.target.neutral.height) < RMS_BOUND
+        assert (
+            _rms(anim.vertices, case.truth.vertices[12:13], case.target.neutral.height) < RMS_BOUND
+        )
 
 
 def test_bad_inputs(cases):
@@ -222,12 +249,23 @@ def _rigid(seed, size):
 
 def _source_in(source, m):
     perf = source.performance
-    moved = MeshSequence(_moved(perf.vertices, m), perf.triangles, fps=perf.fps, reference=_moved(perf.reference.vertices, m))
-    return Source(moved, landmarks=source.landmarks, feature_lines=source.feature_lines, head_motion=None)
+    moved = MeshSequence(
+        _moved(perf.vertices, m),
+        perf.triangles,
+        fps=perf.fps,
+        reference=_moved(perf.reference.vertices, m),
+    )
+    return Source(
+        moved, landmarks=source.landmarks, feature_lines=source.feature_lines, head_motion=None
+    )
 
 
 def _target_in(target, m):
-    return TargetRig(Mesh(_moved(target.neutral.vertices, m), target.neutral.triangles), landmarks=target.landmarks, feature_lines=target.feature_lines)
+    return TargetRig(
+        Mesh(_moved(target.neutral.vertices, m), target.neutral.triangles),
+        landmarks=target.landmarks,
+        feature_lines=target.feature_lines,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -240,7 +278,11 @@ def still():
 def test_units_and_placement_do_not_change_the_result(still, cls):
     """Either mesh scaled by 0.01, 100 or 1000 (metres, centimetres, millimetres) or moved
     rigidly: the result, in the target's units and place, changes by < 1e-6 of face height."""
-    src = Source(still.source.performance, landmarks=still.source.landmarks, feature_lines=still.source.feature_lines)
+    src = Source(
+        still.source.performance,
+        landmarks=still.source.landmarks,
+        feature_lines=still.source.feature_lines,
+    )
     tgt = still.target
     base = cls().fit(src, tgt).retarget(src).vertices
     height = tgt.neutral.height
@@ -248,7 +290,10 @@ def test_units_and_placement_do_not_change_the_result(still, cls):
         scale = np.diag([k, k, k, 1.0])
         s2 = _source_in(src, scale)
         assert _rms(cls().fit(s2, tgt).retarget(s2).vertices, base, height) < 1e-6, ("source", k)
-        assert _rms(cls().fit(src, _target_in(tgt, scale)).retarget(src).vertices / k, base, height) < 1e-6, ("target", k)
+        assert (
+            _rms(cls().fit(src, _target_in(tgt, scale)).retarget(src).vertices / k, base, height)
+            < 1e-6
+        ), ("target", k)
     for seed in (1, 2):
         m = _rigid(seed, 2 * height)
         s2 = _source_in(src, m)
@@ -265,8 +310,13 @@ def test_head_translation_is_carried_in_the_target_units(cases):
     base = CoatingRetargeter().fit(src, case.target).retarget(src)
     metres = _source_in(src, np.diag([0.01, 0.01, 0.01, 1.0]))
     anim = CoatingRetargeter().fit(metres, case.target).retarget(metres)
-    assert anim.provenance["diagnostics"]["unit_scale"] == 100.0 and anim.provenance["diagnostics"]["head_motion"] == "estimated"
-    np.testing.assert_allclose(anim.head_motion, base.head_motion, atol=1e-9 * case.target.neutral.height)
+    assert (
+        anim.provenance["diagnostics"]["unit_scale"] == 100.0
+        and anim.provenance["diagnostics"]["head_motion"] == "estimated"
+    )
+    np.testing.assert_allclose(
+        anim.head_motion, base.head_motion, atol=1e-9 * case.target.neutral.height
+    )
     assert _rms(anim.vertices, base.vertices, case.target.neutral.height) < 1e-6
 
 
@@ -274,7 +324,9 @@ def test_no_head_motion_is_invented(still, cases):
     for cls in (CoatingRetargeter, DeformationTransferRetargeter):
         anim = cls().fit(still.source, still.target).retarget(still.source)
         assert anim.provenance["diagnostics"]["head_motion"] == "none detected"
-        np.testing.assert_array_equal(anim.head_motion, np.broadcast_to(np.eye(4), anim.head_motion.shape))
+        np.testing.assert_array_equal(
+            anim.head_motion, np.broadcast_to(np.eye(4), anim.head_motion.shape)
+        )
     case = cases[True]  # about 10 degrees: found, and close to the truth
     src = Source(case.source.performance, feature_lines=case.source.feature_lines)
     anim = CoatingRetargeter().fit(src, case.target).retarget(src)
@@ -311,7 +363,9 @@ def _line_residual(r):
     for name in names:
         np.testing.assert_array_equal(model.target_lines[name], model.source_lines[name])
     chains = [model.target_lines[k] for k in names]
-    d = feature_line_gradients(model.source.smooth_reference, model.source_bases, model.triangles, chains)  # (K, S, 3, 3)
+    d = feature_line_gradients(
+        model.source.smooth_reference, model.source_bases, model.triangles, chains
+    )  # (K, S, 3, 3)
     seg = np.concatenate([np.stack([c[:-1], c[1:]], axis=1) for c in chains])
     ref = model.target.smooth_reference
     e_ref = ref[seg[:, 1]] - ref[seg[:, 0]]
@@ -334,8 +388,14 @@ def test_feature_lines_follow_the_source_lines_and_do_not_hurt_a_stylized_target
     r = CoatingRetargeter().fit(stylized.source, stylized.target)
     assert r.model_.sigma < 1e-3 * r.sigma
     height = stylized.target.neutral.height
-    dt = DeformationTransferRetargeter().fit(stylized.source, stylized.target).retarget(stylized.source)
-    assert _rms(r.retarget(stylized.source).vertices, stylized.truth.vertices, height) <= _rms(dt.vertices, stylized.truth.vertices, height)
+    dt = (
+        DeformationTransferRetargeter()
+        .fit(stylized.source, stylized.target)
+        .retarget(stylized.source)
+    )
+    assert _rms(r.retarget(stylized.source).vertices, stylized.truth.vertices, height) <= _rms(
+        dt.vertices, stylized.truth.vertices, height
+    )
 
 
 def test_removing_the_feature_line_term_fails_the_line_check(monkeypatch):
@@ -346,7 +406,11 @@ def test_removing_the_feature_line_term_fails_the_line_check(monkeypatch):
     human = fr.cases.synthetic(seed=1, resolution=RES, n_frames=FRAMES)
     off = _line_residual(CoatingRetargeter(sigma=1e-9).fit(human.source, human.target))
     real = coating_model.DeformationTransfer
-    monkeypatch.setattr(coating_model, "DeformationTransfer", lambda *a, feature_lines=None, **k: real(*a, feature_lines=None, **k))
+    monkeypatch.setattr(
+        coating_model,
+        "DeformationTransfer",
+        lambda *a, feature_lines=None, **k: real(*a, feature_lines=None, **k),
+    )
     mutant = CoatingRetargeter().fit(human.source, human.target)
     assert mutant.model_.sigma > 50
     assert _line_residual(mutant) > 0.9 * off
@@ -365,7 +429,11 @@ def test_target_details_are_applied_in_each_frames_own_local_frames(cases):
     weights, details = model.decompose(local)
     out = model.synthesize(weights, details)
     smooth = model.smooth_target(weights)
-    np.testing.assert_allclose(model.target.coating(out, smooth), model.target.reference_coating[None] + details, atol=1e-9 * np.abs(details).max())
+    np.testing.assert_allclose(
+        model.target.coating(out, smooth),
+        model.target.reference_coating[None] + details,
+        atol=1e-9 * np.abs(details).max(),
+    )
 
 
 def _fold_change():
@@ -377,10 +445,18 @@ def _fold_change():
     xs, ys = np.meshgrid(np.linspace(-1, 1, n), np.linspace(-1, 1, n))
     x, y = xs.ravel(), ys.ravel()
     idx = np.arange(n * n).reshape(n, n)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+    )
     tri = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
     flat = np.stack([x, y, np.zeros_like(x)], axis=1)
-    wrinkled = flat + [0.0, 0.0, 1.0] * (0.02 * np.sin(9 * np.pi * y) * np.exp(-(x**2 + y**2) / 0.3))[:, None]
+    wrinkled = (
+        flat
+        + [0.0, 0.0, 1.0] * (0.02 * np.sin(9 * np.pi * y) * np.exp(-(x**2 + y**2) / 0.3))[:, None]
+    )
 
     def fold(points, angle=0.6):  # turn about the x axis by angle * (y + 1)
         phi = angle * (points[:, 1] + 1.0)
@@ -390,7 +466,19 @@ def _fold_change():
         return out
 
     frames = np.stack([flat, wrinkled, fold(flat), fold(wrinkled)])
-    model = CoatingModel(flat, flat, tri, source_lines={}, target_lines={}, stable=np.ones(n * n), iterations=20, laplacian="uniform", screening=0.1, sigma=100.0, detail_scale=1.0)
+    model = CoatingModel(
+        flat,
+        flat,
+        tri,
+        source_lines={},
+        target_lines={},
+        stable=np.ones(n * n),
+        iterations=20,
+        laplacian="uniform",
+        screening=0.1,
+        sigma=100.0,
+        detail_scale=1.0,
+    )
     model.fit_bases(frames, lambda ids, f: f, epsilon=1e-12, max_bases=5, chunk=8, max_frames=4)
     _, details = model.decompose(frames)
     inside = (x**2 + y**2) < 0.3
@@ -415,8 +503,23 @@ def test_reference_frames_instead_of_eq16_frames_fail_the_invariance(monkeypatch
     def reference(self, n):
         return np.repeat(self.frames(self.smooth_reference[None]), n, axis=0)
 
-    monkeypatch.setattr(MultiScale, "coating", lambda self, points, smooth, frames=None: coating(
-        self, points, smooth, reference(self, np.shape(smooth)[0]) if frames is None and hasattr(self, "neighbors") else frames))
-    monkeypatch.setattr(MultiScale, "reconstruct", lambda self, smooth, c, frames=None: reconstruct(
-        self, smooth, c, reference(self, np.shape(smooth)[0]) if frames is None else frames))
+    monkeypatch.setattr(
+        MultiScale,
+        "coating",
+        lambda self, points, smooth, frames=None: coating(
+            self,
+            points,
+            smooth,
+            reference(self, np.shape(smooth)[0])
+            if frames is None and hasattr(self, "neighbors")
+            else frames,
+        ),
+    )
+    monkeypatch.setattr(
+        MultiScale,
+        "reconstruct",
+        lambda self, smooth, c, frames=None: reconstruct(
+            self, smooth, c, reference(self, np.shape(smooth)[0]) if frames is None else frames
+        ),
+    )
     assert _fold_change() > 0.4

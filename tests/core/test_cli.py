@@ -1,4 +1,5 @@
 """The command line: one-line errors, list/info, version."""
+
 import json
 import subprocess
 import sys
@@ -11,7 +12,9 @@ from faceretarget.cli import main
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "faceretarget.cli", *args], capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "faceretarget.cli", *args], capture_output=True, text=True
+    )
 
 
 def test_version():
@@ -31,7 +34,11 @@ def test_unknown_name_is_one_line_error_without_traceback():
     out = run("info", "no-such-method")
     assert out.returncode == 2
     lines = out.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("faceretarget: error:") and "no-such-method" in lines[0]
+    assert (
+        len(lines) == 1
+        and lines[0].startswith("faceretarget: error:")
+        and "no-such-method" in lines[0]
+    )
     assert "Traceback" not in out.stderr
 
 
@@ -49,7 +56,9 @@ def test_every_subcommand_describes_itself():
         assert parser.description, f"`faceretarget {name} --help` has no description"
         for action in parser._actions:
             if action.dest != "help":
-                assert action.help, f"`faceretarget {name}`: {action.option_strings or action.dest} has no help"
+                assert action.help, (
+                    f"`faceretarget {name}`: {action.option_strings or action.dest} has no help"
+                )
 
 
 def test_info_of_every_retargeter(capsys):
@@ -63,14 +72,26 @@ def test_info_of_every_retargeter(capsys):
 
 def test_parse_params():
     assert parse_params(["alpha=0.5", "mode=range", "flag=true", "window=(1, 4)"]) == {
-        "alpha": 0.5, "mode": "range", "flag": True, "window": (1, 4)
+        "alpha": 0.5,
+        "mode": "range",
+        "flag": True,
+        "window": (1, 4),
     }
     with pytest.raises(errors.InputError, match="KEY=VALUE"):
         parse_params(["alpha"])
 
 
 def test_run_reports_missing_files_in_one_line(tmp_path):
-    out = run("run", "spacetime", "--source", str(tmp_path / "nope.c3d"), "--target", str(tmp_path / "rig.glb"), "--out", str(tmp_path / "o.glb"))
+    out = run(
+        "run",
+        "spacetime",
+        "--source",
+        str(tmp_path / "nope.c3d"),
+        "--target",
+        str(tmp_path / "rig.glb"),
+        "--out",
+        str(tmp_path / "o.glb"),
+    )
     assert out.returncode != 0
     assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stderr
     assert not (tmp_path / "o.glb").exists()
@@ -93,7 +114,11 @@ def _commands(folder):
     import shlex
 
     lines = (folder / "README.txt").read_text().splitlines()
-    return {shlex.split(l)[2]: shlex.split(l)[1:] for l in (l.strip() for l in lines) if l.startswith("faceretarget run ")}
+    return {
+        shlex.split(l)[2]: shlex.split(l)[1:]
+        for l in (l.strip() for l in lines)
+        if l.startswith("faceretarget run ")
+    }
 
 
 def test_cases_export_writes_every_part_as_ordinary_files(exported):
@@ -101,23 +126,51 @@ def test_cases_export_writes_every_part_as_ordinary_files(exported):
 
     import faceretarget as fr
 
-    for name in ("source.pc2", "source_neutral.obj", "character.glb", "source_landmarks.json", "character_landmarks.json",
-                 "source_feature_lines.json", "character_feature_lines.json", "source_examples.npz", "character_examples.npz",
-                 "source_layers.npz", "character_layers.npz", "truth.npz", "case.npz", "batch.toml", "README.txt"):
+    for name in (
+        "source.pc2",
+        "source_neutral.obj",
+        "character.glb",
+        "source_landmarks.json",
+        "character_landmarks.json",
+        "source_feature_lines.json",
+        "character_feature_lines.json",
+        "source_examples.npz",
+        "character_examples.npz",
+        "source_layers.npz",
+        "character_layers.npz",
+        "truth.npz",
+        "case.npz",
+        "batch.toml",
+        "README.txt",
+    ):
         assert (exported / name).is_file(), name
     case = fr.cases.synthetic(resolution=500, n_frames=6)
     lm = json.loads((exported / "character_landmarks.json").read_text())
-    assert lm["vertex_ids"] == case.target.landmarks.vertex_ids.tolist() and lm["names"] == list(case.target.landmarks.names)
+    assert lm["vertex_ids"] == case.target.landmarks.vertex_ids.tolist() and lm["names"] == list(
+        case.target.landmarks.names
+    )
     lines = json.loads((exported / "source_feature_lines.json").read_text())
     assert {k: list(v) for k, v in case.source.feature_lines.items()} == lines
     source = fr.io.load_source(exported / "source.pc2", topology=exported / "source_neutral.obj")
     assert np.allclose(source.performance.vertices, case.source.performance.vertices, atol=1e-5)
-    assert set(_commands(exported)) == {"spacetime", "layers", "normalmesh", "coating", "deformation_transfer"}
-    assert main(["cases", "export", EXPORT_SPEC, str(exported)]) == 2  # never into a folder that holds files
+    assert set(_commands(exported)) == {
+        "spacetime",
+        "layers",
+        "normalmesh",
+        "coating",
+        "deformation_transfer",
+    }
+    assert (
+        main(["cases", "export", EXPORT_SPEC, str(exported)]) == 2
+    )  # never into a folder that holds files
 
 
-@pytest.mark.parametrize("method", ["spacetime", "layers", "normalmesh", "coating", "deformation_transfer"])
-def test_every_method_runs_from_the_exported_files_as_on_the_case(exported, method, tmp_path, monkeypatch):
+@pytest.mark.parametrize(
+    "method", ["spacetime", "layers", "normalmesh", "coating", "deformation_transfer"]
+)
+def test_every_method_runs_from_the_exported_files_as_on_the_case(
+    exported, method, tmp_path, monkeypatch
+):
     """`run` on the plain files (take + neutral, glb, json, npz) gives the in-Python result."""
     import numpy as np
 
@@ -137,8 +190,18 @@ def test_every_method_runs_from_the_exported_files_as_on_the_case(exported, meth
 
 def test_a_missing_part_names_the_option_that_gives_it(exported, tmp_path, monkeypatch):
     monkeypatch.chdir(exported)
-    out = run("run", "coating", "--source", "source.pc2", "--source-neutral", "source_neutral.obj", "--target", "character.glb",
-              "--out", str(tmp_path / "o.glb"))
+    out = run(
+        "run",
+        "coating",
+        "--source",
+        "source.pc2",
+        "--source-neutral",
+        "source_neutral.obj",
+        "--target",
+        "character.glb",
+        "--out",
+        str(tmp_path / "o.glb"),
+    )
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "--feature-lines" in out.stderr and "--source-feature-lines" in out.stderr
     assert not (tmp_path / "o.glb").exists()
@@ -146,8 +209,20 @@ def test_a_missing_part_names_the_option_that_gives_it(exported, tmp_path, monke
 
 def test_run_help_describes_every_part_option():
     out = run("run", "--help")
-    for option in ("--source-landmarks", "--source-feature-lines", "--source-examples", "--source-neutral", "--topology",
-                   "--actor-layers", "--landmarks", "--feature-lines", "--examples", "--layers", "--source-kind", "--target-kind"):
+    for option in (
+        "--source-landmarks",
+        "--source-feature-lines",
+        "--source-examples",
+        "--source-neutral",
+        "--topology",
+        "--actor-layers",
+        "--landmarks",
+        "--feature-lines",
+        "--examples",
+        "--layers",
+        "--source-kind",
+        "--target-kind",
+    ):
         assert option in out.stdout, option
 
 
@@ -165,7 +240,9 @@ def test_compare_takes_cases_as_an_option(monkeypatch):
         raise Stop
 
     monkeypatch.setattr(harness, "compare", fake_compare)
-    args = build_parser().parse_args(["compare", "--cases", "synthetic", "ict", "--methods", "spacetime"])
+    args = build_parser().parse_args(
+        ["compare", "--cases", "synthetic", "ict", "--methods", "spacetime"]
+    )
     with pytest.raises(Stop):
         args.handler(args)
     assert seen["cases"] == ["synthetic", "ict"]

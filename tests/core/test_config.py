@@ -1,4 +1,5 @@
 """Every environment variable faceretarget reads is documented."""
+
 from pathlib import Path
 
 import pytest
@@ -12,4 +13,6 @@ VARIABLES = sorted(value for name, value in vars(config).items() if name.startsw
 @pytest.mark.parametrize("variable", VARIABLES)
 def test_environment_variable_is_documented(variable):
     docs = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-    assert any(variable in path.read_text(encoding="utf-8") for path in docs), f"{variable} is read by faceretarget but documented nowhere"
+    assert any(variable in path.read_text(encoding="utf-8") for path in docs), (
+        f"{variable} is read by faceretarget but documented nowhere"
+    )

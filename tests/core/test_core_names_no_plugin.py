@@ -1,5 +1,6 @@
 """The core names no plugin (issue 18 item 4): no string in ``core/**/*.py`` names a built-in
 method, and the built-ins' paper reproductions come through the ``faceretarget_presets`` hook."""
+
 import ast
 import re
 from pathlib import Path
@@ -28,7 +29,10 @@ ALLOWED = {
     ("geometry/_laplacian_kernels.py", "coating"),
     # TODO(issue 18 item 3, core/io is being reworked by its owner): `cases export` lists the
     # methods in EXPORT_METHODS; it should list those of the manifest whose needs the case meets
-    *(("io/commands.py", name) for name in ("spacetime", "normalmesh", "coating", "deformation_transfer")),
+    *(
+        ("io/commands.py", name)
+        for name in ("spacetime", "normalmesh", "coating", "deformation_transfer")
+    ),
 }
 
 
@@ -64,8 +68,15 @@ def test_no_core_module_names_a_builtin_method():
     for path in sorted(CORE.rglob("*.py")):
         rel = path.relative_to(CORE).as_posix()
         for line, text in _strings(ast.parse(path.read_text(encoding="utf-8"))):
-            found += [f"core/{rel}:{line}: {name!r}" for name in _hits(text, names) if (rel, name) not in ALLOWED]
-    assert not found, "the core names built-in methods (move it into the plugin, or read it from the manifest):\n" + "\n".join(found)
+            found += [
+                f"core/{rel}:{line}: {name!r}"
+                for name in _hits(text, names)
+                if (rel, name) not in ALLOWED
+            ]
+    assert not found, (
+        "the core names built-in methods (move it into the plugin, or read it from the manifest):\n"
+        + "\n".join(found)
+    )
 
 
 def test_the_check_finds_a_method_name():
@@ -105,10 +116,13 @@ def test_baselines_come_from_the_manifest():
         assert all(p in builtin() and roles[p].kind == PAPER for p in papers)
 
 
-@pytest.mark.parametrize("bad, message", [
-    ('baseline_of = "coating"', "baseline_of must be a list of strings"),
-    ("baseline_of = [1]", "baseline_of must be a list of strings"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ('baseline_of = "coating"', "baseline_of must be a list of strings"),
+        ("baseline_of = [1]", "baseline_of must be a list of strings"),
+    ],
+)
 def test_baseline_of_is_checked(bad, message):
     from faceretarget.errors import ConfigError
     from faceretarget.manifest import parse

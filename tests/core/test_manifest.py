@@ -1,5 +1,6 @@
 """Manifest first: `list`, `info` and available() read manifests without importing plugin code,
 and the registry checks that every class agrees with its manifest."""
+
 import importlib
 import json
 import re
@@ -11,8 +12,8 @@ import pytest
 
 import faceretarget as fr
 from faceretarget import errors, manifest
-from faceretarget.registry import Registry, read_catalogue
 from faceretarget import registry as registry_module
+from faceretarget.registry import Registry, read_catalogue
 
 
 def test_list_info_and_available_import_no_plugin_code():
@@ -34,7 +35,9 @@ def test_list_info_and_available_import_no_plugin_code():
     result = json.loads(run.stdout)
     assert result["loaded"] == [], f"listing imported {result['loaded']}"
     assert set(read_catalogue()) <= set(result["names"])
-    assert "a finite number in [0, 1e12]" in result["out"], "info shows each parameter's valid values"
+    assert "a finite number in [0, 1e12]" in result["out"], (
+        "info shows each parameter's valid values"
+    )
 
 
 def test_info_shows_the_manifest_and_its_constraints(capsys):
@@ -43,7 +46,11 @@ def test_info_shows_the_manifest_and_its_constraints(capsys):
     assert cli.main(["info", "normalmesh", "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     levels = data["parameters"]["levels"]
-    assert levels == {"default": "auto", "valid": "'auto' or a whole number in [0, 7]", "doc": manifest.builtin()["normalmesh"].parameters["levels"].doc}
+    assert levels == {
+        "default": "auto",
+        "valid": "'auto' or a whole number in [0, 7]",
+        "doc": manifest.builtin()["normalmesh"].parameters["levels"].doc,
+    }
     assert data["parameters"]["base_triangles"]["default"] is None
 
 
@@ -53,7 +60,9 @@ def test_builtin_classes_take_their_constraints_from_registry_toml():
         cls = reg.resolve(name).cls
         assert manifest.disagreements(cls, m) == [], name
         declared = fr.validation.constraints_of(cls)
-        assert set(declared) == set(m.parameters), f"{name}: parameter_constraints and registry.toml name different parameters"
+        assert set(declared) == set(m.parameters), (
+            f"{name}: parameter_constraints and registry.toml name different parameters"
+        )
 
 
 def _edited_catalogue(monkeypatch, old: str, new: str):
@@ -66,23 +75,38 @@ def _edited_catalogue(monkeypatch, old: str, new: str):
 @pytest.mark.parametrize(
     "old, new, words",
     [
-        ('alpha = { default = 0.01, type = "float", range = "[0, 1e12]"', 'alpha = { default = 0.02, type = "float", range = "[0, 1e12]"',
-         r"plugin 'spacetime'.*hook faceretarget_retargeters.*'alpha': default 0.01 in __init__, 0.02 in the manifest"),
-        ('alpha = { default = 0.01, type = "float", range = "[0, 1e12]"', 'alpha = { default = 0.01, type = "float", range = "[0, 1e6]"',
-         r"'alpha': class accepts a finite number in \[0, 1e12\], the manifest a finite number in \[0, 1e6\]"),
-        ('sources = ["mesh"]\nneeds = ["feature_lines"', 'sources = ["markers"]\nneeds = ["feature_lines"', r"plugin 'coating'.*capabilities"),
-        ("[retargeters.layers.parameters]\n", '[retargeters.layers.parameters]\nwobble = { default = 1, doc = "d" }\n',
-         r"wobble in the manifest but not in __init__"),
+        (
+            'alpha = { default = 0.01, type = "float", range = "[0, 1e12]"',
+            'alpha = { default = 0.02, type = "float", range = "[0, 1e12]"',
+            r"plugin 'spacetime'.*hook faceretarget_retargeters.*'alpha': default 0.01 in __init__, 0.02 in the manifest",
+        ),
+        (
+            'alpha = { default = 0.01, type = "float", range = "[0, 1e12]"',
+            'alpha = { default = 0.01, type = "float", range = "[0, 1e6]"',
+            r"'alpha': class accepts a finite number in \[0, 1e12\], the manifest a finite number in \[0, 1e6\]",
+        ),
+        (
+            'sources = ["mesh"]\nneeds = ["feature_lines"',
+            'sources = ["markers"]\nneeds = ["feature_lines"',
+            r"plugin 'coating'.*capabilities",
+        ),
+        (
+            "[retargeters.layers.parameters]\n",
+            '[retargeters.layers.parameters]\nwobble = { default = 1, doc = "d" }\n',
+            r"wobble in the manifest but not in __init__",
+        ),
     ],
 )
-def test_a_builtin_class_that_disagrees_with_registry_toml_is_an_error(monkeypatch, old, new, words):
+def test_a_builtin_class_that_disagrees_with_registry_toml_is_an_error(
+    monkeypatch, old, new, words
+):
     _edited_catalogue(monkeypatch, old, new)
     with pytest.raises(errors.PluginLoadError, match=words):
         Registry().load()
 
 
 # -- third-party plugins with a manifest in their package -------------------------------------
-PLUGIN = '''
+PLUGIN = """
 import faceretarget as fr
 from faceretarget.validation import Interval
 
@@ -100,9 +124,9 @@ class Echo(fr.Retargeter):
 @fr.hookimpl
 def faceretarget_retargeters():
     return [Echo]
-'''
+"""
 
-MANIFEST = '''
+MANIFEST = """
 [retargeters.echo]
 summary = "echoes"
 aliases = ["echo2024"]
@@ -110,7 +134,7 @@ aliases = ["echo2024"]
 sources = ["mesh"]
 [retargeters.echo.parameters]
 gain = { default = 1.0, type = "float", range = "[0, inf)", doc = "how loud" }
-'''
+"""
 
 
 @pytest.fixture
@@ -138,7 +162,11 @@ def test_a_plugin_manifest_is_listed_without_importing_the_plugin(echo_dist):
     echo_dist()
     index = Registry().index()
     entry = index.resolve("echo2024")
-    assert entry.name == "echo" and entry.summary == "echoes" and entry.plugin.distribution == "echo-dist"
+    assert (
+        entry.name == "echo"
+        and entry.summary == "echoes"
+        and entry.plugin.distribution == "echo-dist"
+    )
     assert entry.parameters["gain"].valid == "a finite number >= 0"
     assert "echo_pkg" not in sys.modules, "the index imported the plugin"
     loaded = Registry().load()
@@ -149,13 +177,23 @@ def test_a_plugin_manifest_is_listed_without_importing_the_plugin(echo_dist):
     "old, new, words",
     [
         ("default = 1.0", "default = 2.0", r"'gain': default 1.0 in __init__, 2.0 in the manifest"),
-        ('range = "[0, inf)"', 'range = "[1, inf)"', r"'gain': class accepts a finite number >= 0, the manifest a finite number >= 1"),
+        (
+            'range = "[0, inf)"',
+            'range = "[1, inf)"',
+            r"'gain': class accepts a finite number >= 0, the manifest a finite number >= 1",
+        ),
         ('sources = ["mesh"]', 'sources = ["markers"]', "capabilities"),
-        ("[retargeters.echo]", '[retargeters.ghost]\nsummary = "s"\n[retargeters.echo]', "declares 'ghost' but hook faceretarget_retargeters returned no such class"),
+        (
+            "[retargeters.echo]",
+            '[retargeters.ghost]\nsummary = "s"\n[retargeters.echo]',
+            "declares 'ghost' but hook faceretarget_retargeters returned no such class",
+        ),
         ("gain = {", "[", "not valid TOML"),
     ],
 )
-def test_a_plugin_that_disagrees_with_its_manifest_is_skipped_naming_the_mismatch(echo_dist, old, new, words):
+def test_a_plugin_that_disagrees_with_its_manifest_is_skipped_naming_the_mismatch(
+    echo_dist, old, new, words
+):
     echo_dist(MANIFEST.replace(old, new))
     loaded = Registry().load()
     assert "echo" not in loaded.retargeters
@@ -175,15 +213,22 @@ def test_a_plugin_without_a_manifest_is_described_by_its_class(tmp_path, monkeyp
     monkeypatch.syspath_prepend(str(site))
     importlib.invalidate_caches()
     entry = Registry().index().resolve("echo")  # imported: nothing else describes it
-    assert entry.parameters["gain"].valid == "a finite number >= 0" and entry.defaults == {"gain": 1.0}
+    assert entry.parameters["gain"].valid == "a finite number >= 0" and entry.defaults == {
+        "gain": 1.0
+    }
     monkeypatch.delitem(sys.modules, "echo_mod", raising=False)
 
 
 @pytest.mark.parametrize(
     "constraints, words",
-    [({"nope": ["boolean"]}, "parameter_constraints names 'nope', which __init__ does not take"),
-     ({"gain": [fr.validation.Interval(float, 0, 1)]}, r"the default gain=2.0 is not a finite number in [0, 1]"),
-     ({"gain": ["bool"]}, "parameter_constraints: unknown parameter constraint 'bool'")],
+    [
+        ({"nope": ["boolean"]}, "parameter_constraints names 'nope', which __init__ does not take"),
+        (
+            {"gain": [fr.validation.Interval(float, 0, 1)]},
+            r"the default gain=2.0 is not a finite number in [0, 1]",
+        ),
+        ({"gain": ["bool"]}, "parameter_constraints: unknown parameter constraint 'bool'"),
+    ],
 )
 def test_a_class_whose_constraints_are_inconsistent_is_refused_at_registration(constraints, words):
     class Bad(fr.Retargeter):

@@ -1,4 +1,5 @@
 """The data model validates its inputs, never mutates them, and accepts float32 / read-only arrays."""
+
 import numpy as np
 import pytest
 
@@ -143,7 +144,9 @@ def test_landmarks_vertex_and_barycentric():
     np.testing.assert_allclose(lm.positions(v), v[[0, 2]])
     bary = fr.Landmarks(triangle_ids=[0], barycentric=[[1 / 3, 1 / 3, 1 / 3]])
     np.testing.assert_allclose(bary.positions(v, t)[0], v[[0, 1, 2]].mean(axis=0))
-    np.testing.assert_allclose(bary.positions(np.stack([v, v + 1]), t)[1, 0], v[[0, 1, 2]].mean(axis=0) + 1)
+    np.testing.assert_allclose(
+        bary.positions(np.stack([v, v + 1]), t)[1, 0], v[[0, 1, 2]].mean(axis=0) + 1
+    )
     with pytest.raises(errors.IndexRangeError):
         fr.Landmarks([0, 9]).validate_for(fr.Mesh(v, t))
     with pytest.raises(errors.InputError):
@@ -162,7 +165,9 @@ def test_source_and_target_validation():
         fr.Source(seq, head_motion=np.tile(np.eye(4), (2, 1, 1)))
     with pytest.raises(errors.InputError):
         fr.Source(np.zeros((3, 4, 3)))
-    target = fr.TargetRig(neutral, landmarks=fr.Landmarks([0, 1, 2]), feature_lines={"mouth": [0, 1, 2]})
+    target = fr.TargetRig(
+        neutral, landmarks=fr.Landmarks([0, 1, 2]), feature_lines={"mouth": [0, 1, 2]}
+    )
     assert target.parts() == ("landmarks", "feature_lines")
     other = fr.Mesh(np.vstack([v, [[2, 2, 0]]]), [[0, 1, 2], [2, 3, 4]])
     rig = fr.BlendshapeRig(other, np.zeros((1, 5, 3)), ["a"])
@@ -177,7 +182,9 @@ def test_animation_lazy_vertices_with_head_motion_and_provenance():
     rig = fr.BlendshapeRig(fr.Mesh(v, t), np.ones((1, 4, 3)), ["lift"])
     motion = np.tile(np.eye(4), (2, 1, 1))
     motion[:, :3, 3] = [10.0, 0, 0]
-    anim = fr.Animation(weights=[[0.0], [1.0]], rig=rig, head_motion=motion, provenance={"method": "x"})
+    anim = fr.Animation(
+        weights=[[0.0], [1.0]], rig=rig, head_motion=motion, provenance={"method": "x"}
+    )
     assert anim.is_blendshape_based and anim._vertices is None
     np.testing.assert_allclose(anim.vertices[1], v + 1 + [10, 0, 0])
     np.testing.assert_allclose(anim.local_vertices[1], v + 1)
@@ -223,13 +230,20 @@ def test_mesh_sequence_keeps_big_endian_memory_maps_on_disk(tmp_path):
     mapped = np.memmap(path, dtype=">f4", mode="r", shape=(4, 4, 3))
     seq = fr.MeshSequence(mapped, t)
     assert seq.vertices.dtype == np.dtype(">f4")
-    assert np.shares_memory(seq.vertices, mapped), "a memory-mapped cache must not be copied into memory"
+    assert np.shares_memory(seq.vertices, mapped), (
+        "a memory-mapped cache must not be copied into memory"
+    )
 
 
 def test_source_and_target_replace_revalidate_and_drop_example_names():
     v, t = quad()
     neutral = fr.Mesh(v, t)
-    target = fr.TargetRig(neutral, landmarks=fr.Landmarks([0, 1, 2]), examples=np.zeros((1, 4, 3)), example_names=["rest"])
+    target = fr.TargetRig(
+        neutral,
+        landmarks=fr.Landmarks([0, 1, 2]),
+        examples=np.zeros((1, 4, 3)),
+        example_names=["rest"],
+    )
     bare = target.replace(examples=None, landmarks=None)
     assert bare.parts() == () and bare.example_names == ()
     assert target.parts() == ("landmarks", "examples"), "replace must not change the original"

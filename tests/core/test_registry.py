@@ -1,4 +1,5 @@
 """The plugin registry: built-ins through entry points, third-party isolation, registry.toml."""
+
 import importlib
 import os
 import subprocess
@@ -16,7 +17,7 @@ from faceretarget.registry import Registry, read_catalogue
 
 ROOT = Path(__file__).resolve().parents[2]
 
-GOOD_PLUGIN = '''
+GOOD_PLUGIN = """
 import faceretarget as fr
 
 class Echo(fr.Retargeter):
@@ -33,7 +34,7 @@ class Echo(fr.Retargeter):
 @fr.hookimpl
 def faceretarget_retargeters():
     return [Echo]
-'''
+"""
 
 
 def make_dist(tmp_path, dist, modules: dict, entry_points: dict) -> Path:
@@ -87,7 +88,14 @@ def test_third_party_plugin_loads_and_broken_ones_are_recorded(tmp_path, on_path
             "tp_notclass": "import faceretarget as fr\n@fr.hookimpl\ndef faceretarget_retargeters():\n    return [42]\n",
             "tp_raises": "import faceretarget as fr\n@fr.hookimpl\ndef faceretarget_retargeters():\n    raise ValueError('hook failed')\n",
         },
-        {"good": "tp_good", "broken": "tp_broken", "exits": "tp_exit", "typo": "tp_typo", "notclass": "tp_notclass", "raises": "tp_raises"},
+        {
+            "good": "tp_good",
+            "broken": "tp_broken",
+            "exits": "tp_exit",
+            "typo": "tp_typo",
+            "notclass": "tp_notclass",
+            "raises": "tp_raises",
+        },
     )
     on_path(site)
     reg = Registry().load()
@@ -108,11 +116,22 @@ def test_duplicate_names_are_an_error_naming_both_origins(tmp_path, on_path):
     reg = Registry().load()
     assert "twin" in reg.retargeters
     (failure,) = [f for f in reg.failures if f.name in ("a", "b")]
-    assert "already registered" in failure.error and "dupa" in failure.error and "dupb" in failure.error
+    assert (
+        "already registered" in failure.error
+        and "dupa" in failure.error
+        and "dupb" in failure.error
+    )
 
 
 def test_disable_and_allowlist_environment(tmp_path, on_path, monkeypatch):
-    on_path(make_dist(tmp_path, "envplug", {"env_mod": GOOD_PLUGIN.format(name="echo_env")}, {"envp": "env_mod"}))
+    on_path(
+        make_dist(
+            tmp_path,
+            "envplug",
+            {"env_mod": GOOD_PLUGIN.format(name="echo_env")},
+            {"envp": "env_mod"},
+        )
+    )
     monkeypatch.setenv("FACERETARGET_DISABLE_PLUGINS", "1")
     assert "echo_env" not in Registry().load().retargeters
     monkeypatch.delenv("FACERETARGET_DISABLE_PLUGINS")
@@ -125,7 +144,12 @@ def test_disable_and_allowlist_environment(tmp_path, on_path, monkeypatch):
 def test_trace_environment_prints_hook_calls():
     env = dict(os.environ, FACERETARGET_TRACE="1")
     # fr.available() reads manifests and calls no hook; loading the plugins does
-    out = subprocess.run([sys.executable, "-c", "import faceretarget as fr; fr.registry.registry()"], capture_output=True, text=True, env=env)
+    out = subprocess.run(
+        [sys.executable, "-c", "import faceretarget as fr; fr.registry.registry()"],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     assert out.returncode == 0, out.stderr
     assert "faceretarget_retargeters" in out.stderr
 
@@ -134,38 +158,63 @@ def test_available_does_not_import_numba():
     code = "import sys, faceretarget as fr; fr.available(); fr.get(fr.available()[0]['name']) if fr.available() else None; print('numba' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "False", "listing or constructing retargeters must not import numba"
+    assert out.stdout.strip() == "False", (
+        "listing or constructing retargeters must not import numba"
+    )
 
 
 def test_registry_toml_agrees_with_entry_points_and_classes():
     import importlib.metadata as md
 
     catalogue = read_catalogue()
-    ours = {ep.name: ep for ep in md.entry_points(group="faceretarget") if ep.dist and ep.dist.metadata["Name"] == "faceretarget"}
+    ours = {
+        ep.name: ep
+        for ep in md.entry_points(group="faceretarget")
+        if ep.dist and ep.dist.metadata["Name"] == "faceretarget"
+    }
     reg = fr.registry.registry()
     builtin = {n: e for n, e in reg.retargeters.items() if e.plugin.builtin}
-    assert set(catalogue) == set(builtin), "registry.toml and the built-in plugins must list the same retargeters"
+    assert set(catalogue) == set(builtin), (
+        "registry.toml and the built-in plugins must list the same retargeters"
+    )
     for name, entry in catalogue.items():
-        assert entry["entry_point"] in ours, f"{name}: entry point {entry['entry_point']!r} not in pyproject.toml"
+        assert entry["entry_point"] in ours, (
+            f"{name}: entry point {entry['entry_point']!r} not in pyproject.toml"
+        )
         info = builtin[name]
-        assert info.plugin.name == entry["entry_point"], f"{name} is provided by {info.plugin.name}, registry.toml says {entry['entry_point']}"
-        assert fr.Capabilities.from_dict(entry["capabilities"]) == info.cls.capabilities, f"{name}: capabilities differ"
+        assert info.plugin.name == entry["entry_point"], (
+            f"{name} is provided by {info.plugin.name}, registry.toml says {entry['entry_point']}"
+        )
+        assert fr.Capabilities.from_dict(entry["capabilities"]) == info.cls.capabilities, (
+            f"{name}: capabilities differ"
+        )
         defaults = info.cls.default_params()
-        assert set(entry["parameters"]) == set(defaults), f"{name}: documented parameters differ from __init__'s"
+        assert set(entry["parameters"]) == set(defaults), (
+            f"{name}: documented parameters differ from __init__'s"
+        )
         for p, spec in entry["parameters"].items():
             assert spec.get("doc"), f"{name}.{p} has no doc"
-            assert spec.get("default") == defaults[p] or (spec.get("default") is None and defaults[p] is None) or (
-                "default" not in spec and defaults[p] is None
-            ), f"{name}.{p}: registry.toml default {spec.get('default')!r} != class default {defaults[p]!r}"
+            assert (
+                spec.get("default") == defaults[p]
+                or (spec.get("default") is None and defaults[p] is None)
+                or ("default" not in spec and defaults[p] is None)
+            ), (
+                f"{name}.{p}: registry.toml default {spec.get('default')!r} != class default {defaults[p]!r}"
+            )
         for alias in entry["aliases"]:
             assert fr.info(alias).name == name
 
 
 @pytest.mark.parametrize(
     "text",
-    ["not [valid toml", "[other]\nx = 1\n", "[retargeters.a]\nsummary = 1\n", "[retargeters]\na = 3\n",
-     '[retargeters.a]\nentry_point="a"\nsummary="s"\npaper="p"\naliases="x"\n',
-     '[retargeters.a]\nentry_point="a"\nsummary="s"\npaper="p"\n[retargeters.a.parameters]\nx = 1\n'],
+    [
+        "not [valid toml",
+        "[other]\nx = 1\n",
+        "[retargeters.a]\nsummary = 1\n",
+        "[retargeters]\na = 3\n",
+        '[retargeters.a]\nentry_point="a"\nsummary="s"\npaper="p"\naliases="x"\n',
+        '[retargeters.a]\nentry_point="a"\nsummary="s"\npaper="p"\n[retargeters.a.parameters]\nx = 1\n',
+    ],
 )
 def test_malformed_registry_toml_is_a_config_error(text):
     with pytest.raises(errors.ConfigError, match="registry.toml"):
@@ -181,8 +230,19 @@ def test_every_hook_is_documented():
 def test_wheel_ships_registry_toml_and_reads_it_from_there(tmp_path, source_copy):
     project = source_copy(ROOT)  # built from a copy: no build/ or *.egg-info in the checkout
     out = subprocess.run(
-        [sys.executable, "-m", "build", "--wheel", "--no-isolation", "--outdir", str(tmp_path / "dist"), str(project)],
-        capture_output=True, text=True, cwd=tmp_path,
+        [
+            sys.executable,
+            "-m",
+            "build",
+            "--wheel",
+            "--no-isolation",
+            "--outdir",
+            str(tmp_path / "dist"),
+            str(project),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
     )
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
     (wheel,) = (tmp_path / "dist").glob("faceretarget-*.whl")
@@ -197,13 +257,19 @@ def test_wheel_ships_registry_toml_and_reads_it_from_there(tmp_path, source_copy
         "p = resources.files('faceretarget').joinpath('registry.toml'); print(p); r.read_catalogue()"
     )
     env = dict(os.environ, PYTHONPATH=str(tmp_path / "unpacked"))
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path)
+    run = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tmp_path
+    )
     assert run.returncode == 0, run.stderr
     assert str(tmp_path / "unpacked") in run.stdout
 
 
 def test_readme_method_sections_match_registry_toml():
-    out = subprocess.run([sys.executable, str(ROOT / "docs" / "readme_methods.py"), "--check"], capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "docs" / "readme_methods.py"), "--check"],
+        capture_output=True,
+        text=True,
+    )
     assert out.returncode == 0, out.stderr
     readme = (ROOT / "README.md").read_text()
     for name in read_catalogue():

@@ -1,4 +1,5 @@
 """The conformance kit catches each broken invariant (a kit that cannot fail is no kit)."""
+
 import numpy as np
 import pytest
 
@@ -11,7 +12,9 @@ class Good(fr.Retargeter):
     """Rigid-aware 'neutral' retargeter: copies the target neutral, carries head motion."""
 
     name = "good"
-    capabilities = fr.Capabilities(sources=("mesh", "markers"), needs=("landmarks", "source_landmarks"))
+    capabilities = fr.Capabilities(
+        sources=("mesh", "markers"), needs=("landmarks", "source_landmarks")
+    )
 
     def __init__(self, *, gain=1.0):
         self.gain = gain
@@ -41,8 +44,8 @@ class MutatesInput(Good):
 
     def _fit(self, source, target):
         super()._fit(source, target)
-        np.asarray(target.neutral.vertices).flags  # reading is fine...
-        arr = target.neutral.__dict__.setdefault("note", np.zeros(1))
+        np.asarray(target.neutral.vertices).flags  # noqa: B018 -- reading is fine...
+        target.neutral.__dict__.setdefault("note", np.zeros(1))
         target.feature_lines["added"] = np.array([0, 1])  # ...changing an input is not
 
 
@@ -51,7 +54,10 @@ class Noisy(Good):
 
     def _retarget(self, source):
         anim = super()._retarget(source)
-        return fr.Animation(vertices=anim.vertices + np.random.default_rng().normal(scale=1e-9, size=anim.vertices.shape))
+        return fr.Animation(
+            vertices=anim.vertices
+            + np.random.default_rng().normal(scale=1e-9, size=anim.vertices.shape)
+        )
 
 
 class IgnoresHeadMotion(Good):
@@ -86,7 +92,9 @@ class UndeclaredNeed(Good):
 
 class ClaimsWeights(Good):
     name = "claimsweights"
-    capabilities = fr.Capabilities(sources=("mesh", "markers"), needs=("landmarks",), outputs="weights")
+    capabilities = fr.Capabilities(
+        sources=("mesh", "markers"), needs=("landmarks",), outputs="weights"
+    )
 
 
 class ClaimsStream(Good):
@@ -94,7 +102,7 @@ class ClaimsStream(Good):
     capabilities = fr.Capabilities(sources=("mesh", "markers"), needs=("landmarks",), stream=True)
 
     def stream(self, frames):
-        for f in frames:
+        for _f in frames:
             yield self.neutral_
 
 
@@ -106,7 +114,10 @@ class SourceUnits(Good):
     def _retarget(self, source):
         anim = super()._retarget(source)
         moved = source.marker_positions() - self.reference_
-        return fr.Animation(vertices=np.asarray(anim.vertices) + moved.mean(axis=1, keepdims=True), head_motion=anim.head_motion)
+        return fr.Animation(
+            vertices=np.asarray(anim.vertices) + moved.mean(axis=1, keepdims=True),
+            head_motion=anim.head_motion,
+        )
 
 
 class WorldFrame(Good):
@@ -117,7 +128,9 @@ class WorldFrame(Good):
     def _retarget(self, source):
         anim = super()._retarget(source)
         shift = self.reference_.mean(axis=0) - self.neutral_.mean(axis=0)
-        return fr.Animation(vertices=np.asarray(anim.vertices) + 1e-3 * shift, head_motion=anim.head_motion)
+        return fr.Animation(
+            vertices=np.asarray(anim.vertices) + 1e-3 * shift, head_motion=anim.head_motion
+        )
 
 
 class SameTopologyOnly(Good):
@@ -143,7 +156,9 @@ class HiddenNeed(Good):
 
     def _fit(self, source, target):
         if source.landmarks is None:
-            raise fr.errors.CapabilityError("hiddenneed: needs landmarks on a source of another topology")
+            raise fr.errors.CapabilityError(
+                "hiddenneed: needs landmarks on a source of another topology"
+            )
         super()._fit(source, target)
 
 
@@ -155,7 +170,12 @@ class DeclaredConditionalNeed(HiddenNeed):
     @classmethod
     def why_not(cls, source, target):
         reason = super().why_not(source, target)
-        if reason is None and target is not None and source.kind == "mesh" and source.landmarks is None:
+        if (
+            reason is None
+            and target is not None
+            and source.kind == "mesh"
+            and source.landmarks is None
+        ):
             return "conditionalneed needs a Source with landmarks"
         return reason
 
@@ -242,7 +262,9 @@ def test_new_checks_pass_a_correct_retargeter():
 
 
 def test_unit_check_reports_the_move_and_size():
-    with pytest.raises(AssertionError, match=r"source x0\.01: result differs by [0-9.e-]+ of the face height"):
+    with pytest.raises(
+        AssertionError, match=r"source x0\.01: result differs by [0-9.e-]+ of the face height"
+    ):
         testing.check_unit_invariance(SourceUnits, testing.tiny_case())
 
 
@@ -250,7 +272,11 @@ def test_cross_topology_case_differs_in_topology():
     case = testing.tiny_cross_topology_case()
     src, tgt = case.source.performance.reference, case.target.neutral
     assert src.n_vertices != tgt.n_vertices and case.source.n_frames == 6
-    assert len(fr.correspond.boundary_loops(src.triangles)) == 1 < len(fr.correspond.boundary_loops(tgt.triangles))
+    assert (
+        len(fr.correspond.boundary_loops(src.triangles))
+        == 1
+        < len(fr.correspond.boundary_loops(tgt.triangles))
+    )
 
 
 def test_declared_needs_names_the_variant():

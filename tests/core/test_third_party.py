@@ -5,6 +5,7 @@ sources), put on ``sys.path`` here and on ``PYTHONPATH`` of the subprocesses: th
 environment running the tests and the checkout are left as they were
 (``tests/test_clean_environment.py``).
 """
+
 import importlib
 import json
 import os
@@ -27,7 +28,10 @@ def installed_example(tmp_path_factory):
     site = work / "site"
     out = pip_install_target(EXAMPLE, site, work)
     assert out.returncode == 0, out.stderr[-2000:]
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])))
+    env = dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])),
+    )
     saved = _forget_plugin_modules()  # a copy the user installed stays what other tests hold
     with pytest.MonkeyPatch.context() as mp:
         mp.syspath_prepend(str(site))
@@ -41,7 +45,11 @@ def installed_example(tmp_path_factory):
 
 def _forget_plugin_modules() -> dict:
     """Remove the plugin's modules from ``sys.modules``; returns them."""
-    names = [m for m in sys.modules if m == "faceretarget_displacement" or m.startswith("faceretarget_displacement.")]
+    names = [
+        m
+        for m in sys.modules
+        if m == "faceretarget_displacement" or m.startswith("faceretarget_displacement.")
+    ]
     return {name: sys.modules.pop(name) for name in names}
 
 
@@ -84,7 +92,9 @@ def test_list_and_info_read_the_plugin_manifest_without_importing_it(installed_e
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
     imported, text = out.stdout.split("\n", 1)
-    assert imported == "False", "faceretarget list/info imported the plugin instead of reading its faceretarget.toml"
+    assert imported == "False", (
+        "faceretarget list/info imported the plugin instead of reading its faceretarget.toml"
+    )
     assert "jacobian = True    (True or False)" in text
 
 
@@ -94,5 +104,7 @@ def test_the_plugin_checks_its_parameters_with_the_public_module(installed_examp
 
     reload()
     case = fr.cases.synthetic(resolution=200, n_frames=2)
-    with pytest.raises(ParameterError, match="displacement: parameter 'jacobian': expected True or False, got 'no'"):
+    with pytest.raises(
+        ParameterError, match="displacement: parameter 'jacobian': expected True or False, got 'no'"
+    ):
         fr.get("displacement", jacobian="no").fit(case.source, case.target)

@@ -1,4 +1,5 @@
 """The threading policy: per-frame and iterative paths run BLAS on one thread, the rest keep theirs."""
+
 import numpy as np
 import pytest
 from threadpoolctl import threadpool_info

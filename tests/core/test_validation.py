@@ -1,17 +1,30 @@
 """faceretarget.validation: declarative parameter constraints, and every built-in method enforcing
 the ones registry.toml declares for it."""
+
 import numpy as np
 import pytest
 
 import faceretarget as fr
 from faceretarget import errors, manifest
-from faceretarget.validation import Interval, Options, check_value, describe, from_manifest, make_constraint, validate_params
+from faceretarget.validation import (
+    Interval,
+    Options,
+    check_value,
+    describe,
+    from_manifest,
+    make_constraint,
+    validate_params,
+)
 
 
 @pytest.mark.parametrize(
     "constraints, good, bad",
     [
-        ([Interval(float, 0, None, closed="left")], [0, 0.5, 1e300, np.float32(2)], [-1e-9, np.nan, np.inf, True, "1", None, [1]]),
+        (
+            [Interval(float, 0, None, closed="left")],
+            [0, 0.5, 1e300, np.float32(2)],
+            [-1e-9, np.nan, np.inf, True, "1", None, [1]],
+        ),
         ([Interval(float, 0, 1, closed="right")], [1, 0.5], [0, 1.5]),
         ([Interval(float, 0, 1, closed="neither")], [0.5], [0, 1]),
         ([Interval(int, 1, 10)], [1, 10, 3.0, np.int64(4)], [0, 11, 2.5, np.bool_(True), "3"]),
@@ -34,13 +47,21 @@ def test_constraints_accept_and_reject(constraints, good, bad):
 
 
 def test_values_are_converted():
-    assert check_value(3.0, [Interval(int, 0, 7)], "p") == 3 and type(check_value(3.0, [Interval(int, 0, 7)], "p")) is int
+    assert (
+        check_value(3.0, [Interval(int, 0, 7)], "p") == 3
+        and type(check_value(3.0, [Interval(int, 0, 7)], "p")) is int
+    )
     assert type(check_value(np.float32(0.5), [Interval(float)], "p")) is float
-    assert check_value(np.bool_(True), ["boolean"], "p") is True and check_value(0, ["boolean"], "p") is False
+    assert (
+        check_value(np.bool_(True), ["boolean"], "p") is True
+        and check_value(0, ["boolean"], "p") is False
+    )
 
 
 def test_parameter_error_is_both_a_config_and_an_input_error():
-    assert issubclass(errors.ParameterError, errors.ConfigError) and issubclass(errors.ParameterError, errors.InputError)
+    assert issubclass(errors.ParameterError, errors.ConfigError) and issubclass(
+        errors.ParameterError, errors.InputError
+    )
 
 
 def test_a_near_miss_choice_gets_did_you_mean():
@@ -49,7 +70,9 @@ def test_a_near_miss_choice_gets_did_you_mean():
 
 
 def test_descriptions():
-    assert describe([Options(["auto"]), Interval(int, 0, 7)]) == "'auto' or a whole number in [0, 7]"
+    assert (
+        describe([Options(["auto"]), Interval(int, 0, 7)]) == "'auto' or a whole number in [0, 7]"
+    )
     assert describe([Interval(float, 0, None, closed="neither")]) == "a finite number > 0"
     assert describe([Interval(float, 1e-4, 1e12)]) == "a finite number in [0.0001, 1e12]"
     assert describe([None, Options(["rig"]), "array-like"]) == "None, 'rig' or an array"
@@ -70,7 +93,10 @@ def test_unknown_constraints_are_refused():
     [
         ({"type": "float", "range": "[0, 1e12]"}, "a finite number in [0, 1e12]"),
         ({"type": "int", "range": "[-1, inf)"}, "a whole number >= -1"),
-        ({"choices": ["auto"], "type": "float", "range": "(0, 1]"}, "'auto' or a finite number in (0, 1]"),
+        (
+            {"choices": ["auto"], "type": "float", "range": "(0, 1]"},
+            "'auto' or a finite number in (0, 1]",
+        ),
         ({"type": ["str", "int"], "none": True}, "None, a string or a whole number"),
         ({"type": "bool", "default": True}, "True or False"),
         ({"doc": "anything"}, ""),
@@ -82,8 +108,17 @@ def test_manifest_form(spec, valid):
 
 @pytest.mark.parametrize(
     "spec",
-    [{"type": "double"}, {"type": "float", "range": "0..1"}, {"type": "float", "range": "[1, 0]"}, {"range": "[0, 1]"},
-     {"choices": []}, {"choices": "a"}, {"none": "yes"}, {"min": 0}, {"type": "int", "range": "[0, 1]", "default": 2}],
+    [
+        {"type": "double"},
+        {"type": "float", "range": "0..1"},
+        {"type": "float", "range": "[1, 0]"},
+        {"range": "[0, 1]"},
+        {"choices": []},
+        {"choices": "a"},
+        {"none": "yes"},
+        {"min": 0},
+        {"type": "int", "range": "[0, 1]", "default": 2},
+    ],
 )
 def test_malformed_manifest_form_is_a_config_error(spec):
     with pytest.raises(errors.ConfigError, match="here"):
@@ -108,12 +143,22 @@ def test_validate_params_checks_every_declared_parameter():
 
 def _bad_values(constraints):
     """Values each outside every one of ``constraints`` (an interval's neighbours, a wrong string)."""
-    if not constraints or any(not isinstance(c, (Interval, Options)) and c.name in ("array-like", "no_validation") for c in constraints):
+    if not constraints or any(
+        not isinstance(c, (Interval, Options)) and c.name in ("array-like", "no_validation")
+        for c in constraints
+    ):
         return []
     out = ["no-such-choice"] if not any(c == make_constraint(str) for c in constraints) else []
     for c in constraints:
         if isinstance(c, Interval):
-            out += [v for v in (c.left - 1 if c.left is not None else None, c.right + 1 if c.right is not None else None) if v is not None]
+            out += [
+                v
+                for v in (
+                    c.left - 1 if c.left is not None else None,
+                    c.right + 1 if c.right is not None else None,
+                )
+                if v is not None
+            ]
             if c.kind is int:
                 out.append(0.5 + (c.left or 0))
     return [v for v in out if not any(c.accepts(v) for c in constraints)]
@@ -125,7 +170,11 @@ def _check_stage(retargeter):
     return check()
 
 
-CASES = [(name, p, spec.constraints) for name, m in manifest.builtin().items() for p, spec in m.parameters.items()]
+CASES = [
+    (name, p, spec.constraints)
+    for name, m in manifest.builtin().items()
+    for p, spec in m.parameters.items()
+]
 
 
 @pytest.mark.parametrize("name, param, constraints", CASES, ids=[f"{n}.{p}" for n, p, _ in CASES])
@@ -138,7 +187,16 @@ def test_every_builtin_method_enforces_its_declared_constraints(name, param, con
 
 
 def test_every_builtin_parameter_declares_a_constraint_or_is_checked_by_hand():
-    hand_checked = {"marker_weights", "prior_shapes", "prior_animations", "base_triangles", "source_feature_points", "target_feature_points"}
+    hand_checked = {
+        "marker_weights",
+        "prior_shapes",
+        "prior_animations",
+        "base_triangles",
+        "source_feature_points",
+        "target_feature_points",
+    }
     for name, m in manifest.builtin().items():
         for p, spec in m.parameters.items():
-            assert spec.valid or p in hand_checked, f"{name}.{p} declares no type, range or choices in registry.toml"
+            assert spec.valid or p in hand_checked, (
+                f"{name}.{p} declares no type, range or choices in registry.toml"
+            )

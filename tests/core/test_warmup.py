@@ -1,4 +1,5 @@
 """Cold start: one line when our kernels compile, and `faceretarget warmup` to compile them ahead."""
+
 import subprocess
 import sys
 import types
@@ -73,11 +74,17 @@ def test_a_cache_hit_prints_nothing(monkeypatch, capsys, tmp_path):
 
 
 def test_warmup_runs_a_method_on_every_case_it_applies_to():
-    done = subprocess.run([sys.executable, "-m", "faceretarget.cli", "warmup", "--methods", "spacetime"],
-                          capture_output=True, text=True, timeout=900)
+    done = subprocess.run(
+        [sys.executable, "-m", "faceretarget.cli", "warmup", "--methods", "spacetime"],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert done.returncode == 0, done.stderr
     line = next(l for l in done.stdout.splitlines() if l.startswith("spacetime"))
-    assert int(line.split()[1]) >= 4  # synthetic x2, ict, cross_rig markers and mesh (not the mesh-only target)
+    assert (
+        int(line.split()[1]) >= 4
+    )  # synthetic x2, ict, cross_rig markers and mesh (not the mesh-only target)
     assert "warm in" in done.stdout
 
 
@@ -105,7 +112,10 @@ def test_a_shared_kernel_file_is_part_of_every_kernel_cache_stamp(monkeypatch, t
     _numba_cache._patch(caching)
     before = caching.Cache(ours)._cache_file._source_stamp
     assert before[0] == (1.0, 10) and str(shared) in str(before[1])
-    assert caching.Cache(theirs)._cache_file._source_stamp == (1.0, 10)  # somebody else's kernels: untouched
+    assert caching.Cache(theirs)._cache_file._source_stamp == (
+        1.0,
+        10,
+    )  # somebody else's kernels: untouched
     shared.write_text("x = 22\n")  # the shared file changes (size here; mtime too)
     monkeypatch.setattr(_numba_cache, "_stamp", None)  # a new process
     assert caching.Cache(ours)._cache_file._source_stamp != before

@@ -1,6 +1,8 @@
 """Cross-topology correspondence: landmarks, RBF warp, closest points, non-rigid ICP resampling."""
+
 import numpy as np
 import pytest
+from naive.correspond import closest_points_brute
 
 from faceretarget import Landmarks, Mesh, cases
 from faceretarget.correspond import (
@@ -15,7 +17,6 @@ from faceretarget.correspond import (
     transfer_back,
 )
 from faceretarget.errors import DegenerateGeometryError, InputError, TopologyMismatchError
-from naive.correspond import closest_points_brute
 
 
 @pytest.fixture(scope="module")
@@ -27,10 +28,12 @@ def pair():
 def test_closest_point_transfer_matches_brute_force(pair):
     mesh = cases.synthetic(resolution=200, n_frames=1).target.neutral
     rng = np.random.default_rng(1)
-    pts = np.vstack([
-        mesh.vertices[rng.integers(0, mesh.n_vertices, 60)] + rng.normal(0.0, 0.8, (60, 3)),
-        rng.normal(0.0, 15.0, (20, 3)),  # far away, including behind the face
-    ])
+    pts = np.vstack(
+        [
+            mesh.vertices[rng.integers(0, mesh.n_vertices, 60)] + rng.normal(0.0, 0.8, (60, 3)),
+            rng.normal(0.0, 15.0, (20, 3)),  # far away, including behind the face
+        ]
+    )
     corr = closest_point_transfer(pts, mesh)
     want, dist, _ = closest_points_brute(pts, mesh.vertices, mesh.triangles)
     np.testing.assert_allclose(corr.distances, dist, atol=1e-9)
@@ -79,14 +82,21 @@ def test_rbf_warp_interpolates_and_reproduces_affine_maps():
 
 def _deformed_copy(resolution):
     """The actor surface triangulated anew and bent: (mesh, uv, the deformation)."""
+
     def bend(p):
         out = 1.1 * p.copy()
         out[:, 2] += 0.02 * p[:, 0] ** 2 - 0.01 * p[:, 1] ** 2
         out[:, 0] += 0.3 * np.sin(p[:, 1] / 6.0)
         return out
+
     case = cases.synthetic(resolution=resolution, n_frames=1)
     uv = case.meta["source_uv"]
-    return Mesh(bend(cases.face_surface(uv, "actor")), case.source.performance.triangles), case.source.landmarks, uv, bend
+    return (
+        Mesh(bend(cases.face_surface(uv, "actor")), case.source.performance.triangles),
+        case.source.landmarks,
+        uv,
+        bend,
+    )
 
 
 def test_resample_onto_a_deformed_retriangulated_copy(pair):
@@ -124,7 +134,9 @@ def test_resample_synthetic_source_onto_other_target_topology(kind):
     # boundary loops land on the matching target loops (eyes on eyes, mouth on mouth)
     for name in ("eye_L", "eye_R", "mouth_inner"):
         s_loop, t_loop = case.source.feature_lines[name], case.target.feature_lines[name]
-        d = np.linalg.norm(fitted.vertices[s_loop][:, None] - tgt.vertices[t_loop][None], axis=2).min(axis=1)
+        d = np.linalg.norm(
+            fitted.vertices[s_loop][:, None] - tgt.vertices[t_loop][None], axis=2
+        ).min(axis=1)
         assert d.max() < 0.02 * tgt.height, name
     # per-vertex results come back to the target's own vertices
     back = transfer_back(fitted, fitted.vertices, tgt)
@@ -141,7 +153,10 @@ def test_boundary_loops_of_the_synthetic_face(pair):
     loops = boundary_loops(mesh.triangles)
     assert len(loops) == 4
     assert sum(len(l) for l in loops) == len(mesh.boundary_vertices)
-    assert sorted(len(l) for l in loops) == sorted(len(pair.meta["boundary_loops"]["target"][k]) for k in ("outline", "eye_L", "eye_R", "mouth_inner"))
+    assert sorted(len(l) for l in loops) == sorted(
+        len(pair.meta["boundary_loops"]["target"][k])
+        for k in ("outline", "eye_L", "eye_R", "mouth_inner")
+    )
 
 
 def test_resample_rejects_bad_landmarks(pair):

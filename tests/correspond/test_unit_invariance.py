@@ -7,6 +7,7 @@ flipped accept / reject decisions, and the ICP amplified them; the landmark warp
 distances as |a|^2 + |b|^2 - 2 a.b (rounding ~sqrt(eps) near a landmark) with an absolute
 ridge. Now both faces are fitted in one canonical frame and every decision is continuous.
 """
+
 import numpy as np
 import pytest
 
@@ -37,7 +38,14 @@ def pair():
 def _moves(centre, height):
     rotation = _rotation([0.3, 1.0, 0.2], 25.0)
     shift = np.array([1.0, -2.0, 0.5]) * height
-    out = [(f"x{s:g}", lambda v, s=s: (v - centre) * s + centre, lambda v, s=s: (v - centre) / s + centre) for s in (0.01, 100.0, 1000.0)]
+    out = [
+        (
+            f"x{s:g}",
+            lambda v, s=s: (v - centre) * s + centre,
+            lambda v, s=s: (v - centre) / s + centre,
+        )
+        for s in (0.01, 100.0, 1000.0)
+    ]
     out.append(("rigid", lambda v: v @ rotation.T + shift, lambda v: (v - shift) @ rotation))
     return out
 
@@ -46,9 +54,14 @@ def _agree(label, got, want, report, base_report, height):
     err = np.linalg.norm(got - want, axis=1).max() / height
     assert err < TOL, f"{label}: resampled vertices differ by {err:.3g} of the face height"
     assert np.array_equal(report.details["matched"], base_report.details["matched"]), label
-    assert report.rejected == base_report.rejected and report.flipped_triangles == base_report.flipped_triangles, label
+    assert (
+        report.rejected == base_report.rejected
+        and report.flipped_triangles == base_report.flipped_triangles
+    ), label
     for key in ("residual_mean", "landmark_error"):
-        assert getattr(report, key) == pytest.approx(getattr(base_report, key), rel=1e-6, abs=1e-12), (label, key)
+        assert getattr(report, key) == pytest.approx(
+            getattr(base_report, key), rel=1e-6, abs=1e-12
+        ), (label, key)
 
 
 def test_target_in_other_units_or_placement_gives_the_same_resampling(pair):
@@ -58,9 +71,18 @@ def test_target_in_other_units_or_placement_gives_the_same_resampling(pair):
     centre = np.asarray(tgt.vertices).mean(axis=0)
     for label, forward, back in _moves(centre, height):
         moved = Mesh(forward(np.asarray(tgt.vertices)), tgt.triangles)
-        mesh, report = resample_to_topology(src, case.source.landmarks, moved, case.target.landmarks, check=False)
+        mesh, report = resample_to_topology(
+            src, case.source.landmarks, moved, case.target.landmarks, check=False
+        )
         # in the target's own (moved) units, then mapped back: the same surface points
-        _agree(f"target {label}", back(np.asarray(mesh.vertices)), np.asarray(base.vertices), report, base_report, height)
+        _agree(
+            f"target {label}",
+            back(np.asarray(mesh.vertices)),
+            np.asarray(base.vertices),
+            report,
+            base_report,
+            height,
+        )
         # the report's lengths follow the target's units
         scale = np.linalg.norm(forward(np.ones((1, 3))) - forward(np.zeros((1, 3)))) / np.sqrt(3.0)
         assert report.scale == pytest.approx(base_report.scale * scale, rel=1e-9)
@@ -72,8 +94,17 @@ def test_source_in_other_units_or_placement_gives_the_same_resampling(pair):
     centre = np.asarray(src.vertices).mean(axis=0)
     for label, forward, _ in _moves(centre, src.height):
         moved = Mesh(forward(np.asarray(src.vertices)), src.triangles)
-        mesh, report = resample_to_topology(moved, case.source.landmarks, tgt, case.target.landmarks, check=False)
-        _agree(f"source {label}", np.asarray(mesh.vertices), np.asarray(base.vertices), report, base_report, tgt.height)
+        mesh, report = resample_to_topology(
+            moved, case.source.landmarks, tgt, case.target.landmarks, check=False
+        )
+        _agree(
+            f"source {label}",
+            np.asarray(mesh.vertices),
+            np.asarray(base.vertices),
+            report,
+            base_report,
+            tgt.height,
+        )
 
 
 def test_rbf_warp_commutes_with_similarities():
@@ -81,7 +112,9 @@ def test_rbf_warp_commutes_with_similarities():
     src = rng.normal(size=(30, 3))
     tgt = src + 0.2 * rng.normal(size=(30, 3))
     # points on and next to the landmarks, where |a|^2 + |b|^2 - 2 a.b loses half the digits
-    points = np.concatenate([src, src + 1e-7 * rng.normal(size=src.shape), rng.normal(size=(50, 3))])
+    points = np.concatenate(
+        [src, src + 1e-7 * rng.normal(size=src.shape), rng.normal(size=(50, 3))]
+    )
     base = rbf_warp(src, tgt)(points)
     assert np.abs(base[:30] - tgt).max() < 1e-6
     rotation = _rotation([1.0, 0.2, -0.4], 70.0)

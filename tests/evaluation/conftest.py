@@ -1,4 +1,5 @@
 """Fixtures of the evaluation tests: the tiny case and a registry with fake retargeters."""
+
 import sys
 from pathlib import Path
 

@@ -3,6 +3,7 @@
 Importable by name (``fake_retargeters``; conftest puts this folder on sys.path) so that
 batch workers in other processes can unpickle the classes.
 """
+
 from __future__ import annotations
 
 import time
@@ -10,7 +11,18 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from faceretarget import Animation, BlendshapeRig, Capabilities, LayeredRig, Landmarks, Mesh, MeshSequence, Retargeter, Source, TargetRig
+from faceretarget import (
+    Animation,
+    BlendshapeRig,
+    Capabilities,
+    Landmarks,
+    LayeredRig,
+    Mesh,
+    MeshSequence,
+    Retargeter,
+    Source,
+    TargetRig,
+)
 from faceretarget.hookspecs import hookimpl
 
 SHAPES = ("jawOpen", "eyeBlinkLeft", "browInnerUp", "wrinkle")
@@ -18,11 +30,18 @@ SHAPES = ("jawOpen", "eyeBlinkLeft", "browInnerUp", "wrinkle")
 
 def grid(n: int = 9, width: float = 2.0, height: float = 2.4):
     """(n*n, 3) vertices on a bumped grid and its (2 (n-1)^2, 3) triangles."""
-    xs, ys = np.meshgrid(np.linspace(-width / 2, width / 2, n), np.linspace(-height / 2, height / 2, n))
+    xs, ys = np.meshgrid(
+        np.linspace(-width / 2, width / 2, n), np.linspace(-height / 2, height / 2, n)
+    )
     z = 0.3 * np.cos(xs) * np.cos(0.5 * ys)
     vertices = np.stack([xs.ravel(), ys.ravel(), z.ravel()], axis=1)
     idx = np.arange(n * n).reshape(n, n)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+    )
     triangles = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
     return vertices, triangles
 
@@ -32,7 +51,13 @@ def rotation_y(angle):
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
-def tiny_case(n: int = 9, n_frames: int = 12, name: str = "tiny", layers: bool = True, head_motion: bool = True):
+def tiny_case(
+    n: int = 9,
+    n_frames: int = 12,
+    name: str = "tiny",
+    layers: bool = True,
+    head_motion: bool = True,
+):
     """A source and a target rig with the same topology and semantics, and the ground truth."""
     vertices, triangles = grid(n)
     rows = vertices[:, 1].reshape(n, n)[:, 0]
@@ -45,10 +70,23 @@ def tiny_case(n: int = 9, n_frames: int = 12, name: str = "tiny", layers: bool =
     deltas[3, :, 2] = 0.02 * np.cos(9 * x) * np.cos(9 * y)  # fine wrinkle detail
     target_neutral = vertices * [1.0, 1.1, 1.0]
     source_neutral = vertices * [0.9, 1.0, 1.2]
-    target_rig = BlendshapeRig(Mesh(target_neutral, triangles), deltas, SHAPES, bounds=np.tile([0.0, 1.0], (len(SHAPES), 1)))
+    target_rig = BlendshapeRig(
+        Mesh(target_neutral, triangles),
+        deltas,
+        SHAPES,
+        bounds=np.tile([0.0, 1.0], (len(SHAPES), 1)),
+    )
     source_rig = BlendshapeRig(Mesh(source_neutral, triangles), 1.2 * deltas, SHAPES)
     t = np.linspace(0, 1, n_frames)
-    weights = np.stack([np.sin(np.pi * t) ** 2, (np.sin(3 * np.pi * t) > 0.8).astype(float), 0.5 * t, 0.8 * np.sin(np.pi * t)], 1)
+    weights = np.stack(
+        [
+            np.sin(np.pi * t) ** 2,
+            (np.sin(3 * np.pi * t) > 0.8).astype(float),
+            0.5 * t,
+            0.8 * np.sin(np.pi * t),
+        ],
+        1,
+    )
     if head_motion:
         motion = np.tile(np.eye(4), (n_frames, 1, 1))
         for f in range(n_frames):
@@ -56,10 +94,21 @@ def tiny_case(n: int = 9, n_frames: int = 12, name: str = "tiny", layers: bool =
             motion[f, :3, 3] = [0.1 * t[f], 0.0, 0.05]
     else:
         motion = None
-    lm_ids = np.array([row(1)[4], row(2)[3], row(2)[5], row(6)[2], row(7)[2], row(6)[6], row(7)[6], row(4)[4]])
-    lines = {"lip_upper": row(3)[2:7], "lip_lower": row(2)[2:7], "eye_left_upper": row(7)[1:4], "eye_left_lower": row(6)[1:4]}
+    lm_ids = np.array(
+        [row(1)[4], row(2)[3], row(2)[5], row(6)[2], row(7)[2], row(6)[6], row(7)[6], row(4)[4]]
+    )
+    lines = {
+        "lip_upper": row(3)[2:7],
+        "lip_lower": row(2)[2:7],
+        "eye_left_upper": row(7)[1:4],
+        "eye_left_lower": row(6)[1:4],
+    }
     source_local = source_rig.evaluate(weights)
-    world = source_local if motion is None else np.einsum("fij,fvj->fvi", motion[:, :3, :3], source_local) + motion[:, None, :3, 3]
+    world = (
+        source_local
+        if motion is None
+        else np.einsum("fij,fvj->fvi", motion[:, :3, :3], source_local) + motion[:, None, :3, 3]
+    )
     source = Source(
         MeshSequence(world, triangles, reference=source_neutral),
         head_motion=motion,
@@ -70,10 +119,24 @@ def tiny_case(n: int = 9, n_frames: int = 12, name: str = "tiny", layers: bool =
     layered = None
     if layers:
         masks = np.stack([(y > 0).astype(float), (y <= 0).astype(float)])
-        layered = LayeredRig({"emotion": target_neutral[None] + deltas[:2]}, masks, region_names=["upper", "lower"])
-    target = TargetRig(target_rig.neutral, blendshapes=target_rig, layers=layered, landmarks=Landmarks(lm_ids), feature_lines=lines)
+        layered = LayeredRig(
+            {"emotion": target_neutral[None] + deltas[:2]}, masks, region_names=["upper", "lower"]
+        )
+    target = TargetRig(
+        target_rig.neutral,
+        blendshapes=target_rig,
+        layers=layered,
+        landmarks=Landmarks(lm_ids),
+        feature_lines=lines,
+    )
     truth = Animation(weights=weights, rig=target_rig, head_motion=motion, fps=30.0)
-    return SimpleNamespace(name=name, source=source, target=target, truth=truth, meta={"weights": weights, "rows": rows})
+    return SimpleNamespace(
+        name=name,
+        source=source,
+        target=target,
+        truth=truth,
+        meta={"weights": weights, "rows": rows},
+    )
 
 
 def _local(source: Source) -> np.ndarray:
@@ -88,7 +151,9 @@ class OracleFake(Retargeter):
     """Exact: solves the source rig's weights and drives the target rig with them."""
 
     name = "fake_oracle"
-    capabilities = Capabilities(sources=("mesh",), needs=("blendshapes", "source_rig"), outputs="weights")
+    capabilities = Capabilities(
+        sources=("mesh",), needs=("blendshapes", "source_rig"), outputs="weights"
+    )
 
     def __init__(self, *, scale=1.0):
         self.scale = scale
@@ -122,7 +187,11 @@ class TransferFake(Retargeter):
         disp = _local(source) - np.asarray(source.performance.reference.vertices)
         local = self.neutral_ + self.gain * disp
         m = source.head_motion
-        world = local if m is None else np.einsum("fij,fvj->fvi", m[:, :3, :3], local) + m[:, None, :3, 3]
+        world = (
+            local
+            if m is None
+            else np.einsum("fij,fvj->fvi", m[:, :3, :3], local) + m[:, None, :3, 3]
+        )
         return Animation(vertices=world, triangles=self.triangles_, fps=source.fps)
 
 
@@ -130,7 +199,9 @@ class NeutralFake(Retargeter):
     """Zero weights (the neutral every frame)."""
 
     name = "fake_neutral"
-    capabilities = Capabilities(sources=("mesh", "markers"), needs=("blendshapes",), outputs="weights")
+    capabilities = Capabilities(
+        sources=("mesh", "markers"), needs=("blendshapes",), outputs="weights"
+    )
 
     def __init__(self):
         pass
@@ -139,7 +210,11 @@ class NeutralFake(Retargeter):
         self.rig_ = target.blendshapes
 
     def _retarget(self, source):
-        return Animation(weights=np.zeros((source.n_frames, self.rig_.n_shapes)), rig=self.rig_, head_motion=source.head_motion)
+        return Animation(
+            weights=np.zeros((source.n_frames, self.rig_.n_shapes)),
+            rig=self.rig_,
+            head_motion=source.head_motion,
+        )
 
 
 class BrokenFake(Retargeter):
@@ -195,7 +270,15 @@ class BadCheckFake(Retargeter):
         raise KeyError("why_not is broken")
 
 
-ALL = [OracleFake, TransferFake, NeutralFake, BrokenFake, WrongShapeFake, ExamplesFake, BadCheckFake]
+ALL = [
+    OracleFake,
+    TransferFake,
+    NeutralFake,
+    BrokenFake,
+    WrongShapeFake,
+    ExamplesFake,
+    BadCheckFake,
+]
 
 
 @hookimpl
@@ -215,7 +298,11 @@ def fake_registry():
 def write_fake_npz(animation, path, **options):
     """A test writer for ``.fnpz``: the vertices and the method name."""
     with open(path, "wb") as fh:
-        np.savez(fh, vertices=np.asarray(animation.vertices), method=str(animation.provenance.get("method", "")))
+        np.savez(
+            fh,
+            vertices=np.asarray(animation.vertices),
+            method=str(animation.provenance.get("method", "")),
+        )
 
 
 @hookimpl

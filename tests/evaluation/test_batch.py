@@ -1,4 +1,5 @@
 """Batch manifests: checks, the local process pool, Dask, and resuming after a kill."""
+
 import os
 import signal
 import subprocess
@@ -7,13 +8,12 @@ import textwrap
 import time
 from pathlib import Path
 
+import fake_retargeters as fakes
 import numpy as np
 import pytest
 
 from faceretarget.errors import ConfigError, UnknownNameError
 from faceretarget.evaluation.batch import RUN_DEFAULT, load_manifest, run_batch
-
-import fake_retargeters as fakes
 
 SHOT = "case:synthetic?resolution=60&n_frames=4"
 HERE = Path(__file__).parent
@@ -27,32 +27,89 @@ def manifest(folder: Path, body: str, name: str = "shots.toml") -> Path:
 
 def many_jobs(folder: Path, count: int, delay: float) -> Path:
     jobs = "".join(f'[[job]]\nout = "out/shot{i:02d}.fnpz"\n' for i in range(count))
-    return manifest(folder, f'[defaults]\nmethod = "fake_transfer"\nshot = "{SHOT}"\nparams = {{ delay = {delay} }}\n{jobs}')
+    return manifest(
+        folder,
+        f'[defaults]\nmethod = "fake_transfer"\nshot = "{SHOT}"\nparams = {{ delay = {delay} }}\n{jobs}',
+    )
 
 
 @pytest.mark.parametrize(
     "body, error, match",
     [
-        ('[[job]]\nshot = "../elsewhere.c3d"\ncharacter = "c.glb"\nmethod = "fake_transfer"\nout = "o.fnpz"', ConfigError, "outside the manifest's folder"),
-        ('[[job]]\nshot = "s.c3d"\ncharacter = "c.glb"\nmethod = "fake_transfer"\nout = "/tmp/o.fnpz"', ConfigError, "outside the manifest's folder"),
-        ('[[job]]\nshot = "s.c3d"\ncharacter = "c.glb"\nmethod = "fake_transfer"\nout = "link/o.fnpz"', ConfigError, "outside the manifest's folder"),
-        (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\ncolour = "red"', ConfigError, "unknown key"),
+        (
+            '[[job]]\nshot = "../elsewhere.c3d"\ncharacter = "c.glb"\nmethod = "fake_transfer"\nout = "o.fnpz"',
+            ConfigError,
+            "outside the manifest's folder",
+        ),
+        (
+            '[[job]]\nshot = "s.c3d"\ncharacter = "c.glb"\nmethod = "fake_transfer"\nout = "/tmp/o.fnpz"',
+            ConfigError,
+            "outside the manifest's folder",
+        ),
+        (
+            '[[job]]\nshot = "s.c3d"\ncharacter = "c.glb"\nmethod = "fake_transfer"\nout = "link/o.fnpz"',
+            ConfigError,
+            "outside the manifest's folder",
+        ),
+        (
+            f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\ncolour = "red"',
+            ConfigError,
+            "unknown key",
+        ),
         (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"', ConfigError, "missing out"),
-        ('[[job]]\nshot = "s.c3d"\nmethod = "fake_transfer"\nout = "o.fnpz"', ConfigError, "missing character"),
-        (f'[[job]]\nshot = "{SHOT}"\nmethod = "nope"\nout = "o.fnpz"', UnknownNameError, "valid choices"),
-        (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\nparams = {{ gian = 2 }}', UnknownNameError, "no parameter"),
-        (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.xyz"', ConfigError, "no registered writer"),
-        (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\n[[job]]\nshot = "{SHOT}"\nmethod = "fake_neutral"\nout = "o.fnpz"', ConfigError, "already written by"),
-        (f'[[job]]\nshot = "case:nope"\nmethod = "fake_transfer"\nout = "o.fnpz"', UnknownNameError, "no case named"),
-        ('[[job]\nshot = ', ConfigError, "not valid TOML"),
+        (
+            '[[job]]\nshot = "s.c3d"\nmethod = "fake_transfer"\nout = "o.fnpz"',
+            ConfigError,
+            "missing character",
+        ),
+        (
+            f'[[job]]\nshot = "{SHOT}"\nmethod = "nope"\nout = "o.fnpz"',
+            UnknownNameError,
+            "valid choices",
+        ),
+        (
+            f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\nparams = {{ gian = 2 }}',
+            UnknownNameError,
+            "no parameter",
+        ),
+        (
+            f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.xyz"',
+            ConfigError,
+            "no registered writer",
+        ),
+        (
+            f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\n[[job]]\nshot = "{SHOT}"\nmethod = "fake_neutral"\nout = "o.fnpz"',
+            ConfigError,
+            "already written by",
+        ),
+        (
+            '[[job]]\nshot = "case:nope"\nmethod = "fake_transfer"\nout = "o.fnpz"',
+            UnknownNameError,
+            "no case named",
+        ),
+        ("[[job]\nshot = ", ConfigError, "not valid TOML"),
         ("[defaults]\nmethod = 'x'\n", ConfigError, "no \\[\\[job\\]\\] entries"),
-        (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\ntimeout = -5', ConfigError, "job #1: timeout must be a number of seconds from 0 to"),
-        (f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\ntimeout = "soon"', ConfigError, "timeout must be"),
-        (f'[defaults]\ntimeout = inf\n[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"', ConfigError, "timeout must be"),
+        (
+            f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\ntimeout = -5',
+            ConfigError,
+            "job #1: timeout must be a number of seconds from 0 to",
+        ),
+        (
+            f'[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"\ntimeout = "soon"',
+            ConfigError,
+            "timeout must be",
+        ),
+        (
+            f'[defaults]\ntimeout = inf\n[[job]]\nshot = "{SHOT}"\nmethod = "fake_transfer"\nout = "o.fnpz"',
+            ConfigError,
+            "timeout must be",
+        ),
     ],
 )
 def test_manifest_is_checked_before_running(tmp_path, fake_registry, body, error, match):
-    (tmp_path / "link").symlink_to(tmp_path.parent, target_is_directory=True)  # a link out of the folder
+    (tmp_path / "link").symlink_to(
+        tmp_path.parent, target_is_directory=True
+    )  # a link out of the folder
     with pytest.raises(error, match=match):
         load_manifest(manifest(tmp_path, body), registry=fake_registry)
 
@@ -81,12 +138,27 @@ def test_manifest_resolves_paths_and_merges_defaults(tmp_path, fake_registry):
         load_manifest(path, registry=fake_registry)  # defaults' params are merged into every job
     path.write_text(path.read_text().replace("params = { gain = 2.0 }\n", ""))
     a, b = load_manifest(path, registry=fake_registry)
-    assert a.params == {"delay": 0.5} and a.character == SHOT and a.out == str(tmp_path.resolve() / "out/a.fnpz") and a.name == "out/a.fnpz"
-    assert b.name == "second" and b.shot == str(tmp_path.resolve() / "shots/s.c3d") and b.cls is fakes.NeutralFake
+    assert (
+        a.params == {"delay": 0.5}
+        and a.character == SHOT
+        and a.out == str(tmp_path.resolve() / "out/a.fnpz")
+        and a.name == "out/a.fnpz"
+    )
+    assert (
+        b.name == "second"
+        and b.shot == str(tmp_path.resolve() / "shots/s.c3d")
+        and b.cls is fakes.NeutralFake
+    )
     assert a.timeout == b.timeout == RUN_DEFAULT  # the run's time limit applies
-    path.write_text(path.read_text().replace('name = "second"', 'name = "second"\ntimeout = 0').replace("[defaults]", "[defaults]\ntimeout = 90"))
+    path.write_text(
+        path.read_text()
+        .replace('name = "second"', 'name = "second"\ntimeout = 0')
+        .replace("[defaults]", "[defaults]\ntimeout = 90")
+    )
     a, b = load_manifest(path, registry=fake_registry)
-    assert a.timeout == 90.0 and b.timeout is None  # 0: no limit, as everywhere (even when the run has one)
+    assert (
+        a.timeout == 90.0 and b.timeout is None
+    )  # 0: no limit, as everywhere (even when the run has one)
 
 
 def test_local_pool_reports_failures_and_skips_finished(tmp_path, fake_registry):
@@ -111,13 +183,26 @@ def test_local_pool_reports_failures_and_skips_finished(tmp_path, fake_registry)
     )
     summary = run_batch(path, registry=fake_registry, workers=2, progress=False)
     status = {r.name: r.status for r in summary.results}
-    assert status == {"out/ok1.fnpz": "done", "out/broken.fnpz": "failed", "out/wrong.fnpz": "failed", "out/ok2.fnpz": "done"}
+    assert status == {
+        "out/ok1.fnpz": "done",
+        "out/broken.fnpz": "failed",
+        "out/wrong.fnpz": "failed",
+        "out/ok2.fnpz": "done",
+    }
     errors = {r.name: r.error for r in summary.failed}
-    assert errors["out/broken.fnpz"] == "fake_broken [plugin fakes (local -)]: RuntimeError: boom in fit"
-    assert errors["out/wrong.fnpz"].startswith("fake_wrongshape [plugin fakes (local -)]: PluginOutputError: fake_wrongshape: returned 95 vertices per frame but the target has 96")
+    assert (
+        errors["out/broken.fnpz"]
+        == "fake_broken [plugin fakes (local -)]: RuntimeError: boom in fit"
+    )
+    assert errors["out/wrong.fnpz"].startswith(
+        "fake_wrongshape [plugin fakes (local -)]: PluginOutputError: fake_wrongshape: returned 95 vertices per frame but the target has 96"
+    )
     saved = np.load(tmp_path / "out/ok1.fnpz")
     assert saved["vertices"].shape[0] == 4 and str(saved["method"]) == "fake_transfer"
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["ok1.fnpz", "ok2.fnpz"]  # no partial files
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "ok1.fnpz",
+        "ok2.fnpz",
+    ]  # no partial files
     again = run_batch(path, registry=fake_registry, workers=2, progress=False)
     assert [r.status for r in again.results] == ["skipped", "failed", "failed", "skipped"]
 
@@ -137,7 +222,9 @@ def test_dask_batch_killed_halfway_resumes_only_missing_jobs(tmp_path, fake_regi
     out = tmp_path / "out"
     proc = subprocess.Popen(
         [sys.executable, "-c", _RUNNER.format(here=str(HERE), manifest=str(path))],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
     )
     try:
         deadline = time.monotonic() + 120
@@ -152,20 +239,44 @@ def test_dask_batch_killed_halfway_resumes_only_missing_jobs(tmp_path, fake_regi
     assert 6 <= len(finished) < count, f"{len(finished)} outputs when killed"
     for name in finished:
         assert np.load(out / name)["vertices"].shape[0] == 4  # complete files
-    summary = run_batch(path, executor="dask", workers=2, dask_processes=False, registry=fake_registry, progress=False)
+    summary = run_batch(
+        path,
+        executor="dask",
+        workers=2,
+        dask_processes=False,
+        registry=fake_registry,
+        progress=False,
+    )
     skipped = {Path(r.out).name for r in summary.results if r.status == "skipped"}
     done = {Path(r.out).name for r in summary.results if r.status == "done"}
     assert skipped == set(finished) and len(done) == count - len(finished) and not summary.failed
-    assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.fnpz") if p.name in finished} == finished  # untouched
-    assert sorted(p.name for p in out.iterdir()) == [f"shot{i:02d}.fnpz" for i in range(count)]  # no temporaries left
+    assert {
+        p.name: p.stat().st_mtime_ns for p in out.glob("*.fnpz") if p.name in finished
+    } == finished  # untouched
+    assert sorted(p.name for p in out.iterdir()) == [
+        f"shot{i:02d}.fnpz" for i in range(count)
+    ]  # no temporaries left
 
 
 def test_batch_on_a_running_scheduler(tmp_path, fake_registry):
     from distributed import LocalCluster
 
     path = many_jobs(tmp_path, 4, delay=0.0)
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, host="127.0.0.1", protocol="tcp://", dashboard_address=None) as cluster:
+    with LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=False,
+        host="127.0.0.1",
+        protocol="tcp://",
+        dashboard_address=None,
+    ) as cluster:
         assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
-        summary = run_batch(path, executor="dask", scheduler=cluster.scheduler_address, registry=fake_registry, progress=False)
+        summary = run_batch(
+            path,
+            executor="dask",
+            scheduler=cluster.scheduler_address,
+            registry=fake_registry,
+            progress=False,
+        )
     assert [r.status for r in summary.results] == ["done"] * 4
     assert len(list((tmp_path / "out").glob("*.fnpz"))) == 4

@@ -1,8 +1,10 @@
 """The comparison harness with fake retargeters on the tiny hand-built case."""
+
 import csv
 import json
 import math
 
+import fake_retargeters as fakes
 import numpy as np
 import pytest
 
@@ -11,12 +13,18 @@ from faceretarget.evaluation.harness import COLUMNS, compare, parse_case_spec, r
 from faceretarget.hookspecs import Metric, hookimpl
 from faceretarget.registry import Registry
 
-import fake_retargeters as fakes
-
 
 @pytest.fixture(scope="module")
 def result(tiny, fake_registry):
-    names = ["fake_oracle", "fake_transfer", "fake_neutral", "fake_broken", "fake_wrongshape", "fake_examples", "fake_badcheck"]
+    names = [
+        "fake_oracle",
+        "fake_transfer",
+        "fake_neutral",
+        "fake_broken",
+        "fake_wrongshape",
+        "fake_examples",
+        "fake_badcheck",
+    ]
     return compare([tiny], methods=names, registry=fake_registry)
 
 
@@ -31,10 +39,20 @@ def test_statuses_reasons_and_errors(result):
         "fake_examples": "not applicable",
         "fake_badcheck": "error",
     }
-    assert runs["fake_badcheck"].error["stage"] == "why_not" and "why_not is broken" in runs["fake_badcheck"].reason
-    assert runs["fake_examples"].reason == "fake_examples needs a TargetRig with example poses; this one lacks it"
+    assert (
+        runs["fake_badcheck"].error["stage"] == "why_not"
+        and "why_not is broken" in runs["fake_badcheck"].reason
+    )
+    assert (
+        runs["fake_examples"].reason
+        == "fake_examples needs a TargetRig with example poses; this one lacks it"
+    )
     broken = runs["fake_broken"]
-    assert broken.error["type"] == "RuntimeError" and broken.error["message"] == "boom in fit" and broken.error["stage"] == "fit"
+    assert (
+        broken.error["type"] == "RuntimeError"
+        and broken.error["message"] == "boom in fit"
+        and broken.error["stage"] == "fit"
+    )
     assert "plugin 'fakes'" in broken.reason and "distribution local" in broken.reason
     wrong = runs["fake_wrongshape"]
     # Retargeter.retarget itself refuses a result off the target's vertices
@@ -51,7 +69,9 @@ def test_every_row_has_a_value_or_a_reason(result):
         else:
             assert row["value"] is None and row["reason"], row
     oracle = {r["metric"]: r for r in result.rows if r["method"] == "fake_oracle"}
-    assert all(r["status"] == "ok" for r in oracle.values()), [r for r in oracle.values() if r["status"] != "ok"]
+    assert all(r["status"] == "ok" for r in oracle.values()), [
+        r for r in oracle.values() if r["status"] != "ok"
+    ]
     assert {"vertex_error_region[upper]", "vertex_error_region[lower]"} <= set(oracle)
     transfer = {r["metric"]: r for r in result.rows if r["method"] == "fake_transfer"}
     assert transfer["weight_min"]["status"] == "not applicable"
@@ -75,13 +95,19 @@ def test_values_and_ranking(result):
 
 
 def test_csv_and_json(result, tmp_path):
-    rows = list(csv.DictReader(open(result.to_csv(tmp_path / "t.csv"), newline="")))
+    with open(result.to_csv(tmp_path / "t.csv"), newline="") as fh:
+        rows = list(csv.DictReader(fh))
     assert len(rows) == len(result.rows) and list(rows[0]) == list(COLUMNS)
-    first = next(r for r in rows if r["method"] == "fake_transfer" and r["metric"] == "vertex_error_rms")
+    first = next(
+        r for r in rows if r["method"] == "fake_transfer" and r["metric"] == "vertex_error_rms"
+    )
     assert float(first["value"]) == result.value("tiny", "fake_transfer", "vertex_error_rms")
     data = json.loads((result.to_json(tmp_path / "t.json")).read_text())
     assert data["columns"] == list(COLUMNS) and len(data["rows"]) == len(result.rows)
-    assert data["metrics"]["lve"]["unit"] == "% face height" and "Lip vertex error" in data["metrics"]["lve"]["description"]
+    assert (
+        data["metrics"]["lve"]["unit"] == "% face height"
+        and "Lip vertex error" in data["metrics"]["lve"]["description"]
+    )
     broken = next(r for r in data["runs"] if r["method"] == "fake_broken")
     assert broken["error"]["distribution"] == "local" and broken["error"]["plugin"] == "fakes"
     with pytest.raises(OutputError, match="does not exist"):
@@ -89,11 +115,22 @@ def test_csv_and_json(result, tmp_path):
 
 
 def test_explicit_classes_and_params(tiny):
-    res = compare([tiny], methods=[fakes.TransferFake], params={"fake_transfer": {"gain": 2.0}}, metrics=["vertex_error_rms", "time_total"])
+    res = compare(
+        [tiny],
+        methods=[fakes.TransferFake],
+        params={"fake_transfer": {"gain": 2.0}},
+        metrics=["vertex_error_rms", "time_total"],
+    )
     run = res.runs[0]
-    assert run.status == "ok" and run.parameters == {"gain": 2.0, "delay": 0.0} and run.distribution == "local"
+    assert (
+        run.status == "ok"
+        and run.parameters == {"gain": 2.0, "delay": 0.0}
+        and run.distribution == "local"
+    )
     base = compare([tiny], methods=[fakes.TransferFake], metrics=["vertex_error_rms"])
-    assert res.value("tiny", "fake_transfer", "vertex_error_rms") > base.value("tiny", "fake_transfer", "vertex_error_rms")
+    assert res.value("tiny", "fake_transfer", "vertex_error_rms") > base.value(
+        "tiny", "fake_transfer", "vertex_error_rms"
+    )
     assert [r["metric"] for r in res.rows] == ["vertex_error_rms", "time_total"]
     with pytest.raises(UnknownNameError, match="no parameter"):
         compare([tiny], methods=[fakes.TransferFake], params={"fake_transfer": {"gian": 2}})
@@ -105,7 +142,10 @@ def test_explicit_classes_and_params(tiny):
         compare([tiny], methods=["no_such_method"])
     with pytest.raises(ConfigError, match="each retargeter once"):
         compare([tiny], methods=[fakes.TransferFake, fakes.TransferFake])
-    assert compare([tiny], methods=[fakes.TransferFake], keep_animations=False).runs[0].animation is None
+    assert (
+        compare([tiny], methods=[fakes.TransferFake], keep_animations=False).runs[0].animation
+        is None
+    )
 
 
 class _MetricPlugin:
@@ -117,7 +157,12 @@ class _MetricPlugin:
             raise ValueError("metric exploded")
 
         return [
-            Metric("frames_count", lambda a, c, ctx: float(a.n_frames), "number of frames", unit="frames"),
+            Metric(
+                "frames_count",
+                lambda a, c, ctx: float(a.n_frames),
+                "number of frames",
+                unit="frames",
+            ),
             Metric("exploding", boom, "raises"),
         ]
 
@@ -127,19 +172,29 @@ def test_metric_plugins_and_failing_metrics(tiny):
     res = compare([tiny], methods=[fakes.OracleFake], registry=reg)
     rows = {r["metric"]: r for r in res.rows}
     assert rows["frames_count"]["value"] == 12.0
-    assert rows["exploding"]["status"] == "error" and rows["exploding"]["reason"] == "ValueError: metric exploded"
+    assert (
+        rows["exploding"]["status"] == "error"
+        and rows["exploding"]["reason"] == "ValueError: metric exploded"
+    )
     assert rows["vertex_error_rms"]["status"] == "ok"
 
 
 def test_case_names_and_duplicates(tiny):
-    assert parse_case_spec("ict?n_frames=40&seed=2&head_motion=false") == ("ict", {"n_frames": 40, "seed": 2, "head_motion": False})
+    assert parse_case_spec("ict?n_frames=40&seed=2&head_motion=false") == (
+        "ict",
+        {"n_frames": 40, "seed": 2, "head_motion": False},
+    )
     with pytest.raises(UnknownNameError, match="valid cases"):
         parse_case_spec("nope")
     with pytest.raises(ConfigError, match="key=value"):
         parse_case_spec("ict?40")
     case = resolve_case("synthetic-stylized?resolution=80&n_frames=3")
     assert case.name == "synthetic-stylized" and case.source.n_frames == 3
-    res = compare([tiny, tiny, "synthetic?resolution=80&n_frames=3"], methods=[fakes.TransferFake], metrics=["vertex_error_max"])
+    res = compare(
+        [tiny, tiny, "synthetic?resolution=80&n_frames=3"],
+        methods=[fakes.TransferFake],
+        metrics=["vertex_error_max"],
+    )
     assert list(res.cases) == ["tiny", "tiny#2", "synthetic?resolution=80&n_frames=3"]
     assert [r.status for r in res.runs] == ["ok", "ok", "ok"]
     with pytest.raises(UnknownNameError):
@@ -155,7 +210,9 @@ def test_the_output_check_catches_non_finite_and_non_animation(tiny):
     with pytest.raises(PluginOutputError, match="not an Animation"):
         method.check_output(np.zeros((12, 81, 3)), tiny.source)
     rig = fakes.BlendshapeRig(tiny.target.neutral, np.full((2, 81, 3), 10.0), ["a", "b"])
-    big = fakes.Animation(weights=np.full((12, 2), 1e308), rig=rig)  # finite weights, vertices overflow to inf
+    big = fakes.Animation(
+        weights=np.full((12, 2), 1e308), rig=rig
+    )  # finite weights, vertices overflow to inf
     with pytest.raises(PluginOutputError, match="NaN or infinite vertex"):
         method.check_output(big, tiny.source)
     assert big._vertices is None  # checked a chunk at a time, not kept
@@ -175,19 +232,43 @@ def test_builtin_retargeters_on_synthetic_and_ict():
         assert run.status in ("ok", "not applicable", "error")
         assert (run.status == "ok") == (run.reason == ""), run
     for row in result.rows:
-        assert (row["status"] == "ok" and math.isfinite(row["value"])) or (row["value"] is None and row["reason"]), row
+        assert (row["status"] == "ok" and math.isfinite(row["value"])) or (
+            row["value"] is None and row["reason"]
+        ), row
     ok = [r for r in result.runs if r.status == "ok"]
     assert len(ok) >= 2 * len(result.runs) // 3
-    for run in ok:  # on a successful run only the weight statistics may be missing, and only for vertex outputs
-        missing = {r["metric"] for r in result.rows if r["case"] == run.case and r["method"] == run.method and r["status"] != "ok"}
-        expected = set() if run.animation.weights is not None else {"weight_min", "weight_max", "weight_outside_share", "weight_sparsity", "weight_error_rms"}
+    for run in (
+        ok
+    ):  # on a successful run only the weight statistics may be missing, and only for vertex outputs
+        missing = {
+            r["metric"]
+            for r in result.rows
+            if r["case"] == run.case and r["method"] == run.method and r["status"] != "ok"
+        }
+        expected = (
+            set()
+            if run.animation.weights is not None
+            else {
+                "weight_min",
+                "weight_max",
+                "weight_outside_share",
+                "weight_sparsity",
+                "weight_error_rms",
+            }
+        )
         assert missing == expected, (run.case, run.method, missing)
     ranked = [r for r in result.ranking() if r["rank"] is not None]
     assert len(ranked) >= 5 and ranked[0]["mean_rank"] <= ranked[-1]["mean_rank"]
 
 
 def test_parallel_compare_matches_sequential(tiny, fake_registry):
-    names = ["fake_oracle", "fake_transfer", "fake_broken", "fake_examples", "deformation_transfer"]  # two modules: two tasks
+    names = [
+        "fake_oracle",
+        "fake_transfer",
+        "fake_broken",
+        "fake_examples",
+        "deformation_transfer",
+    ]  # two modules: two tasks
     cases = {"first": tiny, "second": "synthetic?resolution=80&n_frames=3"}
     metrics = ["vertex_error_rms", "lve", "weight_min"]
     seq = compare(cases, methods=names, registry=fake_registry, metrics=metrics)
@@ -195,8 +276,12 @@ def test_parallel_compare_matches_sequential(tiny, fake_registry):
     strip = lambda rows: [{k: v for k, v in r.items() if k != "value"} for r in rows]  # noqa: E731
     assert strip(par.rows) == strip(seq.rows)
     for a, b in zip(seq.rows, par.rows):
-        assert (a["value"] is None and b["value"] is None) or a["value"] == pytest.approx(b["value"], abs=1e-12)
-    assert [(r.case, r.method, r.status) for r in par.runs] == [(r.case, r.method, r.status) for r in seq.runs]
+        assert (a["value"] is None and b["value"] is None) or a["value"] == pytest.approx(
+            b["value"], abs=1e-12
+        )
+    assert [(r.case, r.method, r.status) for r in par.runs] == [
+        (r.case, r.method, r.status) for r in seq.runs
+    ]
     assert par.run("first", "fake_oracle").animation.extras == {}
     with pytest.raises(ConfigError, match="n_jobs"):
         compare([tiny], methods=names, registry=fake_registry, n_jobs=0)

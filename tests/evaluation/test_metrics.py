@@ -1,4 +1,5 @@
 """Each built-in metric on a hand-computed example (values worked out in the comments)."""
+
 from types import SimpleNamespace
 
 import numpy as np
@@ -8,18 +9,27 @@ from faceretarget import Animation, BlendshapeRig, Landmarks, LayeredRig, Mesh, 
 from faceretarget.evaluation import metrics as M
 
 # Six vertices: lower lip v0, upper lip v1, v2; lower lid v3, upper lid v4, forehead v5.
-NEUTRAL = np.array([[0, 0, 0], [0, 0.2, 0], [1, 0, 0], [0, 2, 0], [0, 2.2, 0], [1, 2.5, 0]], dtype=float)
+NEUTRAL = np.array(
+    [[0, 0, 0], [0, 0.2, 0], [1, 0, 0], [0, 2, 0], [0, 2.2, 0], [1, 2.5, 0]], dtype=float
+)
 TRIANGLES = np.array([[0, 2, 1], [1, 2, 5], [3, 5, 4], [1, 5, 3]])
 H = 2.5  # extent along y
 LINES = {"mouth_upper": [1, 1], "mouth_lower": [0, 0], "eye_L_upper": [4, 4], "eye_L_lower": [3, 3]}
 
 
-def make_case(truth_vertices, *, head_motion=None, landmarks=(0, 1), layers=False, truth_weights=None):
+def make_case(
+    truth_vertices, *, head_motion=None, landmarks=(0, 1), layers=False, truth_weights=None
+):
     layered = None
     if layers:
         masks = np.array([[1, 1, 1, 0, 0, 0], [0, 0, 0, 1, 1, 0.6]], dtype=float)
         layered = LayeredRig({"one": NEUTRAL[None]}, masks, region_names=["mouth", "eyes"])
-    target = TargetRig(Mesh(NEUTRAL, TRIANGLES), landmarks=Landmarks(list(landmarks)), feature_lines={k: v[:2] for k, v in LINES.items()}, layers=layered)
+    target = TargetRig(
+        Mesh(NEUTRAL, TRIANGLES),
+        landmarks=Landmarks(list(landmarks)),
+        feature_lines={k: v[:2] for k, v in LINES.items()},
+        layers=layered,
+    )
     if truth_weights is not None:
         rig, names, w = truth_weights
         truth = Animation(weights=w, rig=rig, weight_names=names)
@@ -92,7 +102,10 @@ def test_acceleration_and_jitter():
     assert value("acceleration_error", anim, case) == pytest.approx(100 * 2 * a / np.sqrt(6) / H)
     # mean ||A X|| = 2a / 6, truth static -> 0
     assert value("jitter_excess", anim, case) == pytest.approx(100 * (2 * a / 6) / H)
-    assert M.METRICS["acceleration_error"].why_not(Animation(vertices=truth[:2]), make_case(truth[:2])) == "needs at least 3 frames; the result has 2"
+    assert (
+        M.METRICS["acceleration_error"].why_not(Animation(vertices=truth[:2]), make_case(truth[:2]))
+        == "needs at least 3 frames; the result has 2"
+    )
 
 
 def test_closure_errors_and_lve():
@@ -109,8 +122,25 @@ def test_closure_errors_and_lve():
 
 
 def test_feature_groups_split_loops_and_prefer_inner_lines():
-    neutral = np.array([[0, 0, 0], [1, 0.1, 0], [0, -0.1, 0], [-1, 0.1, 0], [0, 0.3, 0], [0, -0.3, 0], [0, 5, 0], [0.2, 5.1, 0], [0.2, 4.9, 0]], float)
-    lines = {"mouth_inner": np.array([0, 1, 2, 3]), "mouth_outer": np.array([4, 5]), "eye_R": np.array([6, 7, 8])}
+    neutral = np.array(
+        [
+            [0, 0, 0],
+            [1, 0.1, 0],
+            [0, -0.1, 0],
+            [-1, 0.1, 0],
+            [0, 0.3, 0],
+            [0, -0.3, 0],
+            [0, 5, 0],
+            [0.2, 5.1, 0],
+            [0.2, 4.9, 0],
+        ],
+        float,
+    )
+    lines = {
+        "mouth_inner": np.array([0, 1, 2, 3]),
+        "mouth_outer": np.array([4, 5]),
+        "eye_R": np.array([6, 7, 8]),
+    }
     groups = M.feature_groups(lines, neutral)
     upper, lower = groups["mouth"]
     # inner loop only (outer ignored); split at its centroid y = 0.025
@@ -125,8 +155,12 @@ def test_fdd_both_variants():
     truth[1, 5, 2] += 0.1  # forehead v5 moves out and back: |d| = [0, 0.1, 0]
     anim, case = Animation(vertices=static(3)), make_case(truth)
     # upper face: y above (mean eye y 2.1 + mean mouth y 0.1) / 2 = 1.1 -> v3, v4, v5
-    assert M.upper_face_vertices(M.feature_groups(case.target.feature_lines, NEUTRAL), NEUTRAL).tolist() == [3, 4, 5]
-    std_sq = np.sqrt(np.mean(np.square([0, 0.01, 0])) - np.mean([0, 0.01, 0]) ** 2)  # std of |d|^2 over time
+    assert M.upper_face_vertices(
+        M.feature_groups(case.target.feature_lines, NEUTRAL), NEUTRAL
+    ).tolist() == [3, 4, 5]
+    std_sq = np.sqrt(
+        np.mean(np.square([0, 0.01, 0])) - np.mean([0, 0.01, 0]) ** 2
+    )  # std of |d|^2 over time
     assert value("fdd", anim, case) == pytest.approx(std_sq / 3 * (100 / H) ** 2)
     std_abs = np.sqrt(np.mean(np.square([0, 0.1, 0])) - np.mean([0, 0.1, 0]) ** 2)
     assert value("fdd_abs", anim, case) == pytest.approx(100 * std_abs / 3 / H)
@@ -143,18 +177,29 @@ def test_detail_correlation():
     smooth = np.zeros_like(verts)
     smooth[:, 1] = 0.05  # a translation: the uniform smoothing keeps it, so it is no detail
     truth = np.stack([verts, verts + detail + smooth])
-    case = SimpleNamespace(target=TargetRig(Mesh(verts, tris)), truth=Animation(vertices=truth, triangles=tris), source=None)
+    case = SimpleNamespace(
+        target=TargetRig(Mesh(verts, tris)),
+        truth=Animation(vertices=truth, triangles=tris),
+        source=None,
+    )
     same = value("detail_correlation", Animation(vertices=verts + 2 * (truth - verts)), case)
-    flipped = value("detail_correlation", Animation(vertices=np.stack([verts, verts - detail + smooth])), case)
+    flipped = value(
+        "detail_correlation", Animation(vertices=np.stack([verts, verts - detail + smooth])), case
+    )
     assert same == pytest.approx(1.0)
     assert flipped == pytest.approx(-1.0)
     # the high-pass of a constant field is zero
     S = M.smoothing_operator(len(verts), tris)
     assert np.abs(M.high_pass(np.ones((1, len(verts), 3)), S)).max() < 1e-12
-    static_case = SimpleNamespace(target=case.target, truth=Animation(vertices=np.stack([verts, verts])), source=None)
+    static_case = SimpleNamespace(
+        target=case.target, truth=Animation(vertices=np.stack([verts, verts])), source=None
+    )
     anim = Animation(vertices=np.stack([verts, verts]))
     assert value("detail_correlation", anim, static_case) is None
-    assert M.METRICS["detail_correlation"].why_not(anim, static_case) == "the ground truth has no fine-scale motion to preserve"
+    assert (
+        M.METRICS["detail_correlation"].why_not(anim, static_case)
+        == "the ground truth has no fine-scale motion to preserve"
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -166,7 +211,9 @@ def wrinkled():
     import faceretarget
 
     spec = dict(resolution=1500, n_frames=60)
-    return faceretarget.cases.synthetic(**spec), faceretarget.cases.synthetic(**spec, wrinkles=False)
+    return faceretarget.cases.synthetic(**spec), faceretarget.cases.synthetic(
+        **spec, wrinkles=False
+    )
 
 
 def _detail(name, vertices, case):
@@ -189,23 +236,31 @@ def test_detail_error_is_zero_for_identical_sequences(wrinkled):
     truth = case.truth.vertices
     assert _detail("detail_error", truth, case) == 0.0
     assert _detail("detail_correlation", truth, case) == pytest.approx(1.0)
-    assert _detail("detail_error", truth.astype(np.float32), case) < 1e-5  # float32 output: rounding only
+    assert (
+        _detail("detail_error", truth.astype(np.float32), case) < 1e-5
+    )  # float32 output: rounding only
 
 
 def test_detail_error_is_invariant_to_the_targets_units(wrinkled):
     case, free = wrinkled
-    result = np.asarray(free.truth.vertices) + 0.002 * np.random.default_rng(0).normal(size=free.truth.vertices.shape)
+    result = np.asarray(free.truth.vertices) + 0.002 * np.random.default_rng(0).normal(
+        size=free.truth.vertices.shape
+    )
     target = case.target
     for scale in (100.0, 0.01):
         motion = case.truth.head_motion.copy()
         motion[:, :3, 3] *= scale
         scaled = SimpleNamespace(
-            target=TargetRig(Mesh(scale * np.asarray(target.neutral.vertices), target.neutral.triangles)),
+            target=TargetRig(
+                Mesh(scale * np.asarray(target.neutral.vertices), target.neutral.triangles)
+            ),
             truth=Animation(vertices=scale * np.asarray(case.truth.vertices), head_motion=motion),
             source=None,
         )
         for name in ("detail_error", "detail_correlation"):
-            assert _detail(name, scale * result, scaled) == pytest.approx(_detail(name, result, case), rel=1e-9), (name, scale)
+            assert _detail(name, scale * result, scaled) == pytest.approx(
+                _detail(name, result, case), rel=1e-9
+            ), (name, scale)
 
 
 def test_detail_error_ignores_smooth_errors_and_sees_a_removed_wrinkle(wrinkled):
@@ -218,8 +273,16 @@ def test_detail_error_ignores_smooth_errors_and_sees_a_removed_wrinkle(wrinkled)
     bump = np.exp(-0.5 * (np.linalg.norm(neutral - centre, axis=1) / (0.2 * height)) ** 2)
     direction = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
     swing = np.sin(np.linspace(0.0, 3.0, case.truth.n_frames))[:, None, None]
-    smooth = case.truth.vertices + _in_world(case, 0.01 * height * swing * bump[None, :, None] * direction)
-    affine = case.truth.vertices + _in_world(case, swing * ((neutral - centre) @ np.array([[0.01, 0, 0.002], [0.004, -0.008, 0], [0, 0.003, 0.006]]))[None])
+    smooth = case.truth.vertices + _in_world(
+        case, 0.01 * height * swing * bump[None, :, None] * direction
+    )
+    affine = case.truth.vertices + _in_world(
+        case,
+        swing
+        * (
+            (neutral - centre) @ np.array([[0.01, 0, 0.002], [0.004, -0.008, 0], [0, 0.003, 0.006]])
+        )[None],
+    )
     turn = fake_rotation([0.02, 0.01, -0.015]) - np.eye(3)  # a face turned by about 1.5 degrees
     rotated = case.truth.vertices + _in_world(case, swing * ((neutral - centre) @ turn.T)[None])
     errors = {"removed": removed, "smooth": smooth, "affine": affine, "rotated": rotated}
@@ -230,9 +293,16 @@ def test_detail_error_ignores_smooth_errors_and_sees_a_removed_wrinkle(wrinkled)
     assert detail["smooth"] < 0.05 * rms["smooth"]
     # linear fields: the eye, mouth and outer rims smoothed along themselves do not leak them
     # (smoothing the rims like the interior gives 0.0105 and 0.0161)
-    assert detail["affine"] < 0.01 * rms["affine"] and detail["rotated"] < 0.01 * rms["rotated"], (detail, rms)
+    assert detail["affine"] < 0.01 * rms["affine"] and detail["rotated"] < 0.01 * rms["rotated"], (
+        detail,
+        rms,
+    )
     assert detail["removed"] > 2 * max(detail["smooth"], detail["affine"], detail["rotated"])
-    assert _detail("detail_correlation", smooth, case) > 0.98 > _detail("detail_correlation", removed, case)
+    assert (
+        _detail("detail_correlation", smooth, case)
+        > 0.98
+        > _detail("detail_correlation", removed, case)
+    )
 
 
 def test_detail_error_sees_coating_without_its_detail_layer(wrinkled):
@@ -243,38 +313,58 @@ def test_detail_error_sees_coating_without_its_detail_layer(wrinkled):
 
     rise = {}
     for label, case in zip(("wrinkles", "none"), wrinkled):
-        runs = {scale: faceretarget.get("coating", detail_scale=scale).fit(case.source, case.target).retarget(case.source) for scale in (1.0, 1e-9)}
+        runs = {
+            scale: faceretarget.get("coating", detail_scale=scale)
+            .fit(case.source, case.target)
+            .retarget(case.source)
+            for scale in (1.0, 1e-9)
+        }
         full, dropped = (value("detail_error", runs[s], case) for s in (1.0, 1e-9))
         assert dropped > full, (label, full, dropped)
         rise[label] = dropped - full
         if label == "wrinkles":
             assert dropped > 2 * full
-            assert value("detail_correlation", runs[1e-9], case) < value("detail_correlation", runs[1.0], case)
+            assert value("detail_correlation", runs[1e-9], case) < value(
+                "detail_correlation", runs[1.0], case
+            )
     # the layer also carries coating's basis-fit residual (issue 14 item 5), so dropping it costs
     # something without wrinkles too; the wrinkles add to that
     assert rise["wrinkles"] > rise["none"], rise
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "issue 14 item 6: on the wrinkled synthetic cases coating and normalmesh should beat deformation_transfer "
-    "on detail_error; measured here (1500 vertices, 60 frames): human coating 0.0035 / normalmesh 0.0048 vs DT 0.0029, "
-    "stylized 0.0186 / 0.0177 vs 0.0131 (% face height). Why (docs/methods/coating.md, normalmesh.md): most of the "
-    "metric is the fine-scale error of the large-scale motion (the wrinkle-free twin gives 97-99% of DT's and coating's "
-    "value), and per-frame DT on one topology carries the wrinkles themselves at gain 1.02/0.97 (coating: the "
-    "paper's absolute depth, 0.94/1.11; normalmesh: 0.80/0.84). Not reproduced either on the papers' own setting, "
-    "the wrinkled cross-topology case (cases.cross_topology(wrinkles=True), 90 frames: coating 0.98x DT, normalmesh "
-    "1.78x; the twin gives the same ratios, 95-97% of every method's detail error lies within 4 cm of the mouth, where "
-    "the source has a mouth bag, and the wrinkles reach every method at gain 0.61-0.68), so this test keeps the "
-    "synthetic cases. Remove this mark when it passes."))
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "issue 14 item 6: on the wrinkled synthetic cases coating and normalmesh should beat deformation_transfer "
+        "on detail_error; measured here (1500 vertices, 60 frames): human coating 0.0035 / normalmesh 0.0048 vs DT 0.0029, "
+        "stylized 0.0186 / 0.0177 vs 0.0131 (% face height). Why (docs/methods/coating.md, normalmesh.md): most of the "
+        "metric is the fine-scale error of the large-scale motion (the wrinkle-free twin gives 97-99% of DT's and coating's "
+        "value), and per-frame DT on one topology carries the wrinkles themselves at gain 1.02/0.97 (coating: the "
+        "paper's absolute depth, 0.94/1.11; normalmesh: 0.80/0.84). Not reproduced either on the papers' own setting, "
+        "the wrinkled cross-topology case (cases.cross_topology(wrinkles=True), 90 frames: coating 0.98x DT, normalmesh "
+        "1.78x; the twin gives the same ratios, 95-97% of every method's detail error lies within 4 cm of the mouth, where "
+        "the source has a mouth bag, and the wrinkles reach every method at gain 0.61-0.68), so this test keeps the "
+        "synthetic cases. Remove this mark when it passes."
+    ),
+)
 def test_dense_methods_beat_deformation_transfer_on_detail(wrinkled):
     import faceretarget
 
     human = wrinkled[0]
     stylized = faceretarget.cases.synthetic(resolution=1500, n_frames=60, target="stylized")
     for case in (human, stylized):
-        got = {m: value("detail_error", faceretarget.get(m).fit(case.source, case.target).retarget(case.source), case)
-               for m in ("coating", "normalmesh", "deformation_transfer")}
-        assert got["coating"] < got["deformation_transfer"] and got["normalmesh"] < got["deformation_transfer"], got
+        got = {
+            m: value(
+                "detail_error",
+                faceretarget.get(m).fit(case.source, case.target).retarget(case.source),
+                case,
+            )
+            for m in ("coating", "normalmesh", "deformation_transfer")
+        }
+        assert (
+            got["coating"] < got["deformation_transfer"]
+            and got["normalmesh"] < got["deformation_transfer"]
+        ), got
 
 
 def test_weight_statistics():
@@ -287,20 +377,30 @@ def test_weight_statistics():
     case = make_case(None, truth_weights=(rig, ["a", "b"], truth_w))
     assert value("weight_min", anim, case) == -0.1
     assert value("weight_max", anim, case) == 1.2
-    assert value("weight_outside_share", anim, case) == pytest.approx(0.5)  # 1.2 and -0.1 outside [0, 1]
+    assert value("weight_outside_share", anim, case) == pytest.approx(
+        0.5
+    )  # 1.2 and -0.1 outside [0, 1]
     assert value("weight_sparsity", anim, case) == pytest.approx(0.25)  # only the 0.0
     assert value("weight_error_rms", anim, case) == pytest.approx(np.sqrt((0.2**2 + 0.2**2) / 4))
-    bounded = BlendshapeRig(Mesh(NEUTRAL, TRIANGLES), deltas, ["a", "b"], bounds=[[-0.2, 1.5], [-0.2, 1.5]])
+    bounded = BlendshapeRig(
+        Mesh(NEUTRAL, TRIANGLES), deltas, ["a", "b"], bounds=[[-0.2, 1.5], [-0.2, 1.5]]
+    )
     assert value("weight_outside_share", Animation(weights=w, rig=bounded), case) == 0.0
     verts_only = Animation(vertices=static(2))
     assert value("weight_min", verts_only, case) is None
-    assert M.METRICS["weight_min"].why_not(verts_only, case) == "the method outputs vertices, not blendshape weights"
+    assert (
+        M.METRICS["weight_min"].why_not(verts_only, case)
+        == "the method outputs vertices, not blendshape weights"
+    )
 
 
 def test_time_and_memory_come_from_the_context():
     anim, case = Animation(vertices=static(1)), make_case(static(1))
     ctx = {"fit_s": 1.5, "retarget_s": 0.25, "total_s": 1.75, "peak_memory_mib": 12.0}
-    assert [value(n, anim, case, ctx) for n in ("time_fit", "time_retarget", "time_total", "peak_memory")] == [1.5, 0.25, 1.75, 12.0]
+    assert [
+        value(n, anim, case, ctx)
+        for n in ("time_fit", "time_retarget", "time_total", "peak_memory")
+    ] == [1.5, 0.25, 1.75, 12.0]
     empty: dict = {}
     assert value("time_total", anim, case, empty) is None
     assert "not measured" in empty["reasons"]["time_total"]
@@ -309,11 +409,24 @@ def test_time_and_memory_come_from_the_context():
 def test_reasons_when_not_applicable():
     anim = Animation(vertices=static(2))
     no_truth = SimpleNamespace(target=make_case(static(2)).target, truth=None, source=None)
-    for name in ("vertex_error_mean", "velocity_error", "lve", "fdd", "detail_error", "detail_correlation"):
+    for name in (
+        "vertex_error_mean",
+        "velocity_error",
+        "lve",
+        "fdd",
+        "detail_error",
+        "detail_correlation",
+    ):
         assert value(name, anim, no_truth) is None
         assert M.METRICS[name].why_not(anim, no_truth) == "the case has no ground truth"
-    bare = SimpleNamespace(target=TargetRig(Mesh(NEUTRAL, TRIANGLES)), truth=Animation(vertices=static(2)), source=None)
-    assert M.METRICS["lip_closure_error"].why_not(anim, bare).startswith("the target has no mouth feature lines")
+    bare = SimpleNamespace(
+        target=TargetRig(Mesh(NEUTRAL, TRIANGLES)), truth=Animation(vertices=static(2)), source=None
+    )
+    assert (
+        M.METRICS["lip_closure_error"]
+        .why_not(anim, bare)
+        .startswith("the target has no mouth feature lines")
+    )
     assert M.METRICS["marker_error_mean"].why_not(anim, bare) == "the target has no landmarks"
     assert M.METRICS["fdd_abs"].why_not(anim, bare).startswith("cannot find the upper face")
     assert M.METRICS["vertex_error_region"].why_not(anim, bare).startswith("the target has neither")

@@ -2,6 +2,7 @@
 
 The browser test needs Debian's ``chromium`` (``apt-get install -y chromium``); CI installs it.
 """
+
 import json
 import os
 import re
@@ -11,13 +12,19 @@ import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import fake_retargeters as fakes
 import numpy as np
 import pytest
 
 from faceretarget.evaluation.harness import compare
-from faceretarget.evaluation.report import Plot, Series, decimate, render_html, svg_plot, write_report
-
-import fake_retargeters as fakes
+from faceretarget.evaluation.report import (
+    Plot,
+    Series,
+    decimate,
+    render_html,
+    svg_plot,
+    write_report,
+)
 
 CHROMIUM = "/usr/bin/chromium"
 
@@ -25,20 +32,33 @@ CHROMIUM = "/usr/bin/chromium"
 @pytest.fixture(scope="module")
 def report(tmp_path_factory, fake_registry):
     case = fakes.tiny_case(n=21, n_frames=30)
-    result = compare([case], methods=["fake_oracle", "fake_transfer", "fake_neutral", "fake_broken", "fake_examples"], registry=fake_registry)
+    result = compare(
+        [case],
+        methods=["fake_oracle", "fake_transfer", "fake_neutral", "fake_broken", "fake_examples"],
+        registry=fake_registry,
+    )
     folder = tmp_path_factory.mktemp("report") / "out"
     return result, write_report(result, folder)
 
 
 def test_svg_plots_are_valid_xml():
-    line = Plot("t <&>", [Series("a", [0, 1, 2], [1.0, np.nan, 3.0]), Series("b", [0, 1], [2.0, 2.0], dashed=True)], "x", "y")
+    line = Plot(
+        "t <&>",
+        [Series("a", [0, 1, 2], [1.0, np.nan, 3.0]), Series("b", [0, 1], [2.0, 2.0], dashed=True)],
+        "x",
+        "y",
+    )
     root = ET.fromstring(svg_plot(line))
-    assert root.tag.endswith("svg") and len(root.findall("{http://www.w3.org/2000/svg}polyline")) == 2
+    assert (
+        root.tag.endswith("svg") and len(root.findall("{http://www.w3.org/2000/svg}polyline")) == 2
+    )
     bar = Plot("bars", [Series("p", [0], [2.0]), Series("q", [0], [-1.0])], ylabel="v", kind="bar")
     assert len(ET.fromstring(svg_plot(bar)).findall("{http://www.w3.org/2000/svg}rect")) == 2
     empty = ET.fromstring(svg_plot(Plot("none", [Series("a", [0], [np.nan])])))
     assert "no values" in "".join(empty.itertext())
-    log = ET.fromstring(svg_plot(Plot("log", [Series("a", [0, 1, 2], [1e-6, 1e-3, 0.0])], log_y=True)))
+    log = ET.fromstring(
+        svg_plot(Plot("log", [Series("a", [0, 1, 2], [1e-6, 1e-3, 0.0])], log_y=True))
+    )
     assert len(log.findall("{http://www.w3.org/2000/svg}polyline")) == 1
 
 
@@ -66,18 +86,45 @@ def test_report_files_are_self_contained(report):
     assert external == [], external
     assert "http://" not in page.replace('xmlns="http://www.w3.org/2000/svg"', "")
     assert "https://" not in page
-    for needle in ("Ranking", "Case: tiny", "Viewer", "Per-vertex error", "Velocity error over time", "Weight curves", "Metric definitions", "boom in fit"):
+    for needle in (
+        "Ranking",
+        "Case: tiny",
+        "Viewer",
+        "Per-vertex error",
+        "Velocity error over time",
+        "Weight curves",
+        "Metric definitions",
+        "boom in fit",
+    ):
         assert needle in page, needle
-    data = json.loads(re.search(r'<script type="application/json" id="report-data">(.*?)</script>', page, re.S).group(1))
+    data = json.loads(
+        re.search(
+            r'<script type="application/json" id="report-data">(.*?)</script>', page, re.S
+        ).group(1)
+    )
     case = data["cases"][0]
-    assert [s["label"] for s in case["seqs"]] == ["ground truth", "fake_oracle", "fake_transfer", "fake_neutral"]
-    assert case["source"]["kind"] == "mesh" and len(case["frames"]) == 24 and len(case["keyFrames"]) == 3
+    assert [s["label"] for s in case["seqs"]] == [
+        "ground truth",
+        "fake_oracle",
+        "fake_transfer",
+        "fake_neutral",
+    ]
+    assert (
+        case["source"]["kind"] == "mesh"
+        and len(case["frames"]) == 24
+        and len(case["keyFrames"]) == 3
+    )
     assert len(page) < 3_000_000
 
 
 def test_report_budget_decimates(fake_registry):
     case = fakes.tiny_case(n=61, n_frames=40)  # 3721 vertices
-    result = compare([case], methods=["fake_oracle", "fake_transfer"], registry=fake_registry, metrics=["vertex_error_rms"])
+    result = compare(
+        [case],
+        methods=["fake_oracle", "fake_transfer"],
+        registry=fake_registry,
+        metrics=["vertex_error_rms"],
+    )
     page = render_html(result, max_bytes=200_000, max_frames=10)
     data = json.loads(re.search(r'id="report-data">(.*?)</script>', page, re.S).group(1))
     assert len(data["cases"][0]["frames"]) == 10
@@ -93,16 +140,30 @@ def _png_size(path):
 def _chromium(*args):
     with tempfile.TemporaryDirectory() as profile:
         cmd = [
-            CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-            "--disable-sync", "--no-first-run", f"--user-data-dir={profile}", "--enable-logging=stderr", "--v=0", "--virtual-time-budget=5000",
+            CHROMIUM,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--no-first-run",
+            f"--user-data-dir={profile}",
+            "--enable-logging=stderr",
+            "--v=0",
+            "--virtual-time-budget=5000",
             *args,
         ]
-        return subprocess.run(cmd, capture_output=True, text=True, timeout=120, env={**os.environ, "HOME": profile})
+        return subprocess.run(
+            cmd, capture_output=True, text=True, timeout=120, env={**os.environ, "HOME": profile}
+        )
 
 
 def test_report_loads_in_headless_chromium(report, tmp_path):
     if not os.path.exists(CHROMIUM):
-        pytest.skip("headless-browser check needs Debian's chromium at /usr/bin/chromium (apt-get install -y chromium)")
+        pytest.skip(
+            "headless-browser check needs Debian's chromium at /usr/bin/chromium (apt-get install -y chromium)"
+        )
     _, paths = report
     url = paths["html"].resolve().as_uri()
     dom = _chromium("--dump-dom", url)
@@ -122,15 +183,34 @@ def _reproductions():
     from faceretarget.evaluation.presets import PresetResult
 
     disagreeing = PresetResult(
-        "fake_disagree", "Fake 2099 fig. 1", "Nobody. A paper. 2099", "what it runs",
-        claim="Method A has a lower error than method B.", setting="the paper's inputs, alpha = 0.5",
-        agrees=False, evidence="DISAGREES: method A 0.731 > method B 0.412.",
+        "fake_disagree",
+        "Fake 2099 fig. 1",
+        "Nobody. A paper. 2099",
+        "what it runs",
+        claim="Method A has a lower error than method B.",
+        setting="the paper's inputs, alpha = 0.5",
+        agrees=False,
+        evidence="DISAGREES: method A 0.731 > method B 0.412.",
     )
     agreeing = PresetResult(
-        "fake_agree", "Fake 2099 fig. 2", "Nobody. A paper. 2099", "what it runs",
-        claim="Method C is faster than method D.", setting="as published", agrees=True, evidence="agrees: C 1.5 s < D 9 s.",
+        "fake_agree",
+        "Fake 2099 fig. 2",
+        "Nobody. A paper. 2099",
+        "what it runs",
+        claim="Method C is faster than method D.",
+        setting="as published",
+        agrees=True,
+        evidence="agrees: C 1.5 s < D 9 s.",
     )
-    failed = PresetResult("fake_failed", "Fake 2099 fig. 3", "Nobody", "d", claim="Something holds.", status="error", reason="RuntimeError: boom")
+    failed = PresetResult(
+        "fake_failed",
+        "Fake 2099 fig. 3",
+        "Nobody",
+        "d",
+        claim="Something holds.",
+        status="error",
+        reason="RuntimeError: boom",
+    )
     return [disagreeing, agreeing, failed]
 
 
@@ -138,33 +218,57 @@ def test_report_flags_a_disagreeing_reproduction_in_red(fake_registry, tmp_path)
     """A reproduction whose measurement disagrees with its paper is shown in red with the measured
     numbers and the paper's claim; one that agrees in green; an undecided one in grey."""
     case = fakes.tiny_case(n=11, n_frames=6)
-    result = compare([case], methods=["fake_oracle"], registry=fake_registry, metrics=["vertex_error_rms"])
+    result = compare(
+        [case], methods=["fake_oracle"], registry=fake_registry, metrics=["vertex_error_rms"]
+    )
     result.presets.extend(_reproductions())
     paths = write_report(result, tmp_path / "out")
     page = paths["html"].read_text()
-    section = re.search(r'<section class="preset" id="preset-fake_disagree">(.*?)</section>', page, re.S).group(1)
-    verdict = re.search(r'<div class="verdict (\w+)" data-verdict="\w+"><strong>([^<]*)</strong>: ([^<]*)</div>', section)
-    assert verdict.groups() == ("disagree", "Disagrees with the paper", "DISAGREES: method A 0.731 &gt; method B 0.412.")
+    section = re.search(
+        r'<section class="preset" id="preset-fake_disagree">(.*?)</section>', page, re.S
+    ).group(1)
+    verdict = re.search(
+        r'<div class="verdict (\w+)" data-verdict="\w+"><strong>([^<]*)</strong>: ([^<]*)</div>',
+        section,
+    )
+    assert verdict.groups() == (
+        "disagree",
+        "Disagrees with the paper",
+        "DISAGREES: method A 0.731 &gt; method B 0.412.",
+    )
     assert "Method A has a lower error than method B." in section and "alpha = 0.5" in section
     agree = re.search(r'id="preset-fake_agree">.*?<div class="verdict (\w+)"', page, re.S).group(1)
-    failed = re.search(r'id="preset-fake_failed">.*?<div class="verdict (\w+)"', page, re.S).group(1)
+    failed = re.search(r'id="preset-fake_failed">.*?<div class="verdict (\w+)"', page, re.S).group(
+        1
+    )
     assert (agree, failed) == ("agree", "undecided")
     # the summary at the top of the reproductions, coloured the same way
-    summary = re.search(r'<table class="metrics presets-summary">(.*?)</table>', page, re.S).group(1)
+    summary = re.search(r'<table class="metrics presets-summary">(.*?)</table>', page, re.S).group(
+        1
+    )
     cells = re.findall(r'<td class="verdict-cell (\w+)">([^<]*)</td>', summary)
-    assert cells == [("disagree", "Disagrees with the paper"), ("agree", "Agrees with the paper"), ("undecided", "Not decided")]
+    assert cells == [
+        ("disagree", "Disagrees with the paper"),
+        ("agree", "Agrees with the paper"),
+        ("undecided", "Not decided"),
+    ]
     # red is red: the stylesheet (inline in the page) colours a disagreement with the error colour
     css = re.search(r"<style>(.*?)</style>", page, re.S).group(1)
     assert re.search(r"--err:\s*#b42318", css)
     declarations = lambda selector: dict(  # noqa: E731
         tuple(part.strip() for part in d.split(":", 1))
-        for d in re.search(selector + r"\s*\{([^}]*)\}", css).group(1).split(";") if d.strip()
+        for d in re.search(selector + r"\s*\{([^}]*)\}", css).group(1).split(";")
+        if d.strip()
     )
     disagree = declarations(r"\.verdict\.disagree")
     assert disagree["color"] == "var(--err)" and disagree["border-left-color"] == "var(--err)"
     assert declarations(r"\.verdict\.agree")["color"] == "var(--ok)"
     data = json.loads(paths["json"].read_text())["presets"]
     assert [(p["name"], p["agrees"], p["verdict"]) for p in data] == [
-        ("fake_disagree", False, "disagrees"), ("fake_agree", True, "agrees"), ("fake_failed", None, "undecided")
+        ("fake_disagree", False, "disagrees"),
+        ("fake_agree", True, "agrees"),
+        ("fake_failed", None, "undecided"),
     ]
-    assert data[0]["claim"] == "Method A has a lower error than method B." and data[0]["evidence"].startswith("DISAGREES: method A 0.731")
+    assert data[0]["claim"] == "Method A has a lower error than method B." and data[0][
+        "evidence"
+    ].startswith("DISAGREES: method A 0.731")

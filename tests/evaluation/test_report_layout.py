@@ -7,6 +7,7 @@
 - in headless Chromium (Debian's ``chromium``) at 1280 px: no horizontal overflow, no table
   wider than the page or cut inside it, no overlapping chart labels; the screenshot is drawn.
 """
+
 import html
 import json
 import os
@@ -19,16 +20,30 @@ import zlib
 from pathlib import Path
 from types import SimpleNamespace
 
+import fake_retargeters as fakes
 import numpy as np
 import pytest
 
 from faceretarget.errors import ConfigError, UnknownNameError
-from faceretarget.evaluation._summary import BASELINE, PAPER, MethodRole, case_summary, method_roles, ranking_metric, short_citation
+from faceretarget.evaluation._summary import (
+    BASELINE,
+    PAPER,
+    MethodRole,
+    case_summary,
+    method_roles,
+    ranking_metric,
+    short_citation,
+)
 from faceretarget.evaluation.harness import compare
 from faceretarget.evaluation.presets import PresetResult
-from faceretarget.evaluation.report import Plot, Series, format_number, render_html, svg_plot, write_report
-
-import fake_retargeters as fakes
+from faceretarget.evaluation.report import (
+    Plot,
+    Series,
+    format_number,
+    render_html,
+    svg_plot,
+    write_report,
+)
 
 WIDTH = 1280
 SCIENTIFIC = re.compile(r"\d[eE][+-]?\d")
@@ -44,36 +59,89 @@ def _chromium_binary() -> str | None:
 
 def _variant(i: int) -> type:
     """A same-topology transfer under a long name (the demo's names are this long and longer)."""
-    return type(f"LongNamedTransfer{i}", (fakes.TransferFake,), {"name": f"fake_transfer_with_long_name_{i}", "__module__": __name__})
+    return type(
+        f"LongNamedTransfer{i}",
+        (fakes.TransferFake,),
+        {"name": f"fake_transfer_with_long_name_{i}", "__module__": __name__},
+    )
 
 
 VARIANTS = [_variant(i) for i in range(5)]
 
 #: Catalogue entries the report looks roles up in: a paper method, its baseline, a plugin.
-CATALOGUE = SimpleNamespace(retargeters={
-    "fake_transfer": SimpleNamespace(paper="Doe, Roe & Poe 2031, Transfer of Things, Journal 1(2)", summary="the paper's method", cls=fakes.TransferFake),
-    "fake_oracle": SimpleNamespace(paper="Doe, Roe & Poe 2031, Transfer of Things, Journal 1(2)", summary="baseline: the exact solve", cls=fakes.OracleFake),
-    "fake_neutral": SimpleNamespace(paper="", summary="zero weights", cls=fakes.NeutralFake),
-})
+CATALOGUE = SimpleNamespace(
+    retargeters={
+        "fake_transfer": SimpleNamespace(
+            paper="Doe, Roe & Poe 2031, Transfer of Things, Journal 1(2)",
+            summary="the paper's method",
+            cls=fakes.TransferFake,
+        ),
+        "fake_oracle": SimpleNamespace(
+            paper="Doe, Roe & Poe 2031, Transfer of Things, Journal 1(2)",
+            summary="baseline: the exact solve",
+            cls=fakes.OracleFake,
+        ),
+        "fake_neutral": SimpleNamespace(paper="", summary="zero weights", cls=fakes.NeutralFake),
+    }
+)
 
 
 def _reproduction() -> PresetResult:
     """A reproduction with the kind of charts that overlapped: long bar labels, a large number, tiny values."""
-    labels = ["synthetic-human source", "synthetic-human target", "synthetic-stylized source", "synthetic-stylized target", "ict source", "ict target"]
-    bars = Plot("vertices with piercing error, % of the normal mesh", [Series(name, [0], [v]) for name, v in zip(labels, [0.0104, 0.0104, 0.0106, 0.298, 0.187, 12934.0])], ylabel="%", kind="bar")
+    labels = [
+        "synthetic-human source",
+        "synthetic-human target",
+        "synthetic-stylized source",
+        "synthetic-stylized target",
+        "ict source",
+        "ict target",
+    ]
+    bars = Plot(
+        "vertices with piercing error, % of the normal mesh",
+        [
+            Series(name, [0], [v])
+            for name, v in zip(labels, [0.0104, 0.0104, 0.0106, 0.298, 0.187, 12934.0])
+        ],
+        ylabel="%",
+        kind="bar",
+    )
     frames = np.arange(60)
-    tiny = Plot("velocity error (tiny values)", [Series(f"method_with_a_long_name_{k}", frames, 1e-5 * (1 + np.sin(frames / (3 + k)))) for k in range(6)], xlabel="frame", ylabel="||DP - DQ||^2 / H^2")
+    tiny = Plot(
+        "velocity error (tiny values)",
+        [
+            Series(f"method_with_a_long_name_{k}", frames, 1e-5 * (1 + np.sin(frames / (3 + k))))
+            for k in range(6)
+        ],
+        xlabel="frame",
+        ylabel="||DP - DQ||^2 / H^2",
+    )
     return PresetResult(
-        "fake_table1", "Fake 2031 table 1", "Doe, Roe & Poe. 2031", "piercing errors per mesh",
-        plots=[bars, tiny], table=[{"mesh": name, "vertices": 10816, "%": 0.1} for name in labels],
-        claim="Piercing errors stay below 0.1% of the vertices.", agrees=False, evidence="DISAGREES: 3 of 6 meshes at or above 0.1%.",
+        "fake_table1",
+        "Fake 2031 table 1",
+        "Doe, Roe & Poe. 2031",
+        "piercing errors per mesh",
+        plots=[bars, tiny],
+        table=[{"mesh": name, "vertices": 10816, "%": 0.1} for name in labels],
+        claim="Piercing errors stay below 0.1% of the vertices.",
+        agrees=False,
+        evidence="DISAGREES: 3 of 6 meshes at or above 0.1%.",
     )
 
 
 @pytest.fixture(scope="module")
 def explained(tmp_path_factory, fake_registry):
-    cases = {"tiny": fakes.tiny_case(n=21, n_frames=30), "tiny-stylized-with-a-long-case-name": fakes.tiny_case(n=15, n_frames=20, name="other")}
-    methods = ["fake_oracle", "fake_transfer", "fake_neutral", "fake_broken", "fake_examples", *VARIANTS]
+    cases = {
+        "tiny": fakes.tiny_case(n=21, n_frames=30),
+        "tiny-stylized-with-a-long-case-name": fakes.tiny_case(n=15, n_frames=20, name="other"),
+    }
+    methods = [
+        "fake_oracle",
+        "fake_transfer",
+        "fake_neutral",
+        "fake_broken",
+        "fake_examples",
+        *VARIANTS,
+    ]
     params = {cls.name: {"gain": 0.8 + 0.05 * i} for i, cls in enumerate(VARIANTS)}
     result = compare(cases, methods=methods, params=params, registry=fake_registry)
     result.presets.append(_reproduction())
@@ -93,13 +161,21 @@ def test_each_case_gets_a_sentence_naming_the_winner_metric_and_why(explained):
     assert [case for case, _ in items] == list(result.cases)
     tiny = html.unescape(re.sub(r"<[^>]+>", "", items[0][1])).strip()
     # fake_oracle drives the target's blendshapes with the source's exact weights: it wins, and the reason says so
-    assert re.search(r"fake_oracle \(baseline of fake_transfer\) wins on vertex_error_rms: [0-9.,×⁻⁰¹²³⁴⁵⁶⁷⁸⁹]+ % face height", tiny), tiny
+    assert re.search(
+        r"fake_oracle \(baseline of fake_transfer\) wins on vertex_error_rms: [0-9.,×⁻⁰¹²³⁴⁵⁶⁷⁸⁹]+ % face height",
+        tiny,
+    ), tiny
     assert "Why: fake_oracle's result is a mix of the target's own blendshapes" in tiny, tiny
     assert "more than 1,000 times lower than" in tiny  # an exact result against an inexact one
     # the paper method behind its own baseline is flagged
-    assert "the paper method fake_transfer is behind its baseline fake_oracle on vertex_error_rms" in tiny, tiny
+    assert (
+        "the paper method fake_transfer is behind its baseline fake_oracle on vertex_error_rms"
+        in tiny
+    ), tiny
     # the same sentence heads the case's section
-    case_section = re.search(r'<section class="case" id="case-0">(.*?)</section>', page, re.S).group(1)
+    case_section = re.search(
+        r'<section class="case" id="case-0">(.*?)</section>', page, re.S
+    ).group(1)
     assert tiny.endswith(" details")  # the top list links to the case
     assert tiny.removesuffix(" details") in html.unescape(re.sub(r"<[^>]+>", "", case_section))
 
@@ -110,15 +186,25 @@ def test_the_summary_flags_reproductions_that_disagree(explained):
     summary = re.search(r'<section id="summary">(.*?)</section>', page, re.S).group(1)
     line = re.search(r'<p class="reproductions-line">(.*?)</p>', summary).group(1)
     assert line.startswith("Paper reproductions: 0 agree, 1 disagree, 0 not decided")
-    assert '<span class="disagree">disagreeing with their paper: <a class="disagree" href="#preset-fake_table1">fake_table1</a></span>' in line
-    assert 'id="preset-fake_table1"' in page  # the link lands on the reproduction, shown in red there
+    assert (
+        '<span class="disagree">disagreeing with their paper: <a class="disagree" href="#preset-fake_table1">fake_table1</a></span>'
+        in line
+    )
+    assert (
+        'id="preset-fake_table1"' in page
+    )  # the link lands on the reproduction, shown in red there
 
 
 def test_paper_methods_and_baselines_are_labelled(explained):
     _, paths = explained
     page = paths["html"].read_text()
     ranking = re.search(r'<table class="metrics ranking">(.*?)</table>', page, re.S).group(1)
-    labels = dict(re.findall(r'<th class="method">(.*?)<span class="role [a-z]+" title="[^"]*">([^<]*)</span>', ranking))
+    labels = dict(
+        re.findall(
+            r'<th class="method">(.*?)<span class="role [a-z]+" title="[^"]*">([^<]*)</span>',
+            ranking,
+        )
+    )
     labels = {name.replace("<wbr>", ""): label for name, label in labels.items()}
     assert labels["fake_transfer"] == "paper method, Doe et al. 2031"
     assert labels["fake_oracle"] == "baseline of fake_transfer"  # same paper: its baseline
@@ -128,13 +214,27 @@ def test_paper_methods_and_baselines_are_labelled(explained):
 
 
 def test_roles_of_the_builtin_methods():
-    roles = method_roles(["coating", "deformation_transfer", "spacetime", "spacetime_noconst", "normalmesh", "not_registered"])
+    roles = method_roles(
+        [
+            "coating",
+            "deformation_transfer",
+            "spacetime",
+            "spacetime_noconst",
+            "normalmesh",
+            "not_registered",
+        ]
+    )
     assert (roles["coating"].kind, roles["coating"].citation) == (PAPER, "Xu et al. 2014")
-    assert roles["deformation_transfer"].kind == BASELINE and roles["deformation_transfer"].baseline_of == ("coating",)
+    assert roles["deformation_transfer"].kind == BASELINE and roles[
+        "deformation_transfer"
+    ].baseline_of == ("coating",)
     assert roles["spacetime_noconst"].label == "baseline of spacetime / spacetime_paper"
     assert roles["normalmesh"].label == "paper method, Na & Jung 2004"
     assert roles["not_registered"].kind == "other"
-    assert short_citation("Kholgade, Matthews & Sheikh 2011, Content Retargeting") == "Kholgade et al. 2011"
+    assert (
+        short_citation("Kholgade, Matthews & Sheikh 2011, Content Retargeting")
+        == "Kholgade et al. 2011"
+    )
     assert short_citation("no year here") == ""
 
 
@@ -143,28 +243,48 @@ def test_the_ranking_names_its_one_metric(explained):
     page = paths["html"].read_text()
     section = re.search(r'<section id="ranking">(.*?)</section>', page, re.S).group(1)
     assert "<strong>Ranked by vertex_error_rms</strong>" in section
-    assert html.escape(result.metrics["vertex_error_rms"].description) in section  # its definition, not a list of 11 names
+    assert (
+        html.escape(result.metrics["vertex_error_rms"].description) in section
+    )  # its definition, not a list of 11 names
     assert "acceleration_error" not in section
     heads = re.findall(r'<th class="ranked">(.*?)<br>', section)
-    assert [h.replace("<wbr>", "") for h in heads] == list(result.cases)  # one value column per case
+    assert [h.replace("<wbr>", "") for h in heads] == list(
+        result.cases
+    )  # one value column per case
     # the order and the mean ranks follow the chosen metric alone
-    rows = re.findall(r'<th class="method">(.*?)<span.*?</th>(?:<td[^>]*>[^<]*</td>){%d}<td class="num">([^<]*)</td>' % len(result.cases), section)
+    rows = re.findall(
+        r'<th class="method">(.*?)<span.*?</th>(?:<td[^>]*>[^<]*</td>){%d}<td class="num">([^<]*)</td>'  # noqa: UP031
+        % len(result.cases),
+        section,
+    )  # noqa: UP031
     shown = {name.replace("<wbr>", ""): rank for name, rank in rows}
     assert list(shown) == [r["method"] for r in result.ranking(metrics=["vertex_error_rms"])]
-    assert shown == {m: format_number(rank) if rank is not None else "-" for m, rank in _mean_ranks_by(result, "vertex_error_rms").items()}
+    assert shown == {
+        m: format_number(rank) if rank is not None else "-"
+        for m, rank in _mean_ranks_by(result, "vertex_error_rms").items()
+    }
     other = render_html(result, rank_by="velocity_error", registry=CATALOGUE)
-    assert "<strong>Ranked by velocity_error</strong>" in other and "wins on velocity_error" in other
+    assert (
+        "<strong>Ranked by velocity_error</strong>" in other and "wins on velocity_error" in other
+    )
 
 
 def _mean_ranks_by(result, metric):
     """Each method's mean over cases of its rank (1 = lowest value) by ``metric`` alone."""
     ranks = {m: [] for m in result.methods}
     for case in result.cases:
-        values = {r["method"]: r["value"] for r in result.rows if r["case"] == case and r["metric"] == metric and r["value"] is not None}
+        values = {
+            r["method"]: r["value"]
+            for r in result.rows
+            if r["case"] == case and r["metric"] == metric and r["value"] is not None
+        }
         if len(values) < 2:
             continue
         for method, value in values.items():
-            below, tied = sum(v < value for v in values.values()), sum(v == value for v in values.values())
+            below, tied = (
+                sum(v < value for v in values.values()),
+                sum(v == value for v in values.values()),
+            )
             ranks[method].append(below + (tied + 1) / 2)
     return {m: (float(np.mean(r)) if r else None) for m, r in ranks.items()}
 
@@ -205,19 +325,45 @@ def test_summary_of_a_tie_names_no_winner():
     from faceretarget.evaluation.harness import ComparisonResult
     from faceretarget.evaluation.metrics import METRICS
 
-    rows = [{"case": "c", "method": m, "metric": "vertex_error_rms", "value": 0.5, "unit": "% face height", "status": "ok", "reason": ""} for m in ("a", "b")]
-    result = ComparisonResult(rows, [], {"c": SimpleNamespace(meta={})}, {"vertex_error_rms": METRICS["vertex_error_rms"]})
+    rows = [
+        {
+            "case": "c",
+            "method": m,
+            "metric": "vertex_error_rms",
+            "value": 0.5,
+            "unit": "% face height",
+            "status": "ok",
+            "reason": "",
+        }
+        for m in ("a", "b")
+    ]
+    result = ComparisonResult(
+        rows, [], {"c": SimpleNamespace(meta={})}, {"vertex_error_rms": METRICS["vertex_error_rms"]}
+    )
     s = case_summary(result, "c", "vertex_error_rms", {})
-    assert s.winner is None and s.text == "On c, a and b tie on vertex_error_rms: 0.5 % face height."
+    assert (
+        s.winner is None and s.text == "On c, a and b tie on vertex_error_rms: 0.5 % face height."
+    )
 
 
 # ---------------------------------------------------------------------------------------
 # Numbers and charts
 # ---------------------------------------------------------------------------------------
-@pytest.mark.parametrize("value, text", [
-    (12934.4, "12,934"), (10816, "10,816"), (999.97, "1000"), (0.5468, "0.5468"), (0.001234, "0.001234"),
-    (2.99e-5, "2.99×10⁻⁵"), (-3.1e-12, "-3.1×10⁻¹²"), (0.0, "0"), (None, ""), (float("nan"), ""),
-])
+@pytest.mark.parametrize(
+    "value, text",
+    [
+        (12934.4, "12,934"),
+        (10816, "10,816"),
+        (999.97, "1000"),
+        (0.5468, "0.5468"),
+        (0.001234, "0.001234"),
+        (2.99e-5, "2.99×10⁻⁵"),
+        (-3.1e-12, "-3.1×10⁻¹²"),
+        (0.0, "0"),
+        (None, ""),
+        (float("nan"), ""),
+    ],
+)
 def test_numbers_for_people(value, text):
     assert format_number(value) == text
 
@@ -225,7 +371,9 @@ def test_numbers_for_people(value, text):
 def test_no_e_notation_in_the_page(explained):
     _, paths = explained
     page = paths["html"].read_text()
-    page = re.sub(r'<section id="definitions">.*?</section>', "", page, flags=re.S)  # quotes constants as written
+    page = re.sub(
+        r'<section id="definitions">.*?</section>', "", page, flags=re.S
+    )  # quotes constants as written
     visible = re.sub(r"<script.*?</script>|<style>.*?</style>|<[^>]+>", " ", page, flags=re.S)
     assert not SCIENTIFIC.findall(visible), SCIENTIFIC.findall(visible)[:5]
     assert "12,934" in page and "10,816" in page
@@ -233,8 +381,15 @@ def test_no_e_notation_in_the_page(explained):
 
 def test_bar_charts_are_horizontal_with_one_row_per_label():
     names = [f"a rather long label number {i}" for i in range(6)]
-    svg = svg_plot(Plot("bars", [Series(n, [0], [float(i + 1)]) for i, n in enumerate(names)], kind="bar"))
-    rows = [float(y) for y in re.findall(r'<text x="[\d.]+" y="([\d.]+)" class="tick" text-anchor="end">a rather', svg)]
+    svg = svg_plot(
+        Plot("bars", [Series(n, [0], [float(i + 1)]) for i, n in enumerate(names)], kind="bar")
+    )
+    rows = [
+        float(y)
+        for y in re.findall(
+            r'<text x="[\d.]+" y="([\d.]+)" class="tick" text-anchor="end">a rather', svg
+        )
+    ]
     assert len(rows) == 6 and min(np.diff(rows)) >= 16  # each label on its own line
 
 
@@ -256,11 +411,19 @@ class CompilingFake(fakes.TransferFake):
 
 def test_compile_time_is_measured_apart_and_shown(fake_registry, tmp_path):
     pytest.importorskip("numba")
-    result = compare([fakes.tiny_case(n=9, n_frames=6)], methods=[CompilingFake, "fake_transfer"], registry=fake_registry, metrics=["vertex_error_rms"])
+    result = compare(
+        [fakes.tiny_case(n=9, n_frames=6)],
+        methods=[CompilingFake, "fake_transfer"],
+        registry=fake_registry,
+        metrics=["vertex_error_rms"],
+    )
     compiling, plain = result.run("tiny", "fake_compiling"), result.run("tiny", "fake_transfer")
     assert 0 < compiling.compile_s <= compiling.fit_s + compiling.retarget_s
     assert plain.compile_s == 0.0
-    assert json.loads(result.to_json(tmp_path / "r.json").read_text())["runs"][0]["compile_s"] == compiling.compile_s
+    assert (
+        json.loads(result.to_json(tmp_path / "r.json").read_text())["runs"][0]["compile_s"]
+        == compiling.compile_s
+    )
     page = render_html(result, registry=CATALOGUE)
     runs = re.search(r'<table class="metrics runs">(.*?)</table>', page, re.S).group(1)
     assert "of which compile" in runs and "excl. compile" in runs
@@ -310,17 +473,33 @@ window.addEventListener("load", function () { setTimeout(function () {
 
 def _run_chromium(binary: str, *args: str) -> subprocess.CompletedProcess:
     with tempfile.TemporaryDirectory() as profile:
-        cmd = [binary, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--no-first-run", "--disable-sync",
-               "--disable-background-networking", "--disable-component-update", f"--user-data-dir={profile}",
-               "--virtual-time-budget=10000", f"--window-size={WIDTH},2000", *args]
-        return subprocess.run(cmd, capture_output=True, text=True, timeout=180, env={**os.environ, "HOME": profile})
+        cmd = [
+            binary,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            "--no-first-run",
+            "--disable-sync",
+            "--disable-background-networking",
+            "--disable-component-update",
+            f"--user-data-dir={profile}",
+            "--virtual-time-budget=10000",
+            f"--window-size={WIDTH},2000",
+            *args,
+        ]
+        return subprocess.run(
+            cmd, capture_output=True, text=True, timeout=180, env={**os.environ, "HOME": profile}
+        )
 
 
 @pytest.fixture(scope="module")
 def chromium():
     binary = _chromium_binary()
     if binary is None:
-        pytest.skip("the layout check needs a headless Chromium ('chromium' on PATH, e.g. apt-get install -y chromium)")
+        pytest.skip(
+            "the layout check needs a headless Chromium ('chromium' on PATH, e.g. apt-get install -y chromium)"
+        )
     return binary
 
 
@@ -339,12 +518,17 @@ def layout(explained, chromium, tmp_path_factory):
 
 def test_page_fits_1280_without_horizontal_overflow(layout):
     assert layout["viewport"] == WIDTH
-    assert layout["scrollWidth"] == WIDTH and layout["scrollWidthOpen"] == WIDTH, (layout["scrollWidth"], layout["scrollWidthOpen"])
+    assert layout["scrollWidth"] == WIDTH and layout["scrollWidthOpen"] == WIDTH, (
+        layout["scrollWidth"],
+        layout["scrollWidthOpen"],
+    )
 
 
 def test_no_table_is_wider_than_the_page_or_cut(layout):
     tables = layout["tables"]
-    assert {"metrics ranking", "metrics case-metrics", "metrics all-metrics", "metrics runs"} <= {t["cls"] for t in tables}
+    assert {"metrics ranking", "metrics case-metrics", "metrics all-metrics", "metrics runs"} <= {
+        t["cls"] for t in tables
+    }
     wide = [t for t in tables if t["right"] > WIDTH or t["width"] > WIDTH or t["cut"]]
     assert wide == [], wide
 
@@ -357,7 +541,11 @@ def test_chart_labels_do_not_overlap(layout):
 
 def test_rendered_text_explains_and_has_no_e_notation(layout):
     text = layout["text"]
-    assert "Ranked by vertex_error_rms" in text and "Why:" in text and "paper method, Doe et al. 2031" in text
+    assert (
+        "Ranked by vertex_error_rms" in text
+        and "Why:" in text
+        and "paper method, Doe et al. 2031" in text
+    )
     assert not SCIENTIFIC.findall(text), SCIENTIFIC.findall(text)[:5]
 
 
@@ -367,8 +555,8 @@ def _png_rows(path: Path) -> tuple[int, int, list[bytes]]:
     assert data[:8] == b"\x89PNG\r\n\x1a\n", "not a PNG"
     pos, idat, header = 8, b"", None
     while pos < len(data):
-        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
-        body = data[pos + 8:pos + 8 + length]
+        length, kind = struct.unpack(">I4s", data[pos : pos + 8])
+        body = data[pos + 8 : pos + 8 + length]
         if kind == b"IHDR":
             header = struct.unpack(">IIBBBBB", body)
         elif kind == b"IDAT":
@@ -378,7 +566,7 @@ def _png_rows(path: Path) -> tuple[int, int, list[bytes]]:
     assert depth == 8 and color in (2, 6), header
     stride = width * (4 if color == 6 else 3)
     raw = zlib.decompress(idat)
-    return width, height, [raw[i * (stride + 1):(i + 1) * (stride + 1)] for i in range(height)]
+    return width, height, [raw[i * (stride + 1) : (i + 1) * (stride + 1)] for i in range(height)]
 
 
 def _rows_with_content(rows: list[bytes], bpp: int) -> int:
@@ -386,7 +574,7 @@ def _rows_with_content(rows: list[bytes], bpp: int) -> int:
     rows that repeat with the pixel's period after the first pixel, so these rows prove content."""
     count = 0
     for row in rows:
-        body = row[1 + bpp:]
+        body = row[1 + bpp :]
         period = body[:bpp]
         if body != period * (len(body) // bpp):
             count += 1

@@ -1,7 +1,7 @@
 """Supervised worker processes: every task ends in exactly one outcome, overrunning or
 crashing workers are replaced and their groups go on."""
+
 import multiprocessing as mp
-import os
 import signal
 import subprocess
 import sys
@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 import worker_tasks as t
+
 from faceretarget.evaluation._workers import DIED, DONE, ERROR, TIMEOUT, Task, run_supervised
 
 
@@ -23,7 +23,14 @@ def outcomes(groups, workers=1):
 
 
 def test_every_task_ends_once_with_its_value_or_error():
-    groups = [[Task("sum", t.add, (2, 3)), Task("boom", t.fail, ("no luck",)), Task("exit", t.exit_call), Task("after", t.add, (1, 1))]]
+    groups = [
+        [
+            Task("sum", t.add, (2, 3)),
+            Task("boom", t.fail, ("no luck",)),
+            Task("exit", t.exit_call),
+            Task("after", t.add, (1, 1)),
+        ]
+    ]
     got, order = outcomes(groups)
     assert order == ["sum", "boom", "exit", "after"], "tasks of a group run in order"
     assert got["sum"].status == DONE and got["sum"].value == 5
@@ -41,7 +48,10 @@ def test_overrunning_tasks_are_killed_and_their_group_goes_on():
     got, _ = outcomes(groups, workers=2)
     for key in ("sleepy", "spinner"):
         assert got[key].status == TIMEOUT and got[key].started
-        assert "did not finish within its time limit of 1 s; its worker process was stopped" == got[key].message
+        assert (
+            got[key].message
+            == "did not finish within its time limit of 1 s; its worker process was stopped"
+        )
         assert got[key].seconds >= 1.0
     assert got["next"].value == 3 and got["then"].value == 4
 
@@ -53,21 +63,39 @@ def test_a_fast_task_is_not_stopped_by_a_limit():
 
 def test_a_dying_worker_is_reported_and_replaced():
     got, _ = outcomes([[Task("pid1", t.pid), Task("dies", t.die, (7,)), Task("pid2", t.pid)]])
-    assert got["dies"].status == DIED and got["dies"].message == "its worker process exited with code 7 while running it"
+    assert (
+        got["dies"].status == DIED
+        and got["dies"].message == "its worker process exited with code 7 while running it"
+    )
     assert got["pid1"].value != got["pid2"].value, "the rest of the group runs in a fresh worker"
 
 
 def test_unsendable_results_and_unloadable_tasks_are_errors():
-    got, _ = outcomes([[Task("lambda", t.unsendable), Task("unloadable", t.add, (t.Unloadable(), 1)), Task("fine", t.add, (1, 1))]])
+    got, _ = outcomes(
+        [
+            [
+                Task("lambda", t.unsendable),
+                Task("unloadable", t.add, (t.Unloadable(), 1)),
+                Task("fine", t.add, (1, 1)),
+            ]
+        ]
+    )
     assert got["lambda"].status == ERROR and "could not be sent back" in got["lambda"].message
     assert got["unloadable"].status == ERROR and not got["unloadable"].started
-    assert got["unloadable"].message == "the worker could not load the task: RuntimeError: this object cannot be loaded in a worker"
+    assert (
+        got["unloadable"].message
+        == "the worker could not load the task: RuntimeError: this object cannot be loaded in a worker"
+    )
     assert got["fine"].value == 2
 
 
 def test_a_task_that_does_not_pickle_is_an_error_and_the_rest_runs():
-    got, order = outcomes([[Task("first", t.add, (1, 2)), Task("lambda", lambda: 1), Task("last", t.add, (3, 4))]])
-    assert got["lambda"].status == ERROR and got["lambda"].message.startswith("the task could not be handed to a worker process")
+    got, order = outcomes(
+        [[Task("first", t.add, (1, 2)), Task("lambda", lambda: 1), Task("last", t.add, (3, 4))]]
+    )
+    assert got["lambda"].status == ERROR and got["lambda"].message.startswith(
+        "the task could not be handed to a worker process"
+    )
     assert got["first"].value == 3 and got["last"].value == 7
     assert order.index("lambda") < order.index("last")
 
@@ -80,8 +108,19 @@ def test_more_workers_than_groups_and_empty_groups():
 
 def test_workers_start_inside_daemonic_processes(monkeypatch):
     """A Dask worker is a daemonic process, where multiprocessing may not start children."""
-    monkeypatch.setattr(mp.current_process(), "_config", {**mp.current_process()._config, "daemon": True})
-    got, _ = outcomes([[Task("sum", t.add, (2, 5)), Task("sleepy", t.sleep, (600,), timeout=1.0), Task("dies", t.die, (3,)), Task("after", t.add, (1, 1))]])
+    monkeypatch.setattr(
+        mp.current_process(), "_config", {**mp.current_process()._config, "daemon": True}
+    )
+    got, _ = outcomes(
+        [
+            [
+                Task("sum", t.add, (2, 5)),
+                Task("sleepy", t.sleep, (600,), timeout=1.0),
+                Task("dies", t.die, (3,)),
+                Task("after", t.add, (1, 1)),
+            ]
+        ]
+    )
     assert got["sum"].value == 7 and got["sleepy"].status == TIMEOUT
     assert got["dies"].status == DIED and "exited with code 3" in got["dies"].message
     assert got["after"].value == 2
@@ -89,7 +128,11 @@ def test_workers_start_inside_daemonic_processes(monkeypatch):
 
 def test_a_worker_never_runs_two_owners_tasks():
     """A death after a task has returned is charged to that task's owner, not to the next one."""
-    groups = [[Task("a1", t.pid, owner="a"), Task("a2", t.pid, owner="a")], [Task("b1", t.pid, owner="b")], [Task("a3", t.pid, owner="a")]]
+    groups = [
+        [Task("a1", t.pid, owner="a"), Task("a2", t.pid, owner="a")],
+        [Task("b1", t.pid, owner="b")],
+        [Task("a3", t.pid, owner="a")],
+    ]
     got, order = outcomes(groups, workers=1)
     assert order == ["a1", "a2", "a3", "b1"], "a worker prefers more of its owner's groups"
     assert got["a1"].value == got["a2"].value == got["a3"].value != got["b1"].value
@@ -99,12 +142,19 @@ def test_time_limit_settings(monkeypatch):
     from faceretarget import config
     from faceretarget.errors import ConfigError
 
-    assert config.check_timeout(None) is None and config.check_timeout(0) is None and config.check_timeout(2) == 2.0
+    assert (
+        config.check_timeout(None) is None
+        and config.check_timeout(0) is None
+        and config.check_timeout(2) == 2.0
+    )
     for bad in (-1, float("nan"), float("inf"), 1e7, 1e300, True, "10"):
         with pytest.raises(ConfigError, match="number of seconds from 0 to"):
             config.check_timeout(bad)
     monkeypatch.delenv(config.ENV_RUN_TIMEOUT, raising=False)
-    assert config.seconds_setting(config.ENV_RUN_TIMEOUT, config.DEFAULT_RUN_TIMEOUT) == config.DEFAULT_RUN_TIMEOUT
+    assert (
+        config.seconds_setting(config.ENV_RUN_TIMEOUT, config.DEFAULT_RUN_TIMEOUT)
+        == config.DEFAULT_RUN_TIMEOUT
+    )
     monkeypatch.setenv(config.ENV_RUN_TIMEOUT, "0")
     assert config.seconds_setting(config.ENV_RUN_TIMEOUT, 5) is None
     for bad in ("soon", "-3", "inf", "1e10"):
@@ -135,9 +185,8 @@ def test_deadline_interrupts_python_code_and_restores_the_previous_timer():
     previous = signal.signal(signal.SIGALRM, outer)
     signal.setitimer(signal.ITIMER_REAL, 30)
     try:
-        with pytest.raises(DeadlineExpired):
-            with deadline(0.2):
-                time.sleep(10)
+        with pytest.raises(DeadlineExpired), deadline(0.2):
+            time.sleep(10)
         with deadline(5):
             pass
         left, _ = signal.getitimer(signal.ITIMER_REAL)
@@ -154,26 +203,28 @@ def test_deadline_cannot_be_swallowed_by_plugin_code():
 
     handler = signal.getsignal(signal.SIGALRM)
     start = time.monotonic()
-    with pytest.raises(DeadlineExpired):
-        with deadline(0.2):
-            while time.monotonic() - start < 20:
-                try:
-                    time.sleep(0.05)
-                except Exception:
-                    pass
+    with pytest.raises(DeadlineExpired), deadline(0.2):
+        while time.monotonic() - start < 20:
+            try:
+                time.sleep(0.05)
+            except Exception:
+                pass
     assert signal.getsignal(signal.SIGALRM) is handler, "the handler in place before is back"
-    with pytest.raises(DeadlineExpired, match="ran past"):  # catching even BaseException does not help
-        with deadline(0.2):
-            while time.monotonic() - start < 1.0:
-                try:
-                    time.sleep(0.05)
-                except BaseException:
-                    pass
+    # catching even BaseException does not help
+    with pytest.raises(DeadlineExpired, match="ran past"), deadline(0.2):
+        while time.monotonic() - start < 1.0:
+            try:
+                time.sleep(0.05)
+            except BaseException:
+                pass
 
 
 def test_a_result_that_does_not_load_here_is_an_error():
     got, _ = outcomes([[Task("odd", t.result_that_does_not_load), Task("after", t.add, (2, 2))]])
-    assert got["odd"].status == ERROR and "could not be loaded by the supervising process" in got["odd"].message
+    assert (
+        got["odd"].status == ERROR
+        and "could not be loaded by the supervising process" in got["odd"].message
+    )
     assert got["after"].value == 4
 
 
@@ -202,10 +253,19 @@ def wait_until_gone(pid: int, seconds: float = 10.0) -> bool:
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from /proc")
 def test_a_worker_that_dies_behind_a_helper_process_is_seen_and_its_helpers_are_stopped(tmp_path):
     pid_file = tmp_path / "helper.pid"
-    got, _ = outcomes([[Task("dies", t.fork_helper_then_die, (str(pid_file),), timeout=60.0), Task("after", t.add, (1, 1))]])
+    got, _ = outcomes(
+        [
+            [
+                Task("dies", t.fork_helper_then_die, (str(pid_file),), timeout=60.0),
+                Task("after", t.add, (1, 1)),
+            ]
+        ]
+    )
     assert got["dies"].status == DIED and "exited with code 4" in got["dies"].message, got["dies"]
     assert got["after"].value == 2
-    assert wait_until_gone(int(pid_file.read_text())), "the helper process of a dead worker must be stopped with it"
+    assert wait_until_gone(int(pid_file.read_text())), (
+        "the helper process of a dead worker must be stopped with it"
+    )
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from /proc")

@@ -1,4 +1,5 @@
 """Task functions for the supervised-worker tests (importable by name in worker processes)."""
+
 import os
 import time
 

@@ -1,4 +1,5 @@
 """Deformation gradients and Sumner-Popovic deformation transfer (Schur-reduced solve)."""
+
 import numpy as np
 import pytest
 from naive.coating import deformation_transfer as naive_transfer
@@ -8,12 +9,12 @@ from faceretarget.errors import DegenerateGeometryError, TopologyMismatchError
 from faceretarget.geometry.deformation_gradients import (
     DeformationTransfer,
     deformation_gradients,
-    gradient_columns,
-    reference_inverse,
     deformation_transfer,
     feature_line_gradients,
     fourth_vertex,
+    gradient_columns,
     gradient_operator,
+    reference_inverse,
     triangle_frames,
 )
 
@@ -36,7 +37,9 @@ def test_fourth_vertex_and_frames():
     v4 = fourth_vertex(v, t)
     e1, e2 = v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]
     n = np.cross(e1, e2)
-    np.testing.assert_allclose(np.linalg.norm(v4 - v[t[:, 0]], axis=1), np.sqrt(np.linalg.norm(n, axis=1)))
+    np.testing.assert_allclose(
+        np.linalg.norm(v4 - v[t[:, 0]], axis=1), np.sqrt(np.linalg.norm(n, axis=1))
+    )
     np.testing.assert_allclose(triangle_frames(v, t)[:, :, 2], v4 - v[t[:, 0]])
 
 
@@ -52,7 +55,9 @@ def test_numba_gradient_columns_match_numpy():
     frames = v + 0.05 * np.random.default_rng(2).normal(size=(3,) + v.shape)
     cols = gradient_columns(reference_inverse(v, t), frames, t)
     want = deformation_gradients(v, frames, t)  # (F, T, 3, 3) [f, j, d, c]
-    np.testing.assert_allclose(cols.reshape(len(t), 3, 3, 3), np.transpose(want, (1, 3, 0, 2)), atol=1e-12)
+    np.testing.assert_allclose(
+        cols.reshape(len(t), 3, 3, 3), np.transpose(want, (1, 3, 0, 2)), atol=1e-12
+    )
     bad = frames.copy()
     a, b, c = t[7]
     bad[2, c] = 0.5 * (bad[2, a] + bad[2, b])
@@ -90,7 +95,9 @@ def test_matches_full_system_with_fourth_vertex_unknowns():
     target = _target(v)
     rng = np.random.default_rng(1)
     deformed = v + 0.08 * rng.normal(size=v.shape)
-    got = DeformationTransfer(target, t).transfer(v, deformed, mean_displacement=np.zeros((1, 1, 3)))
+    got = DeformationTransfer(target, t).transfer(
+        v, deformed, mean_displacement=np.zeros((1, 1, 3))
+    )
     want = naive_transfer(v, deformed, target, t)
     # same solution up to translation (the naive one pins vertex 0 at the origin)
     np.testing.assert_allclose(got - got.mean(0), want - want.mean(0), atol=1e-9)
@@ -123,7 +130,9 @@ def test_feature_lines_identity_and_effect():
     deformed[chain, 0] = v[chain, 0].mean() + 1.5 * (v[chain, 0] - v[chain, 0].mean())
     with_lines = dt.transfer(v, deformed, source_feature_lines=lines)
     without = DeformationTransfer(target, t).transfer(v, deformed)
-    ratio = np.linalg.norm(deformed[chain[-1]] - deformed[chain[0]]) / np.linalg.norm(v[chain[-1]] - v[chain[0]])
+    ratio = np.linalg.norm(deformed[chain[-1]] - deformed[chain[0]]) / np.linalg.norm(
+        v[chain[-1]] - v[chain[0]]
+    )
     want = ratio * np.linalg.norm(target[chain[-1]] - target[chain[0]])
 
     def length(x):
@@ -152,7 +161,9 @@ def test_zero_area_triangles_named():
     a, b, c = t[4]
     bad = v.copy()
     bad[c] = 0.5 * (bad[a] + bad[b])
-    with pytest.raises(DegenerateGeometryError, match=r"frame of a zero-area triangle is undefined") as err:
+    with pytest.raises(
+        DegenerateGeometryError, match=r"frame of a zero-area triangle is undefined"
+    ) as err:
         deformation_gradients(v, bad, t)
     assert "4" in str(err.value)
     with pytest.raises(DegenerateGeometryError):
@@ -174,6 +185,6 @@ def test_components_get_their_own_gauge():
     dt = DeformationTransfer(verts, tris)
     assert dt.n_components == 2
     moved = verts.copy()
-    moved[len(v):] += [0.0, 1.0, 0.0]
+    moved[len(v) :] += [0.0, 1.0, 0.0]
     out = dt.transfer(verts, moved)
     np.testing.assert_allclose(out, moved, atol=1e-10)

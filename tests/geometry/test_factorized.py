@@ -1,4 +1,5 @@
 """SPDFactor: SuperLU factorization with numba multi-column triangular solves."""
+
 import pickle
 
 import numpy as np
@@ -22,7 +23,9 @@ def test_multi_column_solve_matches_dense():
     fac = SPDFactor(m)
     rhs = np.random.default_rng(0).normal(size=(m.shape[0], 37))
     np.testing.assert_allclose(fac.solve(rhs), np.linalg.solve(m.toarray(), rhs), atol=1e-10)
-    np.testing.assert_allclose(fac.solve(rhs[:, 0]), np.linalg.solve(m.toarray(), rhs[:, 0]), atol=1e-10)
+    np.testing.assert_allclose(
+        fac.solve(rhs[:, 0]), np.linalg.solve(m.toarray(), rhs[:, 0]), atol=1e-10
+    )
 
 
 def test_columns_do_not_depend_on_the_block():

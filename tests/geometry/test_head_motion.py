@@ -1,24 +1,37 @@
 """Head motion from markers (geometry.head_motion) against a brute-force per-frame reference."""
+
 import numpy as np
 import pytest
+from naive import head_motion as naive
 from scipy.spatial.transform import Rotation
 
 from faceretarget import config
 from faceretarget.errors import DegenerateGeometryError, InputError, NonFiniteError, ShapeError
 from faceretarget.geometry import procrustes
 from faceretarget.geometry.head_motion import estimate_head_motion, rigidity_weights
-from naive import head_motion as naive
 
 
 def angles(motion, truth=None):
     """Largest rotation angle (degrees) of ``motion`` (relative to ``truth``)."""
-    rot = motion[:, :3, :3] if truth is None else np.swapaxes(truth[:, :3, :3], 1, 2) @ motion[:, :3, :3]
+    rot = (
+        motion[:, :3, :3]
+        if truth is None
+        else np.swapaxes(truth[:, :3, :3], 1, 2) @ motion[:, :3, :3]
+    )
     cos = (np.trace(rot, axis1=1, axis2=2) - 1) / 2
-    sin = 0.5 * np.linalg.norm(np.stack([rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0], rot[:, 1, 0] - rot[:, 0, 1]], 1), axis=1)
+    sin = 0.5 * np.linalg.norm(
+        np.stack(
+            [rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0], rot[:, 1, 0] - rot[:, 0, 1]],
+            1,
+        ),
+        axis=1,
+    )
     return np.degrees(np.arctan2(sin, cos))  # accurate near 0 (arccos is not)
 
 
-def face(seed=0, n_markers=40, n_shapes=8, n_frames=30, degrees=0.0, mismatch=0.0, noise=0.0, held=None):
+def face(
+    seed=0, n_markers=40, n_shapes=8, n_frames=30, degrees=0.0, mismatch=0.0, noise=0.0, held=None
+):
     """A face-sized (cm) marker problem: reference on a curved cap, smooth local expression
     shapes that leave the upper-middle markers (a "nose bridge") nearly still, smooth
     weights, optional head motion (``degrees`` at most), a mismatched basis (smooth gains
@@ -28,29 +41,51 @@ def face(seed=0, n_markers=40, n_shapes=8, n_frames=30, degrees=0.0, mismatch=0.
     rng = np.random.default_rng(seed)
     u = rng.uniform(-1, 1, (n_markers, 2)) * [7.0, 9.0]
     ref = np.column_stack([u, 6.0 - 0.05 * (u[:, 0] ** 2 + 0.6 * u[:, 1] ** 2)])
-    ref[:4] = [[0, 2, 6.5], [0, 0.5, 7], [-2, 1.5, 5.8], [2, 1.5, 5.8]]  # nose bridge, eye corners: still
+    ref[:4] = [
+        [0, 2, 6.5],
+        [0, 0.5, 7],
+        [-2, 1.5, 5.8],
+        [2, 1.5, 5.8],
+    ]  # nose bridge, eye corners: still
     # expressions around the mouth and jaw (y < -3) and the brows (y = 7.5)
-    centres = np.column_stack([rng.uniform(-5, 5, n_shapes), np.where(np.arange(n_shapes) % 4 == 3, 7.5, rng.uniform(-8, -4, n_shapes))])
+    centres = np.column_stack(
+        [
+            rng.uniform(-5, 5, n_shapes),
+            np.where(np.arange(n_shapes) % 4 == 3, 7.5, rng.uniform(-8, -4, n_shapes)),
+        ]
+    )
     deltas = np.zeros((n_shapes, n_markers, 3))
     for j in range(n_shapes):
         bump = np.exp(-np.sum((ref[:, :2] - centres[j]) ** 2, axis=1) / (2 * 2.0**2))
         deltas[j] = bump[:, None] * rng.normal(0, 0.8, 3)
     t = np.arange(n_frames)[:, None]
     if held is None:
-        weights = 0.5 + 0.5 * np.sin(2 * np.pi * t / rng.uniform(8, 30, n_shapes) + rng.uniform(0, 6, n_shapes))
+        weights = 0.5 + 0.5 * np.sin(
+            2 * np.pi * t / rng.uniform(8, 30, n_shapes) + rng.uniform(0, 6, n_shapes)
+        )
     else:
         weights = np.zeros((n_frames, n_shapes))
         weights[:, held] = np.clip(t[:, 0] / 5.0, 0, 1)
     local = ref + np.einsum("fm,mnk->fnk", weights, deltas)
     basis = deltas
     if mismatch:  # the fitting rig's shapes: spatial gains and rotated directions
-        gain = 1 + mismatch * np.sin(ref[:, :1] * rng.uniform(0.2, 0.5, (1, n_shapes)) + rng.uniform(0, 6, n_shapes)).T
-        turn = Rotation.from_rotvec(rng.normal(0, 1, (n_shapes, 3)) * np.radians(40 * mismatch)).as_matrix()
+        gain = (
+            1
+            + mismatch
+            * np.sin(
+                ref[:, :1] * rng.uniform(0.2, 0.5, (1, n_shapes)) + rng.uniform(0, 6, n_shapes)
+            ).T
+        )
+        turn = Rotation.from_rotvec(
+            rng.normal(0, 1, (n_shapes, 3)) * np.radians(40 * mismatch)
+        ).as_matrix()
         basis = gain[..., None] * np.einsum("mij,mnj->mni", turn, deltas)
     truth = np.tile(np.eye(4), (n_frames, 1, 1))
     if degrees:
         curve = np.sin(2 * np.pi * t / np.array([23.0, 31.0, 17.0]) + rng.uniform(0, 6, 3))
-        truth[:, :3, :3] = Rotation.from_rotvec(np.radians(degrees) / np.sqrt(3) * curve).as_matrix()
+        truth[:, :3, :3] = Rotation.from_rotvec(
+            np.radians(degrees) / np.sqrt(3) * curve
+        ).as_matrix()
         truth[:, :3, 3] = 0.5 * np.sin(t / np.array([5.0, 7.0, 9.0]))
     markers = np.einsum("fij,fnj->fni", truth[:, :3, :3], local) + truth[:, None, :3, 3]
     markers = markers + rng.normal(0, noise, markers.shape)
@@ -59,8 +94,13 @@ def face(seed=0, n_markers=40, n_shapes=8, n_frames=30, degrees=0.0, mismatch=0.
 
 def naive_estimate(ref, markers, basis, **kw):
     return naive.estimate(
-        ref, markers, basis, eps=config.HEAD_MOTION_RIGIDITY, ridge_eps=config.RIDGE_EPS,
-        floor_rel=config.HEAD_MOTION_NOISE_FLOOR, **{"window": config.HEAD_MOTION_WINDOW, **kw},
+        ref,
+        markers,
+        basis,
+        eps=config.HEAD_MOTION_RIGIDITY,
+        ridge_eps=config.RIDGE_EPS,
+        floor_rel=config.HEAD_MOTION_NOISE_FLOOR,
+        **{"window": config.HEAD_MOTION_WINDOW, **kw},
     )
 
 
@@ -95,7 +135,11 @@ def test_rigidity_weights_cut_the_leak():
     tests/spacetime/test_head_motion.py for the rig cases)."""
     ref, x, basis, _ = face(mismatch=0.3, held=0)
     weighted = angles(estimate_head_motion(ref, x, basis=basis, significance=None)).max()
-    uniform = angles(estimate_head_motion(ref, x, basis=basis, significance=None, marker_weights=1 / rigidity_weights(ref, basis))).max()
+    uniform = angles(
+        estimate_head_motion(
+            ref, x, basis=basis, significance=None, marker_weights=1 / rigidity_weights(ref, basis)
+        )
+    ).max()
     assert weighted < 0.8 * uniform
 
 
@@ -103,7 +147,9 @@ def test_mismatched_basis_still_recovers_real_motion():
     ref, x, basis, truth = face(degrees=8.0, mismatch=0.3)
     motion, info = estimate_head_motion(ref, x, basis=basis, return_info=True)
     assert info.detected
-    leak = angles(estimate_head_motion(*face(mismatch=0.3)[:2], basis=basis, significance=None)).max()
+    leak = angles(
+        estimate_head_motion(*face(mismatch=0.3)[:2], basis=basis, significance=None)
+    ).max()
     assert angles(motion, truth).max() < 2 * leak + 1e-3
 
 
@@ -111,7 +157,9 @@ def test_plain_procrustes_invents_what_the_estimator_does_not():
     ref, x, basis, _ = face(mismatch=0.3)
     rot, trans, _ = procrustes.fit_rigid(ref, x)
     assert angles(procrustes.to_matrix(rot, trans)).max() > 1.0
-    assert np.array_equal(estimate_head_motion(ref, x, basis=basis)[:, :3, :3], np.broadcast_to(np.eye(3), rot.shape))
+    assert np.array_equal(
+        estimate_head_motion(ref, x, basis=basis)[:, :3, :3], np.broadcast_to(np.eye(3), rot.shape)
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -140,14 +188,20 @@ def test_gate_statistic_matches_brute_force_near_the_threshold(degrees):
     """The gate's numerator (Schur form) agrees with the exact per-frame energies where the
     decision is close, and the largest window is found."""
     ref, x, basis, truth = face(n_frames=40, degrees=degrees, mismatch=0.3, noise=0.01)
-    _, info = estimate_head_motion(ref, x, basis=basis, return_info=True, significance=None, window=10)
+    _, info = estimate_head_motion(
+        ref, x, basis=basis, return_info=True, significance=None, window=10
+    )
     _, evidence = naive_estimate(ref, x, basis, window=10)
     assert info.evidence == pytest.approx(evidence, rel=0.15)
 
 
 def test_rigidity_weights_match_brute_force():
     ref, _, basis, _ = face()
-    np.testing.assert_allclose(rigidity_weights(ref, basis), naive.rigidity_weights(ref, basis, config.HEAD_MOTION_RIGIDITY), rtol=1e-12)
+    np.testing.assert_allclose(
+        rigidity_weights(ref, basis),
+        naive.rigidity_weights(ref, basis, config.HEAD_MOTION_RIGIDITY),
+        rtol=1e-12,
+    )
     w = rigidity_weights(ref, basis)
     assert w[:4].min() > 1.5 * np.median(w)  # the still markers carry the fit
 
@@ -186,7 +240,9 @@ def test_frames_with_few_markers():
 @pytest.mark.parametrize("degrees", [90.0, 175.0])
 def test_large_rotations_converge(degrees):
     ref, x, basis, _ = face(n_frames=6)
-    rot = Rotation.from_rotvec(np.radians(degrees) * np.array([0.3, 0.9, -0.3]) / np.linalg.norm([0.3, 0.9, -0.3])).as_matrix()
+    rot = Rotation.from_rotvec(
+        np.radians(degrees) * np.array([0.3, 0.9, -0.3]) / np.linalg.norm([0.3, 0.9, -0.3])
+    ).as_matrix()
     truth = np.tile(np.eye(4), (6, 1, 1))
     truth[:, :3, :3] = rot
     truth[:, :3, 3] = [3.0, -1.0, 2.0]
@@ -199,10 +255,14 @@ def test_cut_between_far_apart_head_poses_converges_in_every_frame():
     still land on the true motion (warm start falls back when it does not converge)."""
     ref, x, basis, _ = face(n_frames=8)
     truth = np.tile(np.eye(4), (8, 1, 1))
-    truth[4:, :3, :3] = Rotation.from_rotvec(np.radians(170.0) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    truth[4:, :3, :3] = Rotation.from_rotvec(
+        np.radians(170.0) * np.array([0.0, 1.0, 0.0])
+    ).as_matrix()
     truth[4:, :3, 3] = [4.0, 1.0, -2.0]
     moved = np.einsum("fij,fnj->fni", truth[:, :3, :3], x) + truth[:, None, :3, 3]
-    assert angles(estimate_head_motion(ref, moved, basis=basis, significance=None), truth).max() < 1e-6
+    assert (
+        angles(estimate_head_motion(ref, moved, basis=basis, significance=None), truth).max() < 1e-6
+    )
 
 
 def test_remove_matches_the_inverse_matrix_and_keeps_nan():
@@ -226,7 +286,9 @@ def test_remove_matches_the_inverse_matrix_and_keeps_nan():
 def test_same_answer_in_any_length_unit():
     ref, x, basis, truth = face(degrees=0.5, mismatch=0.3)
     a, ia = estimate_head_motion(ref, x, basis=basis, return_info=True, significance=None)
-    b, ib = estimate_head_motion(ref / 100, x / 100, basis=basis / 100, return_info=True, significance=None)
+    b, ib = estimate_head_motion(
+        ref / 100, x / 100, basis=basis / 100, return_info=True, significance=None
+    )
     np.testing.assert_allclose(b[:, :3, :3], a[:, :3, :3], atol=1e-10)
     np.testing.assert_allclose(b[:, :3, 3], a[:, :3, 3] / 100, atol=1e-12)
     assert ib.evidence == pytest.approx(ia.evidence, rel=1e-6)

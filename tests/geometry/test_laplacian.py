@@ -1,4 +1,5 @@
 """Cotangent and uniform Laplacians against dense per-triangle loops."""
+
 import numpy as np
 import pytest
 from naive.coating import cotangent_laplacian as naive_cot
@@ -74,7 +75,11 @@ def test_zero_area_triangle_is_named():
     v, t = grid_mesh(5, seed=7)
     a, b, c = t[3]
     v[c] = 0.5 * (v[a] + v[b])  # collinear corners: zero area
-    bad = [j for j, tri in enumerate(t) if np.linalg.norm(np.cross(v[tri[1]] - v[tri[0]], v[tri[2]] - v[tri[0]])) < 1e-12]
+    bad = [
+        j
+        for j, tri in enumerate(t)
+        if np.linalg.norm(np.cross(v[tri[1]] - v[tri[0]], v[tri[2]] - v[tri[0]])) < 1e-12
+    ]
     with pytest.raises(DegenerateGeometryError, match=str(bad[0])):
         cotangent_laplacian(v, t)
 

@@ -1,4 +1,5 @@
 """Normals stay unit length whatever the scale of the triangle (found by the random fuzz mode)."""
+
 import numpy as np
 import pytest
 
@@ -9,7 +10,9 @@ from faceretarget.geometry.mesh_ops import face_normals, unit_rows, vertex_norma
 def test_face_and_vertex_normals_are_unit_at_any_scale(scale):
     """1e-160: edge cross products are subnormal (about 1e-320), where a plain norm loses
     most of its digits; the normals must still be unit length."""
-    vertices = scale * np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.3, 0.7, 0.0], [0.2, 0.1, 0.5]])
+    vertices = scale * np.array(
+        [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.3, 0.7, 0.0], [0.2, 0.1, 0.5]]
+    )
     triangles = np.array([[0, 1, 2], [0, 3, 1]])
     for normals in (face_normals(vertices, triangles), vertex_normals(vertices, triangles)):
         norms = np.linalg.norm(normals, axis=1)

@@ -1,10 +1,17 @@
 """Active-set NNLS / bounded least squares against scipy (the naive reference)."""
+
 import numpy as np
 import pytest
 import scipy.optimize
 
 from faceretarget.errors import InputError, NonFiniteError, ShapeError
-from faceretarget.geometry.nnls import bounded_lsq, bounded_lsq_frames, bounded_lsq_gram, nnls, nnls_gram
+from faceretarget.geometry.nnls import (
+    bounded_lsq,
+    bounded_lsq_frames,
+    bounded_lsq_gram,
+    nnls,
+    nnls_gram,
+)
 
 
 def _cost(A, x, b):
@@ -36,7 +43,9 @@ def test_nnls_many_columns_and_gram_batch_agree():
         np.testing.assert_allclose(X[:, k], ref, atol=1e-8)
     Xg = nnls_gram(A.T @ A, (A.T @ B).T)
     np.testing.assert_allclose(Xg, X.T, atol=1e-12)
-    np.testing.assert_allclose(nnls_gram(A.T @ A, (A.T @ B).T, x0=Xg + 0.1), Xg, atol=1e-9)  # warm start, same answer
+    np.testing.assert_allclose(
+        nnls_gram(A.T @ A, (A.T @ B).T, x0=Xg + 0.1), Xg, atol=1e-9
+    )  # warm start, same answer
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -100,9 +109,14 @@ def test_bounded_lsq_frames_matches_each_frame_solved_alone(seed):
     assert dropped.any() and got.shape == Y.shape[:1] + A.shape[1:]
     for t in range(len(Y)):
         rows = A[seen[t]]
-        ref = scipy.optimize.lsq_linear(rows, Y[t, seen[t]], bounds=(lo, hi), method="bvls", tol=1e-14).x
+        ref = scipy.optimize.lsq_linear(
+            rows, Y[t, seen[t]], bounds=(lo, hi), method="bvls", tol=1e-14
+        ).x
         assert np.all(got[t] >= lo) and np.all(got[t] <= hi)
-        assert _cost(rows, got[t], Y[t, seen[t]]) <= _cost(rows, ref, Y[t, seen[t]]) * (1 + 1e-9) + 1e-12
+        assert (
+            _cost(rows, got[t], Y[t, seen[t]])
+            <= _cost(rows, ref, Y[t, seen[t]]) * (1 + 1e-9) + 1e-12
+        )
         np.testing.assert_allclose(got[t], ref, atol=1e-7)
     # no missing blocks: the same as one batch of independent problems
     full = bounded_lsq_frames(A.T @ A, Y @ A, lo, hi)
@@ -123,9 +137,20 @@ def test_bounded_lsq_frames_ridges_a_frame_that_leaves_a_variable_unseen():
     seen = np.repeat(~dropped, 3, axis=1)
     Atb = np.where(seen, Y, 0.0) @ A
     ridge = 1e-6
-    for lower, unseen in ((-1.0, 0.0), ([-1.0, -1.0, -1.0, 0.2], 0.2)):  # zero, or the bound nearest zero
-        got = bounded_lsq_frames(A.T @ A, Atb, lower, 1.0, dropped=dropped, block_grams=grams, ridge=ridge,
-                                 x0=np.full(n, 0.9))
+    for lower, unseen in (
+        (-1.0, 0.0),
+        ([-1.0, -1.0, -1.0, 0.2], 0.2),
+    ):  # zero, or the bound nearest zero
+        got = bounded_lsq_frames(
+            A.T @ A,
+            Atb,
+            lower,
+            1.0,
+            dropped=dropped,
+            block_grams=grams,
+            ridge=ridge,
+            x0=np.full(n, 0.9),
+        )
         np.testing.assert_allclose(got[1:, 3], unseen, atol=1e-9)
         for t in (1, 2):
             H = A[seen[t]].T @ A[seen[t]] + ridge * np.eye(n)

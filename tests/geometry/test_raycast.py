@@ -1,6 +1,9 @@
 """Ray and closest-point queries (faceretarget.geometry.raycast) against brute force."""
+
 import numpy as np
 import pytest
+from naive.raycast import cast_rays as naive_cast
+from naive.raycast import closest_points as naive_closest
 
 from faceretarget.errors import FaceRetargetError, NonFiniteError, ShapeError
 from faceretarget.geometry.raycast import (
@@ -12,8 +15,6 @@ from faceretarget.geometry.raycast import (
     triangle_neighbors,
     walk_rays,
 )
-from naive.raycast import cast_rays as naive_cast
-from naive.raycast import closest_points as naive_closest
 
 BACKENDS = ["bvh", "brute"] + (["embree"] if embree_available() else [])
 
@@ -22,7 +23,10 @@ def _bumpy_sphere(subdiv=3):
     import trimesh
 
     m = trimesh.creation.icosphere(subdiv)
-    v = m.vertices * (1 + 0.1 * np.sin(4 * m.vertices[:, 0]) * np.cos(3 * m.vertices[:, 1]))[:, None]
+    v = (
+        m.vertices
+        * (1 + 0.1 * np.sin(4 * m.vertices[:, 0]) * np.cos(3 * m.vertices[:, 1]))[:, None]
+    )
     return v, np.asarray(m.faces)
 
 
@@ -55,7 +59,9 @@ def test_lines_agree_with_brute_force(backend, both):
         assert hits.hit.sum() > 50  # the test casts lines that do hit
         ok = tri >= 0
         np.testing.assert_allclose(hits.distance[ok], t[ok], atol=1e-9)
-        np.testing.assert_allclose(hits.points[ok], (bary[ok, :, None] * v[f[tri[ok]]]).sum(1), atol=1e-9)
+        np.testing.assert_allclose(
+            hits.points[ok], (bary[ok, :, None] * v[f[tri[ok]]]).sum(1), atol=1e-9
+        )
         if both:
             assert (hits.distance[ok] < 0).any() and (hits.distance[ok] > 0).any()
         else:

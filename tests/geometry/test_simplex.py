@@ -1,10 +1,11 @@
 """Exact simplex projection and simplex-constrained QPs against brute-force references."""
+
 import numpy as np
 import pytest
+from naive.simplex import project_simplex_bisection, simplex_qp_slsqp
 
 from faceretarget.errors import InputError, NonFiniteError, ShapeError
 from faceretarget.geometry.simplex import group_index, project_simplex, simplex_qp
-from naive.simplex import project_simplex_bisection, simplex_qp_slsqp
 
 
 @pytest.mark.parametrize("n", [1, 2, 5, 40])
@@ -72,7 +73,7 @@ def test_simplex_qp_singular_gram_and_many_right_hand_sides():
     xs = simplex_qp(G, cs)
     for c, x in zip(cs, xs):
         ref = simplex_qp_slsqp(G, c, np.zeros(5, int))
-        f = lambda y: 0.5 * y @ G @ y - c @ y  # noqa: E731
+        f = lambda y, c=c: 0.5 * y @ G @ y - c @ y  # noqa: E731
         assert f(x) <= f(ref) + 1e-9
     assert xs.shape == (7, 5) and (xs >= 0).all()
     np.testing.assert_allclose(xs.sum(axis=1), 1.0, atol=1e-14)

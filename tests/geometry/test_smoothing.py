@@ -1,4 +1,5 @@
 """Taubin smoothing: numba kernel against a per-vertex loop; batching and precision."""
+
 import numpy as np
 import pytest
 from naive.coating import grid_mesh
@@ -10,7 +11,9 @@ from faceretarget.geometry.smoothing import TaubinSmoother, taubin_smooth
 
 def test_matches_naive_loop():
     v, t = grid_mesh(7, seed=0)
-    np.testing.assert_allclose(taubin_smooth(v, t, iterations=6), naive_taubin(v, t, iterations=6), atol=1e-13)
+    np.testing.assert_allclose(
+        taubin_smooth(v, t, iterations=6), naive_taubin(v, t, iterations=6), atol=1e-13
+    )
 
 
 def test_batch_of_frames_equals_one_by_one_exactly():
@@ -33,12 +36,16 @@ def test_float32_close_to_float64():
 
 def test_removes_high_frequencies_and_commutes_with_translation():
     v, t = grid_mesh(21, seed=3, jitter=0.0)
-    noise = 0.01 * np.where(np.arange(len(v)) % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.0, 0.0, 1.0])
+    noise = (
+        0.01 * np.where(np.arange(len(v)) % 2 == 0, 1.0, -1.0)[:, None] * np.array([0.0, 0.0, 1.0])
+    )
     # the filter is linear: what is left of the checkerboard noise is smooth(v + noise) - smooth(v)
     left = taubin_smooth(v + noise, t) - taubin_smooth(v, t)
     assert np.linalg.norm(left) < 0.05 * np.linalg.norm(noise)
     translated = taubin_smooth(v + np.array([1.0, 2.0, 3.0]), t)
-    np.testing.assert_allclose(translated - taubin_smooth(v, t), np.broadcast_to([1.0, 2.0, 3.0], v.shape), atol=1e-12)
+    np.testing.assert_allclose(
+        translated - taubin_smooth(v, t), np.broadcast_to([1.0, 2.0, 3.0], v.shape), atol=1e-12
+    )
 
 
 def test_shape_error():

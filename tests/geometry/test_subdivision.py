@@ -1,11 +1,12 @@
 """Loop subdivision as sparse operators (faceretarget.geometry.subdivision)."""
+
 import numpy as np
 import pytest
+from naive.normalmesh import loop_subdivide_naive
 
 from faceretarget.errors import DegenerateGeometryError, ShapeError
 from faceretarget.geometry.mesh_ops import boundary_edges
 from faceretarget.geometry.subdivision import apply, loop_hierarchy, loop_step, subdivide
-from naive.normalmesh import loop_subdivide_naive
 
 
 def _grid(n=7, seed=0):
@@ -92,8 +93,14 @@ def test_keep_leaves_even_vertices_and_children_stay_inside_parents():
     centroid = x[fine].mean(axis=1)[:, :2]
     a, b, c = (v[f[anc, k], :2] for k in range(3))
     den = (b[:, 1] - c[:, 1]) * (a[:, 0] - c[:, 0]) + (c[:, 0] - b[:, 0]) * (a[:, 1] - c[:, 1])
-    w0 = ((b[:, 1] - c[:, 1]) * (centroid[:, 0] - c[:, 0]) + (c[:, 0] - b[:, 0]) * (centroid[:, 1] - c[:, 1])) / den
-    w1 = ((c[:, 1] - a[:, 1]) * (centroid[:, 0] - c[:, 0]) + (a[:, 0] - c[:, 0]) * (centroid[:, 1] - c[:, 1])) / den
+    w0 = (
+        (b[:, 1] - c[:, 1]) * (centroid[:, 0] - c[:, 0])
+        + (c[:, 0] - b[:, 0]) * (centroid[:, 1] - c[:, 1])
+    ) / den
+    w1 = (
+        (c[:, 1] - a[:, 1]) * (centroid[:, 0] - c[:, 0])
+        + (a[:, 0] - c[:, 0]) * (centroid[:, 1] - c[:, 1])
+    ) / den
     assert (w0 > 0).all() and (w1 > 0).all() and (w0 + w1 < 1).all()
 
 

@@ -1,13 +1,17 @@
 """Errors a person can act on: a file of another kind says what it is, a typo gets a
 "did you mean", a missing need names the Python argument that supplies it."""
-import zipfile
 
 import numpy as np
 import pytest
 
 import faceretarget as fr
 from faceretarget.cases import get_case
-from faceretarget.errors import CapabilityError, FileFormatError, FormatMismatchError, UnknownNameError
+from faceretarget.errors import (
+    CapabilityError,
+    FileFormatError,
+    FormatMismatchError,
+    UnknownNameError,
+)
 from faceretarget.evaluation.harness import parse_case_spec
 from faceretarget.io._common import format_mismatch, sniff
 from faceretarget.model import BlendshapeRig, Mesh, TargetRig
@@ -21,14 +25,22 @@ def _npz(path):
     return path.read_bytes()
 
 
-@pytest.mark.parametrize("name, content, says", [
-    ("take.c3d", PNG, "this looks like a PNG image, not a C3D file"),
-    ("face.glb", HTML, "this looks like an HTML web page"),
-    ("face.obj", None, "this looks like a NumPy .npz archive, not a Wavefront OBJ file; if that is what it is, give it the .npz extension"),
-    ("take.c3d", b"frame,time\n" * 80, "this looks like a CSV table, not a C3D file"),
-    ("take.pc2", b'{"not": "a cache"}', "this looks like JSON text, not a PC2 point cache"),
-    ("mesh.ply", b"PK\x03\x04" + bytes(100), "this looks like a ZIP archive, not a PLY file"),
-], ids=["png-as-c3d", "html-as-glb", "npz-as-obj", "csv-as-c3d", "json-as-pc2", "zip-as-ply"])
+@pytest.mark.parametrize(
+    "name, content, says",
+    [
+        ("take.c3d", PNG, "this looks like a PNG image, not a C3D file"),
+        ("face.glb", HTML, "this looks like an HTML web page"),
+        (
+            "face.obj",
+            None,
+            "this looks like a NumPy .npz archive, not a Wavefront OBJ file; if that is what it is, give it the .npz extension",
+        ),
+        ("take.c3d", b"frame,time\n" * 80, "this looks like a CSV table, not a C3D file"),
+        ("take.pc2", b'{"not": "a cache"}', "this looks like JSON text, not a PC2 point cache"),
+        ("mesh.ply", b"PK\x03\x04" + bytes(100), "this looks like a ZIP archive, not a PLY file"),
+    ],
+    ids=["png-as-c3d", "html-as-glb", "npz-as-obj", "csv-as-c3d", "json-as-pc2", "zip-as-ply"],
+)
 def test_a_file_of_another_kind_says_what_it_is(tmp_path, name, content, says):
     path = tmp_path / name
     if content is None:
@@ -43,7 +55,9 @@ def test_a_file_of_another_kind_says_what_it_is(tmp_path, name, content, says):
 def test_an_unreadable_extension_names_the_content(tmp_path):
     path = tmp_path / "photo.png"
     path.write_bytes(PNG)
-    with pytest.raises(FileFormatError, match=r"no reader for '\.png' files \(it looks like a PNG image\)"):
+    with pytest.raises(
+        FileFormatError, match=r"no reader for '\.png' files \(it looks like a PNG image\)"
+    ):
         fr.load(path)
     typo = tmp_path / "mesh.objj"
     typo.write_text("v 0 0 0\n")
@@ -54,7 +68,9 @@ def test_an_unreadable_extension_names_the_content(tmp_path):
 def test_files_that_fit_their_extension_are_not_mismatches(tmp_path):
     fr.save(Mesh([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]), tmp_path / "m.obj")
     np.savez(tmp_path / "a.npz", a=np.zeros(2))
-    (tmp_path / "broken.obj").write_text("v 0 0\nf 1 2 3\n")  # an OBJ with an error: its own message stands
+    (tmp_path / "broken.obj").write_text(
+        "v 0 0\nf 1 2 3\n"
+    )  # an OBJ with an error: its own message stands
     for name in ("m.obj", "a.npz", "broken.obj"):
         assert format_mismatch(tmp_path / name) is None, name
     assert sniff(tmp_path / "a.npz")[0] == "npz"
@@ -64,7 +80,9 @@ def test_files_that_fit_their_extension_are_not_mismatches(tmp_path):
 
 
 def test_did_you_mean_for_methods_parameters_cases_kinds_and_formats(tmp_path):
-    with pytest.raises(UnknownNameError, match=r"no retargeter named 'spacetme' \(did you mean 'spacetime'"):
+    with pytest.raises(
+        UnknownNameError, match=r"no retargeter named 'spacetme' \(did you mean 'spacetime'"
+    ):
         fr.get("spacetme")
     with pytest.raises(UnknownNameError, match=r"no parameter 'alpah' \(did you mean 'alpha'\?\)"):
         fr.get("spacetime", alpah=1.0)
@@ -84,7 +102,9 @@ def test_did_you_mean_for_methods_parameters_cases_kinds_and_formats(tmp_path):
 def test_did_you_mean_for_shape_names():
     neutral = Mesh([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
     rig = BlendshapeRig(neutral, np.zeros((3, 3, 3)), ["jawOpen", "eyeBlink_L", "eyeBlink_R"])
-    with pytest.raises(UnknownNameError, match=r"no blendshape named 'JawOpen' \(did you mean 'jawOpen'\?\)"):
+    with pytest.raises(
+        UnknownNameError, match=r"no blendshape named 'JawOpen' \(did you mean 'jawOpen'\?\)"
+    ):
         rig.index("JawOpen")
     with pytest.raises(UnknownNameError, match=r"did you mean 'eyeBlink_L'"):
         rig.index("eyeblink_l")
@@ -103,4 +123,7 @@ def test_missing_needs_name_the_python_argument():
         fr.get("coating").fit(case.source, bare)
     message = str(caught.value)
     assert "needs a TargetRig with feature lines" in message
-    assert "TargetRig(neutral, feature_lines=" in message and "load_target(path, feature_lines=JSON)" in message
+    assert (
+        "TargetRig(neutral, feature_lines=" in message
+        and "load_target(path, feature_lines=JSON)" in message
+    )

@@ -1,4 +1,5 @@
 """Atomic writes: inputs never overwritten, existing outputs need force, no partial files."""
+
 from __future__ import annotations
 
 import os
@@ -58,10 +59,9 @@ def test_missing_folder_and_folder_in_place_of_file(tmp_path, mesh):
 def test_an_error_while_writing_leaves_nothing(tmp_path):
     target = tmp_path / "x.bin"
     target.write_bytes(b"old")
-    with pytest.raises(RuntimeError):
-        with atomic_file(target, force=True) as fh:
-            fh.write(b"new partial")
-            raise RuntimeError("disk on fire")
+    with pytest.raises(RuntimeError), atomic_file(target, force=True) as fh:
+        fh.write(b"new partial")
+        raise RuntimeError("disk on fire")
     assert target.read_bytes() == b"old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.bin"]
 
@@ -123,7 +123,9 @@ def test_note_input_covers_files_of_a_folder(tmp_path, seq):
         fr.save(seq.frame(0), tmp_path / "take" / "frame_00000.obj", force=True)
 
 
-def test_folder_replacement_without_atomic_exchange_restores_after_a_crash(tmp_path, seq, monkeypatch):
+def test_folder_replacement_without_atomic_exchange_restores_after_a_crash(
+    tmp_path, seq, monkeypatch
+):
     """Where no atomic exchange exists the old folder is moved aside; if the writer dies
     before the new one is in place, the next write puts the old folder back first."""
     from faceretarget.io import _atomic
@@ -132,7 +134,10 @@ def test_folder_replacement_without_atomic_exchange_restores_after_a_crash(tmp_p
     fr.save(seq, out)
     before = sorted(p.name for p in out.iterdir())
     fr.save(seq, out, force=True)  # the atomic exchange path
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"] and sorted(p.name for p in out.iterdir()) == before
+    assert (
+        sorted(p.name for p in tmp_path.iterdir()) == ["frames"]
+        and sorted(p.name for p in out.iterdir()) == before
+    )
     monkeypatch.setattr(_atomic, "_exchange", lambda a, b: False)
     real_replace = os.replace
 
@@ -153,7 +158,9 @@ def test_folder_replacement_without_atomic_exchange_restores_after_a_crash(tmp_p
     assert sorted(p.name for p in out.iterdir()) == before
 
 
-@pytest.mark.parametrize("scheme", [".out.npz.{pid}.0123abcd.frtmp.npz", ".out.npz.frbatch-{pid}-89abcdef.npz"])
+@pytest.mark.parametrize(
+    "scheme", [".out.npz.{pid}.0123abcd.frtmp.npz", ".out.npz.frbatch-{pid}-89abcdef.npz"]
+)
 @pytest.mark.parametrize("pid", [10**25, 2**63, 0])
 def test_a_temporary_name_with_an_impossible_pid_is_a_leftover_not_a_crash(pid, scheme, tmp_path):
     """Found by the long fuzz mode (issue 15): a pid beyond C long in a temporary's name

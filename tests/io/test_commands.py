@@ -1,4 +1,5 @@
 """`faceretarget convert`: conversions, refusals, one-line errors."""
+
 from __future__ import annotations
 
 import argparse
@@ -23,7 +24,9 @@ def test_conversions(tmp_path, mesh, rig, seq, markers, weights, capsys):
     assert "wrote" in capsys.readouterr().out
     np.testing.assert_array_equal(fr.load(tmp_path / "m.obj").vertices, mesh.vertices)
     fr.save(seq, tmp_path / "take.pc2")
-    _run(tmp_path / "take.pc2", tmp_path / "take.glb", "--topology", tmp_path / "m.obj", "--fps", 24)
+    _run(
+        tmp_path / "take.pc2", tmp_path / "take.glb", "--topology", tmp_path / "m.obj", "--fps", 24
+    )
     anim = fr.load(tmp_path / "take.glb")
     assert anim.fps == 24 and anim.n_frames == seq.n_frames
     fr.save(rig, tmp_path / "rigdir")
@@ -50,14 +53,19 @@ def test_refusals(tmp_path, mesh):
     _run(tmp_path / "m.obj", tmp_path / "m.ply", "--force")
 
 
-@pytest.mark.parametrize("ext", ["obj", "ply", "off", "stl", "glb", "gltf", "c3d", "trc", "csv", "npz", "npy", "pc2", "mdd"])
+@pytest.mark.parametrize(
+    "ext",
+    ["obj", "ply", "off", "stl", "glb", "gltf", "c3d", "trc", "csv", "npz", "npy", "pc2", "mdd"],
+)
 def test_cli_garbage_is_a_typed_one_line_error_and_no_output(tmp_path, capsys, ext):
     """The `faceretarget convert` command on random bytes: a typed error (not an
     'internal error'), one line, nothing written."""
     from faceretarget.cli import main
 
     bad = tmp_path / f"in.{ext}"
-    bad.write_bytes(np.random.default_rng(len(ext)).integers(0, 256, 3000, dtype=np.uint8).tobytes())
+    bad.write_bytes(
+        np.random.default_rng(len(ext)).integers(0, 256, 3000, dtype=np.uint8).tobytes()
+    )
     out = tmp_path / "out.glb"
     code = main(["convert", str(bad), str(out)])
     err = capsys.readouterr().err.strip()

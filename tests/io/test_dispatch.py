@@ -1,4 +1,5 @@
 """load/save dispatch: extensions, kinds, looking inside ambiguous files, plugin formats."""
+
 from __future__ import annotations
 
 import types
@@ -11,16 +12,33 @@ import faceretarget.registry as registry_module
 from faceretarget.errors import FileFormatError, UnknownNameError
 from faceretarget.hookspecs import Reader, Writer, hookimpl
 from faceretarget.io import formats, kind_of
-from faceretarget.model import Animation, BlendshapeRig, MarkerSequence, Mesh, MeshSequence, WeightSequence
+from faceretarget.model import (
+    Animation,
+    BlendshapeRig,
+    MarkerSequence,
+    Mesh,
+    MeshSequence,
+    WeightSequence,
+)
 
 
-def test_ambiguous_extensions_are_resolved_by_content(tmp_path, mesh, rig, seq, animation, markers, weights):
+def test_ambiguous_extensions_are_resolved_by_content(
+    tmp_path, mesh, rig, seq, animation, markers, weights
+):
     cases = [
-        (mesh, "m.glb", Mesh), (rig, "r.glb", BlendshapeRig), (animation, "a.glb", Animation),
-        (mesh, "m.npz", Mesh), (rig, "r.npz", BlendshapeRig), (seq, "s.npz", MeshSequence), (animation, "a.npz", Animation),
-        (markers, "k.npz", MarkerSequence), (weights, "w.npz", WeightSequence),
-        (markers, "k.csv", MarkerSequence), (weights, "w.csv", WeightSequence),
-        (rig, "rigdir", BlendshapeRig), (seq, "seqdir", MeshSequence),
+        (mesh, "m.glb", Mesh),
+        (rig, "r.glb", BlendshapeRig),
+        (animation, "a.glb", Animation),
+        (mesh, "m.npz", Mesh),
+        (rig, "r.npz", BlendshapeRig),
+        (seq, "s.npz", MeshSequence),
+        (animation, "a.npz", Animation),
+        (markers, "k.npz", MarkerSequence),
+        (weights, "w.npz", WeightSequence),
+        (markers, "k.csv", MarkerSequence),
+        (weights, "w.csv", WeightSequence),
+        (rig, "rigdir", BlendshapeRig),
+        (seq, "seqdir", MeshSequence),
     ]
     for obj, name, cls in cases:
         fr.save(obj, tmp_path / name)
@@ -42,7 +60,9 @@ def test_kind_converts_between_related_kinds(tmp_path, animation, rig):
 
 def test_save_coerces_animation_to_sequences_and_weights(tmp_path, animation, mesh):
     fr.save(animation, tmp_path / "a.pc2")
-    np.testing.assert_allclose(fr.load(tmp_path / "a.pc2", topology=mesh).vertices, animation.vertices, atol=1e-5)
+    np.testing.assert_allclose(
+        fr.load(tmp_path / "a.pc2", topology=mesh).vertices, animation.vertices, atol=1e-5
+    )
     fr.save(animation, tmp_path / "w.csv")
     np.testing.assert_array_equal(fr.load(tmp_path / "w.csv").weights, animation.weights)
     fr.save(animation, tmp_path / "frames")
@@ -72,11 +92,20 @@ def _xyz_plugin():
     def write(obj, path, *, force=False, inputs=(), **options):
         from faceretarget.io._atomic import write_bytes
 
-        write_bytes(path, "\n".join(" ".join(map(repr, v)) for v in obj.vertices.tolist()).encode(), force=force, inputs=inputs)
+        write_bytes(
+            path,
+            "\n".join(" ".join(map(repr, v)) for v in obj.vertices.tolist()).encode(),
+            force=force,
+            inputs=inputs,
+        )
 
     module = types.ModuleType("xyzplug")
-    module.faceretarget_readers = hookimpl(lambda: [Reader("xyz", "mesh", (".xyz",), read, "points")])
-    module.faceretarget_writers = hookimpl(lambda: [Writer("xyz", "mesh", (".xyz",), write, "points")])
+    module.faceretarget_readers = hookimpl(
+        lambda: [Reader("xyz", "mesh", (".xyz",), read, "points")]
+    )
+    module.faceretarget_writers = hookimpl(
+        lambda: [Writer("xyz", "mesh", (".xyz",), write, "points")]
+    )
     return module
 
 
@@ -88,7 +117,9 @@ def test_plugin_formats_are_used_through_the_registry(tmp_path, monkeypatch):
     back = fr.load(tmp_path / "t.xyz")
     np.testing.assert_array_equal(back.vertices, tri.vertices)
     rows = [r for r in formats() if r["name"] == "xyz"]
-    assert {r["direction"] for r in rows} == {"read", "write"} and all(r["origin"] == "local -" for r in rows)
+    assert {r["direction"] for r in rows} == {"read", "write"} and all(
+        r["origin"] == "local -" for r in rows
+    )
     # a folder of the plugin's meshes is a sequence too
     folder = tmp_path / "frames"
     folder.mkdir()

@@ -1,5 +1,6 @@
 """Files that travel: names from the final path, C3D read the way ezc3d reads it,
 Live Link Face round trips, glTF scenes and compact vertex animations."""
+
 from __future__ import annotations
 
 import io
@@ -8,17 +9,19 @@ import warnings
 
 import numpy as np
 import pytest
+from naive.io import split_glb
 
 import faceretarget as fr
 from faceretarget.errors import FaceRetargetWarning, FileFormatError
-from naive.io import split_glb
 
 
 # ---------------------------------------------------------------------------------------
 # a. output names come from the final destination, never the temporary
 # ---------------------------------------------------------------------------------------
 def _names(doc) -> list[str]:
-    return [x.get("name", "") for key in ("nodes", "meshes", "animations") for x in doc.get(key, [])]
+    return [
+        x.get("name", "") for key in ("nodes", "meshes", "animations") for x in doc.get(key, [])
+    ]
 
 
 @pytest.mark.parametrize("obj", ["animation", "seq", "rig", "mesh"])
@@ -33,7 +36,9 @@ def test_gltf_names_come_from_the_final_path_not_the_temporary(tmp_path, obj, re
     write_animation(value, out, write_gltf)
     doc, _ = split_glb(out.read_bytes())
     names = _names(doc)
-    assert names and not any("frtmp" in n or "frbatch" in n or n.startswith(".") for n in names), names
+    assert names and not any("frtmp" in n or "frbatch" in n or n.startswith(".") for n in names), (
+        names
+    )
     if obj in ("animation", "seq"):  # the character/root node is named after the shot file
         root = doc["nodes"][doc["scenes"][0]["nodes"][0]]
         assert root["name"] == "ict-spacetime"
@@ -44,7 +49,9 @@ def test_gltf_names_from_a_legacy_batch_temporary(tmp_path, animation):
 
     write_gltf(animation, tmp_path / ".ict-spacetime.glb.frbatch-13430-89abcdef.glb")
     doc, _ = split_glb((tmp_path / ".ict-spacetime.glb.frbatch-13430-89abcdef.glb").read_bytes())
-    assert doc["nodes"][0]["name"] == "ict-spacetime" and doc["meshes"][0]["name"] == "ict-spacetime"
+    assert (
+        doc["nodes"][0]["name"] == "ict-spacetime" and doc["meshes"][0]["name"] == "ict-spacetime"
+    )
 
 
 def test_trc_header_names_the_final_file(tmp_path, markers):
@@ -54,7 +61,9 @@ def test_trc_header_names_the_final_file(tmp_path, markers):
     with atomic_path(tmp_path / "shot.trc") as tmp:
         assert tmp.name != "shot.trc"
         write_trc(markers, tmp)
-    assert (tmp_path / "shot.trc").read_text().splitlines()[0] == "PathFileType\t4\t(X/Y/Z)\tshot.trc"
+    assert (tmp_path / "shot.trc").read_text().splitlines()[
+        0
+    ] == "PathFileType\t4\t(X/Y/Z)\tshot.trc"
 
 
 # ---------------------------------------------------------------------------------------
@@ -116,7 +125,11 @@ def _data_start(data: bytes) -> int:
     return (struct.unpack_from("<H", data, 16)[0] - 1) * 512  # header word 9: first data block
 
 
-@pytest.mark.parametrize("content", [b"hello, this is not a C3D file\n" * 40, b"{\"asset\": {}}" + b" " * 600, bytes(range(256)) * 3], ids=["text", "json", "binary"])
+@pytest.mark.parametrize(
+    "content",
+    [b"hello, this is not a C3D file\n" * 40, b'{"asset": {}}' + b" " * 600, bytes(range(256)) * 3],
+    ids=["text", "json", "binary"],
+)
 def test_a_non_c3d_file_named_c3d_is_a_typed_error_saying_so(tmp_path, content):
     path = tmp_path / "shot.c3d"
     path.write_bytes(content)
@@ -130,9 +143,8 @@ def test_a_non_c3d_file_named_c3d_is_a_typed_error_saying_so(tmp_path, content):
 # c. Live Link Face: timecode, rate and the head/eye rotation columns round trip exactly
 # ---------------------------------------------------------------------------------------
 def _live_link_take(n: int = 90, fps: float = 59.96) -> str:
-    from faceretarget.naming import LIVE_LINK_NAMES
-
     from faceretarget.io.weights import timecode
+    from faceretarget.naming import LIVE_LINK_NAMES
 
     rng = np.random.default_rng(7)
     start = (32 * 60 + 9) * 60 + 7.867  # 00:32:09:07.867 in frames of the nominal 60
@@ -158,7 +170,11 @@ def test_live_link_face_round_trip_keeps_timecode_rate_and_rotations(tmp_path):
     # head rotation is head_motion: rigid, and yaw turns about +Y
     head = w.head_motion
     assert head.shape == (90, 4, 4)
-    np.testing.assert_allclose(head[:, :3, :3] @ head[:, :3, :3].transpose(0, 2, 1), np.broadcast_to(np.eye(3), (90, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(
+        head[:, :3, :3] @ head[:, :3, :3].transpose(0, 2, 1),
+        np.broadcast_to(np.eye(3), (90, 3, 3)),
+        atol=1e-12,
+    )
     from faceretarget.io.weights import _rotation
 
     only_yaw = _rotation(np.array([0.3]), np.zeros(1), np.zeros(1))[0]
@@ -215,21 +231,38 @@ def _tri_glb(path, nodes, scene_roots, n_meshes=1, targets=False):
         nonlocal blob
         views.append(g.BufferView(buffer=0, byteOffset=len(blob), byteLength=arr.nbytes))
         extra = {"min": arr.min(0).tolist(), "max": arr.max(0).tolist()} if atype == "VEC3" else {}
-        accs.append(g.Accessor(bufferView=len(views) - 1, componentType=ctype, count=len(arr) if arr.ndim > 1 else arr.size, type=atype, **extra))
+        accs.append(
+            g.Accessor(
+                bufferView=len(views) - 1,
+                componentType=ctype,
+                count=len(arr) if arr.ndim > 1 else arr.size,
+                type=atype,
+                **extra,
+            )
+        )
         blob += arr.tobytes()
         return len(accs) - 1
 
     ind = add(idx, "SCALAR", g.UNSIGNED_INT)
     for k in range(n_meshes):
-        pos = add((base + np.float32(k) * np.float32([0, 0, 1])).astype(np.float32), "VEC3", g.FLOAT)
+        pos = add(
+            (base + np.float32(k) * np.float32([0, 0, 1])).astype(np.float32), "VEC3", g.FLOAT
+        )
         prim = g.Primitive(attributes=g.Attributes(POSITION=pos), indices=ind)
         extras = {}
         if targets:
             prim.targets = [{"POSITION": add(delta, "VEC3", g.FLOAT)}]
             extras = {"targetNames": ["lift"]}
         meshes.append(g.Mesh(name=f"mesh{k}", primitives=[prim], extras=extras))
-    doc = g.GLTF2(scene=0, scenes=[g.Scene(nodes=scene_roots)], nodes=[g.Node(**n) for n in nodes], meshes=meshes,
-                  accessors=accs, bufferViews=views, buffers=[g.Buffer(byteLength=len(blob))])
+    doc = g.GLTF2(
+        scene=0,
+        scenes=[g.Scene(nodes=scene_roots)],
+        nodes=[g.Node(**n) for n in nodes],
+        meshes=meshes,
+        accessors=accs,
+        bufferViews=views,
+        buffers=[g.Buffer(byteLength=len(blob))],
+    )
     doc.set_binary_blob(blob)
     doc.save_binary(str(path))
     return base
@@ -241,8 +274,16 @@ def _quat_z(angle):
 
 def test_gltf_node_transforms_are_applied(tmp_path):
     """translation, rotation (90 deg about z) and scale of the node, and of its parent."""
-    nodes = [{"name": "root", "translation": [100.0, 0.0, 0.0], "children": [1]},
-             {"name": "duck", "mesh": 0, "translation": [0.0, 62.0, 0.0], "rotation": _quat_z(np.pi / 2), "scale": [2.0, 2.0, 2.0]}]
+    nodes = [
+        {"name": "root", "translation": [100.0, 0.0, 0.0], "children": [1]},
+        {
+            "name": "duck",
+            "mesh": 0,
+            "translation": [0.0, 62.0, 0.0],
+            "rotation": _quat_z(np.pi / 2),
+            "scale": [2.0, 2.0, 2.0],
+        },
+    ]
     base = _tri_glb(tmp_path / "duck.glb", nodes, [0])
     m = fr.load(tmp_path / "duck.glb", kind="mesh")
     rot = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]])
@@ -254,11 +295,16 @@ def test_gltf_node_matrix_is_applied(tmp_path):
     mat = np.eye(4)
     mat[:3, 3] = [0, 0, -162.0]
     _tri_glb(tmp_path / "m.glb", [{"mesh": 0, "matrix": mat.T.ravel().tolist()}], [0])
-    np.testing.assert_allclose(fr.load(tmp_path / "m.glb", kind="mesh").vertices[:, 2], [-162.0] * 3)
+    np.testing.assert_allclose(
+        fr.load(tmp_path / "m.glb", kind="mesh").vertices[:, 2], [-162.0] * 3
+    )
 
 
 def test_gltf_several_meshes_merge_or_select(tmp_path):
-    nodes = [{"name": "face", "mesh": 0}, {"name": "eyes", "mesh": 1, "translation": [5.0, 0.0, 0.0]}]
+    nodes = [
+        {"name": "face", "mesh": 0},
+        {"name": "eyes", "mesh": 1, "translation": [5.0, 0.0, 0.0]},
+    ]
     _tri_glb(tmp_path / "s.glb", nodes, [0, 1], n_meshes=2)
     merged = fr.load(tmp_path / "s.glb", kind="mesh")
     assert merged.n_vertices == 6 and merged.triangles.tolist() == [[0, 1, 2], [3, 4, 5]]
@@ -273,10 +319,19 @@ def test_gltf_several_meshes_merge_or_select(tmp_path):
 
 
 def test_gltf_rig_in_scene_space_deltas_rotated(tmp_path):
-    nodes = [{"name": "head", "mesh": 0, "translation": [0.0, 10.0, 0.0], "rotation": [float(np.sin(np.pi / 4)), 0.0, 0.0, float(np.cos(np.pi / 4))]}]
+    nodes = [
+        {
+            "name": "head",
+            "mesh": 0,
+            "translation": [0.0, 10.0, 0.0],
+            "rotation": [float(np.sin(np.pi / 4)), 0.0, 0.0, float(np.cos(np.pi / 4))],
+        }
+    ]
     _tri_glb(tmp_path / "r.glb", nodes, [0], targets=True)
     rig = fr.load(tmp_path / "r.glb", kind="rig")
-    np.testing.assert_allclose(rig.deltas[0, 0], [0, -1, 0], atol=1e-12)  # +z rotated 90 deg about x
+    np.testing.assert_allclose(
+        rig.deltas[0, 0], [0, -1, 0], atol=1e-12
+    )  # +z rotated 90 deg about x
     np.testing.assert_allclose(rig.neutral.vertices[2], [0, 10, 1], atol=1e-12)
 
 

@@ -1,5 +1,6 @@
 """Formats that store float32 refuse values beyond its range instead of writing inf
 (found by the random fuzz mode: a PLY converted to GLB crashed in the JSON header)."""
+
 import numpy as np
 import pytest
 
@@ -10,7 +11,9 @@ HUGE = 1e306
 
 
 def mesh():
-    return fr.Mesh(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, HUGE, 0.0]]), np.array([[0, 1, 2]]))
+    return fr.Mesh(
+        np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, HUGE, 0.0]]), np.array([[0, 1, 2]])
+    )
 
 
 def sequence():
@@ -26,7 +29,14 @@ def markers():
 
 @pytest.mark.parametrize(
     "make, ext",
-    [(mesh, ".glb"), (mesh, ".stl"), (sequence, ".pc2"), (sequence, ".mdd"), (sequence, ".glb"), (markers, ".c3d")],
+    [
+        (mesh, ".glb"),
+        (mesh, ".stl"),
+        (sequence, ".pc2"),
+        (sequence, ".mdd"),
+        (sequence, ".glb"),
+        (markers, ".c3d"),
+    ],
 )
 def test_float32_formats_refuse_values_out_of_range(make, ext, tmp_path):
     out = tmp_path / f"out{ext}"

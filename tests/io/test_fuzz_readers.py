@@ -4,6 +4,7 @@ Valid files are written by our writers (and by hand for foreign layouts), then c
 overwritten, spliced and edited at random (seeded); each mutant is read with and
 without an explicit kind. The number of inputs tried is printed (run with -s).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -13,7 +14,22 @@ import faceretarget as fr
 from faceretarget.errors import FaceRetargetError
 from faceretarget.io._atomic import clear_inputs
 
-TOKENS = [b"-1", b"99999999999", b"nan", b"inf", b"1e308", b",", b"\n", b'"', b"0", b"\t", b"{", b"]", b"/", b"-2147483648"]
+TOKENS = [
+    b"-1",
+    b"99999999999",
+    b"nan",
+    b"inf",
+    b"1e308",
+    b",",
+    b"\n",
+    b'"',
+    b"0",
+    b"\t",
+    b"{",
+    b"]",
+    b"/",
+    b"-2147483648",
+]
 
 
 def _mutate(data: bytes, rng: np.random.Generator) -> bytes:
@@ -38,15 +54,35 @@ def _mutate(data: bytes, rng: np.random.Generator) -> bytes:
 
 def _seed_files(tmp_path, mesh, rig, seq, animation, markers, weights):
     objs = [(mesh, e) for e in ("obj", "ply", "off", "stl", "glb", "gltf", "npz")]
-    objs += [(rig, "glb"), (rig, "npz"), (seq, "pc2"), (seq, "mdd"), (seq, "npy"), (seq, "glb"), (animation, "glb"), (animation, "gltf")]
-    objs += [(animation, "npz"), (markers, "csv"), (markers, "trc"), (markers, "c3d"), (weights, "csv")]
+    objs += [
+        (rig, "glb"),
+        (rig, "npz"),
+        (seq, "pc2"),
+        (seq, "mdd"),
+        (seq, "npy"),
+        (seq, "glb"),
+        (animation, "glb"),
+        (animation, "gltf"),
+    ]
+    objs += [
+        (animation, "npz"),
+        (markers, "csv"),
+        (markers, "trc"),
+        (markers, "c3d"),
+        (weights, "csv"),
+    ]
     seeds = []
     for i, (obj, ext) in enumerate(objs):
         path = tmp_path / f"seed{i}.{ext}"
         fr.save(obj, path)
         seeds.append((ext, path.read_bytes()))
-    seeds.append(("ply", b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
-                         b"element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"))
+    seeds.append(
+        (
+            "ply",
+            b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+            b"element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n",
+        )
+    )
     return seeds
 
 
@@ -69,12 +105,17 @@ def test_mutated_files_of_every_format(tmp_path, mesh, rig, seq, animation, mark
                 assert str(mutant) in str(exc), str(exc)
             except Exception as exc:  # noqa: BLE001 - the point of the test
                 untyped.append(f".{ext}: {type(exc).__name__}: {exc}"[:200])
-    print(f"\nreader fuzz: {tried} mutated inputs tried, {rejected} rejected with typed errors, {len(untyped)} untyped")
+    print(
+        f"\nreader fuzz: {tried} mutated inputs tried, {rejected} rejected with typed errors, {len(untyped)} untyped"
+    )
     assert not untyped, untyped[:5]
     assert rejected > tried // 3  # most mutants are broken and said so
 
 
-@pytest.mark.parametrize("ext", ["obj", "ply", "off", "stl", "glb", "gltf", "c3d", "trc", "csv", "npz", "npy", "pc2", "mdd"])
+@pytest.mark.parametrize(
+    "ext",
+    ["obj", "ply", "off", "stl", "glb", "gltf", "c3d", "trc", "csv", "npz", "npy", "pc2", "mdd"],
+)
 @pytest.mark.parametrize("content", [b"", b"v 0 0 0\nv 1 0 0\nf 1 2 7\n", bytes(range(256)) * 20])
 def test_empty_truncated_and_random_files(tmp_path, mesh, ext, content):
     path = tmp_path / f"in.{ext}"

@@ -1,4 +1,5 @@
 """glTF/GLB: written structure (what Blender and three.js need), round trips, foreign files, errors."""
+
 from __future__ import annotations
 
 import base64
@@ -7,11 +8,11 @@ import struct
 
 import numpy as np
 import pytest
+from naive.io import GLB, read_accessor, split_glb, validate_gltf
 
 import faceretarget as fr
 from faceretarget.errors import FileFormatError
 from faceretarget.model import Animation, BlendshapeRig, MeshSequence
-from naive.io import GLB, read_accessor, split_glb, validate_gltf
 
 
 def _written(obj, path):
@@ -73,7 +74,9 @@ def test_ict_result_loads_back_with_names_and_animation(tmp_path):
 
 
 def test_vertex_animation_is_one_node_per_frame(tmp_path, seq):
-    anim = Animation(vertices=seq.vertices, triangles=seq.triangles, fps=seq.fps, provenance={"method": "m"})
+    anim = Animation(
+        vertices=seq.vertices, triangles=seq.triangles, fps=seq.fps, provenance={"method": "m"}
+    )
     doc, blob = _written(anim, tmp_path / "frames.glb")
     validate_gltf(doc, blob)
     n = seq.n_frames
@@ -111,7 +114,10 @@ def test_third_party_readers_open_our_files(tmp_path, animation, seq):
     scene = trimesh.load(tmp_path / "anim.glb", process=False)
     (geom,) = scene.geometry.values()
     np.testing.assert_allclose(geom.vertices, animation.rig.neutral.vertices, atol=1e-6)
-    fr.save(Animation(vertices=seq.vertices, triangles=seq.triangles, fps=seq.fps), tmp_path / "frames.gltf")
+    fr.save(
+        Animation(vertices=seq.vertices, triangles=seq.triangles, fps=seq.fps),
+        tmp_path / "frames.gltf",
+    )
     assert len(trimesh.load(tmp_path / "frames.gltf", process=False).geometry) == seq.n_frames
 
 
@@ -134,17 +140,34 @@ def _foreign_rig(n_keys_uneven: bool = False, interpolation: str = "LINEAR") -> 
     sparse_val = b.view(np.array([[0, 0, 1]], "<f4").tobytes())
     sparse = b.accessor(sparse_val, 5126, 4, "VEC3")  # values view reused as a dummy dense base
     b.doc["accessors"][sparse] = {
-        "componentType": 5126, "count": 4, "type": "VEC3",
-        "sparse": {"count": 1, "indices": {"bufferView": sparse_idx, "componentType": 5121}, "values": {"bufferView": sparse_val}},
+        "componentType": 5126,
+        "count": 4,
+        "type": "VEC3",
+        "sparse": {
+            "count": 1,
+            "indices": {"bufferView": sparse_idx, "componentType": 5121},
+            "values": {"bufferView": sparse_val},
+        },
     }
-    b.doc["meshes"].append({
-        "name": "face",
-        "primitives": [
-            {"attributes": {"POSITION": pos0, "NORMAL": nrm0}, "indices": idx0, "targets": [{"POSITION": d0}, {"POSITION": d1}]},
-            {"attributes": {"POSITION": pos1}, "indices": strip, "mode": 5, "targets": [{"POSITION": d1}, {"POSITION": sparse}]},
-        ],
-        "extras": {"targetNames": ["jawOpen", "smile"]},
-    })
+    b.doc["meshes"].append(
+        {
+            "name": "face",
+            "primitives": [
+                {
+                    "attributes": {"POSITION": pos0, "NORMAL": nrm0},
+                    "indices": idx0,
+                    "targets": [{"POSITION": d0}, {"POSITION": d1}],
+                },
+                {
+                    "attributes": {"POSITION": pos1},
+                    "indices": strip,
+                    "mode": 5,
+                    "targets": [{"POSITION": d1}, {"POSITION": sparse}],
+                },
+            ],
+            "extras": {"targetNames": ["jawOpen", "smile"]},
+        }
+    )
     b.doc["nodes"].append({"mesh": 0})
     b.doc["scenes"] = [{"nodes": [0]}]
     times = np.array([0, 0.1, 0.3] if n_keys_uneven else [0, 0.1, 0.2], "<f4")
@@ -154,8 +177,12 @@ def _foreign_rig(n_keys_uneven: bool = False, interpolation: str = "LINEAR") -> 
         w = np.stack([np.zeros_like(w), w, np.zeros_like(w)], axis=1).reshape(-1, 2)
     t_acc = b.array(times, 5126, "SCALAR", min=[float(times[0])], max=[float(times[-1])])
     w_acc = b.array(w.ravel(), 5121, "SCALAR", normalized=True)
-    b.doc["animations"] = [{"samplers": [{"input": t_acc, "output": w_acc, "interpolation": interpolation}],
-                            "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]}]
+    b.doc["animations"] = [
+        {
+            "samplers": [{"input": t_acc, "output": w_acc, "interpolation": interpolation}],
+            "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
+        }
+    ]
     return b.bytes()
 
 
@@ -164,7 +191,9 @@ def test_foreign_glb_features(tmp_path):
     path.write_bytes(_foreign_rig())
     rig = fr.load(path, kind="rig")
     assert rig.names == ("jawOpen", "smile") and rig.neutral.n_vertices == 8
-    np.testing.assert_array_equal(rig.neutral.triangles, [[0, 1, 2], [0, 2, 3], [4, 5, 7], [5, 6, 7]])
+    np.testing.assert_array_equal(
+        rig.neutral.triangles, [[0, 1, 2], [0, 2, 3], [4, 5, 7], [5, 6, 7]]
+    )
     np.testing.assert_array_equal(rig.deltas[0, :4], np.full((4, 3), 0.5))
     np.testing.assert_array_equal(rig.deltas[1, 6], [0, 0, 1])  # sparse target on the 2nd primitive
     assert np.count_nonzero(rig.deltas[1]) == 1
@@ -190,8 +219,13 @@ def _patched(path, tmp_path, edit):
     raw += b" " * ((-len(raw)) % 4)
     out = tmp_path / "patched.glb"
     total = 12 + 8 + len(raw) + 8 + len(blob)
-    out.write_bytes(struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<II", len(raw), 0x4E4F534A) + raw
-                    + struct.pack("<II", len(blob), 0x004E4942) + blob)
+    out.write_bytes(
+        struct.pack("<4sII", b"glTF", 2, total)
+        + struct.pack("<II", len(raw), 0x4E4F534A)
+        + raw
+        + struct.pack("<II", len(blob), 0x004E4942)
+        + blob
+    )
     return out
 
 
@@ -226,8 +260,13 @@ def test_key_times_must_increase(tmp_path, animation):
     raw += b" " * ((-len(raw)) % 4)
     total = 12 + 8 + len(raw) + 8 + len(blob)
     path = tmp_path / "bad.glb"
-    path.write_bytes(struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<II", len(raw), 0x4E4F534A) + raw
-                     + struct.pack("<II", len(blob), 0x004E4942) + bytes(blob))
+    path.write_bytes(
+        struct.pack("<4sII", b"glTF", 2, total)
+        + struct.pack("<II", len(raw), 0x4E4F534A)
+        + raw
+        + struct.pack("<II", len(blob), 0x004E4942)
+        + bytes(blob)
+    )
     with pytest.raises(FileFormatError, match="strictly increasing"):
         fr.load(path)
 
@@ -267,7 +306,9 @@ def test_empty_arrays_in_extras_round_trip_without_an_empty_buffer_view(tmp_path
     import faceretarget as fr
 
     rig = fr.BlendshapeRig(fr.Mesh(np.eye(3), [[0, 1, 2]]), np.ones((1, 3, 3)), ["a"])
-    anim = fr.Animation(weights=np.zeros((2, 1)), rig=rig, fps=30.0, extras={"empty": np.zeros(0, dtype=np.int64)})
+    anim = fr.Animation(
+        weights=np.zeros((2, 1)), rig=rig, fps=30.0, extras={"empty": np.zeros(0, dtype=np.int64)}
+    )
     path = tmp_path / "a.glb"
     fr.save(anim, path)
     back = fr.load(path)

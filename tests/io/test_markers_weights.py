@@ -1,4 +1,5 @@
 """Markers (C3D, TRC, CSV) and weight curves (CSV incl. Live Link Face)."""
+
 from __future__ import annotations
 
 import io
@@ -17,11 +18,15 @@ from faceretarget.naming import LIVE_LINK_NAMES
 def test_marker_text_formats_round_trip_exactly(tmp_path, markers, ext):
     fr.save(markers, tmp_path / f"a.{ext}")
     once = fr.load(tmp_path / f"a.{ext}")
-    assert isinstance(once, MarkerSequence) and once.names == markers.names and once.fps == markers.fps
+    assert (
+        isinstance(once, MarkerSequence) and once.names == markers.names and once.fps == markers.fps
+    )
     np.testing.assert_array_equal(once.positions, markers.positions)  # NaN where missing
     np.testing.assert_array_equal(once.reference, markers.reference)
     fr.save(once, tmp_path / f"b.{ext}")
-    assert (tmp_path / f"b.{ext}").read_bytes().replace(b"b." + ext.encode(), b"") == (tmp_path / f"a.{ext}").read_bytes().replace(b"a." + ext.encode(), b"")
+    assert (tmp_path / f"b.{ext}").read_bytes().replace(b"b." + ext.encode(), b"") == (
+        tmp_path / f"a.{ext}"
+    ).read_bytes().replace(b"a." + ext.encode(), b"")
 
 
 def test_c3d_float32_round_trip_with_missing_samples(tmp_path, markers):
@@ -97,7 +102,9 @@ def test_bad_trc(tmp_path, text, needle):
 
 
 def test_marker_csv_header_variants_and_2d_tracks(tmp_path):
-    (tmp_path / "m.csv").write_text("Frame,Time,nose.X,nose.Y,nose.Z,chin:x,chin:y,chin:z\n0,0,1,2,3,4,5,6\n1,0.04,1,2,3,,,\n")
+    (tmp_path / "m.csv").write_text(
+        "Frame,Time,nose.X,nose.Y,nose.Z,chin:x,chin:y,chin:z\n0,0,1,2,3,4,5,6\n1,0.04,1,2,3,,,\n"
+    )
     m = fr.load(tmp_path / "m.csv")
     assert m.names == ("nose", "chin") and m.fps == 25.0 and np.isnan(m.positions[1, 1]).all()
     (tmp_path / "t.csv").write_text("a_x,a_y,b_x,b_y\n1,2,3,4\n5,6,7,8\n")
@@ -124,10 +131,19 @@ def test_live_link_face_csv(tmp_path):
     w = fr.load(path)
     # the 9 head/eye rotation columns are not blendshape weights
     assert isinstance(w, WeightSequence) and w.names == LIVE_LINK_NAMES[:52] and w.n_frames == 130
-    assert sorted(w.extras["channels"]) == sorted(LIVE_LINK_NAMES[52:]) and w.head_motion.shape == (130, 4, 4)
+    assert sorted(w.extras["channels"]) == sorted(LIVE_LINK_NAMES[52:]) and w.head_motion.shape == (
+        130,
+        4,
+        4,
+    )
     assert w.fps == pytest.approx(60.0, rel=1e-2)
     fr.save(w, tmp_path / "out.csv")
-    assert (tmp_path / "out.csv").read_text().splitlines()[0].startswith("Timecode,BlendShapeCount,EyeBlinkLeft,")
+    assert (
+        (tmp_path / "out.csv")
+        .read_text()
+        .splitlines()[0]
+        .startswith("Timecode,BlendShapeCount,EyeBlinkLeft,")
+    )
     again = fr.load(tmp_path / "out.csv")
     np.testing.assert_array_equal(again.weights, w.weights)
     np.testing.assert_array_equal(again.head_motion, w.head_motion)

@@ -1,4 +1,5 @@
 """Static meshes: OBJ, PLY, OFF, STL (and glTF/npz as meshes): vertex order, round trips, errors."""
+
 from __future__ import annotations
 
 import struct
@@ -113,17 +114,27 @@ def test_binary_ply_with_mixed_polygons_and_extra_elements(tmp_path, fmt):
 
 def test_ascii_ply_and_off_variants(tmp_path):
     ply = tmp_path / "m.ply"
-    ply.write_bytes(_ply_header("ascii", 4, 1, "property uchar red\n") + b"0 0 0 9\n1 0 0 9\n1 1 0 9\n0 1 0 9\n4 0 1 2 3\n3 0.1 0.2 0.3\n")
+    ply.write_bytes(
+        _ply_header("ascii", 4, 1, "property uchar red\n")
+        + b"0 0 0 9\n1 0 0 9\n1 1 0 9\n0 1 0 9\n4 0 1 2 3\n3 0.1 0.2 0.3\n"
+    )
     np.testing.assert_array_equal(fr.load(ply).triangles, [[0, 1, 2], [0, 2, 3]])
     off = tmp_path / "m.off"
-    off.write_text("COFF\n# colours per vertex\n4 1 0\n0 0 0 255 0 0 255\n1 0 0 255 0 0 255\n1 1 0 0 0 0 255\n0 1 0 1 1 1 1\n4 0 1 2 3\n")
+    off.write_text(
+        "COFF\n# colours per vertex\n4 1 0\n0 0 0 255 0 0 255\n1 0 0 255 0 0 255\n1 1 0 0 0 0 255\n0 1 0 1 1 1 1\n4 0 1 2 3\n"
+    )
     np.testing.assert_array_equal(fr.load(off).vertices[:, :2], [[0, 0], [1, 0], [1, 1], [0, 1]])
 
 
 def test_ascii_stl_joins_identical_corners_in_first_use_order(tmp_path):
     path = tmp_path / "m.stl"
     facet = "facet normal 0 0 1\n outer loop\n  vertex {} \n  vertex {} \n  vertex {} \n endloop\nendfacet\n"
-    path.write_text("solid x\n" + facet.format("1 0 0", "1 1 0", "0 0 0") + facet.format("0 0 0", "1 1 0", "0 1 0") + "endsolid x\n")
+    path.write_text(
+        "solid x\n"
+        + facet.format("1 0 0", "1 1 0", "0 0 0")
+        + facet.format("0 0 0", "1 1 0", "0 1 0")
+        + "endsolid x\n"
+    )
     mesh = fr.load(path)
     np.testing.assert_array_equal(mesh.vertices, [[1, 0, 0], [1, 1, 0], [0, 0, 0], [0, 1, 0]])
     np.testing.assert_array_equal(mesh.triangles, [[0, 1, 2], [2, 1, 3]])
@@ -140,9 +151,17 @@ BAD_FILES = [
     ("obj", b"v 0 0\nf 1 2 3\n", "3 coordinates"),
     ("off", b"OFF\n4 2 0\n0 0 0\n1 0 0\n0 1 0\n", "truncated"),
     ("off", b"OFF\n-3 1 0\n", ">= 0"),
-    ("ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nproperty float y\nproperty float z\n"
-            b"element face 1\nproperty list uchar int vertex_indices\nend_header\n\x00\x00", "truncated"),
-    ("ply", b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n0\n", "'vertex' and 'face'"),
+    (
+        "ply",
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nproperty float y\nproperty float z\n"
+        b"element face 1\nproperty list uchar int vertex_indices\nend_header\n\x00\x00",
+        "truncated",
+    ),
+    (
+        "ply",
+        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n0\n",
+        "'vertex' and 'face'",
+    ),
     ("stl", b"\x00" * 80 + struct.pack("<I", 1000) + b"\x00" * 50, "declares 1000 triangles"),
 ]
 

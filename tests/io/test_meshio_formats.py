@@ -8,13 +8,15 @@ is not imported by ``import faceretarget``, ``faceretarget list`` or ``formats``
 with no surface cells is a typed error saying what it holds and what to do; the writers
 go through the atomic, input-safe writer; ``faceretarget formats`` says "via meshio".
 """
+
 import subprocess
 import sys
 import types
 
-import faceretarget.io as fio
 import numpy as np
 import pytest
+
+import faceretarget.io as fio
 from faceretarget import cli, hookimpl
 from faceretarget import registry as registry_module
 from faceretarget.errors import (
@@ -46,7 +48,10 @@ def test_the_table_names_meshio_formats_the_native_readers_do_not_claim():
     native = {e for r in _native_readers() for e in r.extensions}
     for fmt in mf.FORMATS:
         for ext in fmt.extensions:
-            assert fmt.module in extension_to_filetypes.get(ext, []) or ext == ".msh", (fmt.name, ext)
+            assert fmt.module in extension_to_filetypes.get(ext, []) or ext == ".msh", (
+                fmt.name,
+                ext,
+            )
             assert ext not in native, f"{ext} is read natively; meshio must not claim it"
     assert "gmsh" in extension_to_filetypes[".msh"]
 
@@ -54,7 +59,9 @@ def test_the_table_names_meshio_formats_the_native_readers_do_not_claim():
 def test_meshio_records_rank_below_the_native_ones():
     rows = [r for r in fio.formats() if r["description"].endswith("via meshio")]
     assert {r["name"] for r in rows if r["direction"] == "read"} == {f.name for f in mf.FORMATS}
-    assert {r["name"] for r in rows if r["direction"] == "write"} == {f.name for f in mf.FORMATS if f.writable}
+    assert {r["name"] for r in rows if r["direction"] == "write"} == {
+        f.name for f in mf.FORMATS if f.writable
+    }
     assert all(r["priority"] < 0 and r["kind"] == "mesh" for r in rows)
     assert not any(r["shadowed_by"] or r["shadows"] for r in rows)
 
@@ -80,7 +87,9 @@ def test_round_trip_through_save_and_load_is_exact(name, ext, mesh, tmp_path):
 def test_files_written_are_what_meshio_reads(name, ext, mesh, tmp_path):
     path = tmp_path / f"patch{ext}"
     fio.save(mesh, path)
-    theirs = meshio.read(path, file_format=mf.FORMATS[[f.name for f in mf.FORMATS].index(name)].module)
+    theirs = meshio.read(
+        path, file_format=mf.FORMATS[[f.name for f in mf.FORMATS].index(name)].module
+    )
     assert [c.type for c in theirs.cells] == ["triangle"]
     np.testing.assert_array_equal(theirs.cells[0].data, mesh.triangles)
 
@@ -108,14 +117,27 @@ def test_nastran_written_by_meshio_is_read(tmp_path):
 
 
 def test_quads_and_polygons_are_fan_triangulated_like_obj(tmp_path):
-    points = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [2, 1, 0], [1, 1, 0], [0, 1, 0], [1, 2, 0], [0.5, 2.5, 0]])
+    points = np.array(
+        [
+            [0.0, 0, 0],
+            [1, 0, 0],
+            [2, 0, 0],
+            [2, 1, 0],
+            [1, 1, 0],
+            [0, 1, 0],
+            [1, 2, 0],
+            [0.5, 2.5, 0],
+        ]
+    )
     quads = np.array([[0, 1, 4, 5], [1, 2, 3, 4]])
     pentagon = np.array([[5, 4, 3, 6, 7]])
     vtk = tmp_path / "faces.vtk"
     meshio.write(vtk, meshio.Mesh(points, [("quad", quads), ("polygon", pentagon)]), binary=False)
     obj = tmp_path / "faces.obj"
     lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in points.tolist()]
-    lines += ["f " + " ".join(str(i + 1) for i in face) for face in [*quads.tolist(), *pentagon.tolist()]]
+    lines += [
+        "f " + " ".join(str(i + 1) for i in face) for face in [*quads.tolist(), *pentagon.tolist()]
+    ]
     obj.write_text("\n".join(lines) + "\n")
     ours, native = fio.load(vtk), fio.load(obj)
     np.testing.assert_array_equal(ours.vertices, native.vertices)
@@ -125,7 +147,10 @@ def test_quads_and_polygons_are_fan_triangulated_like_obj(tmp_path):
 
 def test_points_of_a_2d_mesh_get_z_zero(tmp_path):
     path = tmp_path / "flat.vtu"
-    meshio.write(path, meshio.Mesh(np.array([[0.0, 0], [1, 0], [0, 1]]), [("triangle", np.array([[0, 1, 2]]))]))
+    meshio.write(
+        path,
+        meshio.Mesh(np.array([[0.0, 0], [1, 0], [0, 1]]), [("triangle", np.array([[0, 1, 2]]))]),
+    )
     np.testing.assert_array_equal(fio.load(path).vertices, [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
 
 
@@ -134,7 +159,13 @@ def test_points_of_a_2d_mesh_get_z_zero(tmp_path):
 # ---------------------------------------------------------------------------------------
 def test_a_volume_only_file_is_a_typed_error_saying_what_it_holds(tmp_path):
     path = tmp_path / "solid.vtu"
-    meshio.write(path, meshio.Mesh(np.eye(4, 3), [("tetra", np.array([[0, 1, 2, 3]])), ("line", np.array([[0, 1], [1, 2]]))]))
+    meshio.write(
+        path,
+        meshio.Mesh(
+            np.eye(4, 3),
+            [("tetra", np.array([[0, 1, 2, 3]])), ("line", np.array([[0, 1], [1, 2]]))],
+        ),
+    )
     with pytest.raises(FileFormatError) as info:
         fio.load(path)
     message = str(info.value)
@@ -146,7 +177,9 @@ def test_a_volume_only_file_is_a_typed_error_saying_what_it_holds(tmp_path):
 
 def test_a_point_cloud_is_refused(tmp_path):
     path = tmp_path / "cloud.msh"
-    meshio.write(path, meshio.Mesh(np.eye(3), [("vertex", np.array([[0], [1], [2]]))]), file_format="gmsh")
+    meshio.write(
+        path, meshio.Mesh(np.eye(3), [("vertex", np.array([[0], [1], [2]]))]), file_format="gmsh"
+    )
     with pytest.raises(FileFormatError, match="3 vertex cells, no surface"):
         fio.load(path)
 
@@ -154,7 +187,12 @@ def test_a_point_cloud_is_refused(tmp_path):
 def test_surface_cells_are_kept_and_volume_cells_skipped_with_a_warning(tmp_path):
     path = tmp_path / "mixed.vtk"
     points = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
-    meshio.write(path, meshio.Mesh(points, [("tetra", np.array([[0, 1, 2, 3]])), ("triangle", np.array([[0, 2, 1]]))]))
+    meshio.write(
+        path,
+        meshio.Mesh(
+            points, [("tetra", np.array([[0, 1, 2, 3]])), ("triangle", np.array([[0, 2, 1]]))]
+        ),
+    )
     with pytest.warns(FaceRetargetWarning, match="skipped 1 tetra cells"):
         mesh = fio.load(path)
     np.testing.assert_array_equal(mesh.vertices, points)  # every point kept, in file order
@@ -164,11 +202,17 @@ def test_surface_cells_are_kept_and_volume_cells_skipped_with_a_warning(tmp_path
 def test_a_damaged_file_is_a_typed_error_naming_it_not_an_exit(tmp_path):
     path = tmp_path / "photo.msh"
     path.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(200))
-    with pytest.raises(FileFormatError, match="photo.msh: this looks like a PNG image, not a Gmsh mesh"):
+    with pytest.raises(
+        FileFormatError, match="photo.msh: this looks like a PNG image, not a Gmsh mesh"
+    ):
         fio.load(path)  # meshio.read() itself would sys.exit(1)
-    photo = tmp_path / "photo.inp"  # an extension without an expected content: meshio's own error, and what it looks like
+    photo = (
+        tmp_path / "photo.inp"
+    )  # an extension without an expected content: meshio's own error, and what it looks like
     photo.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(200))
-    with pytest.raises(FileFormatError, match="photo.inp: not a readable abaqus file.*looks like a PNG image"):
+    with pytest.raises(
+        FileFormatError, match="photo.inp: not a readable abaqus file.*looks like a PNG image"
+    ):
         fio.load(photo)
     empty = tmp_path / "empty.vtk"
     empty.write_bytes(b"")
@@ -219,7 +263,9 @@ def test_a_failing_meshio_writer_is_an_output_error_and_writes_nothing(mesh, tmp
         raise AssertionError("field too wide")
 
     monkeypatch.setattr(meshio.vtk, "write", broken)
-    with pytest.raises(OutputError, match="meshio could not write this mesh as vtk.*AssertionError: field too wide"):
+    with pytest.raises(
+        OutputError, match="meshio could not write this mesh as vtk.*AssertionError: field too wide"
+    ):
         fio.save(mesh, tmp_path / "m.vtk")
     assert list(tmp_path.iterdir()) == []
 
@@ -276,7 +322,13 @@ print("lazy ok")
 
 
 def test_meshio_is_imported_only_when_one_of_its_formats_is_used(tmp_path):
-    done = subprocess.run([sys.executable, "-c", LAZY, str(tmp_path / "t.obj")], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    done = subprocess.run(
+        [sys.executable, "-c", LAZY, str(tmp_path / "t.obj")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert "lazy ok" in done.stdout
 
@@ -286,4 +338,6 @@ def test_faceretarget_formats_says_which_formats_come_from_meshio(capsys):
     out = capsys.readouterr().out
     for name in ("vtk", "vtu", "gmsh", "medit", "abaqus"):
         line = next(ln for ln in out.splitlines() if ln.split()[:1] == [name])
-        assert line.rstrip().endswith("via meshio [priority -1]"), line  # below the native formats, and says so
+        assert line.rstrip().endswith("via meshio [priority -1]"), (
+            line
+        )  # below the native formats, and says so

@@ -1,5 +1,6 @@
 """Files written by other tools (Blender 3.4.1's exporters, ezc3d 1.7.2, Gmsh 4.8.4) read to what those
 tools say they hold. How the files were made: tests/io/data/other_tools/README.md."""
+
 import json
 import warnings
 from pathlib import Path
@@ -40,7 +41,10 @@ def test_blender_obj_is_frame_one_in_y_up():
 
 def test_blender_ply_holds_the_same_points_and_faces():
     mesh = io.load(DATA / "blender_face.ply")
-    assert sorted(np.bincount(matching(np.asarray(mesh.vertices), world(FACE)[0]))) == [1] * FACE["n_vertices"]
+    assert (
+        sorted(np.bincount(matching(np.asarray(mesh.vertices), world(FACE)[0])))
+        == [1] * FACE["n_vertices"]
+    )
     assert len(mesh.triangles) == len(FACE["triangles"])
 
 
@@ -51,7 +55,9 @@ def test_blender_pc2_frames_are_the_evaluated_world_vertices():
 
 def test_blender_mdd_frames_and_rate():
     seq = io.load(DATA / "blender_face.mdd", topology=DATA / "blender_face.obj")
-    np.testing.assert_allclose(seq.vertices, world(FACE, "z"), atol=1e-6)  # the MDD add-on keeps Blender's Z up
+    np.testing.assert_allclose(
+        seq.vertices, world(FACE, "z"), atol=1e-6
+    )  # the MDD add-on keeps Blender's Z up
     assert seq.fps == pytest.approx(FACE["fps"])
 
 
@@ -83,17 +89,26 @@ def test_blender_glb_head_motion_under_a_parent_and_two_animations():
 
 def test_gmsh_msh41_plate_reads_as_its_triangles():
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the boundary's line and point elements are skipped, with a warning
+        warnings.simplefilter(
+            "ignore"
+        )  # the boundary's line and point elements are skipped, with a warning
         mesh = io.load(DATA / "gmsh_plate.msh")
     v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
-    area = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1).sum()
+    area = (
+        0.5
+        * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1).sum()
+    )
     assert area == pytest.approx(2.0) and np.all(v[:, 2] == 0.0) and len(t) > 20
 
 
 def test_ezc3d_markers_names_rate_and_occlusions():
     t = json.loads((DATA / "ezc3d_face.truth.json").read_text())
-    expected = np.array([[[np.nan if c is None else c for c in m] for m in f] for f in t["points"]], dtype=float)
+    expected = np.array(
+        [[[np.nan if c is None else c for c in m] for m in f] for f in t["points"]], dtype=float
+    )
     markers = io.load(DATA / "ezc3d_face.c3d")
     assert list(markers.names) == t["labels"] and markers.fps == t["rate"]
-    np.testing.assert_array_equal(np.isnan(markers.positions), np.isnan(expected))  # residual < 0: missing
+    np.testing.assert_array_equal(
+        np.isnan(markers.positions), np.isnan(expected)
+    )  # residual < 0: missing
     np.testing.assert_allclose(markers.positions, expected, atol=1e-4, equal_nan=True)

@@ -11,6 +11,7 @@ writers for ``.obj`` (which the core reads) and ``.pts``. Checked:
 - ``faceretarget formats`` shows which reader is shadowed by which;
 - the atomic writer is public in ``faceretarget.io``.
 """
+
 import subprocess
 import sys
 import textwrap
@@ -63,15 +64,40 @@ def _obj_plugin_reader(path, **options):
 
 def _plugin(priority=0, accepts=None):
     module = types.ModuleType("contractplug")
-    module.faceretarget_readers = hookimpl(lambda: [
-        Reader("pts", "mesh", (".pts",), _read_pts, "points with a PTS header"),
-        Reader("pts-loose", "mesh", (".pts",), lambda path, **o: Mesh(np.zeros((3, 3)), [[0, 1, 2]]), "fallback", priority=-5),
-        Reader("obj-plugin", "mesh", (".obj",), _obj_plugin_reader, "the plugin's OBJ", priority=priority, accepts=accepts),
-    ])
-    module.faceretarget_writers = hookimpl(lambda: [
-        Writer("pts", "mesh", (".pts",), _write_pts, "points with a PTS header"),
-        Writer("rogue", "mesh", (".rogue",), _write_pts_to_destination, "writes its destination itself"),
-    ])
+    module.faceretarget_readers = hookimpl(
+        lambda: [
+            Reader("pts", "mesh", (".pts",), _read_pts, "points with a PTS header"),
+            Reader(
+                "pts-loose",
+                "mesh",
+                (".pts",),
+                lambda path, **o: Mesh(np.zeros((3, 3)), [[0, 1, 2]]),
+                "fallback",
+                priority=-5,
+            ),
+            Reader(
+                "obj-plugin",
+                "mesh",
+                (".obj",),
+                _obj_plugin_reader,
+                "the plugin's OBJ",
+                priority=priority,
+                accepts=accepts,
+            ),
+        ]
+    )
+    module.faceretarget_writers = hookimpl(
+        lambda: [
+            Writer("pts", "mesh", (".pts",), _write_pts, "points with a PTS header"),
+            Writer(
+                "rogue",
+                "mesh",
+                (".rogue",),
+                _write_pts_to_destination,
+                "writes its destination itself",
+            ),
+        ]
+    )
     return module
 
 
@@ -87,11 +113,15 @@ def use_plugin(monkeypatch):
     return install
 
 
-def test_a_plugin_writer_gets_a_temporary_path_and_never_overwrites_without_force(tmp_path, use_plugin):
+def test_a_plugin_writer_gets_a_temporary_path_and_never_overwrites_without_force(
+    tmp_path, use_plugin
+):
     use_plugin()
     dest = tmp_path / "a.pts"
     fr.save(TRI, dest)
-    assert calls and calls[0] != dest and calls[0].parent == dest.parent and calls[0].suffix == ".pts"
+    assert (
+        calls and calls[0] != dest and calls[0].parent == dest.parent and calls[0].suffix == ".pts"
+    )
     assert not calls[0].exists()  # moved into place
     assert dest.read_text().startswith("PTS\n0.0 0.0 0.0\n")
     before = dest.read_bytes()
@@ -122,7 +152,9 @@ def test_a_writer_that_writes_its_destination_itself_is_refused(tmp_path, use_pl
     use_plugin()
     with pytest.raises(PluginOutputError, match="instead of the temporary path"):
         fr.save(TRI, tmp_path / "out.rogue")
-    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # its temporary discarded
+    assert [
+        p.name for p in tmp_path.iterdir() if p.name.startswith(".")
+    ] == []  # its temporary discarded
     (tmp_path / "out.rogue").unlink()
     src = tmp_path / "in.pts"  # an input it overwrites behind the core's back is caught too
     fr.save(TRI, src)
@@ -171,7 +203,8 @@ def test_faceretarget_formats_prints_the_shadowing(tmp_path):
     site = tmp_path / "site"
     pkg = site / "contractplug_dist"
     pkg.mkdir(parents=True)
-    (pkg / "__init__.py").write_text(textwrap.dedent('''
+    (pkg / "__init__.py").write_text(
+        textwrap.dedent("""
         import faceretarget
         from faceretarget import Reader
 
@@ -181,16 +214,25 @@ def test_faceretarget_formats_prints_the_shadowing(tmp_path):
         @faceretarget.hookimpl
         def faceretarget_readers():
             return [Reader("obj-shadowed", "mesh", (".obj",), _read, "a plugin OBJ reader")]
-    '''))
+    """)
+    )
     info = site / "contractplug_dist-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: contractplug-dist\nVersion: 0.1\n")
     (info / "entry_points.txt").write_text("[faceretarget]\ncontractplug = contractplug_dist\n")
     import os
 
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])))
+    env = dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join(filter(None, [str(site), os.environ.get("PYTHONPATH")])),
+    )
     env.pop("FACERETARGET_DISABLE_PLUGINS", None)
-    out = subprocess.run([sys.executable, "-m", "faceretarget.cli", "formats"], capture_output=True, text=True, env=env)
+    out = subprocess.run(
+        [sys.executable, "-m", "faceretarget.cli", "formats"],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
     at = next(i for i, line in enumerate(lines) if line.split()[:1] == ["obj-shadowed"])
@@ -205,13 +247,18 @@ def test_the_atomic_writer_is_public(tmp_path):
         assert tmp != dest and tmp.parent == dest.parent
         tmp.write_bytes(b"data")
     assert dest.read_bytes() == b"data"
-    with pytest.raises(OutputError, match="already exists"):
-        with fio.atomic_path(dest) as tmp:
-            tmp.write_bytes(b"other")
-    with pytest.raises(RuntimeError):
-        with fio.atomic_path(dest, force=True) as tmp:
-            tmp.write_bytes(b"half")
-            raise RuntimeError("the writer failed")
+    with pytest.raises(OutputError, match="already exists"), fio.atomic_path(dest) as tmp:
+        tmp.write_bytes(b"other")
+    with pytest.raises(RuntimeError), fio.atomic_path(dest, force=True) as tmp:
+        tmp.write_bytes(b"half")
+        raise RuntimeError("the writer failed")
     assert dest.read_bytes() == b"data" and sorted(p.name for p in tmp_path.iterdir()) == ["x.bin"]
-    for name in ("atomic_path", "atomic_file", "atomic_dir", "write_bytes", "note_input", "is_input"):
+    for name in (
+        "atomic_path",
+        "atomic_file",
+        "atomic_dir",
+        "write_bytes",
+        "note_input",
+        "is_input",
+    ):
         assert name in fio.__all__ and (getattr(fio, name).__doc__ or "").strip()

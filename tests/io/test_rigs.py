@@ -1,4 +1,5 @@
 """Blendshape rigs: OBJ folders (neutral detection, rig.json), npz; exact round trips."""
+
 from __future__ import annotations
 
 import json
@@ -19,7 +20,9 @@ def _hand_made_folder(folder, mesh, names=("smile_L", "jawOpen", "frown")):
     fr.save(mesh, folder / "Neutral.obj")
     shapes = []
     for name in names:
-        shape = mesh.vertices + rng.normal(0, 0.3, mesh.vertices.shape) * rng.random((mesh.n_vertices, 1))
+        shape = mesh.vertices + rng.normal(0, 0.3, mesh.vertices.shape) * rng.random(
+            (mesh.n_vertices, 1)
+        )
         fr.save(mesh.with_vertices(shape), folder / f"{name}.obj")
         shapes.append(shape)
     return np.array(shapes)
@@ -28,7 +31,11 @@ def _hand_made_folder(folder, mesh, names=("smile_L", "jawOpen", "frown")):
 def test_folder_rig_without_sidecar(tmp_path, mesh):
     shapes = _hand_made_folder(tmp_path / "rig", mesh, names=("shape10", "shape2", "jaw"))
     rig = fr.load(tmp_path / "rig")
-    assert isinstance(rig, BlendshapeRig) and rig.names == ("jaw", "shape2", "shape10")  # natural order
+    assert isinstance(rig, BlendshapeRig) and rig.names == (
+        "jaw",
+        "shape2",
+        "shape10",
+    )  # natural order
     np.testing.assert_array_equal(rig.neutral.vertices + rig.deltas[1], shapes[1])
 
 
@@ -40,7 +47,9 @@ def test_folder_rig_round_trip_is_exact(tmp_path, mesh):
     assert [s["name"] for s in meta["shapes"]] == list(once.names)
     twice = fr.load(tmp_path / "out")
     assert twice.names == once.names
-    np.testing.assert_array_equal(twice.deltas, once.deltas)  # bit-exact deltas through absolute OBJs
+    np.testing.assert_array_equal(
+        twice.deltas, once.deltas
+    )  # bit-exact deltas through absolute OBJs
     np.testing.assert_array_equal(twice.neutral.vertices, once.neutral.vertices)
 
 
@@ -79,6 +88,8 @@ def test_folder_rig_errors(tmp_path, mesh):
     with pytest.raises(FileFormatError, match="odd.obj.*'odd' has a different topology"):
         fr.load(tmp_path / "rig")
     (tmp_path / "rig" / "odd.obj").unlink()
-    (tmp_path / "rig" / "rig.json").write_text(json.dumps({"neutral": "Neutral.obj", "shapes": [{"name": "x", "file": "../x.obj"}]}))
+    (tmp_path / "rig" / "rig.json").write_text(
+        json.dumps({"neutral": "Neutral.obj", "shapes": [{"name": "x", "file": "../x.obj"}]})
+    )
     with pytest.raises(FileFormatError, match="plain names"):
         fr.load(tmp_path / "rig")

@@ -1,4 +1,5 @@
 """Mesh sequences: folders, npy, PC2, MDD (memory-mapped), round trips and bad files."""
+
 from __future__ import annotations
 
 import json
@@ -64,7 +65,11 @@ def test_point_caches_are_memory_mapped_and_round_trip(tmp_path, seq, mesh, ext)
 def test_mdd_is_big_endian_and_mapped(tmp_path, mesh):
     frames = np.arange(2 * mesh.n_vertices * 3, dtype=">f4").reshape(2, mesh.n_vertices, 3)
     path = tmp_path / "take.mdd"
-    path.write_bytes(struct.pack(">ii", 2, mesh.n_vertices) + np.array([0, 0.04], ">f4").tobytes() + frames.tobytes())
+    path.write_bytes(
+        struct.pack(">ii", 2, mesh.n_vertices)
+        + np.array([0, 0.04], ">f4").tobytes()
+        + frames.tobytes()
+    )
     fr.save(mesh, tmp_path / "take.obj")  # topology found beside the cache by stem
     read = fr.load(path)
     np.testing.assert_array_equal(np.asarray(read.vertices[1]), frames[1].astype(float))

@@ -10,16 +10,17 @@
   sidecar of a mesh folder): the peak stays within ``TEXT_TOKEN_FACTOR`` times the file,
   the factor their budget check uses.
 """
+
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from memtools import TEXT_READER_MODULES, traced_memory
 
 import faceretarget as fr
 from faceretarget.io import _common, read_feature_lines, read_landmarks
 from faceretarget.registry import registry
-from memtools import TEXT_READER_MODULES, traced_memory
 
 WORK = _common.CHUNK_FACTOR * 2 * _common.CHUNK_BYTES
 #: a small chunk for the streaming test: a reader that holds more than one chunk's
@@ -40,7 +41,10 @@ def measured(call, monkeypatch=None):
 def grid(n: int, seed: int = 0) -> fr.Mesh:
     rng = np.random.default_rng(seed)
     xs, ys = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))
-    v = np.stack([xs.ravel(), ys.ravel(), 0.1 * xs.ravel() * ys.ravel()], 1) + rng.normal(size=(n * n, 3)) * 1e-3
+    v = (
+        np.stack([xs.ravel(), ys.ravel(), 0.1 * xs.ravel() * ys.ravel()], 1)
+        + rng.normal(size=(n * n, 3)) * 1e-3
+    )
     i = np.arange(n * n).reshape(n, n)
     a, b, c, d = i[:-1, :-1].ravel(), i[:-1, 1:].ravel(), i[1:, :-1].ravel(), i[1:, 1:].ravel()
     return fr.Mesh(v, np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)]))
@@ -48,10 +52,12 @@ def grid(n: int, seed: int = 0) -> fr.Mesh:
 
 def ascii_ply(path: Path, mesh: fr.Mesh, fmt: str = "%.6f") -> Path:
     with open(path, "w") as fh:
-        fh.write(f"ply\nformat ascii 1.0\nelement vertex {mesh.n_vertices}\nproperty float x\nproperty float y\nproperty float z\n"
-                 f"element face {mesh.n_triangles}\nproperty list uchar int vertex_indices\nend_header\n")
+        fh.write(
+            f"ply\nformat ascii 1.0\nelement vertex {mesh.n_vertices}\nproperty float x\nproperty float y\nproperty float z\n"
+            f"element face {mesh.n_triangles}\nproperty list uchar int vertex_indices\nend_header\n"
+        )
         fh.write("\n".join(" ".join(fmt % x for x in r) for r in mesh.vertices.tolist()) + "\n")
-        fh.write("\n".join("3 %d %d %d" % tuple(r) for r in mesh.triangles.tolist()) + "\n")
+        fh.write("\n".join("3 {} {} {}".format(*r) for r in mesh.triangles.tolist()) + "\n")
     return path
 
 
@@ -79,12 +85,16 @@ def realistic(kind: str, folder: Path) -> tuple[Path, dict]:
     if kind == "stl":
         return ascii_stl(folder / "grid.stl", grid(48)), {}
     if kind in ("trc", "markers_csv"):
-        markers = fr.MarkerSequence(rng.normal(size=(700, 40, 3)), names=[f"m{i}" for i in range(40)], fps=120.0)
+        markers = fr.MarkerSequence(
+            rng.normal(size=(700, 40, 3)), names=[f"m{i}" for i in range(40)], fps=120.0
+        )
         path = folder / ("take.trc" if kind == "trc" else "take.csv")
         fr.save(markers, path)
         return path, {}
     if kind == "weights_csv":
-        weights = fr.WeightSequence(rng.uniform(size=(1000, 61)), [f"shape{i}" for i in range(61)], fps=60.0)
+        weights = fr.WeightSequence(
+            rng.uniform(size=(1000, 61)), [f"shape{i}" for i in range(61)], fps=60.0
+        )
         path = folder / "live_link.csv"
         fr.save(weights, path)
         return path, {"kind": "weights"}
@@ -102,7 +112,9 @@ def test_realistic_text_files_peak_within_4x_the_file(kind, tmp_path):
     result, peak, _ = measured(lambda: fr.load(path, **options))
     assert result is not None
     print(f"\n{kind}: {size >> 10} KiB, peak {peak / size:.2f}x the file")
-    assert peak <= 4 * size, f"{kind}: reading {size >> 10} KiB peaked at {peak / size:.2f}x the file"
+    assert peak <= 4 * size, (
+        f"{kind}: reading {size >> 10} KiB peaked at {peak / size:.2f}x the file"
+    )
 
 
 def smallest_lines(kind: str, folder: Path, n: int) -> tuple[Path, dict, int]:
@@ -117,18 +129,31 @@ def smallest_lines(kind: str, folder: Path, n: int) -> tuple[Path, dict, int]:
         return path, {}, (n + 3) * 24 + 24
     if kind == "ply":
         path = folder / "min.ply"
-        path.write_text(f"ply\nformat ascii 1.0\nelement vertex {n + 3}\nproperty float x\nproperty float y\nproperty float z\n"
-                        "element face 1\nproperty list uchar int vertex_indices\nend_header\n" + "0 0 0\n" * n + "1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n")
+        path.write_text(
+            f"ply\nformat ascii 1.0\nelement vertex {n + 3}\nproperty float x\nproperty float y\nproperty float z\n"
+            "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+            + "0 0 0\n" * n
+            + "1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n"
+        )
         return path, {}, (n + 3) * 24 + 24
     if kind == "stl":
         m = n // 10
         path = folder / "min.stl"
-        path.write_text("solid\n" + "".join(f"facet\nouter loop\nvertex {i} 0 0\nvertex {i} 1 0\nvertex {i} 0 1\nendloop\nendfacet\n" for i in range(m)) + "endsolid\n")
+        path.write_text(
+            "solid\n"
+            + "".join(
+                f"facet\nouter loop\nvertex {i} 0 0\nvertex {i} 1 0\nvertex {i} 0 1\nendloop\nendfacet\n"
+                for i in range(m)
+            )
+            + "endsolid\n"
+        )
         return path, {}, m * 9 * 8
     if kind == "trc":
         path = folder / "min.trc"
-        path.write_text(f"PathFileType\t4\t(X/Y/Z)\tmin.trc\nDataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\n60\t60\t{n}\t1\tmm\n"
-                        "Frame#\tTime\tm\t\t\n\t\tX1\tY1\tZ1\n\n" + "1\t0\t0\t0\t0\n" * n)
+        path.write_text(
+            f"PathFileType\t4\t(X/Y/Z)\tmin.trc\nDataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\n60\t60\t{n}\t1\tmm\n"
+            "Frame#\tTime\tm\t\t\n\t\tX1\tY1\tZ1\n\n" + "1\t0\t0\t0\t0\n" * n
+        )
         return path, {}, n * 24
     if kind == "markers_csv":
         path = folder / "min.csv"
@@ -143,19 +168,29 @@ def smallest_lines(kind: str, folder: Path, n: int) -> tuple[Path, dict, int]:
 
 @pytest.mark.parametrize("chunk", [_common.CHUNK_BYTES, SMALL_CHUNK], ids=["chunk", "small_chunk"])
 @pytest.mark.parametrize("kind", TEXT_READERS)
-def test_smallest_lines_cost_the_result_plus_one_chunk_and_never_more_than_checked(kind, chunk, tmp_path, monkeypatch):
-    path, options, result_bytes = smallest_lines(kind, tmp_path, 100_000 if chunk == _common.CHUNK_BYTES else 40_000)
+def test_smallest_lines_cost_the_result_plus_one_chunk_and_never_more_than_checked(
+    kind, chunk, tmp_path, monkeypatch
+):
+    path, options, result_bytes = smallest_lines(
+        kind, tmp_path, 100_000 if chunk == _common.CHUNK_BYTES else 40_000
+    )
     for module in ("_common", "meshes", "markers"):
         monkeypatch.setattr(f"faceretarget.io.{module}.CHUNK_BYTES", chunk)
     work = _common.CHUNK_FACTOR * 2 * chunk
     size = path.stat().st_size
     assert size > 2 * chunk  # the chunk work is at its largest
     _, peak, checked = measured(lambda: fr.load(path, **options), monkeypatch)
-    print(f"\n{kind} smallest lines, {chunk >> 10} KiB chunks: {size >> 10} KiB, peak {peak / size:.2f}x the file, result {result_bytes / size:.2f}x, "
-          f"work beyond the result {(peak - result_bytes) >> 10} KiB of {work >> 10}, checked {checked / size:.2f}x")
-    assert peak <= result_bytes + work, f"{kind}: peak {peak >> 10} KiB, result {result_bytes >> 10} KiB + chunk work {work >> 10} KiB"
+    print(
+        f"\n{kind} smallest lines, {chunk >> 10} KiB chunks: {size >> 10} KiB, peak {peak / size:.2f}x the file, result {result_bytes / size:.2f}x, "
+        f"work beyond the result {(peak - result_bytes) >> 10} KiB of {work >> 10}, checked {checked / size:.2f}x"
+    )
+    assert peak <= result_bytes + work, (
+        f"{kind}: peak {peak >> 10} KiB, result {result_bytes >> 10} KiB + chunk work {work >> 10} KiB"
+    )
     assert result_bytes <= 4 * size
-    assert peak <= checked, f"{kind}: peak {peak >> 10} KiB but only {checked / 1024:.0f} KiB was checked against the budget"
+    assert peak <= checked, (
+        f"{kind}: peak {peak >> 10} KiB but only {checked / 1024:.0f} KiB was checked against the budget"
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -181,7 +216,12 @@ def small_text(kind: str, folder: Path):
         return path, lambda: read_landmarks(path)
     if kind == "feature_lines":
         path = folder / "lines.json"
-        path.write_text(json.dumps({f"l{k}": ids[k * 4 : k * 4 + 4] for k in range(len(ids) // 4)}, separators=(",", ":")))
+        path.write_text(
+            json.dumps(
+                {f"l{k}": ids[k * 4 : k * 4 + 4] for k in range(len(ids) // 4)},
+                separators=(",", ":"),
+            )
+        )
         return path, lambda: read_feature_lines(path)
     if kind == "sidecar":
         seq = folder / "seq"
@@ -192,16 +232,30 @@ def small_text(kind: str, folder: Path):
         from faceretarget.io.sequences import SEQUENCE_SIDECAR, _sidecar
 
         path = seq / SEQUENCE_SIDECAR
-        path.write_text(json.dumps({"fps": 30, "notes": [str(i) for i in range(40_000)]}, separators=(",", ":")))
+        path.write_text(
+            json.dumps({"fps": 30, "notes": [str(i) for i in range(40_000)]}, separators=(",", ":"))
+        )
         return path, lambda: _sidecar(seq, SEQUENCE_SIDECAR)
     raise ValueError(kind)
 
 
-@pytest.mark.parametrize("kind", ["landmarks_json", "landmarks_named_json", "landmarks_txt", "landmarks_named_txt", "feature_lines", "sidecar"])
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "landmarks_json",
+        "landmarks_named_json",
+        "landmarks_txt",
+        "landmarks_named_txt",
+        "feature_lines",
+        "sidecar",
+    ],
+)
 def test_small_text_files_peak_within_the_factor_their_budget_check_uses(kind, tmp_path):
     path, call = small_text(kind, tmp_path)
     size = path.stat().st_size
     _, peak, _ = measured(call)
     factor = _common.TEXT_TOKEN_FACTOR
     print(f"\n{kind}: {size >> 10} KiB, peak {peak / size:.2f}x the file")
-    assert peak <= factor * size, f"{kind}: {size >> 10} KiB peaked at {peak / size:.1f}x the file (TEXT_TOKEN_FACTOR = {factor})"
+    assert peak <= factor * size, (
+        f"{kind}: {size >> 10} KiB peaked at {peak / size:.1f}x the file (TEXT_TOKEN_FACTOR = {factor})"
+    )

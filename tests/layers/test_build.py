@@ -1,33 +1,44 @@
 """Building the bases: actor simplices from chosen frames, character layers from an ARKit rig."""
+
 import warnings
 
 import numpy as np
 import pytest
+from naive.layers import make_problem
 
 import faceretarget as fr
 from faceretarget import errors
-from faceretarget.plugins.layers import actor_layers_from_frames, default_masks, layered_rig_from_blendshapes
+from faceretarget.plugins.layers import (
+    actor_layers_from_frames,
+    default_masks,
+    layered_rig_from_blendshapes,
+)
 from faceretarget.plugins.layers.retargeter import LayersRetargeter
-from naive.layers import make_problem
 
 
 def _tiny_arkit_rig():
     """A 6-vertex rig: vertices 0-1 brows, 2-3 eyelids, 4-5 lips; one ARKit shape per part."""
-    neutral = fr.Mesh(np.array([[0, 3, 0], [1, 3, 0], [0, 2, 0], [1, 2, 0], [0, 0, 0], [1, 0, 0]], float),
-                      [[0, 1, 2], [1, 3, 2], [2, 3, 4], [3, 5, 4]])
+    neutral = fr.Mesh(
+        np.array([[0, 3, 0], [1, 3, 0], [0, 2, 0], [1, 2, 0], [0, 0, 0], [1, 0, 0]], float),
+        [[0, 1, 2], [1, 3, 2], [2, 3, 4], [3, 5, 4]],
+    )
     deltas = np.zeros((4, 6, 3))
     deltas[0, [0, 1], 1] = 0.3  # browInnerUp
     deltas[1, [2, 3], 1] = -0.4  # eyeBlink_L (ICT spelling)
     deltas[2, 5, 1] = -1.0  # jawOpen
     deltas[3, [4, 5], 0] = [0.2, -0.2]  # mouthPucker
-    return fr.BlendshapeRig(neutral, deltas, ["browInnerUp", "eyeBlink_L", "jawOpen", "mouthPucker"])
+    return fr.BlendshapeRig(
+        neutral, deltas, ["browInnerUp", "eyeBlink_L", "jawOpen", "mouthPucker"]
+    )
 
 
 def test_actor_layers_from_frames_removes_head_motion():
     problem = make_problem(13, n_frames=30)
     chosen = {"emotion": {"a": 0, "b": 5, "c": 9}, "speech": [3, 12], "blink": [20]}
     perf = problem["source"].performance
-    rig = actor_layers_from_frames(perf, chosen, problem["masks_actor"], head_motion=problem["head_motion"])
+    rig = actor_layers_from_frames(
+        perf, chosen, problem["masks_actor"], head_motion=problem["head_motion"]
+    )
     np.testing.assert_allclose(rig.layers["emotion"], problem["actor_local"][[0, 5, 9]], atol=1e-9)
     np.testing.assert_allclose(rig.layers["speech"], problem["actor_local"][[3, 12]], atol=1e-9)
     assert rig.pose_names["emotion"] == ("a", "b", "c")
@@ -39,7 +50,9 @@ def test_actor_layers_from_frames_removes_head_motion():
     size = np.ptp(true[:, 1])
     assert np.sqrt(np.mean(np.sum((est - true) ** 2, axis=1))) < 0.02 * size
     frame = np.asarray(perf.positions[12])
-    np.testing.assert_allclose(np.linalg.norm(est[1:] - est[0], axis=1), np.linalg.norm(frame[1:] - frame[0], axis=1))
+    np.testing.assert_allclose(
+        np.linalg.norm(est[1:] - est[0], axis=1), np.linalg.norm(frame[1:] - frame[0], axis=1)
+    )
     # a Source works too (one region when no masks are given)
     assert actor_layers_from_frames(problem["source"], {"x": [1, 2]}).n_regions == 1
 
@@ -93,8 +106,11 @@ def test_parallel_rigs_built_from_recipes_retarget_end_to_end():
     source_rig = case.source.rig
     actor_full = layered_rig_from_blendshapes(source_rig, on_unmapped="ignore")
     ids = case.source.landmarks.vertex_ids
-    actor = fr.LayeredRig({k: v[:, ids] for k, v in actor_full.layers.items()}, actor_full.masks[:, ids],
-                          pose_names=actor_full.pose_names)
+    actor = fr.LayeredRig(
+        {k: v[:, ids] for k, v in actor_full.layers.items()},
+        actor_full.masks[:, ids],
+        pose_names=actor_full.pose_names,
+    )
     character = layered_rig_from_blendshapes(case.target.blendshapes, on_unmapped="ignore")
     assert character.pose_names["speech"][0] == "MBP"  # the default closed-lips viseme comes first
     s = case.source
@@ -102,5 +118,12 @@ def test_parallel_rigs_built_from_recipes_retarget_end_to_end():
     target = fr.TargetRig(case.target.neutral, layers=character)
     anim = LayersRetargeter().fit(source, target).retarget(source)
     height = case.target.neutral.height
-    err = np.sqrt(np.mean(np.sum((np.asarray(anim.vertices) - np.asarray(case.truth.vertices)) ** 2, axis=-1))) / height
+    err = (
+        np.sqrt(
+            np.mean(
+                np.sum((np.asarray(anim.vertices) - np.asarray(case.truth.vertices)) ** 2, axis=-1)
+            )
+        )
+        / height
+    )
     assert err < 0.05

@@ -1,4 +1,5 @@
 """The layers retargeter passes the conformance kit, through the registry and as a class."""
+
 import faceretarget as fr
 from faceretarget.plugins.layers.retargeter import LayersRetargeter
 from faceretarget.testing import check_retargeter

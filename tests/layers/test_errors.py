@@ -1,11 +1,12 @@
 """Bad input gives typed errors that name the cause; documented handling of missing markers."""
+
 import numpy as np
 import pytest
+from naive.layers import make_problem
 
 import faceretarget as fr
 from faceretarget import errors
 from faceretarget.plugins.layers.retargeter import LayersRetargeter
-from naive.layers import make_problem
 
 
 @pytest.fixture(scope="module")
@@ -21,8 +22,12 @@ def _source(problem, positions=None, **extra):
 
 
 def _layers(rig, layers=None, masks=None, pose_names=None):
-    return fr.LayeredRig(layers if layers is not None else rig.layers, rig.masks if masks is None else masks,
-                         pose_names=pose_names, region_names=None)
+    return fr.LayeredRig(
+        layers if layers is not None else rig.layers,
+        rig.masks if masks is None else masks,
+        pose_names=pose_names,
+        region_names=None,
+    )
 
 
 def test_mismatched_layer_names(problem):
@@ -38,7 +43,9 @@ def test_mismatched_pose_counts(problem):
     fewer = dict(t.layers.layers)
     fewer["emotion"] = fewer["emotion"][:-1]
     with pytest.raises(errors.TopologyMismatchError, match="emotion"):
-        LayersRetargeter().fit(problem["source"], fr.TargetRig(t.neutral, layers=_layers(t.layers, fewer)))
+        LayersRetargeter().fit(
+            problem["source"], fr.TargetRig(t.neutral, layers=_layers(t.layers, fewer))
+        )
 
 
 def test_region_count_mismatch(problem):
@@ -56,7 +63,9 @@ def test_poses_matched_by_name_when_reordered(problem):
     names = {k: list(v) for k, v in t.layers.pose_names.items()}
     names["emotion"] = [names["emotion"][i] for i in order]
     layers = dict(t.layers.layers, emotion=emotion)
-    shuffled = fr.TargetRig(t.neutral, layers=fr.LayeredRig(layers, t.layers.masks, pose_names=names))
+    shuffled = fr.TargetRig(
+        t.neutral, layers=fr.LayeredRig(layers, t.layers.masks, pose_names=names)
+    )
     a = LayersRetargeter().fit(problem["source"], t).retarget(problem["source"]).vertices
     b = LayersRetargeter().fit(problem["source"], shuffled).retarget(problem["source"]).vertices
     np.testing.assert_allclose(a, b, atol=1e-12)
@@ -66,7 +75,9 @@ def test_source_with_other_marker_count(problem):
     r = LayersRetargeter().fit(problem["source"], problem["target"])
     other = make_problem(11, n_markers=50, n_frames=5)
     with pytest.raises(errors.TopologyMismatchError, match="markers"):
-        r.retarget(fr.Source(other["source"].performance, actor_layers=other["source"].actor_layers))
+        r.retarget(
+            fr.Source(other["source"].performance, actor_layers=other["source"].actor_layers)
+        )
 
 
 def test_stream_frame_shapes_and_values(problem):
@@ -93,10 +104,18 @@ def test_missing_markers_for_many_frames_are_dropped_per_frame(problem):
     for f in range(0, pos.shape[0], 2):
         pos[f, rng.choice(np.arange(2, pos.shape[1]), pos.shape[1] // 3, replace=False)] = np.nan
     full = LayersRetargeter().fit(problem["source"], problem["target"]).retarget(problem["source"])
-    gappy = LayersRetargeter().fit(problem["source"], problem["target"]).retarget(_source(problem, pos))
+    gappy = (
+        LayersRetargeter().fit(problem["source"], problem["target"]).retarget(_source(problem, pos))
+    )
     height = np.ptp(problem["target"].neutral.vertices[:, 1])
-    err = np.sqrt(np.mean(np.sum((np.asarray(gappy.vertices) - problem["truth"]) ** 2, axis=-1))) / height
-    err_full = np.sqrt(np.mean(np.sum((np.asarray(full.vertices) - problem["truth"]) ** 2, axis=-1))) / height
+    err = (
+        np.sqrt(np.mean(np.sum((np.asarray(gappy.vertices) - problem["truth"]) ** 2, axis=-1)))
+        / height
+    )
+    err_full = (
+        np.sqrt(np.mean(np.sum((np.asarray(full.vertices) - problem["truth"]) ** 2, axis=-1)))
+        / height
+    )
     assert np.isfinite(gappy.vertices).all()
     assert err < 3 * err_full + 1e-3
 
@@ -119,28 +138,33 @@ def test_one_frame_sequence(problem):
     assert anim.vertices.shape == (1, problem["target"].neutral.n_vertices, 3)
 
 
-@pytest.mark.parametrize("params, error", [
-    ({"gamma_max": 1.0}, errors.ConfigError),
-    ({"smoothing": -1.0}, errors.ConfigError),
-    ({"lip_sigma": -0.1}, errors.ConfigError),
-    ({"head_motion": "guess"}, errors.ConfigError),
-    ({"composition": "multiplicative"}, errors.ConfigError),
-    ({"head_motion_refinement": -1}, errors.ConfigError),
-    ({"head_motion_refinement": 1.5}, errors.ConfigError),
-    ({"head_motion_refinement": 10_000}, errors.ConfigError),
-    ({"residual": "rbf"}, errors.ConfigError),
-    ({"residual": "blendshapes"}, errors.CapabilityError),
-    ({"rigid_points": "some"}, errors.ConfigError),
-    ({"closed_viseme": "MM"}, errors.UnknownNameError),
-    ({"closed_viseme": 17}, errors.IndexRangeError),
-    ({"lip_markers": ("nose", "chin")}, errors.UnknownNameError),
-    ({"mouth_region": "jaw"}, errors.UnknownNameError),
-    ({"speech_layer": "talk", "closed_viseme": 0}, errors.UnknownNameError),
-    ({"project_blendshapes": True}, errors.CapabilityError),
-])
+@pytest.mark.parametrize(
+    "params, error",
+    [
+        ({"gamma_max": 1.0}, errors.ConfigError),
+        ({"smoothing": -1.0}, errors.ConfigError),
+        ({"lip_sigma": -0.1}, errors.ConfigError),
+        ({"head_motion": "guess"}, errors.ConfigError),
+        ({"composition": "multiplicative"}, errors.ConfigError),
+        ({"head_motion_refinement": -1}, errors.ConfigError),
+        ({"head_motion_refinement": 1.5}, errors.ConfigError),
+        ({"head_motion_refinement": 10_000}, errors.ConfigError),
+        ({"residual": "rbf"}, errors.ConfigError),
+        ({"residual": "blendshapes"}, errors.CapabilityError),
+        ({"rigid_points": "some"}, errors.ConfigError),
+        ({"closed_viseme": "MM"}, errors.UnknownNameError),
+        ({"closed_viseme": 17}, errors.IndexRangeError),
+        ({"lip_markers": ("nose", "chin")}, errors.UnknownNameError),
+        ({"mouth_region": "jaw"}, errors.UnknownNameError),
+        ({"speech_layer": "talk", "closed_viseme": 0}, errors.UnknownNameError),
+        ({"project_blendshapes": True}, errors.CapabilityError),
+    ],
+)
 def test_bad_parameters(problem, params, error):
     with pytest.raises(error):
-        LayersRetargeter(**params).fit(problem["source"], problem["target"]).retarget(problem["source"])
+        LayersRetargeter(**params).fit(problem["source"], problem["target"]).retarget(
+            problem["source"]
+        )
 
 
 def test_missing_parts_and_degenerate_bases(problem):
@@ -149,8 +173,13 @@ def test_missing_parts_and_degenerate_bases(problem):
         LayersRetargeter().fit(problem["source"], fr.TargetRig(t.neutral))
     with pytest.raises(errors.CapabilityError, match="actor layers"):
         LayersRetargeter().fit(fr.Source(problem["source"].performance), t)
-    still = fr.LayeredRig({k: np.repeat(np.asarray(problem["source"].performance.reference)[None], v.shape[0], 0)
-                           for k, v in problem["source"].actor_layers.layers.items()}, problem["source"].actor_layers.masks)
+    still = fr.LayeredRig(
+        {
+            k: np.repeat(np.asarray(problem["source"].performance.reference)[None], v.shape[0], 0)
+            for k, v in problem["source"].actor_layers.layers.items()
+        },
+        problem["source"].actor_layers.masks,
+    )
     with pytest.raises(errors.DegenerateGeometryError, match="neutral"):
         LayersRetargeter().fit(_source(problem, actor_layers=still), t)
 
@@ -158,7 +187,9 @@ def test_missing_parts_and_degenerate_bases(problem):
 def test_model_with_tracks_needs_tracks():
     problem = make_problem(12, n_tracks=8, n_frames=6)
     r = LayersRetargeter().fit(problem["source"], problem["target"])
-    no_tracks = fr.Source(problem["source"].performance, actor_layers=problem["source"].actor_layers)
+    no_tracks = fr.Source(
+        problem["source"].performance, actor_layers=problem["source"].actor_layers
+    )
     with pytest.raises(errors.CapabilityError, match="2D tracks"):
         r.retarget(no_tracks)
     with pytest.raises(errors.CapabilityError, match="2D tracks"):

@@ -1,9 +1,10 @@
 """The lip-closure bias (sec. 4): nearly closed actor lips close the character's; open lips stay open."""
+
 import numpy as np
 import pytest
+from naive.layers import make_problem
 
 from faceretarget.plugins.layers.retargeter import LayersRetargeter
-from naive.layers import make_problem
 
 SIZES = (6, 5, 3)  # emotion, speech (pose 0 = closed lips), blink
 
@@ -20,7 +21,10 @@ def lips():
     probe = make_problem(5, sizes=SIZES, n_frames=n_frames, weights=W, coefficients=A)
     speech = probe["actor_poses"]["speech"]
     gaps = np.linalg.norm(speech[:, 0] - speech[:, 1], axis=1)  # markers 0, 1: lip centres
-    k_open, k_mid = int(np.argmax(gaps)), int(np.argsort(gaps)[1])  # widest, and the least open viseme
+    k_open, k_mid = (
+        int(np.argmax(gaps)),
+        int(np.argsort(gaps)[1]),
+    )  # widest, and the least open viseme
     eps = np.linspace(0.02, 0.12, 10)
     A[:10, SIZES[0]] = 1.0 - eps  # nearly closed: mostly the closed viseme
     A[:10, SIZES[0] + k_mid] = eps
@@ -33,8 +37,14 @@ def lips():
     closed_gap = float(np.linalg.norm(closed[upper] - closed[lower]))
 
     def character_gap(**params):
-        params.setdefault("lip_sigma", 0.1)  # a wide bias (the default 0.02 acts on closed lips only)
-        anim = LayersRetargeter(**params).fit(problem["source"], problem["target"]).retarget(problem["source"])
+        params.setdefault(
+            "lip_sigma", 0.1
+        )  # a wide bias (the default 0.02 acts on closed lips only)
+        anim = (
+            LayersRetargeter(**params)
+            .fit(problem["source"], problem["target"])
+            .retarget(problem["source"])
+        )
         local = anim.local_vertices
         return np.linalg.norm(local[:, upper] - local[:, lower], axis=1), anim.extras["lip_gamma"]
 
@@ -64,7 +74,9 @@ def test_open_lips_are_not_closed(lips):
     assert gamma[10:].max() < 1e-3
     opening_biased, opening_plain = biased[10:] - closed_gap, plain[10:] - closed_gap
     assert opening_plain.min() > 0.3  # wide open
-    assert (opening_biased > 0.95 * opening_plain).all()  # (smoothing carries the closed frames' path a little)
+    assert (
+        opening_biased > 0.95 * opening_plain
+    ).all()  # (smoothing carries the closed frames' path a little)
 
 
 def test_bias_settings_are_found_and_reported():

@@ -1,13 +1,14 @@
 """The residual: what the actor's layers do not span, carried to the character through its blendshapes."""
+
 import numpy as np
 import pytest
+from naive.layers import make_problem
 
 import faceretarget as fr
 from faceretarget import errors
 from faceretarget.plugins.layers import compose
-from faceretarget.plugins.layers.residual import build_residual, pair_markers, solve_residual
+from faceretarget.plugins.layers.residual import pair_markers, solve_residual
 from faceretarget.plugins.layers.retargeter import LayersRetargeter
-from naive.layers import make_problem
 
 
 def _error(vertices, case):
@@ -23,14 +24,25 @@ def case():
 def test_residual_adds_exactly_its_blendshape_displacements(case):
     r = LayersRetargeter().fit(case.source, case.target)
     anim = r.retarget(case.source)
-    assert r.residual_ is not None and "45 shapes through 68 landmarks" in anim.provenance["diagnostics"]["residual"]
+    assert (
+        r.residual_ is not None
+        and "45 shapes through 68 landmarks" in anim.provenance["diagnostics"]["residual"]
+    )
     w = anim.extras["residual_weights"]
-    assert w.shape == (120, case.target.blendshapes.n_shapes) and anim.extras["residual_names"] == case.target.blendshapes.names
-    beta = compose.region_coefficients(anim.extras["layer_weights"],
-                                       np.concatenate(list(anim.extras["coefficients"].values()), axis=1), r.actor_.layer_of)
+    assert (
+        w.shape == (120, case.target.blendshapes.n_shapes)
+        and anim.extras["residual_names"] == case.target.blendshapes.names
+    )
+    beta = compose.region_coefficients(
+        anim.extras["layer_weights"],
+        np.concatenate(list(anim.extras["coefficients"].values()), axis=1),
+        r.actor_.layer_of,
+    )
     layers_only = compose.world_vertices(r.character_, beta, anim.head_motion)
     deltas = np.asarray(case.target.blendshapes.deltas)
-    np.testing.assert_allclose(anim.local_vertices, layers_only + np.einsum("fm,mvd->fvd", w, deltas), atol=1e-9)
+    np.testing.assert_allclose(
+        anim.local_vertices, layers_only + np.einsum("fm,mvd->fvd", w, deltas), atol=1e-9
+    )
 
 
 def test_residual_off_is_the_layers_alone(case):
@@ -39,7 +51,10 @@ def test_residual_off_is_the_layers_alone(case):
     off = LayersRetargeter(residual="none").fit(case.source, case.target).retarget(case.source)
     for key in ("layer_weights", "lip_gamma"):
         np.testing.assert_allclose(on.extras[key], off.extras[key], atol=1e-12)
-    assert "residual_weights" not in off.extras and off.provenance["diagnostics"]["residual"] == "off (residual='none')"
+    assert (
+        "residual_weights" not in off.extras
+        and off.provenance["diagnostics"]["residual"] == "off (residual='none')"
+    )
     # what the layers do not span (accents, jaw slides...) is what the residual carries: half the error
     assert _error(on.vertices, case) < 0.6 * _error(off.vertices, case)
 
@@ -47,7 +62,11 @@ def test_residual_off_is_the_layers_alone(case):
 def test_residual_of_an_exactly_layered_actor_is_nothing():
     """Frames the actor's layers explain exactly leave nothing to carry (synthetic case)."""
     case = fr.cases.synthetic(resolution=600, n_frames=30, head_motion=False)
-    anim = LayersRetargeter(smoothing=0.0, lip_sigma=0.0).fit(case.source, case.target).retarget(case.source)
+    anim = (
+        LayersRetargeter(smoothing=0.0, lip_sigma=0.0)
+        .fit(case.source, case.target)
+        .retarget(case.source)
+    )
     assert np.abs(anim.extras["residual_weights"]).max() < 1e-6
 
 
@@ -56,14 +75,26 @@ def test_residual_is_unit_free(case):
     millimetres gives the same character (the layers' data term and the residual's transfer
     are both unit-free)."""
     s = case.source
-    mm = fr.Source(fr.MarkerSequence(1000 * s.marker_positions(), names=s.performance.names, reference=1000 * s.marker_reference(),
-                                     fps=s.fps),
-                   actor_layers=fr.LayeredRig({k: 1000 * np.asarray(v) for k, v in s.actor_layers.layers.items()},
-                                              s.actor_layers.masks, pose_names=s.actor_layers.pose_names,
-                                              region_names=s.actor_layers.region_names))
+    mm = fr.Source(
+        fr.MarkerSequence(
+            1000 * s.marker_positions(),
+            names=s.performance.names,
+            reference=1000 * s.marker_reference(),
+            fps=s.fps,
+        ),
+        actor_layers=fr.LayeredRig(
+            {k: 1000 * np.asarray(v) for k, v in s.actor_layers.layers.items()},
+            s.actor_layers.masks,
+            pose_names=s.actor_layers.pose_names,
+            region_names=s.actor_layers.region_names,
+        ),
+    )
     a = LayersRetargeter().fit(s, case.target).retarget(s)
     b = LayersRetargeter().fit(mm, case.target).retarget(mm)
-    assert np.abs(np.asarray(a.vertices) - np.asarray(b.vertices)).max() < 1e-6 * case.target.neutral.height
+    assert (
+        np.abs(np.asarray(a.vertices) - np.asarray(b.vertices)).max()
+        < 1e-6 * case.target.neutral.height
+    )
 
 
 def test_residual_needs_blendshapes_and_paired_landmarks():
@@ -89,7 +120,7 @@ def test_residual_smoothing_is_first_order_and_streams():
     block, _ = solve_residual(model, res, 0.1)
     state, frames = None, []
     for t in range(20):
-        out, state = solve_residual(model, res[t:t + 1], 0.1, state)
+        out, state = solve_residual(model, res[t : t + 1], 0.1, state)
         frames.append(out[0])
     np.testing.assert_allclose(np.array(frames), block, rtol=1e-10, atol=1e-14)
     # frame 5 by brute force

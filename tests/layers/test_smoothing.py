@@ -1,11 +1,12 @@
 """The temporal smoothing of Eq. 7 smooths, and without it each frame is solved on its own."""
+
 import numpy as np
 import pytest
+from naive.layers import make_problem
 
 import faceretarget as fr
 from faceretarget.plugins.layers import solver
 from faceretarget.plugins.layers.retargeter import LayersRetargeter
-from naive.layers import make_problem
 
 LEVELS = (0.0, 0.005, 0.02, 0.1, 0.5)
 
@@ -19,21 +20,31 @@ def _noisy_layers_problem():
     """Known head motion, 3% marker noise (of the face size 10): the layers alone (no residual)."""
     p = make_problem(21, n_frames=40, noise=0.03, composition="additive")
     s = p["source"]
-    return fr.Source(s.performance, head_motion=p["head_motion"], actor_layers=s.actor_layers), p["target"]
+    return fr.Source(s.performance, head_motion=p["head_motion"], actor_layers=s.actor_layers), p[
+        "target"
+    ]
 
 
 def _noisy_cross_rig():
     """The cross-rig markers (metres) with 1 mm noise: layers + residual, head motion estimated."""
     case = fr.cases.cross_rig(n_frames=120, source_kind="markers")
     s = case.source
-    x = s.marker_positions() + 0.001 * np.random.default_rng(3).normal(size=s.marker_positions().shape)
-    perf = fr.MarkerSequence(x, names=s.performance.names, reference=s.marker_reference(), fps=s.fps)
+    x = s.marker_positions() + 0.001 * np.random.default_rng(3).normal(
+        size=s.marker_positions().shape
+    )
+    perf = fr.MarkerSequence(
+        x, names=s.performance.names, reference=s.marker_reference(), fps=s.fps
+    )
     return fr.Source(perf, actor_layers=s.actor_layers), case.target
 
 
 def energies(source, target, levels=LEVELS):
-    return [_second_difference_energy(LayersRetargeter(smoothing=lam).fit(source, target).retarget(source).local_vertices)
-            for lam in levels]
+    return [
+        _second_difference_energy(
+            LayersRetargeter(smoothing=lam).fit(source, target).retarget(source).local_vertices
+        )
+        for lam in levels
+    ]
 
 
 def smoothing_smooths(values) -> bool:
@@ -41,7 +52,9 @@ def smoothing_smooths(values) -> bool:
     return all(b < a for a, b in zip(values, values[1:])) and values[-1] < 0.5 * values[0]
 
 
-@pytest.mark.parametrize("make", [_noisy_layers_problem, _noisy_cross_rig], ids=["layers", "cross-rig+residual"])
+@pytest.mark.parametrize(
+    "make", [_noisy_layers_problem, _noisy_cross_rig], ids=["layers", "cross-rig+residual"]
+)
 def test_more_smoothing_gives_smoother_output(make):
     source, target = make()
     values = energies(source, target)
@@ -66,9 +79,20 @@ def _per_frame(retargeter, source):
     perf = source.performance
     frames = []
     for f in range(perf.n_frames):
-        one = fr.MarkerSequence(perf.positions[f:f + 1], names=perf.names, reference=perf.reference)
-        frames.append(np.asarray(retargeter.retarget(fr.Source(one, head_motion=source.head_motion[f:f + 1],
-                                                               actor_layers=source.actor_layers)).vertices)[0])
+        one = fr.MarkerSequence(
+            perf.positions[f : f + 1], names=perf.names, reference=perf.reference
+        )
+        frames.append(
+            np.asarray(
+                retargeter.retarget(
+                    fr.Source(
+                        one,
+                        head_motion=source.head_motion[f : f + 1],
+                        actor_layers=source.actor_layers,
+                    )
+                ).vertices
+            )[0]
+        )
     return np.stack(frames)
 
 

@@ -1,10 +1,11 @@
 """Streaming (the model is first-order Markov) equals batch retargeting."""
+
 import numpy as np
 import pytest
+from naive.layers import make_problem
 
 import faceretarget as fr
 from faceretarget.plugins.layers.retargeter import LayersRetargeter
-from naive.layers import make_problem
 
 
 def _batch_and_stream(retargeter, source, frames):
@@ -26,7 +27,9 @@ def _close(a, b):
 def test_markers_stream_equals_batch():
     problem = make_problem(7, noise=0.01)
     r = LayersRetargeter().fit(problem["source"], problem["target"])
-    batch, streamed = _batch_and_stream(r, problem["source"], iter(problem["source"].performance.positions))
+    batch, streamed = _batch_and_stream(
+        r, problem["source"], iter(problem["source"].performance.positions)
+    )
     _close(streamed, batch)
 
 
@@ -35,8 +38,12 @@ def test_stream_with_2d_tracks_pairs_and_missing_markers():
     s = problem["source"]
     pos = np.array(s.performance.positions)
     pos[3, 4:9] = np.nan
-    source = fr.Source(fr.MarkerSequence(pos, names=s.performance.names, reference=s.performance.reference),
-                       actor_layers=s.actor_layers, tracks2d=s.tracks2d, actor_layers_2d=s.actor_layers_2d)
+    source = fr.Source(
+        fr.MarkerSequence(pos, names=s.performance.names, reference=s.performance.reference),
+        actor_layers=s.actor_layers,
+        tracks2d=s.tracks2d,
+        actor_layers_2d=s.actor_layers_2d,
+    )
     r = LayersRetargeter().fit(source, problem["target"])
     frames = zip(pos, np.asarray(s.tracks2d.positions))
     batch, streamed = _batch_and_stream(r, source, frames)
@@ -46,9 +53,14 @@ def test_stream_with_2d_tracks_pairs_and_missing_markers():
 def test_stream_with_known_head_motion_in_dicts():
     problem = make_problem(9)
     s = problem["source"]
-    source = fr.Source(s.performance, head_motion=problem["head_motion"], actor_layers=s.actor_layers)
+    source = fr.Source(
+        s.performance, head_motion=problem["head_motion"], actor_layers=s.actor_layers
+    )
     r = LayersRetargeter().fit(source, problem["target"])
-    frames = ({"markers": m, "head_motion": h} for m, h in zip(s.performance.positions, problem["head_motion"]))
+    frames = (
+        {"markers": m, "head_motion": h}
+        for m, h in zip(s.performance.positions, problem["head_motion"])
+    )
     batch, streamed = _batch_and_stream(r, source, frames)
     _close(streamed, batch)
 
@@ -67,8 +79,14 @@ def test_first_stream_frame_is_a_one_frame_retarget():
     problem = make_problem(10)
     s = problem["source"]
     r = LayersRetargeter().fit(s, problem["target"])
-    one = fr.Source(fr.MarkerSequence(s.performance.positions[:1], names=s.performance.names, reference=s.performance.reference),
-                    actor_layers=s.actor_layers)
+    one = fr.Source(
+        fr.MarkerSequence(
+            s.performance.positions[:1],
+            names=s.performance.names,
+            reference=s.performance.reference,
+        ),
+        actor_layers=s.actor_layers,
+    )
     single = np.asarray(r.retarget(one).vertices)
     assert single.shape == (1, problem["target"].neutral.n_vertices, 3)
     first = next(iter(r.stream(s.performance.positions)))

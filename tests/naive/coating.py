@@ -5,6 +5,7 @@ angles, Taubin smoothing with a dense averaging matrix, vertex frames and coatin
 vertex at a time, deformation transfer with the fourth vertices kept as unknowns and
 solved by dense least squares, and the editing problems assembled in full.
 """
+
 from __future__ import annotations
 
 import math
@@ -30,7 +31,9 @@ def cotangent_laplacian(vertices, triangles):
         for k in range(3):
             c, i, j = tri[k], tri[(k + 1) % 3], tri[(k + 2) % 3]
             u, w = v[i] - v[c], v[j] - v[c]
-            angle = math.acos(max(-1.0, min(1.0, float(u @ w) / (np.linalg.norm(u) * np.linalg.norm(w)))))
+            angle = math.acos(
+                max(-1.0, min(1.0, float(u @ w) / (np.linalg.norm(u) * np.linalg.norm(w))))
+            )
             half = 0.5 / math.tan(angle)
             lap[i, j] -= half
             lap[j, i] -= half
@@ -130,7 +133,10 @@ def bases_edit(normal, gauge, bases0, center, weights, constraints, mu, lambda_b
             np.add.at(f, con.vertices, con.coeffs)
             u = (proj.T @ f)[free]
             row = np.kron(weights[con.frame], u)
-            cur = con.coeffs @ (center[d] + np.einsum("k,kv->v", weights[con.frame], bases0[:, con.vertices, d] - center[d]))
+            cur = con.coeffs @ (
+                center[d]
+                + np.einsum("k,kv->v", weights[con.frame], bases0[:, con.vertices, d] - center[d])
+            )
             h += mu * np.outer(row, row)
             g += mu * row * (con.value[d] - cur)
         sol = np.linalg.solve(h, g).reshape(k, nf)
@@ -187,7 +193,12 @@ def grid_mesh(n=8, seed=0, jitter=0.2):
     y = ys.ravel() + jitter * h * rng.uniform(-1, 1, n * n)
     z = 0.3 * np.sin(2.5 * x) * np.cos(2.0 * y)
     idx = np.arange(n * n).reshape(n, n)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+    )
     tri = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
     return np.stack([x, y, z], axis=1), tri
 

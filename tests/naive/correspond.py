@@ -4,6 +4,7 @@ An independent method from the production kernel (Ericson's Voronoi-region test)
 closest point of a triangle is its plane projection when that falls inside, else the
 best of the closest points on its three edges.
 """
+
 import numpy as np
 
 

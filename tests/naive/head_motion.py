@@ -3,6 +3,7 @@
 Written from the objective, one frame and one marker at a time; nothing is shared with the
 vectorized estimator (no gains, no moments, no Schur complement). Small sizes only.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,7 +23,7 @@ def rigidity_weights(reference, basis, eps):
     size = face_size(ref)
     w = np.empty(len(ref))
     for i in range(len(ref)):
-        rows = b[3 * i:3 * i + 3]  # (3, M)
+        rows = b[3 * i : 3 * i + 3]  # (3, M)
         motion2 = np.mean([rows[:, j] @ rows[:, j] for j in range(b.shape[1])])
         w[i] = 1.0 / ((eps * size) ** 2 + motion2)
     return w / w.mean()
@@ -31,7 +32,7 @@ def rigidity_weights(reference, basis, eps):
 def _ridge(basis, w, ridge_eps):
     """Default ridge: ``ridge_eps`` times the mean diagonal of ``B^T W B`` (all markers)."""
     m = basis.shape[1]
-    gram = sum(w[i] * basis[3 * i:3 * i + 3].T @ basis[3 * i:3 * i + 3] for i in range(len(w)))
+    gram = sum(w[i] * basis[3 * i : 3 * i + 3].T @ basis[3 * i : 3 * i + 3] for i in range(len(w)))
     return ridge_eps * np.trace(gram) / m
 
 
@@ -40,7 +41,7 @@ def expression_residual(y, basis, w, visible, ridge):
     (the ridge as extra rows); returns the weighted residual without the ridge term."""
     rows, rhs = [], []
     for i in np.flatnonzero(visible):
-        rows.append(np.sqrt(w[i]) * basis[3 * i:3 * i + 3])
+        rows.append(np.sqrt(w[i]) * basis[3 * i : 3 * i + 3])
         rhs.append(np.sqrt(w[i]) * y[i])
     m = basis.shape[1]
     a = np.concatenate(rows + [np.sqrt(ridge) * np.eye(m)])
@@ -48,7 +49,7 @@ def expression_residual(y, basis, w, visible, ridge):
     c = np.linalg.lstsq(a, b, rcond=None)[0]
     total = 0.0
     for i in np.flatnonzero(visible):
-        r = y[i] - basis[3 * i:3 * i + 3] @ c
+        r = y[i] - basis[3 * i : 3 * i + 3] @ c
         total += w[i] * (r @ r)
     return total
 
@@ -72,12 +73,16 @@ def fit_frame(reference, frame, basis, w, ridge, start=None):
         out = []
         for i in np.flatnonzero(visible):
             local = rot.T @ (x[i] - t)
-            out.append(np.sqrt(w[i]) * (local - ref[i] - basis[3 * i:3 * i + 3] @ c))
+            out.append(np.sqrt(w[i]) * (local - ref[i] - basis[3 * i : 3 * i + 3] @ c))
         out.append(np.sqrt(ridge) * c)
         return np.concatenate(out)
 
-    p0 = np.concatenate([Rotation.from_matrix(start[:3, :3]).as_rotvec(), start[:3, 3] / size, np.zeros(m)])
-    sol = scipy.optimize.least_squares(residual, p0, xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000, method="lm")
+    p0 = np.concatenate(
+        [Rotation.from_matrix(start[:3, :3]).as_rotvec(), start[:3, 3] / size, np.zeros(m)]
+    )
+    sol = scipy.optimize.least_squares(
+        residual, p0, xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000, method="lm"
+    )
     out = np.eye(4)
     out[:3, :3] = Rotation.from_rotvec(sol.x[:3]).as_matrix()
     out[:3, 3] = sol.x[3:6] * size
@@ -106,13 +111,17 @@ def balance_frame(reference, frame, basis, w, ridge, start=None):
         y = np.zeros_like(x)
         for i in ids:
             y[i] = rot.T @ (x[i] - t) - ref[i]
-        rows = [np.sqrt(w[i]) * basis[3 * i:3 * i + 3] for i in ids]
+        rows = [np.sqrt(w[i]) * basis[3 * i : 3 * i + 3] for i in ids]
         rhs = [np.sqrt(w[i]) * y[i] for i in ids]
         m = basis.shape[1]
-        c = np.linalg.lstsq(np.concatenate(rows + [np.sqrt(ridge) * np.eye(m)]), np.concatenate(rhs + [np.zeros(m)]), rcond=None)[0]
+        c = np.linalg.lstsq(
+            np.concatenate(rows + [np.sqrt(ridge) * np.eye(m)]),
+            np.concatenate(rhs + [np.zeros(m)]),
+            rcond=None,
+        )[0]
         force, torque = np.zeros(3), np.zeros(3)
         for i in ids:
-            r = y[i] - basis[3 * i:3 * i + 3] @ c
+            r = y[i] - basis[3 * i : 3 * i + 3] @ c
             force += w[i] * r
             torque += w[i] * np.cross(ref[i] - centre, r)
         return np.concatenate([torque / size, force]) / w[visible].sum()
@@ -140,7 +149,18 @@ def kabsch(reference, frame, w):
     return out
 
 
-def estimate(reference, markers, basis, *, eps, ridge_eps, floor_rel, window, starts=None, solve=balance_frame):
+def estimate(
+    reference,
+    markers,
+    basis,
+    *,
+    eps,
+    ridge_eps,
+    floor_rel,
+    window,
+    starts=None,
+    solve=balance_frame,
+):
     """Per-frame fits (``solve``: :func:`balance_frame`, the estimator's equations, or
     :func:`fit_frame`, the least-squares optimum) and the exact gate statistic: the largest
     ``sum_f (c0_f - c1_f) / sum_f (c1_f + floor_f)`` over ``window`` consecutive frames
@@ -166,5 +186,7 @@ def estimate(reference, markers, basis, *, eps, ridge_eps, floor_rel, window, st
         gain[f] = c0 - c1
         rest[f] = c1 + (floor_rel * size) ** 2 * 3 * w[visible].sum()
     span = min(window, len(x))
-    best = max(gain[i:i + span].sum() / rest[i:i + span].sum() for i in range(len(x) - span + 1))
+    best = max(
+        gain[i : i + span].sum() / rest[i : i + span].sum() for i in range(len(x) - span + 1)
+    )
     return motion, best

@@ -9,6 +9,7 @@
 - :func:`foreign_glb` builds GLB files the way *other* exporters do (interleaved views,
   uint16 indices, sparse morph targets, strips, normalized weights, uneven key times).
 """
+
 from __future__ import annotations
 
 import json
@@ -49,14 +50,24 @@ def read_accessor(doc: dict, blob: bytes, index: int) -> np.ndarray:
     width = WIDTH[acc["type"]]
     stride = view.get("byteStride", dtype.itemsize * width)
     start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
-    return np.ndarray((acc["count"], width), dtype=dtype, buffer=blob, offset=start, strides=(stride, dtype.itemsize)).copy()
+    return np.ndarray(
+        (acc["count"], width),
+        dtype=dtype,
+        buffer=blob,
+        offset=start,
+        strides=(stride, dtype.itemsize),
+    ).copy()
 
 
 def validate_gltf(doc: dict, blob: bytes) -> dict:
     """Assert the structure of a glTF document; returns counts of what it checked."""
     assert doc["asset"]["version"] == "2.0"
     assert doc["buffers"][0]["byteLength"] <= len(blob)
-    n_nodes, n_meshes, n_acc = len(doc.get("nodes", [])), len(doc.get("meshes", [])), len(doc.get("accessors", []))
+    n_nodes, n_meshes, _n_acc = (
+        len(doc.get("nodes", [])),
+        len(doc.get("meshes", [])),
+        len(doc.get("accessors", [])),
+    )
     for scene in doc.get("scenes", []):
         assert all(0 <= n < n_nodes for n in scene["nodes"])
     assert 0 <= doc.get("scene", 0) < len(doc["scenes"])
@@ -67,21 +78,29 @@ def validate_gltf(doc: dict, blob: bytes) -> dict:
     for i, view in enumerate(doc["bufferViews"]):
         off = view.get("byteOffset", 0)
         assert off % 4 == 0, f"bufferView {i} offset {off} is 4-byte aligned"
-        assert off + view["byteLength"] <= doc["buffers"][view["buffer"]]["byteLength"], f"bufferView {i} inside its buffer"
+        assert off + view["byteLength"] <= doc["buffers"][view["buffer"]]["byteLength"], (
+            f"bufferView {i} inside its buffer"
+        )
     for i, acc in enumerate(doc["accessors"]):
         view = doc["bufferViews"][acc["bufferView"]]
         size = np.dtype(COMPONENT[acc["componentType"]]).itemsize
         elem = size * WIDTH[acc["type"]]
-        assert acc.get("byteOffset", 0) % size == 0, f"accessor {i} offset aligned to its component size"
+        assert acc.get("byteOffset", 0) % size == 0, (
+            f"accessor {i} offset aligned to its component size"
+        )
         stride = view.get("byteStride", elem)
         end = acc.get("byteOffset", 0) + stride * (acc["count"] - 1) + elem
         assert end <= view["byteLength"], f"accessor {i} inside its bufferView"
         if "min" in acc:
             data = read_accessor(doc, blob, i)
-            assert np.array_equal(np.asarray(acc["min"], dtype=data.dtype), data.min(axis=0)), f"accessor {i} min"
-            assert np.array_equal(np.asarray(acc["max"], dtype=data.dtype), data.max(axis=0)), f"accessor {i} max"
+            assert np.array_equal(np.asarray(acc["min"], dtype=data.dtype), data.min(axis=0)), (
+                f"accessor {i} min"
+            )
+            assert np.array_equal(np.asarray(acc["max"], dtype=data.dtype), data.max(axis=0)), (
+                f"accessor {i} max"
+            )
     checked = {"primitives": 0, "targets": 0, "samplers": 0}
-    for m, mesh in enumerate(doc.get("meshes", [])):
+    for _m, mesh in enumerate(doc.get("meshes", [])):
         n_targets = None
         for prim in mesh["primitives"]:
             checked["primitives"] += 1
@@ -101,7 +120,9 @@ def validate_gltf(doc: dict, blob: bytes) -> dict:
                 assert tacc["count"] == acc["count"] and "min" in tacc and "max" in tacc
                 checked["targets"] += 1
         if n_targets:
-            assert len(mesh["extras"]["targetNames"]) == n_targets, "targetNames match the morph targets"
+            assert len(mesh["extras"]["targetNames"]) == n_targets, (
+                "targetNames match the morph targets"
+            )
             assert len(mesh.get("weights", [0] * n_targets)) == n_targets
     for anim in doc.get("animations", []):
         for sampler in anim["samplers"]:
@@ -110,7 +131,9 @@ def validate_gltf(doc: dict, blob: bytes) -> dict:
             assert inp["type"] == "SCALAR" and inp["componentType"] == 5126
             assert "min" in inp and "max" in inp, "sampler inputs carry min/max"
             times = read_accessor(doc, blob, sampler["input"]).ravel()
-            assert times.size == 1 or np.all(np.diff(times) > 0), "sampler input strictly increasing"
+            assert times.size == 1 or np.all(np.diff(times) > 0), (
+                "sampler input strictly increasing"
+            )
             assert sampler.get("interpolation", "LINEAR") in ("LINEAR", "STEP", "CUBICSPLINE")
         for channel in anim["channels"]:
             sampler = anim["samplers"][channel["sampler"]]
@@ -123,7 +146,10 @@ def validate_gltf(doc: dict, blob: bytes) -> dict:
                 assert out["count"] == n_keys * n_t, "weights output = keys x targets"
             else:
                 assert out["count"] == n_keys
-                assert out["type"] == {"translation": "VEC3", "scale": "VEC3", "rotation": "VEC4"}[target["path"]]
+                assert (
+                    out["type"]
+                    == {"translation": "VEC3", "scale": "VEC3", "rotation": "VEC4"}[target["path"]]
+                )
     return checked
 
 
@@ -135,7 +161,13 @@ class GLB:
 
     def __init__(self):
         self.blob = bytearray()
-        self.doc = {"asset": {"version": "2.0", "generator": "naive test builder"}, "bufferViews": [], "accessors": [], "meshes": [], "nodes": []}
+        self.doc = {
+            "asset": {"version": "2.0", "generator": "naive test builder"},
+            "bufferViews": [],
+            "accessors": [],
+            "meshes": [],
+            "nodes": [],
+        }
 
     def view(self, raw: bytes, stride: int | None = None) -> int:
         self.blob.extend(b"\0" * ((-len(self.blob)) % 4))
@@ -146,7 +178,9 @@ class GLB:
         self.doc["bufferViews"].append(v)
         return len(self.doc["bufferViews"]) - 1
 
-    def accessor(self, view: int, ctype: int, count: int, atype: str, offset: int = 0, **extra) -> int:
+    def accessor(
+        self, view: int, ctype: int, count: int, atype: str, offset: int = 0, **extra
+    ) -> int:
         acc = {"bufferView": view, "componentType": ctype, "count": count, "type": atype, **extra}
         if offset:
             acc["byteOffset"] = offset
@@ -163,7 +197,12 @@ class GLB:
         raw = json.dumps(self.doc).encode()
         raw += b" " * ((-len(raw)) % 4)
         total = 12 + 8 + len(raw) + 8 + len(self.blob)
-        return b"".join([
-            struct.pack("<4sII", b"glTF", 2, total), struct.pack("<II", len(raw), 0x4E4F534A), raw,
-            struct.pack("<II", len(self.blob), 0x004E4942), bytes(self.blob),
-        ])
+        return b"".join(
+            [
+                struct.pack("<4sII", b"glTF", 2, total),
+                struct.pack("<II", len(raw), 0x4E4F534A),
+                raw,
+                struct.pack("<II", len(self.blob), 0x004E4942),
+                bytes(self.blob),
+            ]
+        )

@@ -5,6 +5,7 @@ scipy's SLSQP on the joint variables, as the paper did with a generic constraine
 optimiser. Variables: ``W (m, J)`` (row l = region l, sums to 1 over layers) and the
 stacked simplex coefficients ``alpha (K,)`` (block j sums to 1).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -21,8 +22,25 @@ def layered_output(basis, masks, layer_of, W, alpha):
     return out
 
 
-def frame_objective(xhat, valid, basis, masks, layer_of, W, alpha, c_d, c_b, c_s, mouth, speech, closed, W_prev, a_prev,
-                    additive=False, rigid_jac=None):
+def frame_objective(
+    xhat,
+    valid,
+    basis,
+    masks,
+    layer_of,
+    W,
+    alpha,
+    c_d,
+    c_b,
+    c_s,
+    mouth,
+    speech,
+    closed,
+    W_prev,
+    a_prev,
+    additive=False,
+    rigid_jac=None,
+):
     """E of one frame: c_d |x_hat - f|^2 (observed coordinates) + c_b bias + c_s smoothing.
 
     ``additive``: the bias pulls the speech coefficients only (the weights are left to the data).
@@ -38,7 +56,9 @@ def frame_objective(xhat, valid, basis, masks, layer_of, W, alpha, c_d, c_b, c_s
     if c_b > 0 and mouth >= 0:
         target = np.zeros(W.shape[1])
         target[speech] = 1.0
-        if not additive:  # additive: the bias picks the viseme only, the weights are left to the data
+        if (
+            not additive
+        ):  # additive: the bias picks the viseme only, the weights are left to the data
             e += c_b * float(np.sum((W[mouth] - target) ** 2))
         sel = layer_of == speech
         a_t = np.zeros(alpha.shape[0])
@@ -49,8 +69,25 @@ def frame_objective(xhat, valid, basis, masks, layer_of, W, alpha, c_d, c_b, c_s
     return e
 
 
-def slsqp_frame(xhat, valid, basis, masks, layer_of, c_d, c_b, c_s, mouth, speech, closed, W_prev, a_prev, W0, a0,
-                additive=False, rigid_jac=None):
+def slsqp_frame(
+    xhat,
+    valid,
+    basis,
+    masks,
+    layer_of,
+    c_d,
+    c_b,
+    c_s,
+    mouth,
+    speech,
+    closed,
+    W_prev,
+    a_prev,
+    W0,
+    a0,
+    additive=False,
+    rigid_jac=None,
+):
     """One frame by SLSQP from (W0, a0); returns (W, alpha, E).
 
     ``additive``: each W[l, j] in [0, 1] (no sum over the layers); ``rigid_jac``: see
@@ -64,16 +101,44 @@ def slsqp_frame(xhat, valid, basis, masks, layer_of, c_d, c_b, c_s, mouth, speec
 
     def fun(z):
         W, a = unpack(z)
-        return frame_objective(xhat, valid, basis, masks, layer_of, W, a, c_d, c_b, c_s, mouth, speech, closed, W_prev, a_prev,
-                               additive, rigid_jac)
+        return frame_objective(
+            xhat,
+            valid,
+            basis,
+            masks,
+            layer_of,
+            W,
+            a,
+            c_d,
+            c_b,
+            c_s,
+            mouth,
+            speech,
+            closed,
+            W_prev,
+            a_prev,
+            additive,
+            rigid_jac,
+        )
 
-    cons = [{"type": "eq", "fun": (lambda z, j=j: z[:K][layer_of == j].sum() - 1.0)} for j in range(J)]
+    cons = [
+        {"type": "eq", "fun": (lambda z, j=j: z[:K][layer_of == j].sum() - 1.0)} for j in range(J)
+    ]
     if not additive:
-        cons += [{"type": "eq", "fun": (lambda z, l=l: z[K:].reshape(m, J)[l].sum() - 1.0)} for l in range(m)]
+        cons += [
+            {"type": "eq", "fun": (lambda z, l=l: z[K:].reshape(m, J)[l].sum() - 1.0)}
+            for l in range(m)
+        ]
     z0 = np.concatenate([a0, W0.ravel()])
     bounds = [(0.0, None)] * K + [(0.0, 1.0 if additive else None)] * (m * J)
-    res = minimize(fun, z0, method="SLSQP", bounds=bounds, constraints=cons,
-                   options={"ftol": 1e-10, "maxiter": 500})
+    res = minimize(
+        fun,
+        z0,
+        method="SLSQP",
+        bounds=bounds,
+        constraints=cons,
+        options={"ftol": 1e-10, "maxiter": 500},
+    )
     z = np.clip(res.x, 0.0, None)
     W, a = unpack(z)
     # back onto the constraint set (SLSQP satisfies it only to its tolerance)
@@ -83,14 +148,45 @@ def slsqp_frame(xhat, valid, basis, masks, layer_of, c_d, c_b, c_s, mouth, speec
     return W, a, fun(np.concatenate([a, W.ravel()]))
 
 
-def slsqp_sequence(xhat, valid, basis, masks, layer_of, c_d, c_b, c_s, mouth, speech, closed, W0, a0, additive=False):
+def slsqp_sequence(
+    xhat,
+    valid,
+    basis,
+    masks,
+    layer_of,
+    c_d,
+    c_b,
+    c_s,
+    mouth,
+    speech,
+    closed,
+    W0,
+    a0,
+    additive=False,
+):
     """Frames in order, each warm-started from (and smoothed towards) the previous result."""
     W_prev, a_prev = W0.copy(), a0.copy()
     out_w, out_a, out_e = [], [], []
     for t in range(xhat.shape[0]):
         cs = c_s[t] if t > 0 else 0.0
-        W, a, e = slsqp_frame(xhat[t], valid[t], basis, masks, layer_of, c_d[t], c_b[t], cs, mouth, speech, closed,
-                              W_prev, a_prev, W_prev, a_prev, additive)
+        W, a, e = slsqp_frame(
+            xhat[t],
+            valid[t],
+            basis,
+            masks,
+            layer_of,
+            c_d[t],
+            c_b[t],
+            cs,
+            mouth,
+            speech,
+            closed,
+            W_prev,
+            a_prev,
+            W_prev,
+            a_prev,
+            additive,
+        )
         out_w.append(W)
         out_a.append(a)
         out_e.append(e)
@@ -143,7 +239,9 @@ def _fields(uv, rng_state, sizes):
                 poses[i, :, 1] = -0.08 * (i / max(k - 1, 1)) * eyes
             elif i > 0 or j > 2:
                 poses[i] = poly @ rng.normal(0, 0.04, size=(6, 3))
-                for centre in rng.uniform(-0.8, 0.8, size=(2, 2)):  # local detail: poses affinely independent
+                for centre in rng.uniform(
+                    -0.8, 0.8, size=(2, 2)
+                ):  # local detail: poses affinely independent
                     poses[i] += 0.04 * _bump(uv, centre, 0.3)[:, None] * rng.normal(size=3)
         out.append(poses)
     return out
@@ -156,7 +254,9 @@ def _masks(uv, n_regions, soft):
     above = [1.0 / (1.0 + np.exp(-(v - c) / 0.05)) if soft else (v > c).astype(float) for c in cuts]
     if n_regions == 1:
         return np.ones((1, len(v)))
-    rows = [above[0]] + [above[i] - above[i - 1] for i in range(1, n_regions - 1)] + [1.0 - above[-1]]
+    rows = (
+        [above[0]] + [above[i] - above[i - 1] for i in range(1, n_regions - 1)] + [1.0 - above[-1]]
+    )
     return np.clip(np.array(rows), 0.0, None)
 
 
@@ -176,9 +276,25 @@ def _rotations(rng, n_frames, degrees):
     return Rotation.from_euler("xyz", angles, degrees=True).as_matrix()
 
 
-def make_problem(seed=0, *, n_markers=80, n_tracks=0, sizes=(6, 5, 3), layer_names=None, n_regions=3, n_vertices=600,
-                 n_frames=40, soft=True, head_motion=True, noise=0.0, fields_seed=123, with_truth=True,
-                 weights=None, coefficients=None, composition="convex"):
+def make_problem(
+    seed=0,
+    *,
+    n_markers=80,
+    n_tracks=0,
+    sizes=(6, 5, 3),
+    layer_names=None,
+    n_regions=3,
+    n_vertices=600,
+    n_frames=40,
+    soft=True,
+    head_motion=True,
+    noise=0.0,
+    fields_seed=123,
+    with_truth=True,
+    weights=None,
+    coefficients=None,
+    composition="convex",
+):
     """A parallel actor/character pair with known per-frame parameters.
 
     Returns a dict: ``source`` (Source of markers, optional 2D tracks), ``target`` (TargetRig with
@@ -195,7 +311,9 @@ def make_problem(seed=0, *, n_markers=80, n_tracks=0, sizes=(6, 5, 3), layer_nam
     names = list(layer_names or ("emotion", "speech", "blink", "extra")[: len(sizes)])
     grid = rng.uniform(-1, 1, size=(n_markers - 2, 2))
     uv_a = np.vstack([[0.0, -0.55], [0.0, -0.65], grid])  # the two lip markers first
-    marker_names = ["lip_upper_center", "lip_lower_center"] + [f"m{i}" for i in range(n_markers - 2)]
+    marker_names = ["lip_upper_center", "lip_lower_center"] + [
+        f"m{i}" for i in range(n_markers - 2)
+    ]
     uv_c = rng.uniform(-1, 1, size=(n_vertices, 2))
     actor_neutral = _surface(uv_a, 0.3) * np.array([8.0, 10.0, 8.0])
     char_neutral = _surface(uv_c, 0.6) * np.array([11.0, 9.0, 6.0])
@@ -206,7 +324,9 @@ def make_problem(seed=0, *, n_markers=80, n_tracks=0, sizes=(6, 5, 3), layer_nam
     char_poses = {n: char_neutral + f * amp_c for n, f in zip(names, fc)}
     masks_a, masks_c = _masks(uv_a, n_regions, soft), _masks(uv_c, n_regions, soft)
     layer_of = np.repeat(np.arange(len(sizes)), sizes)
-    W = np.stack([_simplex_path(rng, n_frames, len(sizes), sharp=1.0) for _ in range(n_regions)], axis=1)
+    W = np.stack(
+        [_simplex_path(rng, n_frames, len(sizes), sharp=1.0) for _ in range(n_regions)], axis=1
+    )
     if composition == "additive":  # every layer weight in [0, 1] on its own (the layers add)
         W = np.clip(W * len(sizes), 0.0, 1.0)
     A = np.concatenate([_simplex_path(rng, n_frames, k) for k in sizes], axis=1)
@@ -231,26 +351,60 @@ def make_problem(seed=0, *, n_markers=80, n_tracks=0, sizes=(6, 5, 3), layer_nam
         motion[:, :3, 3] = np.cumsum(rng.normal(0, 0.3, size=(n_frames, 3)), axis=0)
     world = np.einsum("fij,fpj->fpi", motion[:, :3, :3], actor_local) + motion[:, None, :3, 3]
     world = world + rng.normal(0, noise, size=world.shape) if noise else world
-    truth = np.einsum("fij,fpj->fpi", motion[:, :3, :3], char_local) + motion[:, None, :3, 3] if with_truth else None
+    truth = (
+        np.einsum("fij,fpj->fpi", motion[:, :3, :3], char_local) + motion[:, None, :3, 3]
+        if with_truth
+        else None
+    )
     pose_names = {n: [f"{n}_{i}" for i in range(k)] for n, k in zip(names, sizes)}
     actor_layers = fr.LayeredRig(actor_poses, masks_a, pose_names=pose_names)
     tracks = layers2d = None
     if n_tracks:
-        ids = np.argsort(np.abs(uv_a[:, 1] + 0.6) + np.abs(uv_a[:, 0]) * 0.5)[:n_tracks]  # points around the mouth
+        ids = np.argsort(np.abs(uv_a[:, 1] + 0.6) + np.abs(uv_a[:, 0]) * 0.5)[
+            :n_tracks
+        ]  # points around the mouth
         scale2d = 40.0
         proj = lambda p: scale2d * p[..., :2]  # noqa: E731 - orthographic camera in pixels
         local2d = proj(actor_local[:, ids])
         ang = np.deg2rad(np.cumsum(rng.normal(0, 1.0, n_frames)))
-        rot2 = np.stack([np.stack([np.cos(ang), -np.sin(ang)], 1), np.stack([np.sin(ang), np.cos(ang)], 1)], 1)
+        rot2 = np.stack(
+            [np.stack([np.cos(ang), -np.sin(ang)], 1), np.stack([np.sin(ang), np.cos(ang)], 1)], 1
+        )
         zoom = 1.0 + 0.05 * np.sin(np.linspace(0, 3, n_frames))
         shift = np.cumsum(rng.normal(0, 2.0, size=(n_frames, 2)), axis=0)
         world2d = zoom[:, None, None] * np.einsum("fij,fpj->fpi", rot2, local2d) + shift[:, None]
-        tracks = fr.MarkerSequence(world2d, names=[f"t{i}" for i in range(n_tracks)], reference=proj(actor_neutral[ids]))
-        layers2d = fr.LayeredRig({n: proj(p[:, ids]) for n, p in actor_poses.items()}, masks_a[:, ids], pose_names=pose_names)
-    source = fr.Source(fr.MarkerSequence(world, names=marker_names, reference=actor_neutral), actor_layers=actor_layers,
-                       tracks2d=tracks, actor_layers_2d=layers2d)
+        tracks = fr.MarkerSequence(
+            world2d, names=[f"t{i}" for i in range(n_tracks)], reference=proj(actor_neutral[ids])
+        )
+        layers2d = fr.LayeredRig(
+            {n: proj(p[:, ids]) for n, p in actor_poses.items()},
+            masks_a[:, ids],
+            pose_names=pose_names,
+        )
+    source = fr.Source(
+        fr.MarkerSequence(world, names=marker_names, reference=actor_neutral),
+        actor_layers=actor_layers,
+        tracks2d=tracks,
+        actor_layers_2d=layers2d,
+    )
     tris = np.array([[0, 1, 2]])
-    target = fr.TargetRig(fr.Mesh(char_neutral, tris), layers=fr.LayeredRig(char_poses, masks_c, pose_names=pose_names))
-    return dict(source=source, target=target, weights=W, coefficients=A, head_motion=motion, truth=truth,
-                actor_local=actor_local, layer_of=layer_of, uv_actor=uv_a, uv_character=uv_c, masks_actor=masks_a,
-                masks_character=masks_c, actor_poses=actor_poses, character_poses=char_poses)
+    target = fr.TargetRig(
+        fr.Mesh(char_neutral, tris),
+        layers=fr.LayeredRig(char_poses, masks_c, pose_names=pose_names),
+    )
+    return dict(
+        source=source,
+        target=target,
+        weights=W,
+        coefficients=A,
+        head_motion=motion,
+        truth=truth,
+        actor_local=actor_local,
+        layer_of=layer_of,
+        uv_actor=uv_a,
+        uv_character=uv_c,
+        masks_actor=masks_a,
+        masks_character=masks_c,
+        actor_poses=actor_poses,
+        character_poses=char_poses,
+    )

@@ -3,6 +3,7 @@
 Plain Python loops over vertices, edges and triangles; ray casting by testing every
 triangle (``naive.raycast``). Small meshes only.
 """
+
 from __future__ import annotations
 
 import math
@@ -14,7 +15,9 @@ from naive.raycast import cast_rays, closest_points
 
 def _edges_in_order(triangles):
     """Sorted unique undirected edges (the odd-vertex order of the fast implementation)."""
-    return sorted({tuple(sorted((int(t[i]), int(t[(i + 1) % 3])))) for t in triangles for i in range(3)})
+    return sorted(
+        {tuple(sorted((int(t[i]), int(t[(i + 1) % 3])))) for t in triangles for i in range(3)}
+    )
 
 
 def loop_subdivide_naive(vertices, triangles, even="loop"):
@@ -57,7 +60,11 @@ def loop_subdivide_naive(vertices, triangles, even="loop"):
         index[e] = len(new) - 1
     out_tris = []
     for a, b, c in tris:
-        ab, bc, ca = index[tuple(sorted((a, b)))], index[tuple(sorted((b, c)))], index[tuple(sorted((c, a)))]
+        ab, bc, ca = (
+            index[tuple(sorted((a, b)))],
+            index[tuple(sorted((b, c)))],
+            index[tuple(sorted((c, a)))],
+        )
         out_tris += [(a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)]
     return np.array(new), np.array(out_tris)
 
@@ -92,7 +99,17 @@ def _folded(pred, Y, tri):
     return np.dot(before, after) < 0
 
 
-def normal_mesh_naive(vertices, triangles, base, base_triangles, levels, max_offset, sweeps=3, repair="surface", fold_rounds=8):
+def normal_mesh_naive(
+    vertices,
+    triangles,
+    base,
+    base_triangles,
+    levels,
+    max_offset,
+    sweeps=3,
+    repair="surface",
+    fold_rounds=8,
+):
     """Level positions of the normal mesh (no boundary displacements: use a closed mesh).
 
     Odd vertices: unlifted Loop prediction, line along the predicted mesh's vertex normal,

@@ -3,12 +3,15 @@
 Every query is tested against every triangle; no acceleration structure. Only for small
 meshes (a few thousand queries x a few thousand triangles).
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 
-def cast_rays(vertices, triangles, origins, directions, *, both_directions=True, max_distance=np.inf):
+def cast_rays(
+    vertices, triangles, origins, directions, *, both_directions=True, max_distance=np.inf
+):
     """Nearest hit by |t| of each line; returns (triangle (R,), t (R,), barycentric (R, 3)).
 
     Misses give triangle -1, t NaN and NaN barycentrics. Directions are normalised.

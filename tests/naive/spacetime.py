@@ -4,6 +4,7 @@ Everything here is written from the energy, row by row, with dense or assembled 
 matrices; nothing is shared with the plugin's structured solver. Small sizes only
 (the assembled Kronecker system is what the paper solved with Matlab: 47 s at 1,500 frames).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -12,7 +13,17 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 
-def energy_rows(basis, deltas, *, prior_factor=None, prior_offset=None, alpha=0.0, beta=0.0, marker_weights=None, ridge=0.0):
+def energy_rows(
+    basis,
+    deltas,
+    *,
+    prior_factor=None,
+    prior_offset=None,
+    alpha=0.0,
+    beta=0.0,
+    marker_weights=None,
+    ridge=0.0,
+):
     """Least-squares rows ``A x - b`` of the whole energy, unknowns ``x = vec(W)`` frame-major.
 
     basis (3N, M); deltas (F, N, 3) with NaN rows for missing samples; prior_factor (h, M),
@@ -25,7 +36,11 @@ def energy_rows(basis, deltas, *, prior_factor=None, prior_offset=None, alpha=0.
     s = np.asarray(deltas, dtype=float).reshape(len(deltas), -1)
     n_frames, m = s.shape[0], b.shape[1]
     n_markers = b.shape[0] // 3
-    weights = np.ones((n_frames, n_markers)) if marker_weights is None else np.broadcast_to(np.asarray(marker_weights, float), (n_frames, n_markers))
+    weights = (
+        np.ones((n_frames, n_markers))
+        if marker_weights is None
+        else np.broadcast_to(np.asarray(marker_weights, float), (n_frames, n_markers))
+    )
     rows, cols, vals, rhs = [], [], [], []
     row = 0
 
@@ -96,7 +111,9 @@ def solve_rows(basis, deltas, known, known_weights, **energy):
     return x.reshape(len(deltas), -1)
 
 
-def kronecker_system(basis, deltas, known, known_weights, *, prior_matrix, prior_vector, beta=0.0, ridge=0.0):
+def kronecker_system(
+    basis, deltas, known, known_weights, *, prior_matrix, prior_vector, beta=0.0, ridge=0.0
+):
     """The paper's assembled sparse system (Eq. 5 normal equations), complete data only.
 
     ``((D^T D) kron (B^T B) + I kron (alpha Q + beta B^T B + ridge I)) vec(W) = rhs`` with
@@ -106,11 +123,15 @@ def kronecker_system(basis, deltas, known, known_weights, *, prior_matrix, prior
     b = np.asarray(basis, dtype=float)
     s = np.asarray(deltas, dtype=float).reshape(len(deltas), -1)
     n_frames, m = s.shape[0], b.shape[1]
-    d = sp.diags([-np.ones(n_frames - 1), np.ones(n_frames - 1)], [0, 1], shape=(n_frames - 1, n_frames))
+    d = sp.diags(
+        [-np.ones(n_frames - 1), np.ones(n_frames - 1)], [0, 1], shape=(n_frames - 1, n_frames)
+    )
     lap = (d.T @ d).tocsr()
     gram = b.T @ b
     k = prior_matrix + beta * gram + _ridge_matrix(ridge, m)
-    mat = (sp.kron(lap, sp.csr_matrix(gram)) + sp.kron(sp.identity(n_frames), sp.csr_matrix(k))).tocsr()
+    mat = (
+        sp.kron(lap, sp.csr_matrix(gram)) + sp.kron(sp.identity(n_frames), sp.csr_matrix(k))
+    ).tocsr()
     rhs = ((lap @ s) @ b + prior_vector[None] + beta * (s @ b)).ravel()
     fixed = np.repeat(np.asarray(known, bool), m)
     x = np.zeros(n_frames * m)
@@ -142,22 +163,37 @@ def _frame_systems(basis, deltas, ridge, extra_rows=None, extra_rhs=None):
     for t in range(len(s)):
         ok = ~np.isnan(s[t])
         rows = [b[ok]] + ([extra_rows] if extra_rows is not None else []) + [ridge_rows]
-        rhs = [s[t, ok]] + ([extra_rhs] if extra_rhs is not None else []) + [np.zeros(len(ridge_rows))]
+        rhs = (
+            [s[t, ok]]
+            + ([extra_rhs] if extra_rhs is not None else [])
+            + [np.zeros(len(ridge_rows))]
+        )
         yield np.vstack(rows), np.concatenate(rhs)
 
 
 def per_frame(basis, deltas, *, prior_factor=None, prior_offset=None, alpha=0.0, ridge=0.0):
     """Per-frame least squares with dense ``lstsq`` on the stacked rows (missing rows dropped)."""
-    extra = (np.sqrt(alpha) * prior_factor, -np.sqrt(alpha) * prior_offset) if alpha and prior_factor is not None else (None, None)
-    return np.array([np.linalg.lstsq(a, r, rcond=None)[0] for a, r in _frame_systems(basis, deltas, ridge, *extra)])
+    extra = (
+        (np.sqrt(alpha) * prior_factor, -np.sqrt(alpha) * prior_offset)
+        if alpha and prior_factor is not None
+        else (None, None)
+    )
+    return np.array(
+        [
+            np.linalg.lstsq(a, r, rcond=None)[0]
+            for a, r in _frame_systems(basis, deltas, ridge, *extra)
+        ]
+    )
 
 
 def bounded_per_frame(basis, deltas, lower, upper, *, ridge=0.0):
     """Per-frame bounded least squares with ``scipy.optimize.lsq_linear`` (BVLS), tight tolerance."""
-    return np.array([
-        scipy.optimize.lsq_linear(a, r, bounds=(lower, upper), method="bvls", tol=1e-14).x
-        for a, r in _frame_systems(basis, deltas, ridge)
-    ])
+    return np.array(
+        [
+            scipy.optimize.lsq_linear(a, r, bounds=(lower, upper), method="bvls", tol=1e-14).x
+            for a, r in _frame_systems(basis, deltas, ridge)
+        ]
+    )
 
 
 def pca_prior(samples, basis, neutral, center="neutral", rtol=1e-10):

@@ -12,6 +12,7 @@
 - :func:`mean_centred_prior`: ``(Q, q)`` of Eq. 3 as printed (PCA about the sample mean) from
   the covariance matrix, for the assembled reference.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -62,7 +63,9 @@ def _sqrt_psd(matrix: np.ndarray) -> np.ndarray:
     return (np.sqrt(lam[keep]) * vec[:, keep]).T
 
 
-def constrained_resolve(basis, deltas, known, values, *, prior_factor, prior_offset, alpha, ridge=None):
+def constrained_resolve(
+    basis, deltas, known, values, *, prior_factor, prior_offset, alpha, ridge=None
+):
     """Minimize ``||D (B W^T)^T - D S||^2 + alpha sum_t ||A w_t + a||^2 + sum_t w_t^T R w_t`` over
     the frames not ``known``, the ``known`` frames fixed at ``values``.
 

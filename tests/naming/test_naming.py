@@ -1,4 +1,5 @@
 """Name mapping between ARKit, Live Link Face, ICT and other conventions."""
+
 from __future__ import annotations
 
 import json
@@ -22,10 +23,18 @@ from faceretarget.naming import (
 @pytest.mark.parametrize(
     "name,key",
     [
-        ("eyeBlinkLeft", ("eyeblink", "L")), ("EyeBlinkLeft", ("eyeblink", "L")), ("eyeBlink_L", ("eyeblink", "L")),
-        ("eyeBlink.L", ("eyeblink", "L")), ("L_eyeBlink", ("eyeblink", "L")), ("eyeBlinkL", ("eyeblink", "L")),
-        ("EYE_BLINK_RIGHT", ("eyeblink", "R")), ("eyeblink_r", ("eyeblink", "R")), ("LeftEyeYaw", ("eyeyaw", "L")),
-        ("jawOpen", ("jawopen", None)), ("Cleft", ("cleft", None)), ("eyeBright", ("eyebright", None)),
+        ("eyeBlinkLeft", ("eyeblink", "L")),
+        ("EyeBlinkLeft", ("eyeblink", "L")),
+        ("eyeBlink_L", ("eyeblink", "L")),
+        ("eyeBlink.L", ("eyeblink", "L")),
+        ("L_eyeBlink", ("eyeblink", "L")),
+        ("eyeBlinkL", ("eyeblink", "L")),
+        ("EYE_BLINK_RIGHT", ("eyeblink", "R")),
+        ("eyeblink_r", ("eyeblink", "R")),
+        ("LeftEyeYaw", ("eyeyaw", "L")),
+        ("jawOpen", ("jawopen", None)),
+        ("Cleft", ("cleft", None)),
+        ("eyeBright", ("eyebright", None)),
     ],
 )
 def test_canonical_keys(name, key):
@@ -34,15 +43,26 @@ def test_canonical_keys(name, key):
 
 def test_known_sets():
     assert len(ARKIT_NAMES) == 52 and len(set(ARKIT_NAMES)) == 52
-    assert len(LIVE_LINK_NAMES) == 61 and LIVE_LINK_NAMES[0] == "EyeBlinkLeft" and LIVE_LINK_NAMES[-1] == "RightEyeRoll"
-    assert len(ICT_NAMES) == 53 and "browInnerUp_L" in ICT_NAMES and "jawLeft" in ICT_NAMES and "tongueOut" not in ICT_NAMES
+    assert (
+        len(LIVE_LINK_NAMES) == 61
+        and LIVE_LINK_NAMES[0] == "EyeBlinkLeft"
+        and LIVE_LINK_NAMES[-1] == "RightEyeRoll"
+    )
+    assert (
+        len(ICT_NAMES) == 53
+        and "browInnerUp_L" in ICT_NAMES
+        and "jawLeft" in ICT_NAMES
+        and "tongueOut" not in ICT_NAMES
+    )
 
 
 def test_arkit_to_ict_splits_and_reports_what_is_left():
     m = map_names("arkit", "ict")
     assert m["eyeBlinkLeft"] == ("eyeBlink_L",)
     assert m["jawLeft"] == ("jawLeft",) and m["mouthRight"] == ("mouthRight",)
-    assert m["browInnerUp"] == ("browInnerUp_L", "browInnerUp_R") and m.rules["browInnerUp"] == "split"
+    assert (
+        m["browInnerUp"] == ("browInnerUp_L", "browInnerUp_R") and m.rules["browInnerUp"] == "split"
+    )
     assert m.unmapped == ("tongueOut",) and m.missing == ()
     assert not m.complete
     with pytest.raises(UnknownNameError, match="tongueOut"):
@@ -61,7 +81,9 @@ def test_ict_to_arkit_merges_sides_by_averaging():
     w = np.random.default_rng(0).random((3, len(ICT_NAMES)))
     out = m.apply(w)
     np.testing.assert_allclose(out[:, row], w[:, cols].mean(axis=1))
-    np.testing.assert_array_equal(out[:, ARKIT_NAMES.index("eyeBlinkLeft")], w[:, ICT_NAMES.index("eyeBlink_L")])
+    np.testing.assert_array_equal(
+        out[:, ARKIT_NAMES.index("eyeBlinkLeft")], w[:, ICT_NAMES.index("eyeBlink_L")]
+    )
     np.testing.assert_array_equal(out[:, ARKIT_NAMES.index("tongueOut")], 0)
 
 
@@ -87,8 +109,11 @@ def test_ambiguous_loose_matches_are_not_guessed():
 
 
 def test_explicit_mapping_wins_and_may_ignore_names():
-    m = map_names(["jawOpen", "HeadYaw", "smile"], ["JawOpen", "mouthSmile_L", "mouthSmile_R"],
-                  mapping={"smile": ["mouthSmile_L", "mouthSmile_R"], "HeadYaw": "", "notInTake": "JawOpen"})
+    m = map_names(
+        ["jawOpen", "HeadYaw", "smile"],
+        ["JawOpen", "mouthSmile_L", "mouthSmile_R"],
+        mapping={"smile": ["mouthSmile_L", "mouthSmile_R"], "HeadYaw": "", "notInTake": "JawOpen"},
+    )
     assert m["smile"] == ("mouthSmile_L", "mouthSmile_R") and m.rules["smile"] == "mapping"
     assert m.ignored == ("HeadYaw",) and m.complete and m.unused_rules == ("notInTake",)
     with pytest.raises(UnknownNameError, match="nosuch"):
@@ -107,18 +132,45 @@ def test_apply_to_weight_sequences():
 @pytest.mark.parametrize(
     "suffix,text",
     [
-        (".toml", 'smile = ["mouthSmile_L", "mouthSmile_R"]\nHeadYaw = ""\n"Jaw Open" = "jawOpen"\n'),
-        (".toml", '[mapping]\nsmile = ["mouthSmile_L", "mouthSmile_R"]\nHeadYaw = ""\n"Jaw Open" = "jawOpen"\n'),
-        (".json", json.dumps({"smile": ["mouthSmile_L", "mouthSmile_R"], "HeadYaw": None, "Jaw Open": "jawOpen"})),
-        (".json", json.dumps([["smile", "mouthSmile_L"], ["smile", "mouthSmile_R"], ["HeadYaw", ""], ["Jaw Open", "jawOpen"]])),
+        (
+            ".toml",
+            'smile = ["mouthSmile_L", "mouthSmile_R"]\nHeadYaw = ""\n"Jaw Open" = "jawOpen"\n',
+        ),
+        (
+            ".toml",
+            '[mapping]\nsmile = ["mouthSmile_L", "mouthSmile_R"]\nHeadYaw = ""\n"Jaw Open" = "jawOpen"\n',
+        ),
+        (
+            ".json",
+            json.dumps(
+                {"smile": ["mouthSmile_L", "mouthSmile_R"], "HeadYaw": None, "Jaw Open": "jawOpen"}
+            ),
+        ),
+        (
+            ".json",
+            json.dumps(
+                [
+                    ["smile", "mouthSmile_L"],
+                    ["smile", "mouthSmile_R"],
+                    ["HeadYaw", ""],
+                    ["Jaw Open", "jawOpen"],
+                ]
+            ),
+        ),
         (".csv", "from,to\nsmile,mouthSmile_L\nsmile,mouthSmile_R\nHeadYaw,\nJaw Open,jawOpen\n"),
     ],
 )
 def test_mapping_files(tmp_path, suffix, text):
     path = tmp_path / f"map{suffix}"
     path.write_text(text)
-    assert load_mapping(path) == {"smile": ("mouthSmile_L", "mouthSmile_R"), "HeadYaw": (), "Jaw Open": ("jawOpen",)}
-    m = map_names(["smile", "HeadYaw", "Jaw Open"], ["mouthSmile_L", "mouthSmile_R", "jawOpen"], mapping=path)
+    assert load_mapping(path) == {
+        "smile": ("mouthSmile_L", "mouthSmile_R"),
+        "HeadYaw": (),
+        "Jaw Open": ("jawOpen",),
+    }
+    m = map_names(
+        ["smile", "HeadYaw", "Jaw Open"], ["mouthSmile_L", "mouthSmile_R", "jawOpen"], mapping=path
+    )
     assert m.complete and m.ignored == ("HeadYaw",)
 
 
@@ -144,7 +196,12 @@ def test_rename_styles():
     names = ["eyeBlink_L", "jawLeft", "browInnerUp", "mouthSmileRight"]
     assert rename(names, "arkit") == ("eyeBlinkLeft", "jawLeft", "browInnerUp", "mouthSmileRight")
     assert rename(names, "ict") == ("eyeBlink_L", "jawLeft", "browInnerUp", "mouthSmile_R")
-    assert rename(names, "livelink") == ("EyeBlinkLeft", "JawLeft", "BrowInnerUp", "MouthSmileRight")
+    assert rename(names, "livelink") == (
+        "EyeBlinkLeft",
+        "JawLeft",
+        "BrowInnerUp",
+        "MouthSmileRight",
+    )
     assert rename(names, "blender") == ("eyeBlink.L", "jawLeft", "browInnerUp", "mouthSmile.R")
     assert rename(ARKIT_NAMES, "livelink") == LIVE_LINK_NAMES[:52]
     with pytest.raises(UnknownNameError):

@@ -1,4 +1,5 @@
 """Shared fixtures of the normalmesh tests: small synthetic faces (faceretarget.cases)."""
+
 import numpy as np
 import pytest
 
@@ -31,7 +32,13 @@ def face():
     tri = bm.automatic_base_triangles(pts, v, mesh.vertex_normals, caster, pts, caster)
     surface = Surface.of(mesh.triangles, len(v))
     return dict(
-        case=case, mesh=mesh, vertices=v, points=pts, base_triangles=tri, surface=surface,
-        loops=feature_point_loops(pts, v, surface), caster=caster, height=mesh.height,
+        case=case,
+        mesh=mesh,
+        vertices=v,
+        points=pts,
+        base_triangles=tri,
+        surface=surface,
+        loops=feature_point_loops(pts, v, surface),
+        caster=caster,
+        height=mesh.height,
     )
-

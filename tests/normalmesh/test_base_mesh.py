@@ -1,4 +1,5 @@
 """Automatic base connectivity and the example-based base map."""
+
 import numpy as np
 import pytest
 
@@ -13,7 +14,9 @@ def _inside_polygon(points, polygon):
     x, y = points[:, 0:1], points[:, 1:2]
     x0, y0 = polygon[:, 0], polygon[:, 1]
     x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
-    crosses = ((y0 > y) != (y1 > y)) & (x < x0 + (y - y0) * (x1 - x0) / np.where(y1 != y0, y1 - y0, 1.0))
+    crosses = ((y0 > y) != (y1 > y)) & (
+        x < x0 + (y - y0) * (x1 - x0) / np.where(y1 != y0, y1 - y0, 1.0)
+    )
     return crosses.sum(axis=1) % 2 == 1
 
 
@@ -33,7 +36,9 @@ def test_automatic_base_avoids_the_holes_and_faces_out(face):
     assert _inside_polygon(samples, outline).all()
     # every feature point is used and all triangles face along the surface
     assert np.array_equal(np.unique(tri), np.arange(len(face["points"])))
-    normals = bm.point_normals(case.source.landmarks, face["mesh"].vertex_normals, face["mesh"].triangles)
+    normals = bm.point_normals(
+        case.source.landmarks, face["mesh"].vertex_normals, face["mesh"].triangles
+    )
     bm.check_base_triangles(tri, face["points"], normals, "source", case.source.landmarks.names)
     # both holes' rims are followed by base edges between feature points on them
     assert (face["loops"] >= 0).sum() >= 16
@@ -50,7 +55,9 @@ def test_collinear_feature_points_cannot_be_triangulated(face):
 def test_feature_points_beside_the_surface_give_no_base(face):
     far = face["points"] + np.array([3.0 * face["height"], 0.0, 0.0])
     with pytest.raises(DegenerateGeometryError, match="surface"):
-        bm.automatic_base_triangles(far, face["vertices"], face["mesh"].vertex_normals, face["caster"], far, face["caster"])
+        bm.automatic_base_triangles(
+            far, face["vertices"], face["mesh"].vertex_normals, face["caster"], far, face["caster"]
+        )
 
 
 def test_base_map_interpolates_examples_and_rests_at_zero():
@@ -67,7 +74,9 @@ def test_base_map_interpolates_examples_and_rests_at_zero():
     np.testing.assert_allclose(exact(np.zeros((1, n, 3))), 0.0, atol=1e-12)
     smooth = fit_base_map(sn, tn, sx, tx, rbf_c=1.0, rbf_smoothing=0.05)
     np.testing.assert_allclose(smooth(np.zeros((1, n, 3))), 0.0, atol=1e-12)
-    assert np.sqrt(np.mean((smooth(sx - sn) - (tx - tn)) ** 2)) < 0.25 * np.sqrt(np.mean((tx - tn) ** 2))
+    assert np.sqrt(np.mean((smooth(sx - sn) - (tx - tn)) ** 2)) < 0.25 * np.sqrt(
+        np.mean((tx - tn) ** 2)
+    )
     # with the neutral as the only example the map is the neutral-to-neutral similarity
     only = fit_base_map(sn, tn, sn[None], tn[None], rbf_c=1.0, rbf_smoothing=0.05)
     d = rng.normal(size=(3, n, 3))

@@ -1,4 +1,5 @@
 """The conformance kit of faceretarget.testing on the normalmesh retargeter."""
+
 from faceretarget.plugins.normalmesh.retargeter import NormalMeshRetargeter
 from faceretarget.testing import check_retargeter
 

@@ -1,4 +1,5 @@
 """Bad input gives a typed error naming the cause."""
+
 import numpy as np
 import pytest
 
@@ -20,7 +21,10 @@ def _source(case, **changes):
     src = case.source
     args = dict(landmarks=src.landmarks, examples=src.examples, example_names=src.example_names)
     args.update(changes)
-    return Source(changes.pop("performance", src.performance), **{k: v for k, v in args.items() if k != "performance"})
+    return Source(
+        changes.pop("performance", src.performance),
+        **{k: v for k, v in args.items() if k != "performance"},
+    )
 
 
 def _target(case, **changes):
@@ -43,7 +47,12 @@ def test_too_few_feature_points(human_case):
 
 def test_feature_point_counts_must_match(human_case):
     with pytest.raises(TopologyMismatchError, match="feature point"):
-        _fit(human_case, target=_target(human_case, landmarks=Landmarks(human_case.target.landmarks.vertex_ids[:-1])))
+        _fit(
+            human_case,
+            target=_target(
+                human_case, landmarks=Landmarks(human_case.target.landmarks.vertex_ids[:-1])
+            ),
+        )
 
 
 def test_flipped_base_triangles(human_case, fitted):
@@ -69,9 +78,15 @@ def test_degenerate_base_triangles(human_case, fitted):
     with pytest.raises(DegenerateGeometryError, match="repeats"):
         _fit(human_case, base_triangles=np.vstack([tri, [[0, 0, 1]]]))
     ids = lm.vertex_ids.copy()
-    ids[names.index("lip_upper_3")] = ids[names.index("lip_upper_2")]  # two feature points on one vertex
+    ids[names.index("lip_upper_3")] = ids[
+        names.index("lip_upper_2")
+    ]  # two feature points on one vertex
     with pytest.raises(DegenerateGeometryError, match="degenerate"):
-        _fit(human_case, _source(human_case, landmarks=Landmarks(ids, names=names)), base_triangles=tri)
+        _fit(
+            human_case,
+            _source(human_case, landmarks=Landmarks(ids, names=names)),
+            base_triangles=tri,
+        )
 
 
 def test_base_triangle_indices_and_shape(human_case):
@@ -85,11 +100,24 @@ def test_base_triangle_indices_and_shape(human_case):
 
 def test_missing_examples_and_landmarks(human_case):
     with pytest.raises(CapabilityError, match="example"):
-        _fit(human_case, target=TargetRig(human_case.target.neutral, landmarks=human_case.target.landmarks))
+        _fit(
+            human_case,
+            target=TargetRig(human_case.target.neutral, landmarks=human_case.target.landmarks),
+        )
     with pytest.raises(CapabilityError, match="example"):
-        _fit(human_case, source=Source(human_case.source.performance, landmarks=human_case.source.landmarks))
+        _fit(
+            human_case,
+            source=Source(human_case.source.performance, landmarks=human_case.source.landmarks),
+        )
     with pytest.raises(CapabilityError, match="landmarks"):
-        _fit(human_case, target=TargetRig(human_case.target.neutral, examples=human_case.target.examples, example_names=human_case.target.example_names))
+        _fit(
+            human_case,
+            target=TargetRig(
+                human_case.target.neutral,
+                examples=human_case.target.examples,
+                example_names=human_case.target.example_names,
+            ),
+        )
 
 
 def test_mismatched_example_names(human_case):
@@ -101,7 +129,11 @@ def test_mismatched_example_names(human_case):
 
 def test_examples_are_paired_by_name_not_order(human_case):
     order = np.arange(len(human_case.target.example_names))[::-1]
-    shuffled = _target(human_case, examples=human_case.target.examples[order], example_names=[human_case.target.example_names[i] for i in order])
+    shuffled = _target(
+        human_case,
+        examples=human_case.target.examples[order],
+        example_names=[human_case.target.example_names[i] for i in order],
+    )
     a = _fit(human_case).base_map_
     b = _fit(human_case, target=shuffled).base_map_
     x = np.random.default_rng(0).normal(scale=0.1, size=(2, len(human_case.source.landmarks), 3))
@@ -113,7 +145,16 @@ def test_nan_is_rejected(human_case):
     v[1, 5, 0] = np.nan
     with pytest.raises(NonFiniteError):
         MeshSequence(v, human_case.source.performance.triangles)
-    for bad in (dict(rbf_c=float("nan")), dict(max_offset=0.0), dict(levels=9), dict(detail_levels=-2), dict(detail_scale="volume"), dict(head_motion="sometimes"), dict(backend="optix"), dict(rbf_smoothing=-1.0)):
+    for bad in (
+        dict(rbf_c=float("nan")),
+        dict(max_offset=0.0),
+        dict(levels=9),
+        dict(detail_levels=-2),
+        dict(detail_scale="volume"),
+        dict(head_motion="sometimes"),
+        dict(backend="optix"),
+        dict(rbf_smoothing=-1.0),
+    ):
         with pytest.raises(InputError):
             _fit(human_case, **bad)
 

@@ -1,4 +1,5 @@
 """The numba kernels of the plugin against plain numpy."""
+
 import numpy as np
 
 from faceretarget.geometry.mesh_ops import vertex_normals
@@ -96,7 +97,9 @@ def test_carry_points(face):
     k.carry_points(stacked, len(X1) + h.triangles(2)[tri], bary, frame_corners, local, out)
     frames = triangle_frames(X1, h.triangles(1), ftri)
     frames[::4] = np.eye(3)
-    want = np.einsum("pk,pkd->pd", bary, X2[h.triangles(2)[tri]]) + np.einsum("pk,pkd->pd", local, frames)
+    want = np.einsum("pk,pkd->pd", bary, X2[h.triangles(2)[tri]]) + np.einsum(
+        "pk,pkd->pd", local, frames
+    )
     np.testing.assert_allclose(out, want, atol=1e-12)
 
 
@@ -114,7 +117,9 @@ def test_trace_level_matches_a_global_query(face):
     Y, status = pred.copy(), np.empty(step.n_odd, np.int8)
     skip = np.zeros(step.n_odd, bool)
     found = np.empty(step.n_odd, np.int64)
-    k.trace_level(v, f, nb, X, pred, normals, step.edges, n0, skip, start, 1.0, 64, Y, status, found)
+    k.trace_level(
+        v, f, nb, X, pred, normals, step.edges, n0, skip, start, 1.0, 64, Y, status, found
+    )
     hit = status == k.TRACE_HIT
     assert (found[hit] == glob.triangle[hit]).all()
     assert hit.mean() > 0.9

@@ -1,6 +1,8 @@
 """Normal-mesh construction: rebuild error, naive agreement, boundaries, piercing errors."""
+
 import numpy as np
 import pytest
+from naive.normalmesh import normal_mesh_naive
 
 from faceretarget.geometry.raycast import closest_points
 from faceretarget.model import Landmarks
@@ -15,7 +17,6 @@ from faceretarget.plugins.normalmesh.normal_mesh import (
     make_hierarchy,
     reconstruct,
 )
-from naive.normalmesh import normal_mesh_naive
 
 #: Rebuilt level-4 surface vs original (synthetic face, 1.5K vertices): RMS / max distance of
 #: triangle centroids and edge midpoints, as a fraction of the face height.
@@ -26,12 +27,19 @@ def _build(face, levels, vertices=None, surface=None, max_offset=1.0):
     h = make_hierarchy(face["base_triangles"], len(face["points"]), levels)
     v = face["vertices"] if vertices is None else vertices
     s = face["surface"] if surface is None else surface
-    return h, build_normal_mesh(v, s, face["points"], feature_point_loops(face["points"], v, s), h, max_offset=max_offset)
+    return h, build_normal_mesh(
+        v, s, face["points"], feature_point_loops(face["points"], v, s), h, max_offset=max_offset
+    )
 
 
 def _surface_error(face, X, triangles):
-    samples = np.concatenate([X[triangles].mean(axis=1), 0.5 * (X[triangles[:, 0]] + X[triangles[:, 1]])])
-    d = np.abs(closest_points(face["vertices"], face["mesh"].triangles, samples).distance) / face["height"]
+    samples = np.concatenate(
+        [X[triangles].mean(axis=1), 0.5 * (X[triangles[:, 0]] + X[triangles[:, 1]])]
+    )
+    d = (
+        np.abs(closest_points(face["vertices"], face["mesh"].triangles, samples).distance)
+        / face["height"]
+    )
     return float(np.sqrt(np.mean(d**2))), float(d.max())
 
 
@@ -43,9 +51,17 @@ def test_rebuild_matches_the_original_and_improves_with_levels(face):
         for a, b in zip(rebuilt, nm.positions):
             np.testing.assert_allclose(a, b, atol=1e-12 * face["height"])
         errors.append(_surface_error(face, rebuilt[-1], h.triangles(levels)))
-        on_surface = np.concatenate([[True] * len(face["points"])] + [k != KIND_REPAIRED for k in nm.kind])
-        d = np.abs(closest_points(face["vertices"], face["mesh"].triangles, rebuilt[-1][on_surface]).distance)
-        assert d.max() <= 1e-9 * face["height"]  # every vertex but the repaired ones lies on the original
+        on_surface = np.concatenate(
+            [[True] * len(face["points"])] + [k != KIND_REPAIRED for k in nm.kind]
+        )
+        d = np.abs(
+            closest_points(
+                face["vertices"], face["mesh"].triangles, rebuilt[-1][on_surface]
+            ).distance
+        )
+        assert (
+            d.max() <= 1e-9 * face["height"]
+        )  # every vertex but the repaired ones lies on the original
     rms = [e[0] for e in errors]
     assert all(b < 0.7 * a for a, b in zip(rms, rms[1:])), rms
     assert errors[-1][0] < LEVEL4_RMS and errors[-1][1] < LEVEL4_MAX, errors[-1]
@@ -55,9 +71,14 @@ def _bumpy_sphere():
     import trimesh
 
     m = trimesh.creation.icosphere(3)
-    v = m.vertices * (1 + 0.08 * np.sin(3 * m.vertices[:, 0]) * np.cos(2 * m.vertices[:, 1]))[:, None]
+    v = (
+        m.vertices
+        * (1 + 0.08 * np.sin(3 * m.vertices[:, 0]) * np.cos(2 * m.vertices[:, 1]))[:, None]
+    )
     ids = [int(np.argmax(m.vertices @ a)) for a in np.vstack([np.eye(3), -np.eye(3)])]
-    base_tri = np.array([[0, 1, 2], [1, 3, 2], [3, 4, 2], [4, 0, 2], [1, 0, 5], [3, 1, 5], [4, 3, 5], [0, 4, 5]])
+    base_tri = np.array(
+        [[0, 1, 2], [1, 3, 2], [3, 4, 2], [4, 0, 2], [1, 0, 5], [3, 1, 5], [4, 3, 5], [0, 4, 5]]
+    )
     return v, np.asarray(m.faces), v[ids], base_tri
 
 
@@ -71,18 +92,32 @@ def _inside_out_patch(v, f, radius=0.35):
 
 
 @pytest.mark.parametrize("repair", ["surface", "average"])
-@pytest.mark.parametrize("max_offset, patch", [(1.0, False), (0.1, False), (1.0, True)], ids=["clean", "tight-limit", "inside-out-patch"])
+@pytest.mark.parametrize(
+    "max_offset, patch",
+    [(1.0, False), (0.1, False), (1.0, True)],
+    ids=["clean", "tight-limit", "inside-out-patch"],
+)
 def test_agrees_with_naive_construction(max_offset, patch, repair):
     v, f, base, base_tri = _bumpy_sphere()
     if patch:
         f = _inside_out_patch(v, f)
     want, pierced = normal_mesh_naive(v, f, base, base_tri, 3, max_offset, repair=repair)
     h = make_hierarchy(base_tri, len(base), 3)
-    nm = build_normal_mesh(v, Surface.of(f, len(v)), base, np.full(len(base), -1), h, max_offset=max_offset, repair=repair)
+    nm = build_normal_mesh(
+        v,
+        Surface.of(f, len(v)),
+        base,
+        np.full(len(base), -1),
+        h,
+        max_offset=max_offset,
+        repair=repair,
+    )
     for a, b in zip(nm.positions, want):
         np.testing.assert_allclose(a, b, atol=1e-12)
     assert nm.n_pierced == pierced
-    assert (pierced > 0) == (max_offset < 0.5 or patch)  # the tight limit and the patch exercise the repair path
+    assert (pierced > 0) == (
+        max_offset < 0.5 or patch
+    )  # the tight limit and the patch exercise the repair path
     placed = sum(int(((k == KIND_REPAIRED) & (a >= 0)).sum()) for k, a in zip(nm.kind, nm.anchor))
     # hits on the inside-out patch are repaired onto the surface (measured: 7 of 7); a neighbour
     # average farther from the surface than the ray limit stays off it
@@ -93,7 +128,9 @@ def _distance_to_boundary(points, vertices, surface, loops=None):
     seg = surface.segments if loops is None else surface.segments[np.isin(surface.loops, loops)]
     p0, p1 = vertices[seg[:, 0]], vertices[seg[:, 1]]
     d = p1 - p0
-    s = np.clip(np.einsum("psk,sk->ps", points[:, None] - p0[None], d) / np.einsum("sk,sk->s", d, d), 0, 1)
+    s = np.clip(
+        np.einsum("psk,sk->ps", points[:, None] - p0[None], d) / np.einsum("sk,sk->s", d, d), 0, 1
+    )
     q = p0[None] + s[..., None] * d[None]
     return np.linalg.norm(points[:, None] - q, axis=-1).min(axis=1)
 
@@ -115,7 +152,17 @@ def test_boundary_vertices_stay_on_the_eye_and_mouth_holes(face):
     # every hole is followed: eye_L, eye_R and the mouth
     loops = face["case"].meta["boundary_loops"]["source"]
     vertex_loop = {int(i): name for name, ids in loops.items() for i in ids}
-    nearest = surface.segments[np.argmin(np.linalg.norm(0.5 * (v[surface.segments[:, 0]] + v[surface.segments[:, 1]])[None] - X[bnd][:, None], axis=-1), axis=1), 0]
+    nearest = surface.segments[
+        np.argmin(
+            np.linalg.norm(
+                0.5 * (v[surface.segments[:, 0]] + v[surface.segments[:, 1]])[None]
+                - X[bnd][:, None],
+                axis=-1,
+            ),
+            axis=1,
+        ),
+        0,
+    ]
     assert {vertex_loop[int(i)] for i in nearest} >= {"eye_L", "eye_R", "mouth_inner"}
     # ... also in animation frames (temporal correspondence), on each frame's own boundary
     case = face["case"]
@@ -124,7 +171,10 @@ def test_boundary_vertices_stay_on_the_eye_and_mouth_holes(face):
     for f in range(len(frames)):
         base = case.source.landmarks.positions(frames[f], face["mesh"].triangles)
         _, _, levels = decomposer(frames[f], base, keep_positions=True)
-        assert _distance_to_boundary(levels[-1][bnd], frames[f], surface).max() <= 1e-9 * face["height"]
+        assert (
+            _distance_to_boundary(levels[-1][bnd], frames[f], surface).max()
+            <= 1e-9 * face["height"]
+        )
 
 
 def test_boundary_vertices_stay_on_the_face_border(face):
@@ -136,14 +186,21 @@ def test_boundary_vertices_stay_on_the_face_border(face):
     pts = v[ids]
     from faceretarget.plugins.normalmesh import base_mesh as bm
 
-    tri = bm.automatic_base_triangles(pts, v, face["mesh"].vertex_normals, face["caster"], pts, face["caster"])
+    tri = bm.automatic_base_triangles(
+        pts, v, face["mesh"].vertex_normals, face["caster"], pts, face["caster"]
+    )
     loops = feature_point_loops(pts, v, surface)
     h = make_hierarchy(tri, len(pts), 3)
     nm = build_normal_mesh(v, surface, pts, loops, h, max_offset=1.0)
     bnd = _boundary_vertices(nm, len(pts))
     outline_loop = surface.loops[np.flatnonzero(np.isin(surface.segments[:, 0], outline))[0]]
-    on_outline = _distance_to_boundary(nm.positions[-1][bnd], v, surface, [outline_loop]) <= 1e-9 * face["height"]
-    assert on_outline.sum() >= 5 * len(extra)  # the border between most outline points is followed (7 per edge at level 3)
+    on_outline = (
+        _distance_to_boundary(nm.positions[-1][bnd], v, surface, [outline_loop])
+        <= 1e-9 * face["height"]
+    )
+    assert on_outline.sum() >= 5 * len(
+        extra
+    )  # the border between most outline points is followed (7 per edge at level 3)
     assert _distance_to_boundary(nm.positions[-1][bnd], v, surface).max() <= 1e-9 * face["height"]
 
 
@@ -190,7 +247,10 @@ def test_injected_piercing_errors_are_found_and_repaired(face):
     # repaired vertices land near the true surface, never on the wall behind it (a neighbour
     # average at level 1 spans ~3 cm of curved cheek: up to ~1.5% of the face height off it)
     X = dirty.positions[-1]
-    d = np.abs(closest_points(face["vertices"], face["mesh"].triangles, X).distance) / face["height"]
+    d = (
+        np.abs(closest_points(face["vertices"], face["mesh"].triangles, X).distance)
+        / face["height"]
+    )
     assert d.max() < 0.02 and np.sqrt(np.mean(d**2)) < 5e-4, (d.max(), np.sqrt(np.mean(d**2)))
 
 
@@ -228,25 +288,49 @@ def test_repaired_vertices_land_on_the_surface_neutral_and_frames():
     case = fr.cases.ict(n_frames=6)
     r = fr.get("normalmesh", max_piercing=1.0, levels=3).fit(case.source, case.target)
     h = case.target.neutral.height
-    for nm, mesh in ((r.target_normal_mesh_, case.target.neutral), (r.source_normal_mesh_, case.source.performance.reference)):
+    for nm, mesh in (
+        (r.target_normal_mesh_, case.target.neutral),
+        (r.source_normal_mesh_, case.source.performance.reference),
+    ):
         n0 = [len(p) for p in nm.positions[:-1]]
-        placed = [np.flatnonzero((k == KIND_REPAIRED) & (a >= 0)) + o for k, a, o in zip(nm.kind, nm.anchor, n0)]
+        placed = [
+            np.flatnonzero((k == KIND_REPAIRED) & (a >= 0)) + o
+            for k, a, o in zip(nm.kind, nm.anchor, n0)
+        ]
         repaired = sum(int((k == KIND_REPAIRED).sum()) for k in nm.kind)
         assert repaired > 10 and sum(len(p) for p in placed) > 0.5 * repaired  # measured 80%
         for level, ids in enumerate(placed):
-            d = np.abs(closest_points(np.asarray(mesh.vertices), mesh.triangles, nm.positions[level + 1][ids]).distance)
+            d = np.abs(
+                closest_points(
+                    np.asarray(mesh.vertices), mesh.triangles, nm.positions[level + 1][ids]
+                ).distance
+            )
             assert d.max() <= 1e-9 * h
     # in an animation frame: a vertex that pierces wrongly sits on the frame's surface
     frames = np.asarray(case.source.performance.vertices)
-    decomposer = FrameDecomposer(r.source_surface_, r.source_normal_mesh_, r.hierarchy_, max_offset=1.0, neutral_vertices=r.source_neutral_)
+    decomposer = FrameDecomposer(
+        r.source_surface_,
+        r.source_normal_mesh_,
+        r.hierarchy_,
+        max_offset=1.0,
+        neutral_vertices=r.source_neutral_,
+    )
     hm = np.asarray(case.truth.head_motion)
     on_surface, total = 0, 0
     for f in range(len(frames)):
         local = (frames[f] - hm[f, :3, 3]) @ hm[f, :3, :3]
-        _, _, levels = decomposer(local, r.source_feature_points_.positions(local, case.source.performance.triangles), keep_positions=True)
+        _, _, levels = decomposer(
+            local,
+            r.source_feature_points_.positions(local, case.source.performance.triangles),
+            keep_positions=True,
+        )
         for level, flags in enumerate(decomposer.flagged):
             bad = np.flatnonzero(flags == KIND_REPAIRED) + len(levels[level])
-            d = np.abs(closest_points(local, case.source.performance.triangles, levels[level + 1][bad]).distance)
+            d = np.abs(
+                closest_points(
+                    local, case.source.performance.triangles, levels[level + 1][bad]
+                ).distance
+            )
             on_surface += int((d <= 1e-9 * h).sum())
             total += len(bad)
     assert total > 0 and on_surface > 0.5 * total, (on_surface, total)
@@ -257,7 +341,9 @@ def _octahedron_level():
     from faceretarget.plugins.normalmesh.normal_mesh import _predict
 
     base = np.vstack([np.eye(3), -np.eye(3)])[[0, 1, 2, 3, 4, 5]]
-    tri = np.array([[0, 1, 2], [1, 3, 2], [3, 4, 2], [4, 0, 2], [1, 0, 5], [3, 1, 5], [4, 3, 5], [0, 4, 5]])
+    tri = np.array(
+        [[0, 1, 2], [1, 3, 2], [3, 4, 2], [4, 0, 2], [1, 0, 5], [3, 1, 5], [4, 3, 5], [0, 4, 5]]
+    )
     h = make_hierarchy(tri, 6, 1)
     pred, normals = _predict(h.steps[0], base)
     return h.steps[0], h.rings[0], pred, normals
@@ -295,14 +381,21 @@ def test_a_surface_placement_that_folds_is_undone():
     near = pred[n0 + bad] + 0.01 * normals[n0 + bad]
 
     def place(e, points, where):
-        return np.repeat(where[None], len(e), axis=0), np.ones(len(e), bool), np.zeros(len(e), np.int64), np.tile([1.0, 0, 0], (len(e), 1))
+        return (
+            np.repeat(where[None], len(e), axis=0),
+            np.ones(len(e), bool),
+            np.zeros(len(e), np.int64),
+            np.tile([1.0, 0, 0], (len(e), 1)),
+        )
 
     results = {}
     for label, where in (("folds", far), ("fits", near)):
         Y = pred.copy()
         flagged = np.zeros(step.n_odd, dtype=bool)
         flagged[bad] = True
-        _, _, anchor, _ = _finish(step, ring, pred, normals, Y, flagged, lambda e, p, w=where: place(e, p, w))
+        _, _, anchor, _ = _finish(
+            step, ring, pred, normals, Y, flagged, lambda e, p, w=where: place(e, p, w)
+        )
         results[label] = (Y[n0 + bad].copy(), anchor[bad])
     np.testing.assert_allclose(results["fits"][0], near)
     assert results["fits"][1] == 0

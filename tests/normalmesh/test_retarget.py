@@ -1,4 +1,5 @@
 """The normalmesh retargeter end to end on synthetic parallel rigs (faceretarget.cases)."""
+
 import numpy as np
 import pytest
 
@@ -12,16 +13,24 @@ FIDELITY_BOUND = 0.002
 
 
 def _rms(a, b):
-    return float(np.sqrt(np.mean(np.sum((np.asarray(a, float) - np.asarray(b, float)) ** 2, axis=-1))))
+    return float(
+        np.sqrt(np.mean(np.sum((np.asarray(a, float) - np.asarray(b, float)) ** 2, axis=-1)))
+    )
 
 
 def _static(case):
     """The 'no expression' answer: the target neutral moved by the true head motion."""
     hm = np.asarray(case.truth.head_motion)
-    return np.einsum("fij,pj->fpi", hm[:, :3, :3], case.target.neutral.vertices) + hm[:, None, :3, 3]
+    return (
+        np.einsum("fij,pj->fpi", hm[:, :3, :3], case.target.neutral.vertices) + hm[:, None, :3, 3]
+    )
 
 
-@pytest.mark.parametrize("options", [dict(), dict(target="stylized"), dict(target_resolution=1100)], ids=["human", "stylized", "other-topology"])
+@pytest.mark.parametrize(
+    "options",
+    [dict(), dict(target="stylized"), dict(target_resolution=1100)],
+    ids=["human", "stylized", "other-topology"],
+)
 def test_fidelity_against_ground_truth(options):
     case = fr.cases.synthetic(seed=1, resolution=1500, n_frames=12, **options)
     anim = fr.get("normalmesh").fit(case.source, case.target).retarget(case.source)
@@ -50,15 +59,25 @@ def test_source_equal_to_target_reproduces_the_source_motion(human_case):
         got = np.asarray(r.retarget(source).vertices)
         # the base mesh and delta are the source's own: the map is the identity
         assert r.delta_ == pytest.approx(1.0, abs=1e-12)
-        np.testing.assert_allclose(r.base_map_(np.ones((1, len(src.landmarks), 3)))[0], 1.0, atol=1e-9)
+        np.testing.assert_allclose(
+            r.base_map_(np.ones((1, len(src.landmarks), 3)))[0], 1.0, atol=1e-9
+        )
         on = r.coverage_ >= 1.0
         assert on.mean() > 0.4
-        errors[sliding] = (_rms(got[:, on], want[:, on]) / motion, _rms(got[:, ~on], want[:, ~on]) / motion)
+        errors[sliding] = (
+            _rms(got[:, on], want[:, on]) / motion,
+            _rms(got[:, ~on], want[:, ~on]) / motion,
+        )
         if sliding == "none":
             # the paper: on the normal mesh the shape is the source's (vertices stay on each
             # frame's surface), but vertex to vertex they slide along it between feature points
             # (normal-mesh vertices are not material points)
-            off = np.concatenate([np.abs(closest_points(want[f], perf.triangles, got[f, on]).distance) for f in range(len(got))])
+            off = np.concatenate(
+                [
+                    np.abs(closest_points(want[f], perf.triangles, got[f, on]).distance)
+                    for f in range(len(got))
+                ]
+            )
             assert np.sqrt(np.mean(off**2)) < 1e-4 * h and off.max() < 2e-3 * h
     # transferring the source's sliding puts the vertices back on their material points: what
     # remains is the motion's variation within a finest-level triangle (measured 1.6% of the
@@ -78,11 +97,12 @@ def _wrinkle_fields(seed=3, resolution=1500):
 
 def test_wrinkles_appear_on_the_target_at_the_right_place_and_scale():
     with_w, without, truth, normals = _wrinkle_fields()
-    h = with_w.target.neutral.height
     stats = {}
     for levels in (-1, 0):
         r = fr.get("normalmesh", detail_levels=levels).fit(with_w.source, with_w.target)
-        ours = np.asarray(r.retarget(with_w.source).local_vertices) - np.asarray(r.retarget(without.source).local_vertices)
+        ours = np.asarray(r.retarget(with_w.source).local_vertices) - np.asarray(
+            r.retarget(without.source).local_vertices
+        )
         ours = np.einsum("fpk,pk->fp", ours, normals)
         # where the normal mesh alone moves the target (not the dense fallback) and wrinkles are
         covered = r.coverage_ >= 1.0
@@ -92,8 +112,12 @@ def test_wrinkles_appear_on_the_target_at_the_right_place_and_scale():
         slope = ours[m] @ truth[m] / (truth[m] @ truth[m])
         stats[levels] = (corr, slope)
     (corr, slope), (corr0, slope0) = stats[-1], stats[0]
-    assert corr > 0.9 and 0.7 < slope < 1.4, stats  # measured 0.98 and 0.90 (3 levels; 4 levels: 0.996, 0.95)
-    assert corr0 < 0.6 and slope0 < 0.5, stats  # measured 0.31 and 0.43: only what the base points carry
+    assert corr > 0.9 and 0.7 < slope < 1.4, (
+        stats
+    )  # measured 0.98 and 0.90 (3 levels; 4 levels: 0.996, 0.95)
+    assert corr0 < 0.6 and slope0 < 0.5, (
+        stats
+    )  # measured 0.31 and 0.43: only what the base points carry
 
 
 def test_detail_scale_is_delta_times_the_source_offsets():
@@ -103,8 +127,10 @@ def test_detail_scale_is_delta_times_the_source_offsets():
     src = case.source
     neutral = src.performance.reference
     scaled = TargetRig(
-        fr.Mesh(1.3 * neutral.vertices, neutral.triangles), landmarks=src.landmarks,
-        examples=1.3 * np.asarray(src.examples), example_names=src.example_names,
+        fr.Mesh(1.3 * neutral.vertices, neutral.triangles),
+        landmarks=src.landmarks,
+        examples=1.3 * np.asarray(src.examples),
+        example_names=src.example_names,
     )
     area = fr.get("normalmesh", detail_scale="area").fit(src, scaled)
     length = fr.get("normalmesh", head_motion="none").fit(src, scaled)
@@ -114,7 +140,20 @@ def test_detail_scale_is_delta_times_the_source_offsets():
     assert fixed.delta_ == 0.5
     # with the length ratio the scaled target moves exactly as 1.3 x the source does
     a = np.asarray(length.retarget(src).vertices)
-    b = 1.3 * np.asarray(fr.get("normalmesh", head_motion="none").fit(src, TargetRig(neutral, landmarks=src.landmarks, examples=src.examples, example_names=src.example_names)).retarget(src).vertices)
+    b = 1.3 * np.asarray(
+        fr.get("normalmesh", head_motion="none")
+        .fit(
+            src,
+            TargetRig(
+                neutral,
+                landmarks=src.landmarks,
+                examples=src.examples,
+                example_names=src.example_names,
+            ),
+        )
+        .retarget(src)
+        .vertices
+    )
     assert _rms(a, b) < 1e-6 * scaled.neutral.height
 
 
@@ -122,8 +161,18 @@ def test_examples_are_reproduced_at_the_base_points(human_case):
     """Eq. 4: a source frame equal to example k puts the target base points at target example k."""
     src, tgt = human_case.source, human_case.target
     r = fr.get("normalmesh", rbf_smoothing=0.0).fit(src, tgt)
-    frames = MeshSequence(np.asarray(src.examples), src.performance.triangles, reference=src.performance.reference)
-    anim = r.retarget(Source(frames, landmarks=src.landmarks, examples=src.examples, example_names=src.example_names, head_motion=np.tile(np.eye(4), (len(frames.vertices), 1, 1))))
+    frames = MeshSequence(
+        np.asarray(src.examples), src.performance.triangles, reference=src.performance.reference
+    )
+    anim = r.retarget(
+        Source(
+            frames,
+            landmarks=src.landmarks,
+            examples=src.examples,
+            example_names=src.example_names,
+            head_motion=np.tile(np.eye(4), (len(frames.vertices), 1, 1)),
+        )
+    )
     want = tgt.landmarks.positions(np.asarray(tgt.examples), tgt.neutral.triangles)
     np.testing.assert_allclose(anim.extras["base_vertices"], want, atol=1e-6 * tgt.neutral.height)
 
@@ -132,7 +181,15 @@ def test_head_motion_is_removed_and_reapplied(human_case, fitted):
     src = human_case.source
     h = human_case.target.neutral.height
     estimated = fitted.retarget(src)
-    known = fitted.retarget(Source(src.performance, landmarks=src.landmarks, examples=src.examples, example_names=src.example_names, head_motion=human_case.meta["head_motion"]))
+    known = fitted.retarget(
+        Source(
+            src.performance,
+            landmarks=src.landmarks,
+            examples=src.examples,
+            example_names=src.example_names,
+            head_motion=human_case.meta["head_motion"],
+        )
+    )
     np.testing.assert_allclose(known.head_motion, human_case.meta["head_motion"])
     # the estimate (weighted Procrustes on the feature points) is close to the known motion
     assert np.abs(estimated.head_motion - known.head_motion).max() < 0.02 * max(1.0, h)
@@ -142,7 +199,15 @@ def test_head_motion_is_removed_and_reapplied(human_case, fitted):
     # ignoring head motion turns it into expression
     ignored = fr.get("normalmesh", head_motion="none").fit(src, human_case.target).retarget(src)
     assert _rms(ignored.vertices, human_case.truth.vertices) > 2 * err_est
-    np.testing.assert_allclose(estimated.local_vertices, np.einsum("fji,fpj->fpi", estimated.head_motion[:, :3, :3], np.asarray(estimated.vertices) - estimated.head_motion[:, None, :3, 3]), atol=1e-9)
+    np.testing.assert_allclose(
+        estimated.local_vertices,
+        np.einsum(
+            "fji,fpj->fpi",
+            estimated.head_motion[:, :3, :3],
+            np.asarray(estimated.vertices) - estimated.head_motion[:, None, :3, 3],
+        ),
+        atol=1e-9,
+    )
 
 
 def test_normal_mesh_sequence_and_extras(human_case, fitted):
@@ -156,7 +221,9 @@ def test_normal_mesh_sequence_and_extras(human_case, fitted):
     # the output vertices sit on (or, outside the feature points' hull, hang from) the finest level
     f = 4
     d = np.abs(closest_points(finest.vertices[f], finest.triangles, anim.vertices[f]).distance)
-    covered = np.linalg.norm(fitted.attachment_.local, axis=1) < 1e-3 * human_case.target.neutral.height
+    covered = (
+        np.linalg.norm(fitted.attachment_.local, axis=1) < 1e-3 * human_case.target.neutral.height
+    )
     assert d[covered].max() < 2e-3 * human_case.target.neutral.height
     with pytest.raises(fr.errors.InputError):
         fitted.normal_mesh_sequence(human_case.source, level=hier.levels + 1)
@@ -176,6 +243,12 @@ def test_no_head_motion_is_invented():
     explaining 12% of the stable vertices' motion, vs 99.8% with head motion) is dropped."""
     case = fr.cases.synthetic(seed=3, resolution=1500, n_frames=10, head_motion=False)
     anim = fr.get("normalmesh").fit(case.source, case.target).retarget(case.source)
-    np.testing.assert_array_equal(anim.head_motion, np.repeat(np.eye(4)[None], case.source.n_frames, axis=0))
-    forced = fr.get("normalmesh", head_motion="estimate").fit(case.source, case.target).retarget(case.source)
+    np.testing.assert_array_equal(
+        anim.head_motion, np.repeat(np.eye(4)[None], case.source.n_frames, axis=0)
+    )
+    forced = (
+        fr.get("normalmesh", head_motion="estimate")
+        .fit(case.source, case.target)
+        .retarget(case.source)
+    )
     assert np.abs(forced.head_motion - np.eye(4)).max() > 1e-6

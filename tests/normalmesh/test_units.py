@@ -1,4 +1,5 @@
 """Units and placement: the result, in the target's units and frame, does not depend on them."""
+
 import numpy as np
 import pytest
 
@@ -25,14 +26,29 @@ def _rotation(axis, degrees):
 
 def _source(case, move, head_motion=None):
     s, p = case.source, case.source.performance
-    perf = MeshSequence(move(np.asarray(p.vertices)), p.triangles, fps=p.fps, reference=move(np.asarray(p.reference.vertices)))
-    return Source(perf, landmarks=s.landmarks, examples=move(np.asarray(s.examples)), example_names=s.example_names, head_motion=head_motion)
+    perf = MeshSequence(
+        move(np.asarray(p.vertices)),
+        p.triangles,
+        fps=p.fps,
+        reference=move(np.asarray(p.reference.vertices)),
+    )
+    return Source(
+        perf,
+        landmarks=s.landmarks,
+        examples=move(np.asarray(s.examples)),
+        example_names=s.example_names,
+        head_motion=head_motion,
+    )
 
 
 def _target(case, move):
     t = case.target
-    return TargetRig(Mesh(move(np.asarray(t.neutral.vertices)), t.neutral.triangles), landmarks=t.landmarks,
-                     examples=move(np.asarray(t.examples)), example_names=t.example_names)
+    return TargetRig(
+        Mesh(move(np.asarray(t.neutral.vertices)), t.neutral.triangles),
+        landmarks=t.landmarks,
+        examples=move(np.asarray(t.examples)),
+        example_names=t.example_names,
+    )
 
 
 def _run(source, target, **params):
@@ -45,7 +61,10 @@ def _change(a, b, height):
 
 def _moves():
     rot, shift = _rotation([0.3, 1.0, 0.2], 25.0), np.array([1.0, -2.0, 0.5])
-    out = [(f"x{k:g}", (lambda k: lambda x: k * x)(k), (lambda k: lambda y: y / k)(k)) for k in (0.01, 100.0, 1000.0)]
+    out = [
+        (f"x{k:g}", (lambda k: lambda x, k=k: k * x)(k), (lambda k: lambda y, k=k: y / k)(k))
+        for k in (0.01, 100.0, 1000.0)
+    ]
     out.append(("rigid", lambda x: x @ rot.T + 30.0 * shift, lambda y: (y - 30.0 * shift) @ rot))
     return out
 
@@ -95,18 +114,32 @@ def test_points_on_edges_and_corners_attach_the_same_wherever_the_mesh_is():
     from faceretarget.plugins.normalmesh.attach import attach
 
     n = 6
-    g = np.stack(np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij"), axis=-1).reshape(-1, 2)
+    g = np.stack(
+        np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij"), axis=-1
+    ).reshape(-1, 2)
     vertices = np.column_stack([g, 0.05 * np.sin(g[:, 0]) * np.cos(g[:, 1])])
-    quads = np.array([[i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1] for i in range(n - 1) for j in range(n - 1)])
+    quads = np.array(
+        [
+            [i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1]
+            for i in range(n - 1)
+            for j in range(n - 1)
+        ]
+    )
     triangles = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
     edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]]])
     points = np.concatenate([vertices, 0.5 * (vertices[edges[:, 0]] + vertices[edges[:, 1]])])
     want = attach(points, vertices, triangles)
     # on a corner or an edge: the lowest-numbered triangle sharing it
-    lowest = np.array([np.flatnonzero((triangles == v).any(axis=1)).min() for v in range(len(vertices))])
+    lowest = np.array(
+        [np.flatnonzero((triangles == v).any(axis=1)).min() for v in range(len(vertices))]
+    )
     np.testing.assert_array_equal(want.triangle[: len(vertices)], lowest)
-    for scale, rot, shift in [(1e-2, _rotation([1, 2, 3], 40.0), np.array([3.0, 1.0, -2.0])), (1e3, _rotation([0, 1, 0], 90.0), np.zeros(3))]:
-        def move(x):
+    for scale, rot, shift in [
+        (1e-2, _rotation([1, 2, 3], 40.0), np.array([3.0, 1.0, -2.0])),
+        (1e3, _rotation([0, 1, 0], 90.0), np.zeros(3)),
+    ]:
+
+        def move(x, rot=rot, scale=scale, shift=shift):
             return scale * x @ rot.T + shift
 
         got = attach(move(points), move(vertices), triangles)

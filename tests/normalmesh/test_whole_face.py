@@ -1,5 +1,6 @@
 """The whole target face moves: the dense fallback off the normal mesh, piercing errors on a
 real face (ICT-FaceKit), levels from the source's resolution, detail transfer that helps."""
+
 import numpy as np
 import pytest
 
@@ -47,7 +48,10 @@ def test_ict_off_the_normal_mesh_at_least_as_good_as_deformation_transfer(ict, i
     assert _rms(sq) <= _rms(sq_dt)
     # and far better than leaving those vertices still (the target neutral moved by the head)
     hm = np.asarray(case.truth.head_motion)
-    still = np.einsum("fij,pj->fpi", hm[:, :3, :3], np.asarray(case.target.neutral.vertices)) + hm[:, None, :3, 3]
+    still = (
+        np.einsum("fij,pj->fpi", hm[:, :3, :3], np.asarray(case.target.neutral.vertices))
+        + hm[:, None, :3, 3]
+    )
     sq_still = np.sum((still - np.asarray(case.truth.vertices)) ** 2, axis=-1)
     assert _rms(sq, off) < 0.2 * _rms(sq_still, off)
 
@@ -65,7 +69,9 @@ def test_ict_paper_rules_pierce_far_more():
     the test above can fail (measured 1.3% of the target's vertices, 1.7% per source frame)."""
     case = fr.cases.ict(n_frames=4)
     r = fr.get("normalmesh", repair="average", max_piercing=1.0).fit(case.source, case.target)
-    assert r.piercing_errors_["target"] > PIERCING_BOUND * r.piercing_errors_["normal_mesh_vertices"]
+    assert (
+        r.piercing_errors_["target"] > PIERCING_BOUND * r.piercing_errors_["normal_mesh_vertices"]
+    )
 
 
 def test_ict_base_mesh_does_not_bridge_the_closed_mouth(ict):
@@ -86,11 +92,27 @@ def test_bridging_edges_are_found_over_a_fold():
     n = 8
     x = np.linspace(0, 1, n)
     top = np.stack(np.meshgrid(x, x, indexing="ij"), -1).reshape(-1, 2)
-    vertices = np.concatenate([np.column_stack([top, np.full(len(top), 0.05)]), np.column_stack([top, np.zeros(len(top))])])
-    quads = np.array([[i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1] for i in range(n - 1) for j in range(n - 1)])
+    vertices = np.concatenate(
+        [
+            np.column_stack([top, np.full(len(top), 0.05)]),
+            np.column_stack([top, np.zeros(len(top))]),
+        ]
+    )
+    quads = np.array(
+        [
+            [i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1]
+            for i in range(n - 1)
+            for j in range(n - 1)
+        ]
+    )
     sheet = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-    seam = np.array([[(n - 1) * n + j, (n - 1) * n + j + 1, n * n + (n - 1) * n + j + 1] for j in range(n - 1)]
-                    + [[(n - 1) * n + j, n * n + (n - 1) * n + j + 1, n * n + (n - 1) * n + j] for j in range(n - 1)])
+    seam = np.array(
+        [[(n - 1) * n + j, (n - 1) * n + j + 1, n * n + (n - 1) * n + j + 1] for j in range(n - 1)]
+        + [
+            [(n - 1) * n + j, n * n + (n - 1) * n + j + 1, n * n + (n - 1) * n + j]
+            for j in range(n - 1)
+        ]
+    )
     triangles = np.concatenate([sheet, sheet[:, ::-1] + n * n, seam])
     points = vertices[[0, n - 1, n * n, n * n + n - 1]]
     ids = np.array([0, n - 1, n * n, n * n + n - 1])
@@ -104,7 +126,9 @@ def test_ict_detail_transfer_does_not_raise_the_error(ict):
     """ICT's expressions have no wrinkles; the detail levels must still not hurt (measured
     0.060% vs 0.120% with base motion only; before the sliding transfer 0.672% vs 0.645%)."""
     case, _, anim = ict
-    base_only = fr.get("normalmesh", detail_levels=0).fit(case.source, case.target).retarget(case.source)
+    base_only = (
+        fr.get("normalmesh", detail_levels=0).fit(case.source, case.target).retarget(case.source)
+    )
     assert _rms(_errors(anim, case)[0]) <= _rms(_errors(base_only, case)[0])
 
 
@@ -112,12 +136,18 @@ def test_detail_transfer_lowers_the_error_with_wrinkles():
     case = fr.cases.synthetic(seed=5, resolution=1500, n_frames=10)
     errors = {}
     for levels in (-1, 0):
-        anim = fr.get("normalmesh", detail_levels=levels).fit(case.source, case.target).retarget(case.source)
+        anim = (
+            fr.get("normalmesh", detail_levels=levels)
+            .fit(case.source, case.target)
+            .retarget(case.source)
+        )
         errors[levels] = _rms(_errors(anim, case)[0])
     assert errors[-1] < 0.8 * errors[0], errors  # measured 0.015% vs 0.033%
 
 
-@pytest.mark.parametrize("options", [dict(), dict(target_resolution=1100)], ids=["same-topology", "other-topology"])
+@pytest.mark.parametrize(
+    "options", [dict(), dict(target_resolution=1100)], ids=["same-topology", "other-topology"]
+)
 def test_fallback_off_the_normal_mesh_beats_deformation_transfer(options):
     """Synthetic faces (the fallback's correspondence: the same vertex, or the RBF warp through
     both normal meshes and the closest source point)."""
@@ -127,9 +157,19 @@ def test_fallback_off_the_normal_mesh_beats_deformation_transfer(options):
     assert off.mean() > 0.2
     sq, _ = _errors(r.retarget(case.source), case)
     dt = fr.get("deformation_transfer").fit(case.source, case.target).retarget(case.source)
-    nearest = fr.get("normalmesh", fallback="nearest").fit(case.source, case.target).retarget(case.source)
-    err, err_dt, err_nearest = _rms(sq, off), _rms(_errors(dt, case)[0], off), _rms(_errors(nearest, case)[0], off)
-    assert err < 0.5 * err_dt and err < 0.5 * err_nearest, (err, err_dt, err_nearest)  # measured 0.002-0.004% vs 0.06% and 0.04%
+    nearest = (
+        fr.get("normalmesh", fallback="nearest").fit(case.source, case.target).retarget(case.source)
+    )
+    err, err_dt, err_nearest = (
+        _rms(sq, off),
+        _rms(_errors(dt, case)[0], off),
+        _rms(_errors(nearest, case)[0], off),
+    )
+    assert err < 0.5 * err_dt and err < 0.5 * err_nearest, (
+        err,
+        err_dt,
+        err_nearest,
+    )  # measured 0.002-0.004% vs 0.06% and 0.04%
 
 
 def test_levels_follow_the_sources_and_targets_resolution():
@@ -147,7 +187,9 @@ def test_levels_follow_the_sources_and_targets_resolution():
         r = fr.get("normalmesh").fit(case.source, case.target)
         source = case.source.performance.reference
         finest = r.source_normal_mesh_.positions[-1]
-        return r.levels_, median_edge(finest, r.hierarchy_.triangles(r.levels_)) / median_edge(np.asarray(source.vertices), source.triangles)
+        return r.levels_, median_edge(finest, r.hierarchy_.triangles(r.levels_)) / median_edge(
+            np.asarray(source.vertices), source.triangles
+        )
 
     found = {}
     for resolution in (800, 3000, 12000):
@@ -156,7 +198,9 @@ def test_levels_follow_the_sources_and_targets_resolution():
         assert 0.25 < ratio <= 0.65, (resolution, found[resolution], ratio)
     assert found[800] < found[3000] < found[12000], found
     # a target about twice as coarse as the source: the source's own density, one level fewer
-    coarse, ratio = finest_over_source(fr.cases.synthetic(seed=0, resolution=3000, n_frames=2, target_resolution=700))
+    coarse, ratio = finest_over_source(
+        fr.cases.synthetic(seed=0, resolution=3000, n_frames=2, target_resolution=700)
+    )
     assert coarse == found[3000] - 1 and 0.5 < ratio <= 1.3, (coarse, ratio)
     assert fr.get("normalmesh", levels=2).fit(case.source, case.target).levels_ == 2
 
@@ -187,11 +231,16 @@ def test_fine_wrinkles_keep_their_depth_on_a_target_as_dense_as_the_source():
     neutral, tri = np.asarray(case.target.neutral.vertices), case.target.neutral.triangles
 
     def detail(a, b):
-        return normal_detail(np.asarray(a.local_vertices) - np.asarray(b.local_vertices), tri, neutral)
+        return normal_detail(
+            np.asarray(a.local_vertices) - np.asarray(b.local_vertices), tri, neutral
+        )
 
     truth = detail(case.truth, twin.truth)
     r = fr.get("normalmesh")
-    ours = detail(r.fit(case.source, case.target).retarget(case.source), fr.get("normalmesh").fit(twin.source, twin.target).retarget(twin.source))
+    ours = detail(
+        r.fit(case.source, case.target).retarget(case.source),
+        fr.get("normalmesh").fit(twin.source, twin.target).retarget(twin.source),
+    )
     gain = float(np.sum(ours * truth) / np.sum(truth**2))
     assert gain > 0.7, (r.levels_, gain)
     assert np.corrcoef(ours.ravel(), truth.ravel())[0, 1] > 0.95

@@ -7,6 +7,7 @@ chunk, flushes, prints ``MID`` and sleeps (the parent SIGKILLs it there).
 MODE ``commit``: ``os.replace`` prints ``COMMIT`` and sleeps (the data is complete, the
 rename has not happened). Prints ``DONE`` if the writer finished without being stopped.
 """
+
 import builtins
 import os
 import sys
@@ -15,7 +16,6 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from reliability import samples  # noqa: E402
-
 
 
 def find_writer(name: str, builtin: bool):
@@ -70,7 +70,11 @@ def main() -> None:
 
         def open_(file, mode="r", *args, **kwargs):
             fh = real_open(file, mode, *args, **kwargs)
-            if isinstance(file, (str, os.PathLike)) and any(c in mode for c in "wxa+") and os.path.abspath(os.fspath(file)).startswith(folder):
+            if (
+                isinstance(file, (str, os.PathLike))
+                and any(c in mode for c in "wxa+")
+                and os.path.abspath(os.fspath(file)).startswith(folder)
+            ):
                 return HalfWriter(fh)
             return fh
 

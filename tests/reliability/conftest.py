@@ -1,6 +1,6 @@
 """Reliability suite: a hang net on every test and a summary of how many inputs were tried."""
-import pytest
 
+import pytest
 from reliability import fuzzkit
 
 #: Seconds a reliability test may run in CI mode before pytest-timeout calls it a hang.
@@ -17,10 +17,18 @@ def pytest_collection_modifyitems(config, items):
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     if not fuzzkit.TRIED:
         return
-    mode = f"long mode, {fuzzkit.EXAMPLES_ENV}={fuzzkit.examples(0)}" if fuzzkit.long_mode() else "CI mode"
+    mode = (
+        f"long mode, {fuzzkit.EXAMPLES_ENV}={fuzzkit.examples(0)}"
+        if fuzzkit.long_mode()
+        else "CI mode"
+    )
     terminalreporter.write_sep("-", f"reliability inputs tried ({mode})")
     for area in sorted(fuzzkit.TRIED):
-        tried, rejected, untyped = fuzzkit.TRIED[area], fuzzkit.REJECTED[area], fuzzkit.UNTYPED[area]
+        tried, rejected, untyped = (
+            fuzzkit.TRIED[area],
+            fuzzkit.REJECTED[area],
+            fuzzkit.UNTYPED[area],
+        )
         terminalreporter.write_line(
             f"{area:<22} {tried:>7} inputs: {rejected:>7} typed errors, {tried - rejected - untyped:>7} clean results, "
             f"{untyped} untyped exceptions"

@@ -9,6 +9,7 @@
 - :data:`TRIED`: inputs tried per area; ``conftest.py`` prints it at the end of the run.
 - Strategies for "anything a user could pass" (:func:`junk`) and for near-valid arrays.
 """
+
 from __future__ import annotations
 
 import collections
@@ -110,14 +111,28 @@ SPECIAL_FLOATS = [0.0, -0.0, 1.0, -1.0, np.nan, np.inf, -np.inf, 1e-300, 1e300, 
 
 
 def any_floats():
-    return st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.sampled_from(SPECIAL_FLOATS))
+    return st.one_of(
+        st.floats(allow_nan=True, allow_infinity=True), st.sampled_from(SPECIAL_FLOATS)
+    )
 
 
 def finite_floats(bound: float = 1e3):
     return st.floats(-bound, bound, allow_nan=False, allow_infinity=False)
 
 
-_DTYPES = [np.float64, np.float32, np.float16, np.int64, np.int32, np.uint8, np.bool_, np.complex128, "U3", "S2", "datetime64[s]"]
+_DTYPES = [
+    np.float64,
+    np.float32,
+    np.float16,
+    np.int64,
+    np.int32,
+    np.uint8,
+    np.bool_,
+    np.complex128,
+    "U3",
+    "S2",
+    "datetime64[s]",
+]
 
 
 def _object_array(draw_list):
@@ -130,7 +145,9 @@ def small_arrays(max_dims: int = 4, max_side: int = 5):
     """numpy arrays of every dtype kind (NaN/inf included), ranks 0..max_dims, sides 0..max_side."""
     shapes = hnp.array_shapes(min_dims=0, max_dims=max_dims, min_side=0, max_side=max_side)
     plain = st.sampled_from(_DTYPES).flatmap(lambda dt: hnp.arrays(np.dtype(dt), shapes))
-    objects = st.lists(st.one_of(st.none(), st.integers(), any_floats(), st.text(max_size=3)), max_size=6).map(_object_array)
+    objects = st.lists(
+        st.one_of(st.none(), st.integers(), any_floats(), st.text(max_size=3)), max_size=6
+    ).map(_object_array)
     return st.one_of(plain, objects)
 
 
@@ -153,7 +170,15 @@ def ragged_frames(dim: int = 3):
 
 def junk():
     """Anything a user might pass where an array, name list or number is expected."""
-    scalars = st.one_of(st.none(), st.booleans(), st.integers(), any_floats(), st.complex_numbers(), st.text(max_size=4), st.binary(max_size=4))
+    scalars = st.one_of(
+        st.none(),
+        st.booleans(),
+        st.integers(),
+        any_floats(),
+        st.complex_numbers(),
+        st.text(max_size=4),
+        st.binary(max_size=4),
+    )
     return st.one_of(
         scalars,
         small_arrays(),
@@ -166,7 +191,11 @@ def junk():
 
 def float_array(shape, *, special: bool = True, bound: float = 1e3, dtype=np.float64):
     """A float array of exactly ``shape``; with ``special`` some entries may be NaN/inf/extreme."""
-    elements = st.one_of(finite_floats(bound), st.sampled_from(SPECIAL_FLOATS)) if special else finite_floats(bound)
+    elements = (
+        st.one_of(finite_floats(bound), st.sampled_from(SPECIAL_FLOATS))
+        if special
+        else finite_floats(bound)
+    )
     return hnp.arrays(np.dtype(dtype), shape, elements=elements)
 
 
@@ -178,15 +207,36 @@ def names(count: int | None = None):
     """Unicode names: sometimes blank, duplicated, not strings, or of the wrong count."""
     name = st.one_of(
         st.text(max_size=6),
-        st.sampled_from(["", " ", "jawOpen", "JawOpen", "mouthSmile_L", "\u00e9\u00e8", "\U0001f600", "a\x00b", "x\ny"]),
+        st.sampled_from(
+            [
+                "",
+                " ",
+                "jawOpen",
+                "JawOpen",
+                "mouthSmile_L",
+                "\u00e9\u00e8",
+                "\U0001f600",
+                "a\x00b",
+                "x\ny",
+            ]
+        ),
         st.sampled_from([None, 0, 1.5, b"jawOpen", np.nan]),  # not names at all
     )
-    size = st.integers(0, 6) if count is None else st.sampled_from([count, count, count, max(0, count - 1), count + 1])
+    size = (
+        st.integers(0, 6)
+        if count is None
+        else st.sampled_from([count, count, count, max(0, count - 1), count + 1])
+    )
     return size.flatmap(lambda n: st.lists(name, min_size=n, max_size=n))
 
 
 def unique_names(count: int):
-    return st.lists(st.text(min_size=1, max_size=6).filter(lambda s: s.strip()), min_size=count, max_size=count, unique=True)
+    return st.lists(
+        st.text(min_size=1, max_size=6).filter(lambda s: s.strip()),
+        min_size=count,
+        max_size=count,
+        unique=True,
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -208,7 +258,9 @@ def toml_value(v) -> str:
     if isinstance(v, list):
         return "[" + ", ".join(toml_value(x) for x in v) + "]"
     if isinstance(v, dict):
-        return "{" + ", ".join(f"{json.dumps(str(k))} = {toml_value(x)}" for k, x in v.items()) + "}"
+        return (
+            "{" + ", ".join(f"{json.dumps(str(k))} = {toml_value(x)}" for k, x in v.items()) + "}"
+        )
     raise TypeError(v)
 
 
@@ -221,4 +273,10 @@ def toml_values(words=()):
     pools = [st.booleans(), st.integers(-(2**63), 2**63 - 1), st.floats(), st.text(max_size=8)]
     if words:
         pools.append(st.sampled_from(list(words)))
-    return st.recursive(st.one_of(*pools), lambda inner: st.one_of(st.lists(inner, max_size=3), st.dictionaries(st.text(max_size=4), inner, max_size=3)), max_leaves=8)
+    return st.recursive(
+        st.one_of(*pools),
+        lambda inner: st.one_of(
+            st.lists(inner, max_size=3), st.dictionaries(st.text(max_size=4), inner, max_size=3)
+        ),
+        max_leaves=8,
+    )

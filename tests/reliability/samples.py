@@ -3,6 +3,7 @@
 Imported as ``reliability.samples``. Everything is derived from the registry, so a format
 added by a plugin gets seeds (and is fuzzed) without changes here.
 """
+
 from __future__ import annotations
 
 import functools
@@ -37,14 +38,18 @@ def sample(kind: str, *, frames: int = 4, n: int = 3):
     if kind == "mesh":
         return mesh
     if kind == "mesh_sequence":
-        return fr.MeshSequence(v[None] + 0.01 * rng.normal(size=(frames,) + v.shape), mesh.triangles, fps=24.0)
+        return fr.MeshSequence(
+            v[None] + 0.01 * rng.normal(size=(frames,) + v.shape), mesh.triangles, fps=24.0
+        )
     rig = fr.BlendshapeRig(mesh, 0.1 * rng.normal(size=(len(ARKIT),) + v.shape), ARKIT)
     if kind == "rig":
         return rig
     if kind == "markers":
         n_markers = max(5, n)
         pos = rng.normal(size=(frames, n_markers, 3))
-        pos[frames - 1, 1] = np.nan  # a missing sample (frame 0 stays complete: it is the reference)
+        pos[frames - 1, 1] = (
+            np.nan
+        )  # a missing sample (frame 0 stays complete: it is the reference)
         return fr.MarkerSequence(pos, names=[f"m{i}" for i in range(n_markers)], fps=60.0)
     if kind == "weights":
         return fr.WeightSequence(rng.uniform(0, 1, size=(frames, len(ARKIT))), ARKIT, fps=30.0)
@@ -82,7 +87,7 @@ def _try_read(reader, path: Path, kind_obj):
     return None
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def seed(reader_name: str, folder: str, n: int = 3):
     """A valid file for the reader called ``reader_name`` written by a registered writer
     (from a sample with an ``n x n`` vertex grid).
@@ -94,7 +99,9 @@ def seed(reader_name: str, folder: str, n: int = 3):
     root = Path(folder)
     root.mkdir(parents=True, exist_ok=True)
     for ext in reader.extensions:
-        ranked = sorted((w for w, _ in writers() if ext in w.extensions), key=lambda w: w.kind != reader.kind)
+        ranked = sorted(
+            (w for w, _ in writers() if ext in w.extensions), key=lambda w: w.kind != reader.kind
+        )
         for i, writer in enumerate(ranked):
             obj = sample(writer.kind, n=n, frames=4 if n <= 3 else 4 * n)
             path = root / f"seed_{reader_name}_{n}_{i}{_suffix(ext)}"

@@ -5,18 +5,19 @@ places), single-field mutations of a valid entry, and the shipped ``registry.tom
 or with characters changed. A clean result must be a catalogue the registry and the CLI
 can use as is (the invariants below).
 """
+
 import json
 from pathlib import Path
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from reliability.fuzzkit import failed, fuzz, toml_document, toml_values, typed
 
 import faceretarget as fr
 from faceretarget import errors
 from faceretarget.registry import read_catalogue
 from faceretarget.retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS
-from reliability.fuzzkit import failed, fuzz, toml_document, toml_values, typed
 
 AREA = "registry.toml"
 ROOT = Path(__file__).resolve().parents[2]
@@ -26,7 +27,11 @@ CAP_KEYS = ["sources", "needs", "outputs", "stream", "edit", "same_topology"]
 
 VALUES = toml_values(["markers", "mesh", "weights", "vertices", "blendshapes", "landmarks"])
 CAPS = st.dictionaries(st.sampled_from(CAP_KEYS + ["x"]), VALUES, max_size=6)
-PARAMS = st.dictionaries(st.text(max_size=4), st.one_of(VALUES, st.fixed_dictionaries({"doc": VALUES}, optional={"default": VALUES})), max_size=3)
+PARAMS = st.dictionaries(
+    st.text(max_size=4),
+    st.one_of(VALUES, st.fixed_dictionaries({"doc": VALUES}, optional={"default": VALUES})),
+    max_size=3,
+)
 ENTRY = st.dictionaries(
     st.sampled_from(KEYS + ["other"]),
     st.one_of(VALUES, CAPS, PARAMS),
@@ -37,7 +42,14 @@ VALID = {
     "aliases": ["a1"],
     "paper": "p",
     "summary": "s",
-    "capabilities": {"sources": ["markers"], "needs": ["blendshapes", ["layers", "examples"]], "outputs": "weights", "stream": False, "edit": True, "same_topology": False},
+    "capabilities": {
+        "sources": ["markers"],
+        "needs": ["blendshapes", ["layers", "examples"]],
+        "outputs": "weights",
+        "stream": False,
+        "edit": True,
+        "same_topology": False,
+    },
     "parameters": {"alpha": {"default": 0.1, "doc": "d"}},
 }
 
@@ -45,7 +57,13 @@ VALID = {
 @st.composite
 def mutated_entry(draw):
     entry = json.loads(json.dumps(VALID))
-    where = draw(st.sampled_from(KEYS + [f"capabilities.{k}" for k in CAP_KEYS] + ["parameters.alpha", "parameters.alpha.doc"]))
+    where = draw(
+        st.sampled_from(
+            KEYS
+            + [f"capabilities.{k}" for k in CAP_KEYS]
+            + ["parameters.alpha", "parameters.alpha.doc"]
+        )
+    )
     value = draw(VALUES)
     node, *rest = where.split(".")
     if not rest:
@@ -66,20 +84,34 @@ def assert_usable(catalogue: dict):
         assert isinstance(name, str)
         for key in ("entry_point", "summary", "paper"):
             assert isinstance(entry[key], str), f"[{name}] {key} accepted as {entry[key]!r}"
-        assert isinstance(entry["aliases"], list) and all(isinstance(a, str) for a in entry["aliases"])
+        assert isinstance(entry["aliases"], list) and all(
+            isinstance(a, str) for a in entry["aliases"]
+        )
         for p, spec in entry["parameters"].items():
-            assert isinstance(spec, dict) and isinstance(spec.get("doc"), str), f"[{name}.parameters] {p} accepted as {spec!r}"
+            assert isinstance(spec, dict) and isinstance(spec.get("doc"), str), (
+                f"[{name}.parameters] {p} accepted as {spec!r}"
+            )
         caps = entry["capabilities"]
         assert isinstance(caps, dict)
         for key in ("stream", "edit", "same_topology"):
-            assert isinstance(caps.get(key, False), bool), f"[{name}.capabilities] {key} accepted as {caps[key]!r}"
-        assert caps.get("outputs", "vertices") in ("weights", "vertices"), f"[{name}] outputs accepted as {caps.get('outputs')!r}"
-        assert set(caps) <= set(CAP_KEYS), f"[{name}.capabilities] unknown keys accepted: {set(caps) - set(CAP_KEYS)}"
+            assert isinstance(caps.get(key, False), bool), (
+                f"[{name}.capabilities] {key} accepted as {caps[key]!r}"
+            )
+        assert caps.get("outputs", "vertices") in ("weights", "vertices"), (
+            f"[{name}] outputs accepted as {caps.get('outputs')!r}"
+        )
+        assert set(caps) <= set(CAP_KEYS), (
+            f"[{name}.capabilities] unknown keys accepted: {set(caps) - set(CAP_KEYS)}"
+        )
         built = fr.Capabilities.from_dict(caps)
-        assert all(s in SOURCE_KINDS for s in built.sources), f"[{name}] sources accepted as {caps.get('sources')!r}"
+        assert all(s in SOURCE_KINDS for s in built.sources), (
+            f"[{name}] sources accepted as {caps.get('sources')!r}"
+        )
         for need in built.needs:
             options = need if isinstance(need, tuple) else (need,)
-            assert all(o in RIG_PARTS + SOURCE_EXTRAS for o in options), f"[{name}] needs accepted as {caps.get('needs')!r}"
+            assert all(o in RIG_PARTS + SOURCE_EXTRAS for o in options), (
+                f"[{name}] needs accepted as {caps.get('needs')!r}"
+            )
 
 
 def check(text):
@@ -92,10 +124,21 @@ def check(text):
     return result
 
 
-@given(doc=st.one_of(
-    st.dictionaries(st.text(max_size=5), VALUES, max_size=3),
-    st.fixed_dictionaries({"retargeters": st.one_of(VALUES, st.dictionaries(st.text(min_size=1, max_size=5), st.one_of(ENTRY, VALUES), max_size=3))}),
-))
+@given(
+    doc=st.one_of(
+        st.dictionaries(st.text(max_size=5), VALUES, max_size=3),
+        st.fixed_dictionaries(
+            {
+                "retargeters": st.one_of(
+                    VALUES,
+                    st.dictionaries(
+                        st.text(min_size=1, max_size=5), st.one_of(ENTRY, VALUES), max_size=3
+                    ),
+                )
+            }
+        ),
+    )
+)
 @fuzz(60)
 def test_random_documents(doc):
     check(toml_document(doc))
@@ -109,7 +152,10 @@ def test_one_field_wrong(entry):
 
 def test_valid_entry_is_read():
     result = check(toml_document({"retargeters": {"m": VALID}}))
-    assert not failed(result) and result["m"]["capabilities"]["needs"] == ["blendshapes", ["layers", "examples"]]
+    assert not failed(result) and result["m"]["capabilities"]["needs"] == [
+        "blendshapes",
+        ["layers", "examples"],
+    ]
 
 
 @given(data=st.data())
@@ -123,11 +169,24 @@ def test_shipped_file_cut_or_changed(data):
     elif how == "replace":
         text = text[:at] + data.draw(st.text(min_size=1, max_size=3)) + text[at + 1 :]
     else:
-        text = text[:at] + data.draw(st.sampled_from(["[", "]", "=", '"', "\n[retargeters.x]\n", "{", "\x00", "\ufeff"])) + text[at:]
+        text = (
+            text[:at]
+            + data.draw(
+                st.sampled_from(["[", "]", "=", '"', "\n[retargeters.x]\n", "{", "\x00", "\ufeff"])
+            )
+            + text[at:]
+        )
     check(text)
 
 
-@given(text=st.one_of(st.text(max_size=200), st.binary(max_size=200).map(lambda b: b.decode("latin-1")), st.binary(max_size=50), st.none().map(lambda _: 42)))
+@given(
+    text=st.one_of(
+        st.text(max_size=200),
+        st.binary(max_size=200).map(lambda b: b.decode("latin-1")),
+        st.binary(max_size=50),
+        st.none().map(lambda _: 42),
+    )
+)
 @fuzz(40)
 def test_random_text_and_wrong_types(text):
     check(text)
@@ -141,11 +200,29 @@ from faceretarget.evaluation.batch import CASE_PREFIX, load_manifest  # noqa: E4
 MANIFEST_AREA = "batch manifests"
 METHOD = sorted(fr.registry.registry().retargeters)[0]
 PATHS = [
-    "shot.npz", "rig.npz", "out/a.glb", "a.npz", "b.glb", "../escape.glb", "/etc/passwd", "sub/../../x.glb",
-    "link/x.glb", "case:synthetic?n_frames=4", "case:no-such", "case:synthetic?x=", "", " ", "out/../b.glb",
+    "shot.npz",
+    "rig.npz",
+    "out/a.glb",
+    "a.npz",
+    "b.glb",
+    "../escape.glb",
+    "/etc/passwd",
+    "sub/../../x.glb",
+    "link/x.glb",
+    "case:synthetic?n_frames=4",
+    "case:no-such",
+    "case:synthetic?x=",
+    "",
+    " ",
+    "out/../b.glb",
 ]
 JOB_KEYS = ["shot", "character", "landmarks", "method", "params", "out", "name"]
-JOB_VALUES = st.one_of(st.sampled_from(PATHS + [METHOD, "no-such-method"]), toml_values(PATHS), st.just({}), st.just({"alpha": 0.1}))
+JOB_VALUES = st.one_of(
+    st.sampled_from(PATHS + [METHOD, "no-such-method"]),
+    toml_values(PATHS),
+    st.just({}),
+    st.just({"alpha": 0.1}),
+)
 JOBS = st.dictionaries(st.sampled_from(JOB_KEYS + ["other"]), JOB_VALUES, max_size=7)
 
 
@@ -154,9 +231,24 @@ def manifests(draw):
     doc = {}
     if draw(st.booleans()):
         doc["defaults"] = draw(st.one_of(JOBS, toml_values()))
-    doc["job"] = draw(st.one_of(st.lists(JOBS, max_size=3), toml_values(), st.lists(st.fixed_dictionaries(
-        {"shot": st.sampled_from(PATHS), "character": st.sampled_from(PATHS), "method": st.just(METHOD), "out": st.sampled_from(PATHS)}
-    ), min_size=1, max_size=3)))
+    doc["job"] = draw(
+        st.one_of(
+            st.lists(JOBS, max_size=3),
+            toml_values(),
+            st.lists(
+                st.fixed_dictionaries(
+                    {
+                        "shot": st.sampled_from(PATHS),
+                        "character": st.sampled_from(PATHS),
+                        "method": st.just(METHOD),
+                        "out": st.sampled_from(PATHS),
+                    }
+                ),
+                min_size=1,
+                max_size=3,
+            ),
+        )
+    )
     if draw(st.booleans()):
         doc[draw(st.sampled_from(["jobs", "other"]))] = draw(toml_values())
     return doc
@@ -176,7 +268,11 @@ def manifest_root(tmp_path_factory):
 
 
 def inside(root: Path, value) -> bool:
-    return value is None or str(value).startswith(CASE_PREFIX) or Path(value).resolve().is_relative_to(root.resolve())
+    return (
+        value is None
+        or str(value).startswith(CASE_PREFIX)
+        or Path(value).resolve().is_relative_to(root.resolve())
+    )
 
 
 @given(doc=manifests(), raw=st.one_of(st.none(), st.binary(max_size=200)))
@@ -189,7 +285,9 @@ def test_manifest_any_document(doc, raw, manifest_root):
         path.write_bytes(raw)
     jobs = typed(MANIFEST_AREA, load_manifest, path)
     if failed(jobs):
-        assert isinstance(jobs, (errors.ConfigError, errors.UnknownNameError)), f"{type(jobs).__name__}: {jobs}"
+        assert isinstance(jobs, (errors.ConfigError, errors.UnknownNameError)), (
+            f"{type(jobs).__name__}: {jobs}"
+        )
         return
     assert jobs, "an accepted manifest has jobs"
     for job in jobs:
@@ -198,7 +296,9 @@ def test_manifest_any_document(doc, raw, manifest_root):
         assert not str(job.out).startswith(CASE_PREFIX)
 
 
-@pytest.mark.parametrize("escape", ["../escape.glb", "/tmp/abs.glb", "sub/../../x.glb", "link/x.glb", "out/../../x.glb"])
+@pytest.mark.parametrize(
+    "escape", ["../escape.glb", "/tmp/abs.glb", "sub/../../x.glb", "link/x.glb", "out/../../x.glb"]
+)
 @pytest.mark.parametrize("key", ["out", "shot", "character", "landmarks"])
 def test_manifest_paths_cannot_leave_the_root(escape, key, manifest_root):
     job = {"shot": "shot.npz", "character": "rig.npz", "method": METHOD, "out": "out/ok.glb"}
@@ -214,8 +314,20 @@ def test_manifest_output_may_not_be_another_jobs_input(manifest_root):
     """``--redo`` would otherwise replace job 2's performance file with job 1's result."""
     path = manifest_root / "chain.toml"
     jobs = [
-        {"shot": "shot.npz", "character": "rig.npz", "method": METHOD, "out": "a.npz", "name": "one"},
-        {"shot": "a.npz", "character": "rig.npz", "method": METHOD, "out": "out/two.glb", "name": "two"},
+        {
+            "shot": "shot.npz",
+            "character": "rig.npz",
+            "method": METHOD,
+            "out": "a.npz",
+            "name": "one",
+        },
+        {
+            "shot": "a.npz",
+            "character": "rig.npz",
+            "method": METHOD,
+            "out": "out/two.glb",
+            "name": "two",
+        },
     ]
     path.write_text(toml_document({"job": jobs}), encoding="utf-8")
     result = typed(MANIFEST_AREA, load_manifest, path)

@@ -9,6 +9,7 @@ is killed when the worker ends, whether it overran its time limit or died.
 The fake distribution ``helperplugins`` lives in ``tmp_path``; each helper writes its
 process id into a folder the test watches, and ends by itself after two minutes in any case.
 """
+
 import importlib
 import os
 import signal
@@ -17,16 +18,18 @@ import textwrap
 import time
 
 import pytest
+from reliability.fuzzkit import count
 
 import faceretarget as fr
 from faceretarget.registry import Registry
-from reliability.fuzzkit import count
 
 AREA = "plugin isolation"
 DIST = "helperplugins"
 LIMIT = 3.0
 
-pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the subreaper is Linux only (documented)")
+pytestmark = pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="the subreaper is Linux only (documented)"
+)
 
 COMMON = '''
 import os, subprocess, sys, time
@@ -56,7 +59,7 @@ class Base(fr.Retargeter):
 
 PLUGINS = {
     # a helper in a session of its own, then the plugin overruns its time limit
-    "hx_session": '''
+    "hx_session": """
 class Session(Base):
     name = "hx_session"
     def _retarget(self, source):
@@ -65,9 +68,9 @@ class Session(Base):
         started(before)
         time.sleep(3600)
 CLS = Session
-''',
+""",
     # a double-forked daemon (orphaned at once, own session), then the worker dies
-    "hx_daemon": '''
+    "hx_daemon": """
 class Daemon(Base):
     name = "hx_daemon"
     def _retarget(self, source):
@@ -80,7 +83,7 @@ class Daemon(Base):
         started(before)
         os._exit(9)
 CLS = Daemon
-''',
+""",
     "hx_good": "class Good(Base):\n    name = 'hx_good'\nCLS = Good\n",
 }
 
@@ -94,9 +97,15 @@ def helpers(tmp_path, monkeypatch):
     info.mkdir(parents=True)
     (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {DIST}\nVersion: 1.0\n")
     for name, code in PLUGINS.items():
-        body = COMMON + textwrap.dedent(code) + "\n@fr.hookimpl\ndef faceretarget_retargeters():\n    return [CLS]\n"
+        body = (
+            COMMON
+            + textwrap.dedent(code)
+            + "\n@fr.hookimpl\ndef faceretarget_retargeters():\n    return [CLS]\n"
+        )
         (root / f"{name}.py").write_text(body)
-    (info / "entry_points.txt").write_text("[faceretarget]\n" + "".join(f"{n} = {n}\n" for n in PLUGINS))
+    (info / "entry_points.txt").write_text(
+        "[faceretarget]\n" + "".join(f"{n} = {n}\n" for n in PLUGINS)
+    )
     pids = tmp_path / "helpers"
     pids.mkdir()
     monkeypatch.syspath_prepend(str(root))
@@ -127,7 +136,9 @@ def alive(pid: int) -> bool:
 
 def assert_all_gone(folder, expected: int) -> None:
     pids = started_helpers(folder)
-    assert len(pids) == expected, f"the plugins should have started {expected} helpers, found {pids}"
+    assert len(pids) == expected, (
+        f"the plugins should have started {expected} helpers, found {pids}"
+    )
     end = time.monotonic() + 30  # a generous net: the kill is immediate
     while time.monotonic() < end and any(alive(p) for p in pids):
         time.sleep(0.1)
@@ -140,7 +151,14 @@ def test_compare_kills_every_helper_of_a_stopped_or_dead_worker(helpers):
 
     case = fr.cases.synthetic(resolution=300, n_frames=4)
     reg = Registry().load()
-    result = compare([case], methods=["hx_good", "hx_session", "hx_daemon"], registry=reg, metrics=["vertex_error_mean"], timeout=LIMIT, n_jobs=2)
+    result = compare(
+        [case],
+        methods=["hx_good", "hx_session", "hx_daemon"],
+        registry=reg,
+        metrics=["vertex_error_mean"],
+        timeout=LIMIT,
+        n_jobs=2,
+    )
     runs = {r.method: r for r in result.runs}
     count(AREA, len(runs))
     assert runs["hx_good"].status == "ok"
@@ -157,10 +175,19 @@ def test_batch_kills_every_helper_of_a_stopped_or_dead_worker(helpers, tmp_path)
     fr.io.save_bundle(case.target, tmp_path / "target.npz")
     names = ["hx_good", "hx_session", "hx_daemon"]
     (tmp_path / "out").mkdir()
-    (tmp_path / "shots.toml").write_text("\n".join(
-        f'[[job]]\nshot = "source.npz"\ncharacter = "target.npz"\nmethod = "{n}"\nout = "out/{n}.npz"\n' for n in names
-    ))
-    summary = run_batch(tmp_path / "shots.toml", registry=Registry().load(), progress=False, workers=2, timeout=LIMIT)
+    (tmp_path / "shots.toml").write_text(
+        "\n".join(
+            f'[[job]]\nshot = "source.npz"\ncharacter = "target.npz"\nmethod = "{n}"\nout = "out/{n}.npz"\n'
+            for n in names
+        )
+    )
+    summary = run_batch(
+        tmp_path / "shots.toml",
+        registry=Registry().load(),
+        progress=False,
+        workers=2,
+        timeout=LIMIT,
+    )
     results = {r.method: r for r in summary.results}
     count(AREA, len(results))
     assert results["hx_good"].status == "done"

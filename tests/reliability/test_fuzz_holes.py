@@ -23,6 +23,7 @@ ones in long mode (``fuzzkit.fuzz``); inputs are counted per class in the sessio
 - ``exit codes``: random command lines over garbage files: 0, 1 or 2 with one message,
   never an internal error or a traceback.
 """
+
 import os
 import socket
 import threading
@@ -33,6 +34,9 @@ import numpy as np
 import pytest
 from hypothesis import assume, given
 from hypothesis import strategies as st
+from memtools import traced_memory
+from reliability import fuzzkit, samples
+from reliability.fuzzkit import any_floats, count, failed, fuzz, junk, typed
 
 import faceretarget as fr
 from faceretarget import cli, errors
@@ -40,10 +44,6 @@ from faceretarget.hookspecs import Reader, Writer
 from faceretarget.io import _atomic, _common
 from faceretarget.io.gltf import glb_bytes, glb_document
 from faceretarget.registry import Registry, registry
-from memtools import traced_memory
-from reliability import samples
-from reliability import fuzzkit
-from reliability.fuzzkit import any_floats, count, failed, fuzz, junk, typed
 
 BUDGET = "FACERETARGET_MEMORY_BUDGET"
 MiB = 1 << 20
@@ -81,7 +81,16 @@ def glb_any(doc: dict, blob: bytes) -> bytes:
     raw += b" " * ((-len(raw)) % 4)
     head = glb_bytes({}, b"")[:4]
     total = 12 + 8 + len(raw) + 8 + len(blob)
-    return b"".join([head, struct.pack("<II", 2, total), struct.pack("<II", len(raw), 0x4E4F534A), raw, struct.pack("<II", len(blob), 0x004E4942), blob])
+    return b"".join(
+        [
+            head,
+            struct.pack("<II", 2, total),
+            struct.pack("<II", len(raw), 0x4E4F534A),
+            raw,
+            struct.pack("<II", len(blob), 0x004E4942),
+            blob,
+        ]
+    )
 
 
 def _times_accessor(doc) -> int:
@@ -89,17 +98,42 @@ def _times_accessor(doc) -> int:
 
 
 @given(
-    fps=st.one_of(st.sampled_from([24.0, 30, 60.0, 1e3, 1e6]), any_floats(), st.integers(-10, 10**15), st.sampled_from(["30", None, True, [30], {"a": 1}])),
-    fps_option=st.one_of(st.none(), st.none(), st.sampled_from([24.0, 1e5]), any_floats(), st.integers(-5, 10**9)),
+    fps=st.one_of(
+        st.sampled_from([24.0, 30, 60.0, 1e3, 1e6]),
+        any_floats(),
+        st.integers(-10, 10**15),
+        st.sampled_from(["30", None, True, [30], {"a": 1}]),
+    ),
+    fps_option=st.one_of(
+        st.none(), st.none(), st.sampled_from([24.0, 1e5]), any_floats(), st.integers(-5, 10**9)
+    ),
     keep_times=st.booleans(),
-    times=st.lists(st.one_of(st.floats(-1e6, 1e6, width=32), st.sampled_from([0.0, 1e-7, 1e-30, 3.4e38, float("nan"), float("inf")])), min_size=4, max_size=4),
+    times=st.lists(
+        st.one_of(
+            st.floats(-1e6, 1e6, width=32),
+            st.sampled_from([0.0, 1e-7, 1e-30, 3.4e38, float("nan"), float("inf")]),
+        ),
+        min_size=4,
+        max_size=4,
+    ),
     count_change=st.sampled_from([0, 0, 0, -1, 1, 10**9, -(10**9)]),
     drop_exact=st.booleans(),
     kind=st.sampled_from(["animation", "mesh_sequence", "weights"]),
     budget=st.sampled_from(["64K", "1M", "4M"]),
 )
 @fuzz(25)
-def test_gltf_frame_rates_key_times_and_counts(fps, fps_option, keep_times, times, count_change, drop_exact, kind, budget, tmp_path_factory, monkeypatch):
+def test_gltf_frame_rates_key_times_and_counts(
+    fps,
+    fps_option,
+    keep_times,
+    times,
+    count_change,
+    drop_exact,
+    kind,
+    budget,
+    tmp_path_factory,
+    monkeypatch,
+):
     anim = samples.sample("animation")
     doc, blob = glb_document(anim)
     info = doc["asset"]["extras"]["faceretarget"]
@@ -121,7 +155,9 @@ def test_gltf_frame_rates_key_times_and_counts(fps, fps_option, keep_times, time
     options = {} if fps_option is None else {"fps": fps_option}
     result, peak, checked = traced(lambda: typed(GLTF_AREA, fr.load, path, kind=kind, **options))
     if not failed(result):
-        assert peak <= limit + MiB, f"read within a budget of {limit >> 10} KiB but peaked at {peak >> 10} KiB"
+        assert peak <= limit + MiB, (
+            f"read within a budget of {limit >> 10} KiB but peaked at {peak >> 10} KiB"
+        )
         assert np.isfinite(result.fps) and result.fps > 0
 
 
@@ -133,7 +169,12 @@ _FMT = st.sampled_from(["{!r}", "{:.3e}", "{:g}", "{:.0f}", " {} ", "{}\t"])
 
 
 def _num(draw):
-    value = draw(st.one_of(st.floats(-1e6, 1e6), st.sampled_from([0.0, -0.0, 1e-300, 1e300, float("nan"), float("inf")])))
+    value = draw(
+        st.one_of(
+            st.floats(-1e6, 1e6),
+            st.sampled_from([0.0, -0.0, 1e-300, 1e300, float("nan"), float("inf")]),
+        )
+    )
     return draw(_FMT).format(value)
 
 
@@ -144,36 +185,95 @@ def text_files(draw):
     n = draw(st.sampled_from([1, 7, 300, 4000, 20000]))
     a, b, c = _num(draw), _num(draw), _num(draw)
     end = draw(st.sampled_from(["\n", "\r\n", " \n", "\t\n"]))
-    odd = draw(st.sampled_from(["", "", "# note", "\t", "x", "1 2", "\"q\"", ",,", "\u00e9"]))
+    odd = draw(st.sampled_from(["", "", "# note", "\t", "x", "1 2", '"q"', ",,", "\u00e9"]))
 
     def rows(template):
         body = template.replace("{a}", a).replace("{b}", b).replace("{c}", c).replace("{odd}", odd)
         return end.join(body.replace("{i}", str(i)) for i in range(n)) + end
 
     if kind == "obj":
-        line = draw(st.sampled_from(["v {a} {b} {c}", "v {a} {b} {c} 1", "vt {a} {b}", "v {i} {a} {b}", "{odd}", "v {a} {b}{odd}", "vn 0 0 1", "g g{i}"]))
+        line = draw(
+            st.sampled_from(
+                [
+                    "v {a} {b} {c}",
+                    "v {a} {b} {c} 1",
+                    "vt {a} {b}",
+                    "v {i} {a} {b}",
+                    "{odd}",
+                    "v {a} {b}{odd}",
+                    "vn 0 0 1",
+                    "g g{i}",
+                ]
+            )
+        )
         return ".obj", {}, rows(line) + "v 1 0 0\nv 0 1 0\nv 0 0 1\nf -1 -2 -3\n"
     if kind in ("off", "ply"):
-        line = draw(st.sampled_from(["{a} {b} {c}", "{i} {a} {b}", "{a} {b} {c} 255 0 0", "{a} {b}{odd}", "{odd}"]))
+        line = draw(
+            st.sampled_from(
+                ["{a} {b} {c}", "{i} {a} {b}", "{a} {b} {c} 255 0 0", "{a} {b}{odd}", "{odd}"]
+            )
+        )
         declared = n + 3 + draw(st.sampled_from([0, 0, -1, 1]))
-        head = (f"OFF\n{declared} 1 0\n" if kind == "off" else
-                f"ply\nformat ascii 1.0\nelement vertex {declared}\nproperty float x\nproperty float y\nproperty float z\n"
-                "element face 1\nproperty list uchar int vertex_indices\nend_header\n")
+        head = (
+            f"OFF\n{declared} 1 0\n"
+            if kind == "off"
+            else f"ply\nformat ascii 1.0\nelement vertex {declared}\nproperty float x\nproperty float y\nproperty float z\n"
+            "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+        )
         return f".{kind}", {}, head + rows(line) + f"1 0 0\n0 1 0\n0 0 1\n3 {n} {n + 1} {n + 2}\n"
     if kind == "stl":
-        vertex = draw(st.sampled_from(["vertex {i} {a} {b}", "vertex {a} {b} {c}", "vertex {i} {a}", "vertex {i} {a} {b}{odd}"]))
-        facet = " facet normal 0 0 1\n  outer loop\n   " + "\n   ".join(vertex.replace("{i}", "{i}" + s) for s in ("1", "2", "3")) + "\n  endloop\n endfacet"
+        vertex = draw(
+            st.sampled_from(
+                [
+                    "vertex {i} {a} {b}",
+                    "vertex {a} {b} {c}",
+                    "vertex {i} {a}",
+                    "vertex {i} {a} {b}{odd}",
+                ]
+            )
+        )
+        facet = (
+            " facet normal 0 0 1\n  outer loop\n   "
+            + "\n   ".join(vertex.replace("{i}", "{i}" + s) for s in ("1", "2", "3"))
+            + "\n  endloop\n endfacet"
+        )
         return ".stl", {}, "solid fuzz\n" + rows(facet) + "endsolid fuzz\n"
     if kind == "trc":
-        line = draw(st.sampled_from(["{i}\t0\t{a}\t{b}\t{c}", "{i}\t0\t\t\t", "{i}\t0\t{a}", "{i}\t0\t{a}\t{b}\t{c}\t{odd}", "\t\t{a}\t{b}\t{c}"]))
+        line = draw(
+            st.sampled_from(
+                [
+                    "{i}\t0\t{a}\t{b}\t{c}",
+                    "{i}\t0\t\t\t",
+                    "{i}\t0\t{a}",
+                    "{i}\t0\t{a}\t{b}\t{c}\t{odd}",
+                    "\t\t{a}\t{b}\t{c}",
+                ]
+            )
+        )
         declared = n + draw(st.sampled_from([0, 0, -1, 1]))
-        head = (f"PathFileType\t4\t(X/Y/Z)\tf.trc\nDataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\n60\t60\t{declared}\t1\tmm\n"
-                "Frame#\tTime\tm\t\t\n\t\tX1\tY1\tZ1\n\n")
+        head = (
+            f"PathFileType\t4\t(X/Y/Z)\tf.trc\nDataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\n60\t60\t{declared}\t1\tmm\n"
+            "Frame#\tTime\tm\t\t\n\t\tX1\tY1\tZ1\n\n"
+        )
         return ".trc", {}, head + rows(line)
     if kind == "markers_csv":
-        line = draw(st.sampled_from(["{a},{b},{c}", ",,", "{a},,{c}", "{a};{b};{c}", "\"{a}\",{b},{c}", "{a},{b},{c},{odd}", "{odd}"]))
+        line = draw(
+            st.sampled_from(
+                [
+                    "{a},{b},{c}",
+                    ",,",
+                    "{a},,{c}",
+                    "{a};{b};{c}",
+                    '"{a}",{b},{c}',
+                    "{a},{b},{c},{odd}",
+                    "{odd}",
+                ]
+            )
+        )
         return ".csv", {"kind": "markers"}, "m_x,m_y,m_z" + end + rows(line)
-    line = draw(st.sampled_from(["{a},{b}", "0.5,0.25", ",", "{a},{odd}", "00:00:{i}:01.000,2,0.1,0.2"]))
+    line = draw(
+        st.sampled_from(["{a},{b}", "0.5,0.25", ",", "{a},{odd}", "00:00:{i}:01.000,2,0.1,0.2"])
+    )
     head = "Timecode,BlendShapeCount,a,b" if line.startswith("00:") else "a,b"
     return ".csv", {"kind": "weights"}, head + end + rows(line)
 
@@ -190,7 +290,9 @@ def test_text_readers_stay_within_what_they_checked(spec, budget, tmp_path_facto
     if failed(result):
         return
     slack = 256 * 1024  # the model object, names, the reader's own frame: not sized by the file
-    assert peak <= checked + slack, f"peak {peak >> 10} KiB, but only {checked / 1024:.0f} KiB was checked against the budget"
+    assert peak <= checked + slack, (
+        f"peak {peak >> 10} KiB, but only {checked / 1024:.0f} KiB was checked against the budget"
+    )
     work = _common.CHUNK_FACTOR * min(size, 2 * _common.CHUNK_BYTES)
     assert peak <= 4 * size + work + slack, f"{size >> 10} KiB file peaked at {peak >> 10} KiB"
 
@@ -253,7 +355,10 @@ READER_CALLS = [(r.name, r) for r, _ in samples.readers() if "/" not in r.extens
 
 
 @given(
-    which=st.sampled_from([name for name, _ in READER_CALLS] + ["landmarks", "feature_lines", "gltf_buffer", "mesh_folder", "convert"]),
+    which=st.sampled_from(
+        [name for name, _ in READER_CALLS]
+        + ["landmarks", "feature_lines", "gltf_buffer", "mesh_folder", "convert"]
+    ),
     what=st.sampled_from(SPECIALS),
 )
 @fuzz(40)
@@ -261,7 +366,11 @@ def test_non_regular_inputs_are_refused_at_once(which, what, tmp_path_factory, c
     folder = tmp_path_factory.mktemp("special")
     if which in ("landmarks", "feature_lines"):
         path = folder / ("lm.json" if which == "landmarks" else "lines.json")
-        call = (lambda: fr.io.read_landmarks(path)) if which == "landmarks" else (lambda: fr.io.read_feature_lines(path))
+        call = (
+            (lambda: fr.io.read_landmarks(path))
+            if which == "landmarks"
+            else (lambda: fr.io.read_feature_lines(path))
+        )
     elif which == "gltf_buffer":
         doc, _ = glb_document(samples.sample("mesh"))
         doc["buffers"][0]["uri"] = "data.bin"
@@ -281,7 +390,11 @@ def test_non_regular_inputs_are_refused_at_once(which, what, tmp_path_factory, c
         def call():
             code = cli.main(["convert", str(path), str(folder / "out.obj")])
             err = capsys.readouterr().err
-            assert code == cli.EXIT_ERROR and len(err.strip().splitlines()) == 1 and "Traceback" not in err, (code, err)
+            assert (
+                code == cli.EXIT_ERROR
+                and len(err.strip().splitlines()) == 1
+                and "Traceback" not in err
+            ), (code, err)
             return errors.FileFormatError(err)
     else:
         reader = dict(READER_CALLS)[which]
@@ -312,7 +425,18 @@ def test_non_regular_inputs_are_refused_at_once(which, what, tmp_path_factory, c
 # destinations: inputs spelled differently, existing files, --force
 # =======================================================================================
 DEST_AREA = "destinations"
-SPELLINGS = ["same", "relative", "dot", "dotdot", "symlink", "hardlink", "case", "other_existing", "new", "folder_of_input"]
+SPELLINGS = [
+    "same",
+    "relative",
+    "dot",
+    "dotdot",
+    "symlink",
+    "hardlink",
+    "case",
+    "other_existing",
+    "new",
+    "folder_of_input",
+]
 
 
 def spelled(folder: Path, src: Path, how: str) -> tuple[str, bool]:
@@ -355,7 +479,9 @@ def spelled(folder: Path, src: Path, how: str) -> tuple[str, bool]:
     via=st.sampled_from(["save", "write_bytes", "convert"]),
 )
 @fuzz(40)
-def test_destinations_never_an_input_never_an_existing_file_without_force(ext, how, force, via, tmp_path_factory, monkeypatch, capsys):
+def test_destinations_never_an_input_never_an_existing_file_without_force(
+    ext, how, force, via, tmp_path_factory, monkeypatch, capsys
+):
     folder = tmp_path_factory.mktemp("dest")
     monkeypatch.chdir(folder)
     src = folder / f"in{ext}"
@@ -368,7 +494,10 @@ def test_destinations_never_an_input_never_an_existing_file_without_force(ext, h
     listing = sorted(p.name for p in folder.iterdir())
     if via == "convert":
         count(DEST_AREA)
-        code = cli.main(["convert", str(src) if how != "relative" else src.name, out] + (["--force"] if force else []))
+        code = cli.main(
+            ["convert", str(src) if how != "relative" else src.name, out]
+            + (["--force"] if force else [])
+        )
         err = capsys.readouterr().err
         assert code in (0, cli.EXIT_ERROR) and "Traceback" not in err, (code, err)
         ok = code == 0
@@ -385,9 +514,13 @@ def test_destinations_never_an_input_never_an_existing_file_without_force(ext, h
     if is_src or how == "folder_of_input":
         assert not ok, f"writing {out!r} over the input succeeded ({via})"
     elif existed and not force:
-        assert not ok and out_path.read_bytes() == old, "an existing file was replaced without force"
+        assert not ok and out_path.read_bytes() == old, (
+            "an existing file was replaced without force"
+        )
     if not ok:
-        assert sorted(p.name for p in folder.iterdir()) == listing, "a refused write left something behind"
+        assert sorted(p.name for p in folder.iterdir()) == listing, (
+            "a refused write left something behind"
+        )
     leftovers = [p.name for p in folder.iterdir() if _atomic.temp_owner(p.name)]
     assert not leftovers, leftovers
 
@@ -403,11 +536,33 @@ DEAD = 2**22 + 4321  # above the default pid_max
 def temp_entries(draw):
     dest = draw(st.sampled_from(["hero.npz", "a.b.glb", "x", ".hidden.obj", "t\u00e9.csv", "rig"]))
     ext = Path(dest).suffix
-    who = draw(st.sampled_from(["dead", "dead", "reused_unlocked", "reused_locked", "huge_pid", "pid_zero", "self_inactive"]))
-    pid = {"dead": DEAD, "reused_unlocked": os.getppid(), "reused_locked": os.getppid(), "huge_pid": 10**25, "pid_zero": 0,
-           "self_inactive": os.getpid()}[who]
+    who = draw(
+        st.sampled_from(
+            [
+                "dead",
+                "dead",
+                "reused_unlocked",
+                "reused_locked",
+                "huge_pid",
+                "pid_zero",
+                "self_inactive",
+            ]
+        )
+    )
+    pid = {
+        "dead": DEAD,
+        "reused_unlocked": os.getppid(),
+        "reused_locked": os.getppid(),
+        "huge_pid": 10**25,
+        "pid_zero": 0,
+        "self_inactive": os.getpid(),
+    }[who]
     token = draw(st.text("0123456789abcdef", min_size=8, max_size=8))
-    scheme = draw(st.sampled_from(["new", "new_noext", "old_folder", "legacy", "nested", "user", "user", "user"]))
+    scheme = draw(
+        st.sampled_from(
+            ["new", "new_noext", "old_folder", "legacy", "nested", "user", "user", "user"]
+        )
+    )
     if scheme == "new":
         name = f".{dest}.{pid}.{token}.frtmp{ext}"
     elif scheme == "new_noext":
@@ -420,23 +575,42 @@ def temp_entries(draw):
         name = f"..{dest}.frbatch-{pid}-{token}{ext}.{pid}.{token}.frtmp"
     else:  # names a user may own: never a temporary
         dest = dest.lstrip(".") or "x"
-        name = draw(st.sampled_from([
-            f"{dest}.{pid}.{token}.frtmp", f".{dest}.frtmp", f".{dest}.{pid}.{token.upper()}.frtmp" if token.upper() != token else f".{dest}.x.frtmp",
-            f".{dest}.frbatch-{ext}", f"{dest}~", f".{dest}.{pid}.{token}.frtmpx", f".{dest}.{pid}.{token}", f"{dest}.frold",
-        ]))
-    folder_entry = scheme == "old_folder" or draw(st.booleans()) and scheme != "user" and draw(st.booleans())
+        name = draw(
+            st.sampled_from(
+                [
+                    f"{dest}.{pid}.{token}.frtmp",
+                    f".{dest}.frtmp",
+                    f".{dest}.{pid}.{token.upper()}.frtmp"
+                    if token.upper() != token
+                    else f".{dest}.x.frtmp",
+                    f".{dest}.frbatch-{ext}",
+                    f"{dest}~",
+                    f".{dest}.{pid}.{token}.frtmpx",
+                    f".{dest}.{pid}.{token}",
+                    f"{dest}.frold",
+                ]
+            )
+        )
+    folder_entry = (
+        scheme == "old_folder" or draw(st.booleans()) and scheme != "user" and draw(st.booleans())
+    )
     return dest, name, who, scheme, folder_entry
 
 
-@given(entries=st.lists(temp_entries(), min_size=1, max_size=10, unique_by=lambda e: e[1]), live_writer=st.booleans())
+@given(
+    entries=st.lists(temp_entries(), min_size=1, max_size=10, unique_by=lambda e: e[1]),
+    live_writer=st.booleans(),
+)
 @fuzz(40)
-def test_cleanup_removes_every_dead_writers_file_and_nothing_else(entries, live_writer, tmp_path_factory):
+def test_cleanup_removes_every_dead_writers_file_and_nothing_else(
+    entries, live_writer, tmp_path_factory
+):
     import fcntl
 
     folder = tmp_path_factory.mktemp("temps")
     locks = []
     expect_gone, expect_kept = set(), set()
-    for dest, name, who, scheme, is_folder in entries:
+    for _dest, name, who, scheme, is_folder in entries:
         path = folder / name
         if is_folder:
             path.mkdir()
@@ -447,15 +621,21 @@ def test_cleanup_removes_every_dead_writers_file_and_nothing_else(entries, live_
             fd = os.open(path, os.O_RDONLY)
             fcntl.flock(fd, fcntl.LOCK_EX)
             locks.append(fd)
-        dead = who in ("dead", "huge_pid", "pid_zero") or (who == "reused_unlocked" and scheme in ("new", "new_noext"))
+        dead = who in ("dead", "huge_pid", "pid_zero") or (
+            who == "reused_unlocked" and scheme in ("new", "new_noext")
+        )
         (expect_gone if dead and scheme != "user" else expect_kept).add(name)
     try:
         found = typed(TEMP_AREA, _atomic.leftovers, folder)
         assert not failed(found), found
         found_names = {p.name for p in found}
         users = {e[1] for e in entries if e[3] == "user"}
-        assert not (found_names & users), f"a user's file taken for a temporary: {found_names & users}"
-        assert found_names == expect_gone, f"missed {expect_gone - found_names}, wrongly found {found_names - expect_gone}"
+        assert not (found_names & users), (
+            f"a user's file taken for a temporary: {found_names & users}"
+        )
+        assert found_names == expect_gone, (
+            f"missed {expect_gone - found_names}, wrongly found {found_names - expect_gone}"
+        )
         cm = None
         if live_writer:  # a writer at work in this process: its temporary is never touched
             cm = _atomic.atomic_file(folder / "live.bin", force=True)
@@ -517,23 +697,47 @@ def records():
         read=st.sampled_from([_read, None, 42]),
         description=st.one_of(st.text(max_size=5), junk()),
     )
-    writer = st.builds(Writer, name=st.sampled_from(["fzw", ""]), kind=st.sampled_from(["mesh", "x"]), extensions=st.sampled_from([(".fzw",), ()]),
-                       write=st.sampled_from([_read, None]), description=st.just(""))
-    return st.one_of(junk(), reader, writer, st.builds(Hostile), st.builds(lambda: HostileList([1])), st.just(type("NotARetargeter", (), {})))
+    writer = st.builds(
+        Writer,
+        name=st.sampled_from(["fzw", ""]),
+        kind=st.sampled_from(["mesh", "x"]),
+        extensions=st.sampled_from([(".fzw",), ()]),
+        write=st.sampled_from([_read, None]),
+        description=st.just(""),
+    )
+    return st.one_of(
+        junk(),
+        reader,
+        writer,
+        st.builds(Hostile),
+        st.builds(lambda: HostileList([1])),
+        st.just(type("NotARetargeter", (), {})),
+    )
 
 
 @given(
-    results=st.fixed_dictionaries({
-        hook: st.one_of(st.none(), records(), st.lists(records(), max_size=3), st.tuples(records()))
-        for hook in ("faceretarget_readers", "faceretarget_writers", "faceretarget_metrics", "faceretarget_retargeters")
-    })
+    results=st.fixed_dictionaries(
+        {
+            hook: st.one_of(
+                st.none(), records(), st.lists(records(), max_size=3), st.tuples(records())
+            )
+            for hook in (
+                "faceretarget_readers",
+                "faceretarget_writers",
+                "faceretarget_metrics",
+                "faceretarget_retargeters",
+            )
+        }
+    )
 )
 @fuzz(40)
 def test_hook_results_of_any_type_skip_the_plugin_by_name(results):
     module = types.ModuleType("fuzz_plugin")
     for hook, value in results.items():
+
         def impl(value=value):
             return value
+
         impl.__name__ = hook
         setattr(module, hook, fr.hookimpl(impl))
 
@@ -565,14 +769,55 @@ EXIT_AREA = "exit codes"
 
 @st.composite
 def command_lines(draw, folder: Path):
-    files = [str(folder / n) for n in ("garbage.obj", "garbage.csv", "empty.glb", "missing.npz", "fifo.obj", "m.toml", "out.obj", "dir")]
+    files = [
+        str(folder / n)
+        for n in (
+            "garbage.obj",
+            "garbage.csv",
+            "empty.glb",
+            "missing.npz",
+            "fifo.obj",
+            "m.toml",
+            "out.obj",
+            "dir",
+        )
+    ]
     words = st.one_of(
         st.sampled_from(files),
-        st.sampled_from(["--force", "--fps", "nan", "-1", "1e400", "0", "--timeout", "--jobs", "--methods", "--summary", "--csv",
-                         "--kind", "mesh", "--keep-going", "--check", "--redo", "--quiet", "--format", "x", "--", "-", "\u00e9", ""]),
+        st.sampled_from(
+            [
+                "--force",
+                "--fps",
+                "nan",
+                "-1",
+                "1e400",
+                "0",
+                "--timeout",
+                "--jobs",
+                "--methods",
+                "--summary",
+                "--csv",
+                "--kind",
+                "mesh",
+                "--keep-going",
+                "--check",
+                "--redo",
+                "--quiet",
+                "--format",
+                "x",
+                "--",
+                "-",
+                "\u00e9",
+                "",
+            ]
+        ),
         st.text(max_size=4),
     )
-    cmd = draw(st.sampled_from(["convert", "run", "batch", "info", "formats", "list", "cases", "compare", "nope"]))
+    cmd = draw(
+        st.sampled_from(
+            ["convert", "run", "batch", "info", "formats", "list", "cases", "compare", "nope"]
+        )
+    )
     return [cmd] + draw(st.lists(words, max_size=6))
 
 
@@ -583,7 +828,9 @@ def garbage(tmp_path_factory):
     (folder / "garbage.csv").write_text("a,b\n1,x\n")
     (folder / "empty.glb").write_bytes(b"")
     os.mkfifo(folder / "fifo.obj")
-    (folder / "m.toml").write_text('[[job]]\nshot = "garbage.obj"\nmethod = "nope"\nout = "o.npz"\n')
+    (folder / "m.toml").write_text(
+        '[[job]]\nshot = "garbage.obj"\nmethod = "nope"\nout = "o.npz"\n'
+    )
     (folder / "dir").mkdir()
     return folder
 
@@ -612,7 +859,11 @@ def test_exit_codes_over_random_command_lines(garbage, data, capsys):
             pytest.fail(f"{argv}: left {p.name}")
 
 
-@pytest.mark.parametrize("value", [Hostile, lambda: HostileList([1]), lambda: [Hostile()]], ids=["repr_raises", "list_iteration_raises", "item_raises"])
+@pytest.mark.parametrize(
+    "value",
+    [Hostile, lambda: HostileList([1]), lambda: [Hostile()]],
+    ids=["repr_raises", "list_iteration_raises", "item_raises"],
+)
 def test_a_hook_result_whose_repr_or_iteration_raises_skips_the_plugin(value):
     """Found by the long fuzz mode (issue 15): a hook result whose ``repr`` or iteration
     raised escaped the registry (every command exited 3)."""

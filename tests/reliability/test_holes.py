@@ -7,6 +7,7 @@
 5. summaries and compare outputs are destination-checked (inputs, existing files, --force);
 9. one temporary naming scheme, and a cleanup that finds every leftover (resume, --redo).
 """
+
 import json
 import os
 import threading
@@ -15,13 +16,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from reliability import samples
 
 import faceretarget as fr
 from faceretarget import cli, errors
 from faceretarget.evaluation import batch
 from faceretarget.io import _atomic
 from faceretarget.io.gltf import glb_bytes, glb_document
-from reliability import samples
 
 BUDGET = "FACERETARGET_MEMORY_BUDGET"
 
@@ -68,7 +69,9 @@ def test_gltf_sampling_grid_is_checked_against_the_budget(tmp_path, monkeypatch)
     with pytest.raises(errors.ResourceLimitError, match=BUDGET) as info:
         _, peak = peak_of(fr.load, path, kind="animation")
     assert "sampling the animation" in str(info.value)
-    result, peak = peak_of(lambda: pytest.raises(errors.ResourceLimitError, fr.load, path, kind="mesh_sequence"))
+    result, peak = peak_of(
+        lambda: pytest.raises(errors.ResourceLimitError, fr.load, path, kind="mesh_sequence")
+    )
     assert peak < 1 * 2**20
     monkeypatch.setenv(BUDGET, "8G")
     assert fr.load(animation_glb(tmp_path / "ok.glb", 240.0), kind="animation").fps == 240.0
@@ -135,7 +138,9 @@ def refused_quickly(call, unblock=None):
     return box.get("error", box.get("result"))
 
 
-@pytest.mark.parametrize("ext", [".obj", ".csv", ".glb", ".gltf", ".npz", ".pc2", ".npy", ".c3d", ".stl", ".json"])
+@pytest.mark.parametrize(
+    "ext", [".obj", ".csv", ".glb", ".gltf", ".npz", ".pc2", ".npy", ".c3d", ".stl", ".json"]
+)
 def test_fifo_is_refused_without_hanging(ext, tmp_path):
     fifo = tmp_path / f"pipe{ext}"
     os.mkfifo(fifo)
@@ -191,7 +196,9 @@ def pc2_with_sibling_topology(folder: Path):
 def test_batch_output_over_a_sibling_topology_is_refused_by_the_manifest(tmp_path):
     shot, topo = pc2_with_sibling_topology(tmp_path)
     manifest = tmp_path / "m.toml"
-    manifest.write_text(f'[[job]]\nshot = "take.pc2"\ncharacter = "case:synthetic?resolution=60&n_frames=4"\nmethod = "deformation_transfer"\nout = "take.glb"\n')
+    manifest.write_text(
+        '[[job]]\nshot = "take.pc2"\ncharacter = "case:synthetic?resolution=60&n_frames=4"\nmethod = "deformation_transfer"\nout = "take.glb"\n'
+    )
     with pytest.raises(errors.ConfigError, match="input"):
         batch.load_manifest(manifest)
 
@@ -201,11 +208,15 @@ def test_batch_writer_refuses_a_file_read_indirectly_even_with_redo(tmp_path):
     before = topo.read_bytes()
     source = fr.io.load_source(shot)  # reads take.glb for the triangles
     writer = next(w for w, _ in fr.registry.registry().writers if w.name == "gltf-animation")
-    anim = fr.Animation(vertices=source.performance.vertices, triangles=source.performance.triangles, fps=24.0)
+    anim = fr.Animation(
+        vertices=source.performance.vertices, triangles=source.performance.triangles, fps=24.0
+    )
     with pytest.raises(errors.OutputError, match="input"):
         batch.write_animation(anim, topo, writer.write, force=True)  # what --redo does
     assert topo.read_bytes() == before
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["take.glb", "take.pc2"], "no temporary left"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["take.glb", "take.pc2"], (
+        "no temporary left"
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -213,19 +224,30 @@ def test_batch_writer_refuses_a_file_read_indirectly_even_with_redo(tmp_path):
 # ---------------------------------------------------------------------------------------
 def manifest_in(folder: Path) -> Path:
     path = folder / "m.toml"
-    path.write_text('[[job]]\nshot = "case:synthetic?resolution=60&n_frames=4"\nmethod = "deformation_transfer"\nout = "hero.npz"\n')
+    path.write_text(
+        '[[job]]\nshot = "case:synthetic?resolution=60&n_frames=4"\nmethod = "deformation_transfer"\nout = "hero.npz"\n'
+    )
     return path
 
 
 @pytest.mark.parametrize("which", ["existing", "manifest", "job_output"])
 @pytest.mark.parametrize("force", [False, True])
-def test_batch_summary_never_replaces_a_file_without_force_or_a_file_of_the_run(which, force, tmp_path, capsys):
+def test_batch_summary_never_replaces_a_file_without_force_or_a_file_of_the_run(
+    which, force, tmp_path, capsys
+):
     manifest = manifest_in(tmp_path)
-    target = {"existing": tmp_path / "precious.glb", "manifest": manifest, "job_output": tmp_path / "hero.npz"}[which]
+    target = {
+        "existing": tmp_path / "precious.glb",
+        "manifest": manifest,
+        "job_output": tmp_path / "hero.npz",
+    }[which]
     if not target.exists():
         target.write_bytes(b"precious")
     before = target.read_bytes()
-    code = cli.main(["batch", str(manifest), "--check", "--summary", str(target)] + (["--force"] if force else []))
+    code = cli.main(
+        ["batch", str(manifest), "--check", "--summary", str(target)]
+        + (["--force"] if force else [])
+    )
     err = capsys.readouterr().err
     if which == "existing" and force:
         assert code == 0
@@ -238,7 +260,17 @@ def test_batch_summary_never_replaces_a_file_without_force_or_a_file_of_the_run(
 def test_compare_outputs_are_checked_before_the_comparison(tmp_path, capsys):
     precious = tmp_path / "precious.glb"
     precious.write_bytes(b"precious")
-    code = cli.main(["compare", "synthetic?resolution=60&n_frames=4", "--methods", "deformation_transfer", "--csv", str(precious), "--quiet"])
+    code = cli.main(
+        [
+            "compare",
+            "synthetic?resolution=60&n_frames=4",
+            "--methods",
+            "deformation_transfer",
+            "--csv",
+            str(precious),
+            "--quiet",
+        ]
+    )
     assert code == cli.EXIT_ERROR and "already exists" in capsys.readouterr().err
     assert precious.read_bytes() == b"precious"
     same = tmp_path / "t.csv"

@@ -9,12 +9,12 @@ process that kills the program when not even a thread can run (the GIL held in C
 Each plugin lives in a fake distribution ``watchplugins`` in ``tmp_path``; every run is
 the real command in a process of its own (some of them must end it).
 """
+
 import os
 import subprocess
 import sys
 
 import pytest
-
 from reliability.fuzzkit import count
 
 AREA = "plugin isolation"
@@ -52,17 +52,28 @@ def site(tmp_path_factory):
     (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {DIST}\nVersion: 1.0\n")
     for name, code in PLUGINS.items():
         (root / f"{name}.py").write_text(code)
-    (info / "entry_points.txt").write_text("[faceretarget]\n" + "".join(f"{n} = {n}\n" for n in PLUGINS))
+    (info / "entry_points.txt").write_text(
+        "[faceretarget]\n" + "".join(f"{n} = {n}\n" for n in PLUGINS)
+    )
     return root
 
 
 def list_with(site, *plugins):
     """``faceretarget list`` with the built-ins and only ``plugins`` of the distribution."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")])}
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")]),
+    }
     env.update(FACERETARGET_PLUGINS=",".join(plugins), FACERETARGET_IMPORT_TIMEOUT="1")
     env.pop("FACERETARGET_DISABLE_PLUGINS", None)
     count(AREA)
-    return subprocess.run([sys.executable, "-m", "faceretarget.cli", "list"], env=env, capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "faceretarget.cli", "list"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 def test_a_plugin_ignoring_the_alarm_is_skipped_and_the_rest_listed(site):
@@ -70,7 +81,11 @@ def test_a_plugin_ignoring_the_alarm_is_skipped_and_the_rest_listed(site):
     assert proc.returncode == 0, proc.stderr
     assert "wp_quick" in proc.stdout and "spacetime" in proc.stdout
     failed = proc.stdout.split("plugins that failed to load:")[1]
-    assert "wp_ignore_alarm" in failed and DIST in failed and "took longer than 1 s importing" in failed
+    assert (
+        "wp_ignore_alarm" in failed
+        and DIST in failed
+        and "took longer than 1 s importing" in failed
+    )
 
 
 def test_a_plugin_that_cannot_be_interrupted_ends_the_program_with_its_name(site):
@@ -80,7 +95,9 @@ def test_a_plugin_that_cannot_be_interrupted_ends_the_program_with_its_name(site
     assert "could not be interrupted" in proc.stderr and "FACERETARGET_PLUGINS" in proc.stderr
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="ctypes.PyDLL(None) needs a libc with sleep")
+@pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="ctypes.PyDLL(None) needs a libc with sleep"
+)
 def test_a_plugin_holding_the_gil_forever_is_killed_by_the_watchdog_process(site):
     proc = list_with(site, "wp_hold_gil")
     assert proc.returncode == -9, (proc.returncode, proc.stderr)

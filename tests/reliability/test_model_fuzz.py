@@ -6,13 +6,11 @@ arrays with one thing wrong (NaN/inf, a wrong length, an index out of range...).
 constructor may reject an input only with a :class:`FaceRetargetError` subclass; when it
 accepts one, the object must satisfy the model's invariants (checked here).
 """
+
 import numpy as np
 import pytest
 from hypothesis import example, given
 from hypothesis import strategies as st
-
-import faceretarget as fr
-from faceretarget import errors
 from reliability.fuzzkit import (
     count,
     failed,
@@ -26,6 +24,9 @@ from reliability.fuzzkit import (
     unique_names,
 )
 
+import faceretarget as fr
+from faceretarget import errors
+
 AREA = "model constructors"
 
 
@@ -33,7 +34,9 @@ AREA = "model constructors"
 # invariants of accepted objects
 # ---------------------------------------------------------------------------------------
 def assert_readonly_finite(arr, allow_nan=False):
-    assert isinstance(arr, np.ndarray) and not arr.flags.writeable, "stored arrays must be read-only"
+    assert isinstance(arr, np.ndarray) and not arr.flags.writeable, (
+        "stored arrays must be read-only"
+    )
     if arr.dtype.kind == "f":
         assert not np.isinf(arr).any()
         if not allow_nan:
@@ -47,7 +50,9 @@ def assert_mesh_ok(mesh, *, derived=True):
     assert_readonly_finite(v)
     assert not t.flags.writeable and t.min() >= 0 and t.max() < len(v)
     assert (t[:, 0] != t[:, 1]).all() and (t[:, 1] != t[:, 2]).all() and (t[:, 0] != t[:, 2]).all()
-    assert len(np.unique(np.sort(t, axis=1), axis=0)) == len(t), "duplicate triangles must be rejected"
+    assert len(np.unique(np.sort(t, axis=1), axis=0)) == len(t), (
+        "duplicate triangles must be rejected"
+    )
     if not derived:
         return
     for name in ("face_normals", "face_areas", "vertex_normals", "edges", "boundary_vertices"):
@@ -85,7 +90,9 @@ def mesh_arrays(draw, *, special=True, index_slack=2, min_vertices=0):
     n_vertices = draw(st.integers(min_vertices, 8))
     n_triangles = draw(st.integers(0, 6))
     vertices = draw(float_array((n_vertices, 3), special=special))
-    triangles = draw(index_array((n_triangles, 3), -index_slack, max(0, n_vertices - 1) + index_slack))
+    triangles = draw(
+        index_array((n_triangles, 3), -index_slack, max(0, n_vertices - 1) + index_slack)
+    )
     return vertices, triangles
 
 
@@ -94,7 +101,13 @@ def valid_mesh(draw, max_vertices=8, bound=1e3):
     """A Mesh built from finite vertices and triangles without repeated corners or duplicates."""
     n = draw(st.integers(3, max_vertices))
     vertices = draw(float_array((n, 3), special=False, bound=bound))
-    candidates = draw(st.lists(st.lists(st.integers(0, n - 1), min_size=3, max_size=3, unique=True), min_size=1, max_size=8))
+    candidates = draw(
+        st.lists(
+            st.lists(st.integers(0, n - 1), min_size=3, max_size=3, unique=True),
+            min_size=1,
+            max_size=8,
+        )
+    )
     seen, tris = set(), []
     for tri in candidates:
         key = tuple(sorted(tri))
@@ -104,7 +117,11 @@ def valid_mesh(draw, max_vertices=8, bound=1e3):
     return fr.Mesh(vertices, np.array(tris))
 
 
-@given(data=st.one_of(mesh_arrays(), st.tuples(junk(), junk()), st.tuples(junk(), index_array((2, 3), 0, 2))))
+@given(
+    data=st.one_of(
+        mesh_arrays(), st.tuples(junk(), junk()), st.tuples(junk(), index_array((2, 3), 0, 2))
+    )
+)
 @fuzz(60)
 def test_mesh_any_input(data):
     vertices, triangles = data
@@ -141,7 +158,9 @@ def test_non_manifold_edge_is_accepted_and_not_boundary():
 @fuzz(40)
 def test_mesh_degenerate_and_duplicate_triangles(mesh, data):
     t = np.asarray(mesh.triangles)
-    kind = data.draw(st.sampled_from(["repeat_corner", "duplicate", "flipped_duplicate", "zero_area"]))
+    kind = data.draw(
+        st.sampled_from(["repeat_corner", "duplicate", "flipped_duplicate", "zero_area"])
+    )
     i = data.draw(st.integers(0, len(t) - 1))
     v = np.array(mesh.vertices)
     if kind == "repeat_corner":
@@ -161,7 +180,9 @@ def test_mesh_degenerate_and_duplicate_triangles(mesh, data):
         with pytest.raises(errors.DegenerateGeometryError):
             result.check_nondegenerate()
     else:
-        assert isinstance(result, errors.DegenerateGeometryError), f"{kind} must raise DegenerateGeometryError, got {result!r}"
+        assert isinstance(result, errors.DegenerateGeometryError), (
+            f"{kind} must raise DegenerateGeometryError, got {result!r}"
+        )
 
 
 @given(mesh=valid_mesh(bound=1e12))
@@ -183,7 +204,11 @@ def test_mesh_derived_quantities_finite_for_large_and_tiny_coordinates(mesh):
 )
 @fuzz(60)
 def test_landmarks_any_input(vertex_ids, bary, use_triangles, label, mesh):
-    kwargs = dict(triangle_ids=vertex_ids, barycentric=bary) if use_triangles else dict(vertex_ids=vertex_ids)
+    kwargs = (
+        dict(triangle_ids=vertex_ids, barycentric=bary)
+        if use_triangles
+        else dict(vertex_ids=vertex_ids)
+    )
     lm = typed(AREA, fr.Landmarks, names=label, **kwargs)
     if failed(lm):
         return
@@ -212,7 +237,12 @@ def marker_arrays(draw):
     positions=st.one_of(marker_arrays(), junk(), ragged_frames()),
     label=st.one_of(st.none(), names(), junk()),
     fps=st.one_of(st.just(30.0), junk(), st.integers(-10, 10**400)),
-    reference=st.one_of(st.none(), st.none(), junk(), float_array(st.tuples(st.integers(0, 4), st.sampled_from([2, 3])))),
+    reference=st.one_of(
+        st.none(),
+        st.none(),
+        junk(),
+        float_array(st.tuples(st.integers(0, 4), st.sampled_from([2, 3]))),
+    ),
 )
 @fuzz(80)
 def test_marker_sequence_any_input(positions, label, fps, reference):
@@ -221,7 +251,9 @@ def test_marker_sequence_any_input(positions, label, fps, reference):
         return
     assert_readonly_finite(seq.positions, allow_nan=True)
     nan = np.isnan(seq.positions)
-    assert (nan.all(axis=-1) == nan.any(axis=-1)).all(), "a missing sample is NaN in every coordinate"
+    assert (nan.all(axis=-1) == nan.any(axis=-1)).all(), (
+        "a missing sample is NaN in every coordinate"
+    )
     assert_readonly_finite(seq.reference)
     assert seq.reference.shape == seq.positions.shape[1:]
     assert len(seq.names) == seq.n_markers and len(set(seq.names)) == seq.n_markers
@@ -230,7 +262,11 @@ def test_marker_sequence_any_input(positions, label, fps, reference):
 
 
 @given(
-    frames=st.one_of(float_array(st.tuples(st.integers(0, 3), st.integers(0, 6), st.sampled_from([3, 3, 2]))), junk(), ragged_frames()),
+    frames=st.one_of(
+        float_array(st.tuples(st.integers(0, 3), st.integers(0, 6), st.sampled_from([3, 3, 2]))),
+        junk(),
+        ragged_frames(),
+    ),
     triangles=st.one_of(index_array((2, 3), -1, 6), junk(), st.just(np.array([[0, 1, 2]]))),
     reference=st.one_of(st.none(), junk(), float_array((4, 3))),
     fps=st.one_of(st.just(24), junk()),
@@ -249,7 +285,10 @@ def test_mesh_sequence_rejects_frames_of_different_vertex_counts():
     frames = [np.eye(3), np.eye(4, 3)]
     assert isinstance(typed(AREA, fr.MeshSequence, frames, [[0, 1, 2]]), errors.InputError)
     ref = fr.Mesh(np.eye(4, 3), [[0, 1, 2]])
-    assert isinstance(typed(AREA, fr.MeshSequence, np.zeros((2, 3, 3)), [[0, 1, 2]], reference=ref), errors.TopologyMismatchError)
+    assert isinstance(
+        typed(AREA, fr.MeshSequence, np.zeros((2, 3, 3)), [[0, 1, 2]], reference=ref),
+        errors.TopologyMismatchError,
+    )
 
 
 @given(
@@ -267,11 +306,19 @@ def test_weight_sequence_any_input(weights, label, fps):
 
 
 # ---------------------------------------------------------------------------------------
-NEUTRAL = fr.Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float), [[0, 1, 2], [1, 3, 2]])
+NEUTRAL = fr.Mesh(
+    np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float), [[0, 1, 2], [1, 3, 2]]
+)
 
 
 @given(
-    deltas=st.one_of(float_array(st.tuples(st.integers(0, 3), st.sampled_from([4, 4, 3, 5]), st.sampled_from([3, 3, 2]))), junk(), st.builds(lambda fs: [f[:, :3] for f in fs], ragged_frames())),
+    deltas=st.one_of(
+        float_array(
+            st.tuples(st.integers(0, 3), st.sampled_from([4, 4, 3, 5]), st.sampled_from([3, 3, 2]))
+        ),
+        junk(),
+        st.builds(lambda fs: [f[:, :3] for f in fs], ragged_frames()),
+    ),
     label=st.one_of(names(), junk()),
     bounds=st.one_of(st.none(), junk(), float_array(st.tuples(st.integers(0, 3), st.just(2)))),
     neutral=st.one_of(st.just(NEUTRAL), st.just(NEUTRAL), junk()),
@@ -297,20 +344,33 @@ def test_blendshape_rig_any_input(deltas, label, bounds, neutral):
         junk(),
         st.dictionaries(
             st.one_of(st.text(max_size=3), st.integers(0, 2)),
-            st.one_of(float_array(st.tuples(st.integers(0, 3), st.sampled_from([4, 4, 3]), st.sampled_from([3, 3, 2]))), junk()),
+            st.one_of(
+                float_array(
+                    st.tuples(
+                        st.integers(0, 3), st.sampled_from([4, 4, 3]), st.sampled_from([3, 3, 2])
+                    )
+                ),
+                junk(),
+            ),
             max_size=3,
         ),
     ),
     masks=st.one_of(float_array(st.tuples(st.integers(0, 3), st.sampled_from([4, 4, 3]))), junk()),
-    pose_names=st.one_of(st.none(), junk(), st.dictionaries(st.text(max_size=2), names(), max_size=2)),
+    pose_names=st.one_of(
+        st.none(), junk(), st.dictionaries(st.text(max_size=2), names(), max_size=2)
+    ),
     region_names=st.one_of(st.none(), names(), junk()),
 )
 @fuzz(80)
 def test_layered_rig_any_input(layers, masks, pose_names, region_names):
-    rig = typed(AREA, fr.LayeredRig, layers, masks, pose_names=pose_names, region_names=region_names)
+    rig = typed(
+        AREA, fr.LayeredRig, layers, masks, pose_names=pose_names, region_names=region_names
+    )
     if failed(rig):
         return
-    assert rig.layer_names and all(p.shape[1:] == (rig.n_points, rig.dim) for p in rig.layers.values())
+    assert rig.layer_names and all(
+        p.shape[1:] == (rig.n_points, rig.dim) for p in rig.layers.values()
+    )
     for poses in rig.layers.values():
         assert_readonly_finite(poses)
     assert_readonly_finite(rig.masks)
@@ -322,7 +382,9 @@ def test_layered_rig_any_input(layers, masks, pose_names, region_names):
 # composites: any mix of valid and invalid parts
 # ---------------------------------------------------------------------------------------
 MARKERS = fr.MarkerSequence(np.random.default_rng(0).normal(size=(3, 4, 3)), fps=30)
-MESHSEQ = fr.MeshSequence(np.repeat(np.asarray(NEUTRAL.vertices)[None], 3, axis=0), NEUTRAL.triangles)
+MESHSEQ = fr.MeshSequence(
+    np.repeat(np.asarray(NEUTRAL.vertices)[None], 3, axis=0), NEUTRAL.triangles
+)
 WEIGHTS = fr.WeightSequence(np.zeros((3, 2)), ["a", "b"])
 RIG = fr.BlendshapeRig(NEUTRAL, np.ones((2, 4, 3)), ["a", "b"])
 LAYERS4 = fr.LayeredRig({"emotion": np.zeros((2, 4, 3))}, np.ones((1, 4)))
@@ -337,10 +399,22 @@ def parts(*valid):
 
 @given(
     performance=st.one_of(st.sampled_from([MARKERS, MESHSEQ, WEIGHTS]), junk()),
-    head_motion=st.one_of(st.none(), st.just(np.repeat(EYE[None], 3, 0)), st.just(np.repeat(EYE[None], 2, 0)), float_array((3, 4, 4)), junk()),
+    head_motion=st.one_of(
+        st.none(),
+        st.just(np.repeat(EYE[None], 3, 0)),
+        st.just(np.repeat(EYE[None], 2, 0)),
+        float_array((3, 4, 4)),
+        junk(),
+    ),
     landmarks=parts(LANDMARKS, fr.Landmarks([7]), [0, 1]),
-    feature_lines=parts({"lip": [0, 1, 2]}, {"lip": [0]}, {"lip": [0, 9]}, {1: [0, 1], "1": [1, 2]}),
-    examples=st.one_of(st.none(), float_array(st.tuples(st.integers(0, 2), st.sampled_from([4, 5]), st.just(3))), junk()),
+    feature_lines=parts(
+        {"lip": [0, 1, 2]}, {"lip": [0]}, {"lip": [0, 9]}, {1: [0, 1], "1": [1, 2]}
+    ),
+    examples=st.one_of(
+        st.none(),
+        float_array(st.tuples(st.integers(0, 2), st.sampled_from([4, 5]), st.just(3))),
+        junk(),
+    ),
     example_names=st.one_of(st.none(), names()),
     rig=parts(RIG),
     actor_layers=parts(LAYERS4, fr.LayeredRig({"e": np.zeros((2, 5, 3))}, np.ones((1, 5)))),
@@ -348,7 +422,18 @@ def parts(*valid):
     actor_layers_2d=parts(fr.LayeredRig({"e": np.zeros((2, 5, 2))}, np.ones((1, 5)))),
 )
 @fuzz(100)
-def test_source_any_combination(performance, head_motion, landmarks, feature_lines, examples, example_names, rig, actor_layers, tracks2d, actor_layers_2d):
+def test_source_any_combination(
+    performance,
+    head_motion,
+    landmarks,
+    feature_lines,
+    examples,
+    example_names,
+    rig,
+    actor_layers,
+    tracks2d,
+    actor_layers_2d,
+):
     src = typed(
         AREA,
         fr.Source,
@@ -380,18 +465,39 @@ def test_source_any_combination(performance, head_motion, landmarks, feature_lin
 
 @given(
     neutral=st.one_of(st.just(NEUTRAL), st.just(NEUTRAL), junk()),
-    blendshapes=parts(RIG, fr.BlendshapeRig(fr.Mesh(np.eye(3), [[0, 1, 2]]), np.ones((1, 3, 3)), ["x"])),
-    layers=parts(LAYERS4, fr.LayeredRig({"e": np.zeros((2, 5, 3))}, np.ones((1, 5))), fr.LayeredRig({"e": np.zeros((1, 4, 2))}, np.ones((1, 4)))),
-    landmarks=parts(LANDMARKS, fr.Landmarks([4]), fr.Landmarks(triangle_ids=[2], barycentric=[[1, 0, 0]])),
+    blendshapes=parts(
+        RIG, fr.BlendshapeRig(fr.Mesh(np.eye(3), [[0, 1, 2]]), np.ones((1, 3, 3)), ["x"])
+    ),
+    layers=parts(
+        LAYERS4,
+        fr.LayeredRig({"e": np.zeros((2, 5, 3))}, np.ones((1, 5))),
+        fr.LayeredRig({"e": np.zeros((1, 4, 2))}, np.ones((1, 4))),
+    ),
+    landmarks=parts(
+        LANDMARKS, fr.Landmarks([4]), fr.Landmarks(triangle_ids=[2], barycentric=[[1, 0, 0]])
+    ),
     feature_lines=parts({"eye": [0, 1]}, {"eye": [0, 4]}),
-    examples=st.one_of(st.none(), float_array(st.tuples(st.integers(0, 2), st.sampled_from([4, 3]), st.just(3))), junk()),
+    examples=st.one_of(
+        st.none(),
+        float_array(st.tuples(st.integers(0, 2), st.sampled_from([4, 3]), st.just(3))),
+        junk(),
+    ),
     example_names=st.one_of(st.none(), names()),
 )
 @fuzz(80)
-def test_target_rig_any_combination(neutral, blendshapes, layers, landmarks, feature_lines, examples, example_names):
+def test_target_rig_any_combination(
+    neutral, blendshapes, layers, landmarks, feature_lines, examples, example_names
+):
     target = typed(
-        AREA, fr.TargetRig, neutral, blendshapes=blendshapes, layers=layers, landmarks=landmarks,
-        feature_lines=feature_lines, examples=examples, example_names=example_names,
+        AREA,
+        fr.TargetRig,
+        neutral,
+        blendshapes=blendshapes,
+        layers=layers,
+        landmarks=landmarks,
+        feature_lines=feature_lines,
+        examples=examples,
+        example_names=example_names,
     )
     if failed(target):
         return
@@ -403,8 +509,17 @@ def test_target_rig_any_combination(neutral, blendshapes, layers, landmarks, fea
 
 
 @given(
-    vertices=st.one_of(st.none(), float_array(st.tuples(st.integers(0, 3), st.sampled_from([4, 4, 0, 3]), st.sampled_from([3, 3, 2]))), junk(), ragged_frames()),
-    weights=st.one_of(st.none(), float_array(st.tuples(st.integers(0, 3), st.sampled_from([2, 2, 3]))), junk()),
+    vertices=st.one_of(
+        st.none(),
+        float_array(
+            st.tuples(st.integers(0, 3), st.sampled_from([4, 4, 0, 3]), st.sampled_from([3, 3, 2]))
+        ),
+        junk(),
+        ragged_frames(),
+    ),
+    weights=st.one_of(
+        st.none(), float_array(st.tuples(st.integers(0, 3), st.sampled_from([2, 2, 3]))), junk()
+    ),
     rig=parts(RIG),
     head_motion=st.one_of(st.none(), st.just(np.repeat(EYE[None], 2, 0)), junk()),
     triangles=st.one_of(st.none(), index_array((1, 3), -1, 4), junk()),
@@ -414,13 +529,32 @@ def test_target_rig_any_combination(neutral, blendshapes, layers, landmarks, fea
     extras=st.one_of(st.none(), st.just({}), junk()),
 )
 @example(  # found by the random long mode: zero frames reached the chunked finiteness check
-    vertices=np.zeros((0, 4, 3)), weights=None, rig=None, head_motion=None, triangles=None, fps=30, weight_names=None, provenance=None, extras=None
+    vertices=np.zeros((0, 4, 3)),
+    weights=None,
+    rig=None,
+    head_motion=None,
+    triangles=None,
+    fps=30,
+    weight_names=None,
+    provenance=None,
+    extras=None,
 )
 @fuzz(100)
-def test_animation_any_combination(vertices, weights, rig, head_motion, triangles, fps, weight_names, provenance, extras):
+def test_animation_any_combination(
+    vertices, weights, rig, head_motion, triangles, fps, weight_names, provenance, extras
+):
     anim = typed(
-        AREA, fr.Animation, vertices=vertices, weights=weights, rig=rig, head_motion=head_motion,
-        triangles=triangles, fps=fps, weight_names=weight_names, provenance=provenance, extras=extras,
+        AREA,
+        fr.Animation,
+        vertices=vertices,
+        weights=weights,
+        rig=rig,
+        head_motion=head_motion,
+        triangles=triangles,
+        fps=fps,
+        weight_names=weight_names,
+        provenance=provenance,
+        extras=extras,
     )
     if failed(anim):
         return
@@ -430,7 +564,9 @@ def test_animation_any_combination(vertices, weights, rig, head_motion, triangle
     if anim.weights is not None:
         assert anim.weights.shape[0] == anim.n_frames and np.isfinite(anim.weights).all()
         if anim.rig is not None:
-            assert v.shape[1] == anim.rig.neutral.n_vertices, "vertices and rig must agree on the vertex count"
+            assert v.shape[1] == anim.rig.neutral.n_vertices, (
+                "vertices and rig must agree on the vertex count"
+            )
     if anim.triangles is not None:
         assert anim.triangles.max() < v.shape[1]
     assert isinstance(anim.provenance, dict) and isinstance(anim.extras, dict)
@@ -452,7 +588,12 @@ def test_names_unicode_duplicates_and_blanks(label):
         assert seq.names == tuple(label), "valid unicode names are kept exactly"
 
 
-@given(mesh=valid_mesh(), names_=unique_names(2), dtype=st.sampled_from([np.float32, np.float64]), data=st.data())
+@given(
+    mesh=valid_mesh(),
+    names_=unique_names(2),
+    dtype=st.sampled_from([np.float32, np.float64]),
+    data=st.data(),
+)
 @fuzz(30)
 def test_constructors_leave_inputs_untouched(mesh, names_, dtype, data):
     v = np.asarray(mesh.vertices, dtype=dtype).copy()

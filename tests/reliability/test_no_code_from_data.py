@@ -6,6 +6,7 @@ The source scan parses every module (so aliases like ``from pickle import loads`
 file, unless the call is in :data:`REVIEWED` with the reason it never sees user data.
 Manifest paths that escape their root are covered in ``test_config_fuzz.py``.
 """
+
 import ast
 import importlib
 import os
@@ -15,11 +16,11 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from reliability.fuzzkit import count
 
 from faceretarget import errors
 from faceretarget import registry as registry_module
 from faceretarget.registry import Registry, read_catalogue
-from reliability.fuzzkit import count
 
 AREA = "source scan"
 ROOT = Path(__file__).resolve().parents[2]
@@ -27,18 +28,36 @@ SCANNED = ("core", "plugins")
 
 #: call -> why it runs code from data
 DANGEROUS = {
-    "pickle.load": "unpickling runs code", "pickle.loads": "unpickling runs code", "pickle.Unpickler": "unpickling runs code",
-    "_pickle.load": "unpickling runs code", "_pickle.loads": "unpickling runs code",
-    "dill.load": "unpickling runs code", "dill.loads": "unpickling runs code",
-    "cloudpickle.load": "unpickling runs code", "cloudpickle.loads": "unpickling runs code",
-    "joblib.load": "unpickling runs code", "torch.load": "unpickling runs code",
-    "pandas.read_pickle": "unpickling runs code", "multiprocessing.reduction.ForkingPickler.loads": "unpickling runs code", "jsonpickle.decode": "unpickling runs code",
-    "marshal.load": "unmarshalling code objects", "marshal.loads": "unmarshalling code objects",
-    "shelve.open": "shelve unpickles", "yaml.unsafe_load": "arbitrary Python objects", "yaml.full_load": "Python objects",
-    "eval": "evaluates text as code", "exec": "executes text as code", "compile": "compiles text to code",
-    "os.system": "runs a shell", "os.popen": "runs a shell", "subprocess.getoutput": "runs a shell",
-    "subprocess.getstatusoutput": "runs a shell", "runpy.run_path": "runs a file", "runpy.run_module": "runs a module",
-    "importlib.import_module": "imports a module by name", "__import__": "imports a module by name",
+    "pickle.load": "unpickling runs code",
+    "pickle.loads": "unpickling runs code",
+    "pickle.Unpickler": "unpickling runs code",
+    "_pickle.load": "unpickling runs code",
+    "_pickle.loads": "unpickling runs code",
+    "dill.load": "unpickling runs code",
+    "dill.loads": "unpickling runs code",
+    "cloudpickle.load": "unpickling runs code",
+    "cloudpickle.loads": "unpickling runs code",
+    "joblib.load": "unpickling runs code",
+    "torch.load": "unpickling runs code",
+    "pandas.read_pickle": "unpickling runs code",
+    "multiprocessing.reduction.ForkingPickler.loads": "unpickling runs code",
+    "jsonpickle.decode": "unpickling runs code",
+    "marshal.load": "unmarshalling code objects",
+    "marshal.loads": "unmarshalling code objects",
+    "shelve.open": "shelve unpickles",
+    "yaml.unsafe_load": "arbitrary Python objects",
+    "yaml.full_load": "Python objects",
+    "eval": "evaluates text as code",
+    "exec": "executes text as code",
+    "compile": "compiles text to code",
+    "os.system": "runs a shell",
+    "os.popen": "runs a shell",
+    "subprocess.getoutput": "runs a shell",
+    "subprocess.getstatusoutput": "runs a shell",
+    "runpy.run_path": "runs a file",
+    "runpy.run_module": "runs a module",
+    "importlib.import_module": "imports a module by name",
+    "__import__": "imports a module by name",
     "importlib.util.spec_from_file_location": "imports a file",
 }
 #: method names that are dangerous on any object
@@ -47,10 +66,22 @@ DANGEROUS_METHODS = {"load_setuptools_entrypoints": "loads every entry point, un
 #: (file, call) -> why this use never sees user data (reviewed by hand)
 REVIEWED = {
     ("core/__init__.py", "importlib.import_module"): "lazy submodules from the fixed _LAZY table",
-    ("core/evaluation/__init__.py", "importlib.import_module"): "lazy exports from the fixed _EXPORTS table",
-    ("core/io/builtin.py", "importlib.import_module"): "lazy format modules named by literals in builtin_readers/writers",
-    ("core/cli.py", "importlib.import_module"): "sub-command modules named by literals in build_parser",
-    ("core/testing.py", "pickle.loads"): "round trip of a retargeter pickled one line above (check_clone_pickle)",
+    (
+        "core/evaluation/__init__.py",
+        "importlib.import_module",
+    ): "lazy exports from the fixed _EXPORTS table",
+    (
+        "core/io/builtin.py",
+        "importlib.import_module",
+    ): "lazy format modules named by literals in builtin_readers/writers",
+    (
+        "core/cli.py",
+        "importlib.import_module",
+    ): "sub-command modules named by literals in build_parser",
+    (
+        "core/testing.py",
+        "pickle.loads",
+    ): "round trip of a retargeter pickled one line above (check_clone_pickle)",
     ("core/evaluation/_workers.py", "multiprocessing.reduction.ForkingPickler.loads"): (
         "messages between a supervisor and the worker processes it started, over a private socket pair (as multiprocessing does)"
     ),
@@ -75,7 +106,9 @@ def findings(path: Path, rel: str | None = None):
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for a in node.names:
-                aliases[a.asname or a.name.split(".")[0]] = a.name if a.asname else a.name.split(".")[0]
+                aliases[a.asname or a.name.split(".")[0]] = (
+                    a.name if a.asname else a.name.split(".")[0]
+                )
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             for a in node.names:
                 aliases[a.asname or a.name] = f"{node.module}.{a.name}"
@@ -90,32 +123,54 @@ def findings(path: Path, rel: str | None = None):
         method = node.func.attr if isinstance(node.func, ast.Attribute) else ""
         if method in DANGEROUS_METHODS:
             yield rel, node.lineno, method, DANGEROUS_METHODS[method]
-        if "allow_pickle" in keywords and not (isinstance(keywords["allow_pickle"], ast.Constant) and keywords["allow_pickle"].value is False):
-            yield rel, node.lineno, f"{name}(allow_pickle=...)", "allow_pickle other than False unpickles"
+        if "allow_pickle" in keywords and not (
+            isinstance(keywords["allow_pickle"], ast.Constant)
+            and keywords["allow_pickle"].value is False
+        ):
+            yield (
+                rel,
+                node.lineno,
+                f"{name}(allow_pickle=...)",
+                "allow_pickle other than False unpickles",
+            )
         if name == "yaml.load":
             loader = keywords.get("Loader") or (node.args[1] if len(node.args) > 1 else None)
             if not (loader is not None and "Safe" in (dotted(loader, aliases) or "")):
                 yield rel, node.lineno, name, "yaml.load without SafeLoader builds Python objects"
-        if name.startswith("subprocess.") and isinstance(keywords.get("shell"), ast.Constant) and keywords["shell"].value:
+        if (
+            name.startswith("subprocess.")
+            and isinstance(keywords.get("shell"), ast.Constant)
+            and keywords["shell"].value
+        ):
             yield rel, node.lineno, f"{name}(shell=True)", "runs a shell"
 
 
 def scanned_files():
-    return sorted(p for d in SCANNED for p in (ROOT / d).rglob("*.py") if "__pycache__" not in p.parts)
+    return sorted(
+        p for d in SCANNED for p in (ROOT / d).rglob("*.py") if "__pycache__" not in p.parts
+    )
 
 
 def test_no_code_from_data_in_the_source_tree():
     files = scanned_files()
     count(AREA, len(files))
     assert len(files) > 20, "the scan found too few modules; is the layout different?"
-    bad = [f"{rel}:{line}: {call}: {why}" for rel, line, call, why in (f for p in files for f in findings(p)) if (rel, call) not in REVIEWED]
-    assert not bad, "calls that can run code from data (review them, or add to REVIEWED with the reason):\n" + "\n".join(bad)
+    bad = [
+        f"{rel}:{line}: {call}: {why}"
+        for rel, line, call, why in (f for p in files for f in findings(p))
+        if (rel, call) not in REVIEWED
+    ]
+    assert not bad, (
+        "calls that can run code from data (review them, or add to REVIEWED with the reason):\n"
+        + "\n".join(bad)
+    )
 
 
 def test_the_scanner_finds_what_it_looks_for(tmp_path):
     """The scan itself must not be blind (aliases, np.load keywords, yaml loaders, pluggy)."""
     probe = tmp_path / "probe.py"
-    probe.write_text(textwrap.dedent('''
+    probe.write_text(
+        textwrap.dedent("""
         import pickle as p
         import numpy as np
         import yaml
@@ -130,18 +185,24 @@ def test_the_scanner_finds_what_it_looks_for(tmp_path):
         eval("1")
         subprocess.run("ls", shell=True)
         self.pm.load_setuptools_entrypoints("faceretarget")
-    '''))
+    """)
+    )
     found = {call for _, _, call, _ in findings(probe, "probe.py")}
     assert found == {
-        "pickle.loads", "numpy.load(allow_pickle=...)", "yaml.load", "marshal.loads", "eval",
-        "subprocess.run(shell=True)", "load_setuptools_entrypoints",
+        "pickle.loads",
+        "numpy.load(allow_pickle=...)",
+        "yaml.load",
+        "marshal.loads",
+        "eval",
+        "subprocess.run(shell=True)",
+        "load_setuptools_entrypoints",
     }, found
 
 
 # ---------------------------------------------------------------------------------------
 # plugins come only from installed entry points
 # ---------------------------------------------------------------------------------------
-PLUGIN = '''
+PLUGIN = """
 import pathlib
 pathlib.Path({marker!r}).write_text("imported")
 import faceretarget as fr
@@ -149,15 +210,19 @@ import faceretarget as fr
 @fr.hookimpl
 def faceretarget_retargeters():
     return []
-'''
+"""
 
 
-def fake_site(tmp_path: Path, dist: str, modules: dict[str, str], entry_points: dict[str, str]) -> Path:
+def fake_site(
+    tmp_path: Path, dist: str, modules: dict[str, str], entry_points: dict[str, str]
+) -> Path:
     site = tmp_path / f"site_{dist}"
     info = site / f"{dist}-1.0.dist-info"
     info.mkdir(parents=True)
     (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 1.0\n")
-    (info / "entry_points.txt").write_text("[faceretarget]\n" + "".join(f"{k} = {v}\n" for k, v in entry_points.items()))
+    (info / "entry_points.txt").write_text(
+        "[faceretarget]\n" + "".join(f"{k} = {v}\n" for k, v in entry_points.items())
+    )
     for name, code in modules.items():
         (site / f"{name}.py").write_text(code)
     return site
@@ -166,19 +231,32 @@ def fake_site(tmp_path: Path, dist: str, modules: dict[str, str], entry_points: 
 @pytest.fixture
 def sites(tmp_path, monkeypatch):
     markers = {n: tmp_path / f"{n}.imported" for n in ("listed", "unlisted", "other")}
-    mod = {n: f"fr_{n}_{secrets.token_hex(4)}" for n in markers}  # fresh module names: nothing cached in sys.modules
+    mod = {
+        n: f"fr_{n}_{secrets.token_hex(4)}" for n in markers
+    }  # fresh module names: nothing cached in sys.modules
     site = fake_site(
-        tmp_path, "goodplugins",
-        {mod["listed"]: PLUGIN.format(marker=str(markers["listed"])), mod["unlisted"]: PLUGIN.format(marker=str(markers["unlisted"]))},
+        tmp_path,
+        "goodplugins",
+        {
+            mod["listed"]: PLUGIN.format(marker=str(markers["listed"])),
+            mod["unlisted"]: PLUGIN.format(marker=str(markers["unlisted"])),
+        },
         {"listed": mod["listed"]},
     )
-    other = fake_site(tmp_path, "otherplugins", {mod["other"]: PLUGIN.format(marker=str(markers["other"]))}, {"other": mod["other"]})
+    other = fake_site(
+        tmp_path,
+        "otherplugins",
+        {mod["other"]: PLUGIN.format(marker=str(markers["other"]))},
+        {"other": mod["other"]},
+    )
     for s in (site, other):
         monkeypatch.syspath_prepend(str(s))
     monkeypatch.delenv("FACERETARGET_PLUGINS", raising=False)
     monkeypatch.delenv("FACERETARGET_DISABLE_PLUGINS", raising=False)
     importlib.invalidate_caches()
-    return SimpleNamespace(markers=markers, modules=mod, imported=lambda: {n for n, m in markers.items() if m.exists()})
+    return SimpleNamespace(
+        markers=markers, modules=mod, imported=lambda: {n for n, m in markers.items() if m.exists()}
+    )
 
 
 def test_only_entry_points_are_loaded(sites):
@@ -186,7 +264,9 @@ def test_only_entry_points_are_loaded(sites):
     count(AREA)
     names = {p.name for p in reg.plugins}
     assert {"listed", "other"} <= names
-    assert sites.imported() == {"listed", "other"}, "a module on sys.path without an entry point must never be imported"
+    assert sites.imported() == {"listed", "other"}, (
+        "a module on sys.path without an entry point must never be imported"
+    )
 
 
 @pytest.mark.parametrize("allow", ["listed", "goodplugins", "os,sys", "nothing-installed"])

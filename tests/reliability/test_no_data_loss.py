@@ -10,6 +10,7 @@
   and even ``--force`` never replaces the input (same path, symlink, hard link,
   ``..`` spelling, a folder holding the input).
 """
+
 import json
 import os
 import select
@@ -21,12 +22,12 @@ from pathlib import Path
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from reliability import samples
+from reliability.fuzzkit import count, fuzz, typed
 
 import faceretarget as fr
 from faceretarget import cli, errors
 from faceretarget.io import _atomic
-from reliability import samples
-from reliability.fuzzkit import count, failed, fuzz, typed
 
 AREA = "writers and outputs"
 HERE = Path(__file__).resolve().parent
@@ -102,19 +103,41 @@ def killed(tmp_path_factory):
             folder = tmp_path_factory.mktemp(f"kill_{mode}_{writer.name}")
             out = out_path(folder, writer)
             jobs.append((writer, info, mode, folder, out, write_old(writer, out)))
-    jobs.append((WRITERS[0][0], WRITERS[0][1], "first", tmp_path_factory.mktemp("kill_first"), None, None))
+    jobs.append(
+        (WRITERS[0][0], WRITERS[0][1], "first", tmp_path_factory.mktemp("kill_first"), None, None)
+    )
     results = {}
     for start in range(0, len(jobs), CONCURRENCY):
         batch = jobs[start : start + CONCURRENCY]
         procs = []
-        for writer, info, mode, folder, out, old in batch:
+        for writer, _info, mode, folder, out, _old in batch:
             target = out if out is not None else out_path(folder, writer)
-            procs.append(subprocess.Popen(
-                [sys.executable, str(CHILD), writer.name, str(target), "mid" if mode == "first" else mode, "builtin" if info.builtin else "plugin"],
-                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=child_env(),
-            ))
-        for (writer, info, mode, folder, out, old), (line, err) in zip(batch, kill_when_stopped(procs)):
-            results[(writer.name, mode)] = (line, err, folder, out if out is not None else out_path(folder, writer), old)
+            procs.append(
+                subprocess.Popen(
+                    [
+                        sys.executable,
+                        str(CHILD),
+                        writer.name,
+                        str(target),
+                        "mid" if mode == "first" else mode,
+                        "builtin" if info.builtin else "plugin",
+                    ],
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.PIPE,
+                    text=True,
+                    env=child_env(),
+                )
+            )
+        for (writer, _info, mode, folder, out, old), (line, err) in zip(
+            batch, kill_when_stopped(procs)
+        ):
+            results[(writer.name, mode)] = (
+                line,
+                err,
+                folder,
+                out if out is not None else out_path(folder, writer),
+                old,
+            )
     return results
 
 
@@ -123,13 +146,21 @@ def killed(tmp_path_factory):
 def test_sigkill_keeps_previous_output(writer, info, mode, killed):
     line, err, folder, out, old = killed[(writer.name, mode)]
     count(AREA)
-    assert line in ("MID", "COMMIT"), f"the child writer was not stopped mid-write ({line}): {err[-2000:]}"
-    assert snapshot(out) == old, f"{writer.name}: after SIGKILL ({mode}) the previous output is not intact (now: {type(snapshot(out)).__name__})"
-    visible = [p.name for p in folder.iterdir() if p.name != out.name and not p.name.startswith(".")]
+    assert line in ("MID", "COMMIT"), (
+        f"the child writer was not stopped mid-write ({line}): {err[-2000:]}"
+    )
+    assert snapshot(out) == old, (
+        f"{writer.name}: after SIGKILL ({mode}) the previous output is not intact (now: {type(snapshot(out)).__name__})"
+    )
+    visible = [
+        p.name for p in folder.iterdir() if p.name != out.name and not p.name.startswith(".")
+    ]
     assert not visible, f"{writer.name}: a killed write left visible files {visible}"
     # the next write removes what the dead writer left and succeeds
     writer.write(samples.sample(writer.kind), out, force=True)
-    assert sorted(p.name for p in folder.iterdir()) == [out.name], f"{writer.name}: leftovers of the killed writer were not cleaned"
+    assert sorted(p.name for p in folder.iterdir()) == [out.name], (
+        f"{writer.name}: leftovers of the killed writer were not cleaned"
+    )
 
 
 def test_sigkill_before_first_output_leaves_nothing(killed):
@@ -172,9 +203,18 @@ def disk_full(tmp_path_factory):
         jobs[writer.name] = (folder, out, write_old(writer, out))
     code = FSIZE_CHILD.format(tests=str(HERE.parent))
     arg = json.dumps([[name, str(out)] for name, (_, out, _) in jobs.items()])
-    run = subprocess.run([sys.executable, "-c", code, arg], capture_output=True, text=True, timeout=300, env=child_env())
+    run = subprocess.run(
+        [sys.executable, "-c", code, arg],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=child_env(),
+    )
     verdicts = dict(json.loads(line) for line in run.stdout.splitlines() if line.startswith("["))
-    return {name: (verdicts.get(name, "NO RESULT " + run.stderr[-500:]),) + job for name, job in jobs.items()}
+    return {
+        name: (verdicts.get(name, "NO RESULT " + run.stderr[-500:]),) + job
+        for name, job in jobs.items()
+    }
 
 
 @pytest.mark.parametrize("writer, info", WRITERS, ids=WRITER_IDS)
@@ -183,8 +223,12 @@ def test_failed_write_is_typed_and_keeps_previous_output(writer, info, disk_full
     verdict, folder, out, old = disk_full[writer.name]
     count(AREA)
     assert snapshot(out) == old, f"{writer.name}: a failed write changed the previous output"
-    assert sorted(p.name for p in folder.iterdir()) == [out.name], f"{writer.name}: a failed write left files behind"
-    assert verdict.startswith("TYPED OutputError"), f"{writer.name}: a write that fails with 'file too large' must raise OutputError, got: {verdict}"
+    assert sorted(p.name for p in folder.iterdir()) == [out.name], (
+        f"{writer.name}: a failed write left files behind"
+    )
+    assert verdict.startswith("TYPED OutputError"), (
+        f"{writer.name}: a write that fails with 'file too large' must raise OutputError, got: {verdict}"
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -195,9 +239,13 @@ def test_existing_output_needs_force(writer, tmp_path):
     out = out_path(tmp_path, writer)
     old = write_old(writer, out)
     refused = typed(AREA, writer.write, samples.sample(writer.kind), out)
-    assert isinstance(refused, errors.OutputError), f"{writer.name} replaced an existing output without force"
+    assert isinstance(refused, errors.OutputError), (
+        f"{writer.name} replaced an existing output without force"
+    )
     assert snapshot(out) == old
-    missing_folder = typed(AREA, writer.write, samples.sample(writer.kind), tmp_path / "no" / "such" / out.name)
+    missing_folder = typed(
+        AREA, writer.write, samples.sample(writer.kind), tmp_path / "no" / "such" / out.name
+    )
     assert isinstance(missing_folder, errors.OutputError)
     assert not (tmp_path / "no").exists()
 

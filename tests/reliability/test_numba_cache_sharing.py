@@ -6,18 +6,18 @@ Every process here gets a temporary ``NUMBA_CACHE_DIR`` (the user's cache is nev
 touched) and a kernel module of its own in ``tmp_path``: a cached caller linking a cached
 callee, the shape of faceretarget's kernels.
 """
+
 import os
 import subprocess
 import sys
 import textwrap
 
 import pytest
-
 from reliability.fuzzkit import count
 
 AREA = "numba cache sharing"
 
-KERNELS = '''
+KERNELS = """
 import numba as nb
 
 
@@ -32,12 +32,12 @@ def caller(xs):
     for i in range(xs.shape[0]):
         s += callee(xs[i])
     return s
-'''
+"""
 
 #: Expected result of caller(arange(10.0)): sum(2 i + 1) for i < 10.
 EXPECTED = 100.0
 
-SCRIPT = '''
+SCRIPT = """
 import sys
 import numpy as np
 import faceretarget  # installs the cache guard
@@ -52,7 +52,7 @@ if len(sys.argv) > 2 and sys.argv[2] == "inject":
     codegen.CodeLibrary._get_compiled_object = no_object
 import fr_test_kernels
 print(repr(float(fr_test_kernels.caller(np.arange(10.0)))))
-'''
+"""
 
 
 @pytest.fixture
@@ -69,7 +69,10 @@ def start(tmp_path, cache, *extra):
     env.pop("NUMBA_DISABLE_JIT", None)
     return subprocess.Popen(
         [sys.executable, str(tmp_path / "run.py"), str(tmp_path / "kernels"), *extra],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
 
 

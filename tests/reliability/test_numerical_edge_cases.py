@@ -8,17 +8,18 @@ A method must either return a finite result of the right shape, or raise a
 FaceRetargetError subclass with a message; never NaN, another exception or a hang.
 The outcome of every (method, scenario) is printed in the session summary.
 """
+
 import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from reliability import fuzzkit
+from reliability.fuzzkit import failed, fuzz, index_array, typed
 
 import faceretarget as fr
 from faceretarget import errors
 from faceretarget.geometry.rbf import KERNELS, fit_rbf
-from reliability import fuzzkit
-from reliability.fuzzkit import failed, fuzz, index_array, typed
 
 AREA = "numerical edge cases"
 METHODS = [a["name"] for a in fr.available()]
@@ -34,8 +35,12 @@ def case():
 # ---------------------------------------------------------------------------------------
 def target_with(target, **changes):
     parts = dict(
-        blendshapes=target.blendshapes, layers=target.layers, landmarks=target.landmarks,
-        feature_lines=target.feature_lines, examples=target.examples, example_names=target.example_names or None,
+        blendshapes=target.blendshapes,
+        layers=target.layers,
+        landmarks=target.landmarks,
+        feature_lines=target.feature_lines,
+        examples=target.examples,
+        example_names=target.example_names or None,
     )
     parts.update(changes)
     neutral = parts.pop("neutral", target.neutral)
@@ -44,9 +49,15 @@ def target_with(target, **changes):
 
 def source_with(source, **changes):
     parts = dict(
-        head_motion=source.head_motion, landmarks=source.landmarks, feature_lines=source.feature_lines,
-        examples=source.examples, example_names=source.example_names or None, rig=source.rig,
-        actor_layers=source.actor_layers, tracks2d=source.tracks2d, actor_layers_2d=source.actor_layers_2d,
+        head_motion=source.head_motion,
+        landmarks=source.landmarks,
+        feature_lines=source.feature_lines,
+        examples=source.examples,
+        example_names=source.example_names or None,
+        rig=source.rig,
+        actor_layers=source.actor_layers,
+        tracks2d=source.tracks2d,
+        actor_layers_2d=source.actor_layers_2d,
     )
     parts.update(changes)
     performance = parts.pop("performance", source.performance)
@@ -57,15 +68,20 @@ def with_extra_shape(target, delta, name):
     rig = target.blendshapes
     deltas = np.concatenate([np.asarray(rig.deltas), delta[None]])
     bounds = None if rig.bounds is None else np.vstack([rig.bounds, rig.bounds[:1]])
-    return target_with(target, blendshapes=fr.BlendshapeRig(rig.neutral, deltas, list(rig.names) + [name], bounds=bounds))
+    return target_with(
+        target,
+        blendshapes=fr.BlendshapeRig(rig.neutral, deltas, list(rig.names) + [name], bounds=bounds),
+    )
 
 
 def first_only(layers):
     if layers is None:
         return None
     return fr.LayeredRig(
-        {k: np.asarray(v)[:1] for k, v in layers.layers.items()}, layers.masks,
-        pose_names={k: list(v)[:1] for k, v in layers.pose_names.items()}, region_names=layers.region_names,
+        {k: np.asarray(v)[:1] for k, v in layers.layers.items()},
+        layers.masks,
+        pose_names={k: list(v)[:1] for k, v in layers.pose_names.items()},
+        region_names=layers.region_names,
     )
 
 
@@ -82,7 +98,9 @@ def markers_of(source):
     if isinstance(perf, fr.MarkerSequence):
         return perf
     names = source.landmarks.names if source.landmarks is not None else None
-    return fr.MarkerSequence(source.marker_positions(), names=names, fps=perf.fps, reference=source.marker_reference())
+    return fr.MarkerSequence(
+        source.marker_positions(), names=names, fps=perf.fps, reference=source.marker_reference()
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -90,16 +108,22 @@ def markers_of(source):
 # ---------------------------------------------------------------------------------------
 def duplicate_shapes(case, cls):
     rig = case.target.blendshapes
-    return case.source, with_extra_shape(case.target, np.asarray(rig.deltas[0]), rig.names[0] + "_copy")
+    return case.source, with_extra_shape(
+        case.target, np.asarray(rig.deltas[0]), rig.names[0] + "_copy"
+    )
 
 
 def dependent_shape(case, cls):
     rig = case.target.blendshapes
-    return case.source, with_extra_shape(case.target, np.asarray(rig.deltas[0] + rig.deltas[1]), "sum_of_two")
+    return case.source, with_extra_shape(
+        case.target, np.asarray(rig.deltas[0] + rig.deltas[1]), "sum_of_two"
+    )
 
 
 def zero_shape(case, cls):
-    return case.source, with_extra_shape(case.target, np.zeros_like(case.target.blendshapes.deltas[0]), "does_nothing")
+    return case.source, with_extra_shape(
+        case.target, np.zeros_like(case.target.blendshapes.deltas[0]), "does_nothing"
+    )
 
 
 def single_shape(case, cls):
@@ -108,11 +132,15 @@ def single_shape(case, cls):
         case.target,
         blendshapes=fr.BlendshapeRig(rig.neutral, np.asarray(rig.deltas)[:1], rig.names[:1]),
         layers=first_only(case.target.layers),
-        examples=np.asarray(case.target.examples)[:1], example_names=case.target.example_names[:1],
+        examples=np.asarray(case.target.examples)[:1],
+        example_names=case.target.example_names[:1],
     )
     source = source_with(
-        src, actor_layers=first_only(src.actor_layers), actor_layers_2d=first_only(src.actor_layers_2d),
-        examples=np.asarray(src.examples)[:1], example_names=src.example_names[:1],
+        src,
+        actor_layers=first_only(src.actor_layers),
+        actor_layers_2d=first_only(src.actor_layers_2d),
+        examples=np.asarray(src.examples)[:1],
+        example_names=src.example_names[:1],
     )
     return source, target
 
@@ -122,8 +150,21 @@ def one_frame(case, cls):
     perf = src.performance
     frames = np.asarray(perf.vertices)[2:3]
     hm = None if src.head_motion is None else np.asarray(src.head_motion)[2:3]
-    tracks = None if src.tracks2d is None else fr.MarkerSequence(np.asarray(src.tracks2d.positions)[2:3], names=src.tracks2d.names, reference=src.tracks2d.reference)
-    return source_with(src, performance=fr.MeshSequence(frames, perf.triangles, fps=perf.fps, reference=perf.reference), head_motion=hm, tracks2d=tracks), case.target
+    tracks = (
+        None
+        if src.tracks2d is None
+        else fr.MarkerSequence(
+            np.asarray(src.tracks2d.positions)[2:3],
+            names=src.tracks2d.names,
+            reference=src.tracks2d.reference,
+        )
+    )
+    return source_with(
+        src,
+        performance=fr.MeshSequence(frames, perf.triangles, fps=perf.fps, reference=perf.reference),
+        head_motion=hm,
+        tracks2d=tracks,
+    ), case.target
 
 
 def missing_markers(case, cls):
@@ -134,7 +175,9 @@ def missing_markers(case, cls):
     rng = np.random.default_rng(3)
     n = pos.shape[1]
     gappy = rng.choice(n, size=n // 3, replace=False)
-    pos[1:, gappy] = np.where(rng.random((pos.shape[0] - 1, gappy.size, 1)) < 0.8, np.nan, pos[1:, gappy])
+    pos[1:, gappy] = np.where(
+        rng.random((pos.shape[0] - 1, gappy.size, 1)) < 0.8, np.nan, pos[1:, gappy]
+    )
     return marker_source(case, pos, markers)
 
 
@@ -151,9 +194,21 @@ def marker_source(case, pos, markers):
     """The case's source as markers at ``pos`` (NaN = missing), keeping every extra that fits."""
     seq = fr.MarkerSequence(pos, names=markers.names, fps=markers.fps, reference=markers.reference)
     src = case.source
-    examples = None if src.examples is None or src.landmarks is None else src.landmarks.positions(src.examples, src.performance.triangles)
-    return fr.Source(seq, head_motion=src.head_motion, examples=examples, example_names=src.example_names or None, rig=src.rig,
-                     actor_layers=src.actor_layers, tracks2d=src.tracks2d, actor_layers_2d=src.actor_layers_2d), case.target
+    examples = (
+        None
+        if src.examples is None or src.landmarks is None
+        else src.landmarks.positions(src.examples, src.performance.triangles)
+    )
+    return fr.Source(
+        seq,
+        head_motion=src.head_motion,
+        examples=examples,
+        example_names=src.example_names or None,
+        rig=src.rig,
+        actor_layers=src.actor_layers,
+        tracks2d=src.tracks2d,
+        actor_layers_2d=src.actor_layers_2d,
+    ), case.target
 
 
 def coincident_landmarks(case, cls):
@@ -178,18 +233,36 @@ def duplicate_examples(case, cls):
 
 def zero_area_triangles(case, cls):
     src, tgt = case.source, case.target
-    neutral = fr.Mesh(collapse_triangle(tgt.neutral.vertices, tgt.neutral.triangles), tgt.neutral.triangles, name=tgt.neutral.name)
+    neutral = fr.Mesh(
+        collapse_triangle(tgt.neutral.vertices, tgt.neutral.triangles),
+        tgt.neutral.triangles,
+        name=tgt.neutral.name,
+    )
     rig = tgt.blendshapes
-    target = target_with(tgt, neutral=neutral, blendshapes=fr.BlendshapeRig(neutral, rig.deltas, rig.names, bounds=rig.bounds))
+    target = target_with(
+        tgt,
+        neutral=neutral,
+        blendshapes=fr.BlendshapeRig(neutral, rig.deltas, rig.names, bounds=rig.bounds),
+    )
     perf = src.performance
     frames = collapse_triangle(perf.vertices, perf.triangles)
     ref = collapse_triangle(perf.reference.vertices, perf.triangles)
-    return source_with(src, performance=fr.MeshSequence(frames, perf.triangles, fps=perf.fps, reference=ref)), target
+    return source_with(
+        src, performance=fr.MeshSequence(frames, perf.triangles, fps=perf.fps, reference=ref)
+    ), target
 
 
 SCENARIOS = [
-    duplicate_shapes, dependent_shape, zero_shape, single_shape, one_frame,
-    missing_markers, empty_frame, coincident_landmarks, duplicate_examples, zero_area_triangles,
+    duplicate_shapes,
+    dependent_shape,
+    zero_shape,
+    single_shape,
+    one_frame,
+    missing_markers,
+    empty_frame,
+    coincident_landmarks,
+    duplicate_examples,
+    zero_area_triangles,
 ]
 
 
@@ -215,10 +288,14 @@ def test_edge_case(method, scenario, case):
     key = (method, scenario.__name__)
     if failed(result):
         fuzzkit.OUTCOMES[key] = f"{type(result).__name__}: {' '.join(str(result).split())[:110]}"
-        assert type(result) is not errors.FaceRetargetError, "use the subclass that names the kind of failure"
+        assert type(result) is not errors.FaceRetargetError, (
+            "use the subclass that names the kind of failure"
+        )
         return
     v = np.asarray(result.vertices)
-    assert v.shape == (source.n_frames, target.neutral.n_vertices, 3), f"{method}/{scenario.__name__}: shape {v.shape}"
+    assert v.shape == (source.n_frames, target.neutral.n_vertices, 3), (
+        f"{method}/{scenario.__name__}: shape {v.shape}"
+    )
     assert np.isfinite(v).all(), f"{method}/{scenario.__name__}: NaN or inf in the result"
     if result.weights is not None:
         assert np.isfinite(result.weights).all()
@@ -226,9 +303,16 @@ def test_edge_case(method, scenario, case):
     if scenario in SAME_SPAN:
         # the rig (or example set) spans the same space as before: the answer must not move
         base = fr.get(method).fit(case.source, case.target).retarget(case.source)
-        change = np.sqrt(np.mean(np.sum((v - np.asarray(base.vertices)) ** 2, axis=-1))) / case.target.neutral.height
-        fuzzkit.OUTCOMES[key] = f"finite result, {100 * change:.3f}% of face height from the unchanged case"
-        assert change < SAME_SPAN_TOLERANCE, f"{method}/{scenario.__name__}: a redundant shape moved the result by {100 * change:.2f}% of face height"
+        change = (
+            np.sqrt(np.mean(np.sum((v - np.asarray(base.vertices)) ** 2, axis=-1)))
+            / case.target.neutral.height
+        )
+        fuzzkit.OUTCOMES[key] = (
+            f"finite result, {100 * change:.3f}% of face height from the unchanged case"
+        )
+        assert change < SAME_SPAN_TOLERANCE, (
+            f"{method}/{scenario.__name__}: a redundant shape moved the result by {100 * change:.2f}% of face height"
+        )
 
 
 # ---------------------------------------------------------------------------------------
@@ -238,12 +322,18 @@ def test_edge_case(method, scenario, case):
 @fuzz(60)
 def test_rbf_coincident_and_degenerate_centres(data, kernel, dim):
     n = data.draw(st.integers(1, 7))
-    coords = st.floats(-10.0, 10.0, allow_subnormal=False)  # subnormal spacings: see the xfail below
+    coords = st.floats(
+        -10.0, 10.0, allow_subnormal=False
+    )  # subnormal spacings: see the xfail below
     base = data.draw(hnp.arrays(np.float64, (n, dim), elements=coords))
     if data.draw(st.booleans()):
         base[:, 1:] = 0.0  # all centres on one line
-    centres = base[data.draw(index_array((data.draw(st.integers(1, 12)),), 0, n - 1))]  # with repeats
-    values = np.stack([np.sin(centres).sum(axis=1), centres[:, 0] ** 2], axis=1)  # one value per position
+    centres = base[
+        data.draw(index_array((data.draw(st.integers(1, 12)),), 0, n - 1))
+    ]  # with repeats
+    values = np.stack(
+        [np.sin(centres).sum(axis=1), centres[:, 0] ** 2], axis=1
+    )  # one value per position
     interp = typed(AREA, fit_rbf, centres, values, kernel=kernel)
     if failed(interp):
         assert isinstance(interp, (errors.DegenerateGeometryError, errors.NumericalError)), interp
@@ -251,12 +341,20 @@ def test_rbf_coincident_and_degenerate_centres(data, kernel, dim):
     got = interp(centres)
     assert np.isfinite(got).all(), f"{kernel}: NaN or inf from coincident centres"
     distinct = np.unique(centres, axis=0)
-    gaps = np.linalg.norm(distinct[:, None] - distinct[None], axis=-1)[np.triu_indices(len(distinct), 1)]
+    gaps = np.linalg.norm(distinct[:, None] - distinct[None], axis=-1)[
+        np.triu_indices(len(distinct), 1)
+    ]
     extent = max(float(np.ptp(centres)), 1.0)
     if gaps.size == 0 or gaps.min() > 1e-2 * extent:  # well separated: must interpolate
         np.testing.assert_allclose(got, values, atol=1e-5 * (1 + np.abs(values).max()))
 
 
 def test_rbf_centres_a_subnormal_distance_apart():
-    result = typed(AREA, fit_rbf, np.array([[2.2250738585e-309, 0.0], [0.0, 0.0]]), np.array([[1.0], [2.0]]), kernel="gaussian")
+    result = typed(
+        AREA,
+        fit_rbf,
+        np.array([[2.2250738585e-309, 0.0], [0.0, 0.0]]),
+        np.array([[1.0], [2.0]]),
+        kernel="gaussian",
+    )
     assert failed(result) or np.isfinite(result(np.zeros((1, 2)))).all()

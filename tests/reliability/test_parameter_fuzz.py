@@ -6,26 +6,48 @@ type, NaN/inf, a negative count or an unknown mode must end in a FaceRetargetErr
 in a TypeError deep inside numpy or numba. ``faceretarget._validate.check_number`` and
 ``check_choice`` are the shared helpers for that (tested here too).
 """
+
 import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from reliability.fuzzkit import failed, fuzz, junk, typed
 
 import faceretarget as fr
 from faceretarget import errors
 from faceretarget._validate import check_bool, check_choice, check_number
-from reliability.fuzzkit import failed, fuzz, junk, typed
 
 AREA = "method parameters"
 #: methods whose parameter checks still let untyped errors through (owners: plugins/<name>)
-KNOWN = {
-}
+KNOWN = {}
 METHODS = [
-    pytest.param(a["name"], marks=pytest.mark.xfail(strict=True, reason=KNOWN[a["name"]])) if a["name"] in KNOWN else a["name"]
+    pytest.param(a["name"], marks=pytest.mark.xfail(strict=True, reason=KNOWN[a["name"]]))
+    if a["name"] in KNOWN
+    else a["name"]
     for a in fr.available()
 ]
 BAD_VALUES = st.one_of(
-    st.sampled_from([None, -1, 0, -0.5, 1e300, -1e300, np.nan, np.inf, -np.inf, "nonsense", "", [], [1, 2], {"a": 1}, True, 10**20, (0,)]),
+    st.sampled_from(
+        [
+            None,
+            -1,
+            0,
+            -0.5,
+            1e300,
+            -1e300,
+            np.nan,
+            np.inf,
+            -np.inf,
+            "nonsense",
+            "",
+            [],
+            [1, 2],
+            {"a": 1},
+            True,
+            10**20,
+            (0,),
+        ]
+    ),
     junk(),
 )
 
@@ -49,16 +71,18 @@ def check_parameter_value(method, case, param, value):
     if failed(result):
         return
     v = np.asarray(result.vertices)
-    assert v.shape == (source.n_frames, case.target.neutral.n_vertices, 3) and np.isfinite(v).all(), (
-        f"{method}({param}={value!r}) returned a result that is not finite or of the wrong shape"
-    )
+    assert (
+        v.shape == (source.n_frames, case.target.neutral.n_vertices, 3) and np.isfinite(v).all()
+    ), f"{method}({param}={value!r}) returned a result that is not finite or of the wrong shape"
 
 
 @pytest.mark.parametrize("method", METHODS)
 @given(data=st.data())
 @fuzz(10)
 def test_any_parameter_value(method, case, data):
-    param = data.draw(st.sampled_from(sorted(fr.info(method).cls.default_params())), label="parameter")
+    param = data.draw(
+        st.sampled_from(sorted(fr.info(method).cls.default_params())), label="parameter"
+    )
     check_parameter_value(method, case, param, data.draw(BAD_VALUES, label="value"))
 
 
@@ -74,11 +98,27 @@ def test_every_parameter_set_to_an_array(method, case):
             check_parameter_value(method, case, param, value)
 
 
-@given(value=st.one_of(junk(), st.integers(), st.floats()), integer=st.booleans(), low=st.sampled_from([None, 0, 1]),
-       high=st.sampled_from([None, 10]), open_low=st.booleans(), allow_none=st.booleans())
+@given(
+    value=st.one_of(junk(), st.integers(), st.floats()),
+    integer=st.booleans(),
+    low=st.sampled_from([None, 0, 1]),
+    high=st.sampled_from([None, 10]),
+    open_low=st.booleans(),
+    allow_none=st.booleans(),
+)
 @fuzz(200)
 def test_check_number(value, integer, low, high, open_low, allow_none):
-    got = typed(AREA, check_number, value, "p", integer=integer, low=low, high=high, open_low=open_low, allow_none=allow_none)
+    got = typed(
+        AREA,
+        check_number,
+        value,
+        "p",
+        integer=integer,
+        low=low,
+        high=high,
+        open_low=open_low,
+        allow_none=allow_none,
+    )
     if failed(got):
         assert isinstance(got, errors.InputError) and str(got).startswith("p: expected")
         return
@@ -101,12 +141,18 @@ def test_check_choice(value):
         assert got in ("a", "b") and got == value
 
 
-@given(value=st.one_of(junk(), st.sampled_from([True, False, 0, 1, 2, np.bool_(True), np.int64(1), "yes", None])))
+@given(
+    value=st.one_of(
+        junk(), st.sampled_from([True, False, 0, 1, 2, np.bool_(True), np.int64(1), "yes", None])
+    )
+)
 @fuzz(60)
 def test_check_bool(value):
     got = typed(AREA, check_bool, value, "flag")
     if failed(got):
-        assert isinstance(got, errors.InputError) and str(got).startswith("flag: expected True or False")
+        assert isinstance(got, errors.InputError) and str(got).startswith(
+            "flag: expected True or False"
+        )
     else:
         assert got is bool(value) and (isinstance(value, (bool, np.bool_)) or value in (0, 1))
 
@@ -114,5 +160,7 @@ def test_check_bool(value):
 def test_check_number_with_named_choices():
     assert check_number("auto", "scale", low=0, choices=("auto",)) == "auto"
     assert check_number(2.5, "scale", low=0, choices=("auto",)) == 2.5
-    with pytest.raises(errors.InputError, match="scale: expected 'auto' or a finite number >= 0, got 'other'"):
+    with pytest.raises(
+        errors.InputError, match="scale: expected 'auto' or a finite number >= 0, got 'other'"
+    ):
         check_number("other", "scale", low=0, choices=("auto",))

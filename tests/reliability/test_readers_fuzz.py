@@ -7,19 +7,18 @@ random bytes or repeats chunks. A reader may only raise a ``FaceRetargetError``
 subclass, must not hang (hypothesis deadline + pytest-timeout), must return an object of
 its declared kind when it succeeds, and must not create files.
 """
-import os
+
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from reliability import samples
+from reliability.fuzzkit import count, failed, fuzz, typed
 
 import faceretarget as fr
 from faceretarget import cli, errors
-from reliability import samples
-from reliability.fuzzkit import count, failed, fuzz, typed
 
 AREA = "file readers"
 KIND_TYPES = {
@@ -32,7 +31,15 @@ KIND_TYPES = {
 }
 READERS = samples.readers()
 IDS = [f"{r.name}[{info.distribution}]" for r, info in READERS]
-FOLDER_NAMES = ["neutral.obj", "frame_0001.obj", "frame_0002.obj", "jawOpen.obj", "rig.json", "sequence.json", "x.ply"]
+FOLDER_NAMES = [
+    "neutral.obj",
+    "frame_0001.obj",
+    "frame_0002.obj",
+    "jawOpen.obj",
+    "rig.json",
+    "sequence.json",
+    "x.ply",
+]
 
 
 @pytest.fixture(scope="module")
@@ -50,10 +57,14 @@ def check_read(reader, path: Path, options=None):
     folder = path.parent
     before = listing(folder)
     result = typed(AREA, reader.read, path, **(options or {}))
-    assert listing(folder) == before, f"reader {reader.name} created or removed files: {set(listing(folder)) ^ set(before)}"
+    assert listing(folder) == before, (
+        f"reader {reader.name} created or removed files: {set(listing(folder)) ^ set(before)}"
+    )
     if not failed(result):
         want = KIND_TYPES.get(reader.kind)
-        assert want is None or isinstance(result, want), f"reader {reader.name} ({reader.kind}) returned {type(result).__name__}"
+        assert want is None or isinstance(result, want), (
+            f"reader {reader.name} ({reader.kind}) returned {type(result).__name__}"
+        )
     return result
 
 
@@ -86,18 +97,25 @@ def test_empty_input_is_a_typed_error(reader, info, tmp_path):
     else:
         path.write_bytes(b"")
     result = check_read(reader, path)
-    assert isinstance(result, errors.FaceRetargetError), f"{reader.name} accepted an empty input: {result!r}"
-    missing = check_read(reader, tmp_path / f"missing{reader.extensions[0] if reader.extensions[0] != '/' else ''}")
+    assert isinstance(result, errors.FaceRetargetError), (
+        f"{reader.name} accepted an empty input: {result!r}"
+    )
+    missing = check_read(
+        reader, tmp_path / f"missing{reader.extensions[0] if reader.extensions[0] != '/' else ''}"
+    )
     assert isinstance(missing, errors.FaceRetargetError)
 
 
 @pytest.mark.parametrize("reader, info", READERS, ids=IDS)
-@given(data=st.binary(max_size=3000), names=st.lists(st.sampled_from(FOLDER_NAMES), min_size=1, max_size=3, unique=True))
+@given(
+    data=st.binary(max_size=3000),
+    names=st.lists(st.sampled_from(FOLDER_NAMES), min_size=1, max_size=3, unique=True),
+)
 @fuzz(12)
 def test_random_bytes(reader, info, tmp_path_factory, data, names):
     folder, path = fresh(tmp_path_factory, reader, "random")
     if "/" in reader.extensions:
-        put(path, b"", {n: data[i::len(names)] for i, n in enumerate(names)})
+        put(path, b"", {n: data[i :: len(names)] for i, n in enumerate(names)})
     else:
         put(path, data)
     check_read(reader, path)
@@ -140,7 +158,9 @@ def seed_bytes(seed_path: Path) -> dict:
 def test_truncated_and_corrupted_valid_files(reader, info, seeds, tmp_path_factory, data):
     found = seeds(reader)
     if found is None:
-        pytest.skip(f"no registered writer produces a file {reader.name} reads; covered by the random-bytes test only")
+        pytest.skip(
+            f"no registered writer produces a file {reader.name} reads; covered by the random-bytes test only"
+        )
     seed_path, options = found
     parts = seed_bytes(seed_path)
     target = data.draw(st.sampled_from(sorted(parts)))
@@ -193,4 +213,6 @@ def test_convert_garbage_leaves_no_output(ext, seeds, tmp_path_factory, data, ca
         assert out.exists()
     else:
         assert len(err.strip().splitlines()) == 1, f"errors are one line: {err!r}"
-        assert listing(folder) == before, "a failed convert must leave nothing behind (no output, no temporary file)"
+        assert listing(folder) == before, (
+            "a failed convert must leave nothing behind (no output, no temporary file)"
+        )

@@ -11,6 +11,7 @@ Two kinds of test:
   raise ResourceLimitError naming the variable, or return data that is memory-mapped
   rather than allocated.
 """
+
 import io
 import json
 import mmap
@@ -21,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from reliability import samples
+from reliability.fuzzkit import count, failed, typed
 
 import faceretarget as fr
 from faceretarget import errors
 from faceretarget.io import _atomic
-from reliability import samples
-from reliability.fuzzkit import count, failed, typed
 
 AREA = "memory budget"
 #: bytes a refusal may allocate
@@ -36,20 +37,28 @@ HUGE = 2**31 - 1
 
 def npy_bytes(shape, dtype="<f8", payload=b"\0" * 64) -> bytes:
     buf = io.BytesIO()
-    np.lib.format.write_array_header_1_0(buf, {"descr": dtype, "fortran_order": False, "shape": tuple(shape)})
+    np.lib.format.write_array_header_1_0(
+        buf, {"descr": dtype, "fortran_order": False, "shape": tuple(shape)}
+    )
     return buf.getvalue() + payload
 
 
 def gltf_text(count_: int) -> str:
-    return json.dumps({
-        "asset": {"version": "2.0"},
-        "buffers": [{"byteLength": 36, "uri": "data:application/octet-stream;base64," + "A" * 48}],
-        "bufferViews": [{"buffer": 0, "byteLength": 36}],
-        "accessors": [{"bufferView": 0, "componentType": 5126, "count": count_, "type": "VEC3"}],
-        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
-        "nodes": [{"mesh": 0}],
-        "scenes": [{"nodes": [0]}],
-    })
+    return json.dumps(
+        {
+            "asset": {"version": "2.0"},
+            "buffers": [
+                {"byteLength": 36, "uri": "data:application/octet-stream;base64," + "A" * 48}
+            ],
+            "bufferViews": [{"buffer": 0, "byteLength": 36}],
+            "accessors": [
+                {"bufferView": 0, "componentType": 5126, "count": count_, "type": "VEC3"}
+            ],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+            "nodes": [{"mesh": 0}],
+            "scenes": [{"nodes": [0]}],
+        }
+    )
 
 
 def c3d_bytes() -> bytes:
@@ -73,18 +82,31 @@ def seed_of(name: str, n: int = 3):
 
 
 CRAFTED = {
-    "pc2": (".pc2", lambda: struct.pack("<12siiffi", b"POINTCACHE2\0", 1, HUGE, 0.0, 30.0, HUGE) + b"\0" * 24),
+    "pc2": (
+        ".pc2",
+        lambda: struct.pack("<12siiffi", b"POINTCACHE2\0", 1, HUGE, 0.0, 30.0, HUGE) + b"\0" * 24,
+    ),
     "mdd": (".mdd", lambda: struct.pack(">ii", HUGE, HUGE) + b"\0" * 24),
     "npy": (".npy", lambda: npy_bytes((10**6, 10**6, 3))),
     "npz-sequence": (".npz", None),  # built in the test (a zip)
     "c3d": (".c3d", c3d_bytes),
-    "ply": (".ply", lambda: b"ply\nformat ascii 1.0\nelement vertex 100000000000\nproperty float x\nproperty float y\nproperty float z\n"
-            b"element face 100000000000\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n"),
+    "ply": (
+        ".ply",
+        lambda: (
+            b"ply\nformat ascii 1.0\nelement vertex 100000000000\nproperty float x\nproperty float y\nproperty float z\n"
+            b"element face 100000000000\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n"
+        ),
+    ),
     "off": (".off", lambda: b"OFF\n100000000000 100000000000 0\n0 0 0\n"),
     "stl": (".stl", lambda: b"\0" * 80 + struct.pack("<I", 4_000_000_000) + b"\0" * 50),
     "gltf-mesh": (".gltf", lambda: gltf_text(10**12).encode()),
-    "trc": (".trc", lambda: b"PathFileType\t4\t(X/Y/Z)\tx.trc\nDataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames\n"
-            b"30\t30\t10000000000\t100000\tmm\t30\t1\t10000000000\nFrame#\tTime\tm0\n\t\tX1\tY1\tZ1\n1\t0\t0\t0\t0\n"),
+    "trc": (
+        ".trc",
+        lambda: (
+            b"PathFileType\t4\t(X/Y/Z)\tx.trc\nDataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames\n"
+            b"30\t30\t10000000000\t100000\tmm\t30\t1\t10000000000\nFrame#\tTime\tm0\n\t\tX1\tY1\tZ1\n1\t0\t0\t0\t0\n"
+        ),
+    ),
 }
 
 
@@ -122,7 +144,9 @@ def test_crafted_header_declaring_huge_sizes(reader_name, tmp_path, monkeypatch)
         # read as ezc3d does: POINT:FRAMES and the frames present, never the header's last frame
         assert result.n_frames == fr.load(seed_of("c3d")[0], format="c3d").n_frames, result
     else:
-        assert isinstance(result, (errors.ResourceLimitError, errors.FileFormatError)), f"{reader_name}: {result!r}"
+        assert isinstance(result, (errors.ResourceLimitError, errors.FileFormatError)), (
+            f"{reader_name}: {result!r}"
+        )
         assert str(path) in str(result), "the error names the file"
     assert peak < ALLOWANCE, f"{reader_name} allocated {peak / 2**20:.1f} MiB before refusing"
 
@@ -175,13 +199,17 @@ def test_small_budget_refuses_or_maps(reader, info, monkeypatch):
     result = typed(AREA, reader.read, path, **options)
     _atomic.clear_inputs()
     if failed(result):
-        assert isinstance(result, errors.ResourceLimitError), f"{reader.name}: over budget must be ResourceLimitError, got {result!r}"
+        assert isinstance(result, errors.ResourceLimitError), (
+            f"{reader.name}: over budget must be ResourceLimitError, got {result!r}"
+        )
         assert "FACERETARGET_MEMORY_BUDGET" in str(result)
         return
     big = [(name, a) for name, a in data_arrays(result) if a.nbytes > 512]
     assert big, f"{reader.name}: the seed is too small for this test"
     for name, arr in big:
-        assert mapped(arr), f"{reader.name} loaded {arr.nbytes} bytes of {name} into memory under a 512-byte budget"
+        assert mapped(arr), (
+            f"{reader.name} loaded {arr.nbytes} bytes of {name} into memory under a 512-byte budget"
+        )
 
 
 def test_budget_variable_is_validated(monkeypatch, tmp_path):

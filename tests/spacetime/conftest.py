@@ -1,4 +1,5 @@
 """Small synthetic parallel rigs for the spacetime tests (no files, nothing outside the repository)."""
+
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -16,11 +17,18 @@ OFFSET = np.array([0.4, -0.7, 0.2])
 
 def grid_mesh(nx: int = 9, ny: int = 9, width: float = 14.0) -> fr.Mesh:
     """A curved face-sized (cm) grid."""
-    x, y = np.meshgrid(np.linspace(-width / 2, width / 2, nx), np.linspace(-width / 2, width / 2, ny))
+    x, y = np.meshgrid(
+        np.linspace(-width / 2, width / 2, nx), np.linspace(-width / 2, width / 2, ny)
+    )
     z = 4.0 - 0.04 * (x**2 + y**2)
     vertices = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
     ids = np.arange(nx * ny).reshape(ny, nx)
-    a, b, c, d = ids[:-1, :-1].ravel(), ids[:-1, 1:].ravel(), ids[1:, 1:].ravel(), ids[1:, :-1].ravel()
+    a, b, c, d = (
+        ids[:-1, :-1].ravel(),
+        ids[:-1, 1:].ravel(),
+        ids[1:, 1:].ravel(),
+        ids[1:, :-1].ravel(),
+    )
     triangles = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     return fr.Mesh(vertices, triangles)
 
@@ -41,7 +49,9 @@ def smooth_deltas(mesh: fr.Mesh, n_shapes: int, rng, support=None) -> np.ndarray
 
 def smooth_weights(n_frames: int, n_shapes: int, rng, start_neutral: bool = False) -> np.ndarray:
     t = np.arange(n_frames)[:, None]
-    w = 0.5 + 0.45 * np.sin(2 * np.pi * t / rng.uniform(15, 50, n_shapes) + rng.uniform(0, 2 * np.pi, n_shapes))
+    w = 0.5 + 0.45 * np.sin(
+        2 * np.pi * t / rng.uniform(15, 50, n_shapes) + rng.uniform(0, 2 * np.pi, n_shapes)
+    )
     if start_neutral:
         w *= np.sin(np.pi * np.arange(n_frames) / max(n_frames - 1, 1))[:, None] ** 2
     return w
@@ -54,8 +64,21 @@ def rotation(angles: np.ndarray) -> np.ndarray:
     return Rotation.from_euler("xyz", angles).as_matrix()
 
 
-def _make_toy(seed=0, n_frames=40, n_shapes=6, n_markers=24, head_motion=False, noise=0.0, expression=True,
-             missing=0.0, weights=None, support=None, extra_source_shapes=0, extra_weights=None, fps=30.0):
+def _make_toy(
+    seed=0,
+    n_frames=40,
+    n_shapes=6,
+    n_markers=24,
+    head_motion=False,
+    noise=0.0,
+    expression=True,
+    missing=0.0,
+    weights=None,
+    support=None,
+    extra_source_shapes=0,
+    extra_weights=None,
+    fps=30.0,
+):
     """A toy parallel-rig problem: a target grid rig, and source markers related to the target by
     :data:`AFFINE` (exactly parallel), optionally with head motion, noise and missing samples.
 
@@ -71,7 +94,11 @@ def _make_toy(seed=0, n_frames=40, n_shapes=6, n_markers=24, head_motion=False, 
     marker_names = [f"m{i}" for i in range(n_markers)]
     target = fr.TargetRig(mesh, blendshapes=rig, landmarks=fr.Landmarks(lm_ids, names=marker_names))
     if weights is None:
-        weights = smooth_weights(n_frames, n_shapes, rng) if expression else np.zeros((n_frames, n_shapes))
+        weights = (
+            smooth_weights(n_frames, n_shapes, rng)
+            if expression
+            else np.zeros((n_frames, n_shapes))
+        )
     n_frames = len(weights)
     src_neutral = mesh.vertices[lm_ids] @ AFFINE.T + OFFSET
     src_deltas = deltas[:, lm_ids] @ AFFINE.T
@@ -84,9 +111,13 @@ def _make_toy(seed=0, n_frames=40, n_shapes=6, n_markers=24, head_motion=False, 
     motion = np.tile(np.eye(4), (n_frames, 1, 1))
     if head_motion:
         t = np.arange(n_frames)[:, None]
-        angles = 0.15 * np.sin(2 * np.pi * t / np.array([37.0, 53.0, 71.0]) + np.array([0.3, 1.0, 2.0]))
+        angles = 0.15 * np.sin(
+            2 * np.pi * t / np.array([37.0, 53.0, 71.0]) + np.array([0.3, 1.0, 2.0])
+        )
         motion[:, :3, :3] = rotation(angles)
-        motion[:, :3, 3] = np.stack([np.sin(t[:, 0] / 9.0), 0.5 * np.cos(t[:, 0] / 7.0), 0.3 * np.sin(t[:, 0] / 5.0)], 1)
+        motion[:, :3, 3] = np.stack(
+            [np.sin(t[:, 0] / 9.0), 0.5 * np.cos(t[:, 0] / 7.0), 0.3 * np.sin(t[:, 0] / 5.0)], 1
+        )
     world = np.einsum("fij,fnj->fni", motion[:, :3, :3], local) + motion[:, None, :3, 3]
     if noise:
         world = world + rng.normal(0.0, noise, world.shape)
@@ -95,8 +126,18 @@ def _make_toy(seed=0, n_frames=40, n_shapes=6, n_markers=24, head_motion=False, 
         drop[0] = False  # keep the neutral-pose reference check simple
         world = np.where(drop[..., None], np.nan, world)
     source = fr.Source(fr.MarkerSequence(world, names=marker_names, reference=src_neutral, fps=fps))
-    return SimpleNamespace(source=source, target=target, rig=rig, weights=weights, motion=motion,
-                           landmarks=lm_ids, src_neutral=src_neutral, src_deltas=src_deltas, world=world, affine=AFFINE)
+    return SimpleNamespace(
+        source=source,
+        target=target,
+        rig=rig,
+        weights=weights,
+        motion=motion,
+        landmarks=lm_ids,
+        src_neutral=src_neutral,
+        src_deltas=src_deltas,
+        world=world,
+        affine=AFFINE,
+    )
 
 
 @pytest.fixture

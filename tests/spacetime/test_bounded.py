@@ -1,20 +1,26 @@
 """Bounded movement matching (ADMM over the structured solve) and the defaults that depart
 from the paper: weight bounds, the position term that keeps held expressions, the global
 similarity scale, dense samples for mesh sources."""
+
 import numpy as np
 import pytest
+from naive import spacetime as naive
+from spacetime.test_solver import known_frames, random_problem
 
 import faceretarget as fr
 from faceretarget.plugins.spacetime import solver
-from naive import spacetime as naive
-from spacetime.test_solver import known_frames, random_problem
 
 
 def energy(system, deltas, weights, l1=0.0):
     """Half the movement-matching energy (the ADMM objective) with ``l1 * sum |w|``."""
     terms = solver.energy_terms(system, deltas, weights)
-    prior = np.einsum("fi,ij,fj->", weights, system.prior_matrix, weights) - 2 * np.sum(weights @ system.prior_vector)
-    return 0.5 * (terms["velocity"].sum() + system.beta * terms["position"].sum() + prior) + l1 * np.abs(weights).sum()
+    prior = np.einsum("fi,ij,fj->", weights, system.prior_matrix, weights) - 2 * np.sum(
+        weights @ system.prior_vector
+    )
+    return (
+        0.5 * (terms["velocity"].sum() + system.beta * terms["position"].sum() + prior)
+        + l1 * np.abs(weights).sum()
+    )
 
 
 @pytest.fixture
@@ -48,18 +54,24 @@ def test_bounded_solve_matches_bvls_on_the_assembled_rows(tight, beta, l1, missi
 def test_bounded_solve_with_shapes_of_very_different_sizes(tight, l1):
     """A jaw and an eyelid differ ~3,000x in the Gram: the scaled ADMM penalty and per-shape
     L1 weights still give the exact bounded optimum."""
-    system, deltas, energy_kw = random_problem(beta=0.7, n_frames=40, column_scale=[1.0, 30.0, 0.02, 1.0, 5.0])
+    system, deltas, energy_kw = random_problem(
+        beta=0.7, n_frames=40, column_scale=[1.0, 30.0, 0.02, 1.0, 5.0]
+    )
     known, values = known_frames(40, [0, 39], 5)
     values = np.clip(values, 0, 1)
     lo, hi = np.zeros(5), np.ones(5)
     weight = 0.05 * np.diag(system.gram) if l1 else 0.0
     got = solver.solve_movement_bounded(system, deltas, known, values, lo, hi, l1=weight)
-    want = naive.solve_rows_bounded(system.basis, deltas, known, values, lo, hi, l1=weight, **energy_kw)
+    want = naive.solve_rows_bounded(
+        system.basis, deltas, known, values, lo, hi, l1=weight, **energy_kw
+    )
     assert np.abs(got - want).max() < 1e-6
 
 
 def test_admm_scaling_halves_the_iterations_on_unequal_shapes(monkeypatch):
-    system, deltas, _ = random_problem(beta=0.7, n_frames=200, column_scale=[1.0, 30.0, 0.02, 1.0, 5.0])
+    system, deltas, _ = random_problem(
+        beta=0.7, n_frames=200, column_scale=[1.0, 30.0, 0.02, 1.0, 5.0]
+    )
     known, values = known_frames(200, [], 5)
     lo, hi = np.zeros(5), np.ones(5)
     scaled = solver.BoundedStats()
@@ -77,8 +89,12 @@ def test_default_tolerance_is_near_optimal_and_exactly_feasible():
     lo, hi = np.zeros(5), np.ones(5)
     got = solver.solve_movement_bounded(system, deltas, known, values, lo, hi)
     assert got.min() >= 0.0 and got.max() <= 1.0
-    want = naive.solve_rows_bounded(system.basis, deltas, known, values, lo, hi, **random_problem(beta=0.7, n_frames=60)[2])
-    assert energy(system, deltas, got) - energy(system, deltas, want) < 1e-3 * energy(system, deltas, want)
+    want = naive.solve_rows_bounded(
+        system.basis, deltas, known, values, lo, hi, **random_problem(beta=0.7, n_frames=60)[2]
+    )
+    assert energy(system, deltas, got) - energy(system, deltas, want) < 1e-3 * energy(
+        system, deltas, want
+    )
 
 
 def test_unconstrained_solution_inside_the_bounds_is_returned_unchanged():
@@ -86,7 +102,9 @@ def test_unconstrained_solution_inside_the_bounds_is_returned_unchanged():
     known, values = known_frames(30, [0], 5)
     free = solver.solve_movement(system, deltas, known, values)
     stats = solver.BoundedStats()
-    got = solver.solve_movement_bounded(system, deltas, known, values, free.min(0) - 1, free.max(0) + 1, stats=stats)
+    got = solver.solve_movement_bounded(
+        system, deltas, known, values, free.min(0) - 1, free.max(0) + 1, stats=stats
+    )
     assert stats.iterations == 0 and np.allclose(got, free, rtol=0, atol=1e-12 * np.abs(free).max())
 
 
@@ -111,7 +129,9 @@ def test_per_shape_l1_shrinks_every_held_shape_by_the_same_amount():
     deltas = (held @ basis.T).reshape(50, 3, 3)
     known = np.zeros(50, bool)
     sparsity = 0.05
-    got = solver.solve_movement_bounded(system, deltas, known, held, np.zeros(2), np.ones(2), l1=sparsity * np.diag(system.gram))
+    got = solver.solve_movement_bounded(
+        system, deltas, known, held, np.zeros(2), np.ones(2), l1=sparsity * np.diag(system.gram)
+    )
     assert np.abs(got - (0.5 - sparsity)).max() < 1e-3
     source, target, _ = held_smile(30)
     fitted = fr.get("spacetime", sparsity=sparsity).fit(source, target)
@@ -134,7 +154,11 @@ def held_smile(n_hold: int = 300):
         j = names.index(shape)
         w[:15, j], w[15:-15, j], w[-15:, j] = ramp, 1.0, ramp[::-1]
     perf = fr.MeshSequence(src.rig.evaluate(w), src.performance.triangles, fps=30.0)
-    return src.replace(performance=perf, head_motion=None), case.target, case.target.blendshapes.evaluate(w)
+    return (
+        src.replace(performance=perf, head_motion=None),
+        case.target,
+        case.target.blendshapes.evaluate(w),
+    )
 
 
 @pytest.mark.parametrize("name, keeps", [("spacetime", True), ("spacetime_paper", False)])
@@ -166,10 +190,14 @@ def test_default_weights_stay_in_the_rig_bounds_and_paper_leaves_them(synthetic_
     assert anim.weights.min() >= 0.0 and anim.weights.max() <= 1.0
     assert anim.provenance["diagnostics"]["fraction_outside_bounds"] == 0.0
     assert ((paper.weights < 0) | (paper.weights > 1)).mean() > 0.01
-    declared = case.target.replace(blendshapes=fr.BlendshapeRig(
-        case.target.blendshapes.neutral, case.target.blendshapes.deltas, case.target.blendshapes.names,
-        bounds=np.tile([0.0, 0.5], (case.target.blendshapes.n_shapes, 1)),
-    ))
+    declared = case.target.replace(
+        blendshapes=fr.BlendshapeRig(
+            case.target.blendshapes.neutral,
+            case.target.blendshapes.deltas,
+            case.target.blendshapes.names,
+            bounds=np.tile([0.0, 0.5], (case.target.blendshapes.n_shapes, 1)),
+        )
+    )
     capped = fr.get("spacetime").fit(case.source, declared).retarget(case.source)
     assert capped.weights.max() <= 0.5 and capped.weights.max() > 0.45  # the rig's own bounds win
 
@@ -179,8 +207,14 @@ def test_mesh_source_is_fitted_densely_and_markers_on_landmarks(synthetic_case):
     dense = fr.get("spacetime").fit(case.source, case.target).retarget(case.source)
     diag = dense.provenance["diagnostics"]
     assert diag["samples"] == "dense" and diag["n_points"] > 10 * len(case.target.landmarks)
-    markers = fr.Source(fr.MarkerSequence(case.source.marker_positions(), names=case.source.landmarks.names,
-                                          reference=case.source.marker_reference(), fps=case.source.fps))
+    markers = fr.Source(
+        fr.MarkerSequence(
+            case.source.marker_positions(),
+            names=case.source.landmarks.names,
+            reference=case.source.marker_reference(),
+            fps=case.source.fps,
+        )
+    )
     sparse = fr.get("spacetime").fit(markers, case.target).retarget(markers)
     assert sparse.provenance["diagnostics"]["samples"] == "landmarks"
     with pytest.raises(fr.errors.CapabilityError, match="mesh-sequence source"):
@@ -192,12 +226,26 @@ def test_units_of_the_source_do_not_change_the_weights(synthetic_case):
     case = synthetic_case
     perf = case.source.performance
     metres = case.source.replace(
-        performance=fr.MeshSequence(np.asarray(perf.vertices) * 0.01, perf.triangles, fps=perf.fps,
-                                    reference=np.asarray(perf.reference.vertices) * 0.01),
-        examples=None, rig=None, actor_layers=None, head_motion=None,
+        performance=fr.MeshSequence(
+            np.asarray(perf.vertices) * 0.01,
+            perf.triangles,
+            fps=perf.fps,
+            reference=np.asarray(perf.reference.vertices) * 0.01,
+        ),
+        examples=None,
+        rig=None,
+        actor_layers=None,
+        head_motion=None,
     )
     plain = case.source.replace(examples=None, rig=None, actor_layers=None, head_motion=None)
     a = fr.get("spacetime").fit(plain, case.target).retarget(plain)
     b = fr.get("spacetime").fit(metres, case.target).retarget(metres)
     assert np.abs(a.weights - b.weights).max() < 1e-4
-    assert abs(b.provenance["diagnostics"]["transfer_scale"] / a.provenance["diagnostics"]["transfer_scale"] - 0.01) < 1e-9
+    assert (
+        abs(
+            b.provenance["diagnostics"]["transfer_scale"]
+            / a.provenance["diagnostics"]["transfer_scale"]
+            - 0.01
+        )
+        < 1e-9
+    )

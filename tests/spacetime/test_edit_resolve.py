@@ -7,9 +7,9 @@ least-squares rows densely with the edited and boundary frames fixed and solves 
 true edit is a screened-Poisson response that decays faster than the linear blend of the
 edit offset that pure Poisson editing gives, so a shortcut that blends the offset is caught.
 """
+
 import numpy as np
 import pytest
-
 from naive.spacetime_paper import constrained_resolve, linear_blend, paper
 
 #: Prior weight of these tests: the prior's decay length is 3-7 frames on the toy rig, so the
@@ -25,12 +25,19 @@ def setup(make_toy, alpha=ALPHA, **toy):
     toy = make_toy(**{"n_frames": 40, "noise": 0.02, "extra_source_shapes": 2, **toy})
     # the paper's prior (Eq. 3, about the sample mean): its linear term q is non-zero, so a sign
     # error there shows (the neutral-centred prior of independent shapes has q = 0)
-    r = paper(alpha=alpha, prior_center="mean", remove_head_motion=False).fit(toy.source, toy.target)
+    r = paper(alpha=alpha, prior_center="mean", remove_head_motion=False).fit(
+        toy.source, toy.target
+    )
     assert alpha == 0 or np.abs(r.prior_.vector).max() > 0.1
     anim = r.retarget(toy.source)
     deltas = toy.world - toy.src_neutral  # no head motion: the local deltas, computed here
     np.testing.assert_allclose(anim.extras["spacetime"]["deltas"], deltas, atol=1e-12)
-    prior = dict(prior_factor=r.prior_.factor, prior_offset=r.prior_.offset, alpha=r.alpha_effective_, ridge=r.system_.ridge_matrix)
+    prior = dict(
+        prior_factor=r.prior_.factor,
+        prior_offset=r.prior_.offset,
+        alpha=r.alpha_effective_,
+        ridge=r.system_.ridge_matrix,
+    )
     return toy, r, anim, deltas, prior
 
 
@@ -71,7 +78,9 @@ def test_windowed_edit_matches_the_resolve_with_the_window_ends_fixed(make_toy):
     edited = r.edit(anim, frame=k, weights=new, window=(a, b))
     want = resolve(r, deltas, anim.weights, [0, a, b, 39], {k: new}, prior)
     assert rel(edited.weights, want) < 1e-8
-    assert np.array_equal(edited.weights[: a + 1], anim.weights[: a + 1]) and np.array_equal(edited.weights[b:], anim.weights[b:])
+    assert np.array_equal(edited.weights[: a + 1], anim.weights[: a + 1]) and np.array_equal(
+        edited.weights[b:], anim.weights[b:]
+    )
     blend = linear_blend(anim.weights, k, new, [0, a, b, 39])
     assert np.abs(blend - want).max() > 0.1 * np.abs(new - anim.weights[k]).max()
 
@@ -85,7 +94,10 @@ def test_accumulated_edits_keep_earlier_edits_as_constraints(make_toy):
     want = resolve(r, deltas, first.weights, [0, 39], {12: first_w, 30: second_w}, prior)
     assert rel(second.weights, want) < 1e-8
     # the window ends of the first edit are not constraints of the second
-    assert abs(second.weights[5] - first.weights[5]).max() > 1e-6 or abs(second.weights[20] - first.weights[20]).max() > 1e-6
+    assert (
+        abs(second.weights[5] - first.weights[5]).max() > 1e-6
+        or abs(second.weights[20] - first.weights[20]).max() > 1e-6
+    )
 
 
 def test_edit_with_missing_markers_matches_the_resolve(make_toy):

@@ -1,4 +1,5 @@
 """Bad input gives a typed error naming the cause, or a documented regularized result."""
+
 import numpy as np
 import pytest
 
@@ -78,18 +79,37 @@ def test_bad_sequence_parameters_raise_at_retarget(make_toy, params, error, word
 def test_missing_correspondences(make_toy):
     toy = make_toy(n_frames=5)
     perf = toy.source.performance
-    renamed = fr.Source(fr.MarkerSequence(perf.positions, names=[f"x{i}" for i in range(24)], reference=perf.reference))
+    renamed = fr.Source(
+        fr.MarkerSequence(
+            perf.positions, names=[f"x{i}" for i in range(24)], reference=perf.reference
+        )
+    )
     # no names in common but equal counts: paired by order (documented), works
     SpacetimeRetargeter().fit(renamed, toy.target)
     partly = [f"x{i}" for i in range(12)] + list(perf.names[12:])
     with pytest.raises(TopologyMismatchError, match="missing correspondences"):
-        SpacetimeRetargeter().fit(fr.Source(fr.MarkerSequence(perf.positions, names=partly, reference=perf.reference)), toy.target)
-    fewer = fr.Source(fr.MarkerSequence(perf.positions[:, :20], names=[f"x{i}" for i in range(20)], reference=perf.reference[:20]))
+        SpacetimeRetargeter().fit(
+            fr.Source(fr.MarkerSequence(perf.positions, names=partly, reference=perf.reference)),
+            toy.target,
+        )
+    fewer = fr.Source(
+        fr.MarkerSequence(
+            perf.positions[:, :20],
+            names=[f"x{i}" for i in range(20)],
+            reference=perf.reference[:20],
+        )
+    )
     with pytest.raises(TopologyMismatchError, match="24 landmarks"):
         SpacetimeRetargeter().fit(fewer, toy.target)
     # a source with extra markers is fine when names pair every landmark
     extra = np.concatenate([perf.positions, perf.positions[:, :2] + 1.0], axis=1)
-    more = fr.Source(fr.MarkerSequence(extra, names=list(perf.names) + ["e0", "e1"], reference=np.concatenate([perf.reference, perf.reference[:2] + 1.0])))
+    more = fr.Source(
+        fr.MarkerSequence(
+            extra,
+            names=list(perf.names) + ["e0", "e1"],
+            reference=np.concatenate([perf.reference, perf.reference[:2] + 1.0]),
+        )
+    )
     anim = SpacetimeRetargeter().fit(more, toy.target).retarget(more)
     assert anim.weights.shape == (5, 6)
 
@@ -105,7 +125,11 @@ def test_retarget_with_another_marker_set(make_toy):
 
 def test_marker_dimension_and_landmarks_at_retarget(make_toy, synthetic_case):
     toy = make_toy(n_frames=5)
-    flat = fr.Source(fr.MarkerSequence(toy.source.performance.positions[..., :2], names=toy.source.performance.names))
+    flat = fr.Source(
+        fr.MarkerSequence(
+            toy.source.performance.positions[..., :2], names=toy.source.performance.names
+        )
+    )
     with pytest.raises(ShapeError, match="3D"):
         SpacetimeRetargeter().fit(flat, toy.target)
     r = SpacetimeRetargeter().fit(synthetic_case.source, synthetic_case.target)
@@ -119,7 +143,9 @@ def test_degenerate_geometry(make_toy):
     perf = toy.source.performance
     line = np.zeros((24, 3))
     line[:, 0] = np.arange(24.0)
-    flat = fr.Source(fr.MarkerSequence(np.repeat(line[None], 5, axis=0), names=perf.names, reference=line))
+    flat = fr.Source(
+        fr.MarkerSequence(np.repeat(line[None], 5, axis=0), names=perf.names, reference=line)
+    )
     with pytest.raises(DegenerateGeometryError, match="collinear"):
         SpacetimeRetargeter().fit(flat, toy.target)
     still = fr.BlendshapeRig(toy.rig.neutral, np.zeros_like(toy.rig.deltas), toy.rig.names)
@@ -132,7 +158,11 @@ def test_too_few_markers_for_head_motion(make_toy):
     toy = make_toy(n_frames=6)
     x = np.array(toy.source.performance.positions)
     x[3, 2:] = np.nan  # only 2 markers left at frame 3
-    source = fr.Source(fr.MarkerSequence(x, names=toy.source.performance.names, reference=toy.source.performance.reference))
+    source = fr.Source(
+        fr.MarkerSequence(
+            x, names=toy.source.performance.names, reference=toy.source.performance.reference
+        )
+    )
     r = fitted(toy)
     with pytest.raises(DegenerateGeometryError, match="frame 3"):
         r.retarget(source)
@@ -159,15 +189,21 @@ def test_duplicate_blendshapes_share_weight(make_toy):
     """Documented regularization: duplicate shapes get equal weights, the result is unchanged."""
     toy = make_toy(n_frames=20, head_motion=True)
     rig = toy.rig
-    dup = fr.BlendshapeRig(rig.neutral, np.concatenate([rig.deltas, rig.deltas[:1]]), list(rig.names) + ["shape0_copy"])
+    dup = fr.BlendshapeRig(
+        rig.neutral, np.concatenate([rig.deltas, rig.deltas[:1]]), list(rig.names) + ["shape0_copy"]
+    )
     target = fr.TargetRig(rig.neutral, blendshapes=dup, landmarks=toy.target.landmarks)
     anim = SpacetimeRetargeter(alpha=0.0).fit(toy.source, target).retarget(toy.source)
     np.testing.assert_allclose(anim.weights[:, 0], anim.weights[:, -1], atol=1e-7)
-    np.testing.assert_allclose(anim.weights[:, 0] + anim.weights[:, -1], toy.weights[:, 0], atol=1e-6)
+    np.testing.assert_allclose(
+        anim.weights[:, 0] + anim.weights[:, -1], toy.weights[:, 0], atol=1e-6
+    )
     np.testing.assert_allclose(anim.weights[:, 1:-1], toy.weights[:, 1:], atol=1e-6)
     # Range PF and the prior handle the rank-deficient rig too
     for mode in ("rangepf", "priorpf", "movement"):
-        assert np.isfinite(SpacetimeRetargeter(mode=mode).fit(toy.source, target).retarget(toy.source).weights).all()
+        assert np.isfinite(
+            SpacetimeRetargeter(mode=mode).fit(toy.source, target).retarget(toy.source).weights
+        ).all()
 
 
 def test_shape_invisible_when_its_markers_are_missing(make_toy):
@@ -176,22 +212,38 @@ def test_shape_invisible_when_its_markers_are_missing(make_toy):
     support = np.array([mesh_x < -2.0] + [np.ones_like(mesh_x)] * 5, dtype=float)
     toy = make_toy(support=support, n_frames=12)
     x = np.array(toy.source.performance.positions)
-    left = toy.source.performance.reference[:, 0] < toy.source.performance.reference[:, 0].mean() - 1.5
+    left = (
+        toy.source.performance.reference[:, 0] < toy.source.performance.reference[:, 0].mean() - 1.5
+    )
     x[5, left] = np.nan
-    source = fr.Source(fr.MarkerSequence(x, names=toy.source.performance.names, reference=toy.source.performance.reference))
+    source = fr.Source(
+        fr.MarkerSequence(
+            x, names=toy.source.performance.names, reference=toy.source.performance.reference
+        )
+    )
     for mode in ("movement", "noconst", "rangepf"):
-        anim = SpacetimeRetargeter(mode=mode, alpha=0.0, remove_head_motion=False).fit(source, toy.target).retarget(source)
+        anim = (
+            SpacetimeRetargeter(mode=mode, alpha=0.0, remove_head_motion=False)
+            .fit(source, toy.target)
+            .retarget(source)
+        )
         assert np.isfinite(anim.weights).all()
 
 
 def test_one_frame_and_single_shape(make_toy):
     toy = make_toy(n_frames=1, head_motion=True)
     anim = SpacetimeRetargeter().fit(toy.source, toy.target).retarget(toy.source)
-    per_frame = fr.get("spacetime_priorpf", alpha=0.01).fit(toy.source, toy.target).retarget(toy.source)
+    per_frame = (
+        fr.get("spacetime_priorpf", alpha=0.01).fit(toy.source, toy.target).retarget(toy.source)
+    )
     np.testing.assert_allclose(anim.weights, per_frame.weights, atol=1e-12)
     single = make_toy(n_shapes=1, n_frames=15)
     for center in ("neutral", "mean"):  # mean-centred PCA of one sample is empty: no prior
-        got = SpacetimeRetargeter(alpha=0.0, prior_center=center).fit(single.source, single.target).retarget(single.source)
+        got = (
+            SpacetimeRetargeter(alpha=0.0, prior_center=center)
+            .fit(single.source, single.target)
+            .retarget(single.source)
+        )
         assert np.abs(got.weights - single.weights).max() < 1e-6
 
 

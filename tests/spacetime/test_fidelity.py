@@ -5,6 +5,7 @@ Measured when written (300 frames, RMS % of face height): bounded per-frame [0, 
 unconstrained per-frame 0.266, default spacetime on markers 0.175 (0.243 without examples),
 on the dense mesh 0.161. Bounds below leave room for noise, not for a regression to the
 baselines."""
+
 import numpy as np
 import pytest
 
@@ -13,7 +14,9 @@ import faceretarget as fr
 
 @pytest.fixture(scope="module")
 def cases():
-    return {kind: fr.cases.cross_rig(n_frames=300, source_kind=kind) for kind in ("markers", "mesh")}
+    return {
+        kind: fr.cases.cross_rig(n_frames=300, source_kind=kind) for kind in ("markers", "mesh")
+    }
 
 
 def errors(case, name, **params):
@@ -21,7 +24,10 @@ def errors(case, name, **params):
     got, want = np.asarray(anim.vertices), np.asarray(case.truth.vertices)
     height = np.ptp(want[0][:, 1])
     rms = np.sqrt(np.mean(np.sum((got - want) ** 2, axis=-1))) / height
-    vel = np.sqrt(np.mean(np.sum((np.diff(got, axis=0) - np.diff(want, axis=0)) ** 2, axis=-1))) / height
+    vel = (
+        np.sqrt(np.mean(np.sum((np.diff(got, axis=0) - np.diff(want, axis=0)) ** 2, axis=-1)))
+        / height
+    )
     return rms, vel, anim
 
 
@@ -54,7 +60,11 @@ def test_each_ingredient_lowers_the_error(cases, change):
 
 
 def test_no_head_motion_is_invented(cases):
-    anim = fr.get("spacetime").fit(cases["markers"].source, cases["markers"].target).retarget(cases["markers"].source)
+    anim = (
+        fr.get("spacetime")
+        .fit(cases["markers"].source, cases["markers"].target)
+        .retarget(cases["markers"].source)
+    )
     rot = np.asarray(anim.head_motion)[:, :3, :3]
     angle = np.degrees(np.arccos(np.clip((np.trace(rot, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     assert angle.max() < 0.05

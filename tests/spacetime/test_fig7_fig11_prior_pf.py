@@ -22,14 +22,15 @@ Both checks must fail for movement matching replaced by per-frame solves (tested
 monkeypatching the solver). The order of the velocity errors *at* equal alpha is not a claim
 of the paper, and in this setting it is the other way round (strict xfail, with the numbers).
 """
+
 import numpy as np
 import pytest
+from naive import spacetime as naive
+from naive.spacetime_paper import paper
 
 import faceretarget as fr
 from faceretarget.plugins.spacetime import retargeter as retargeter_module
 from faceretarget.plugins.spacetime import solver
-from naive import spacetime as naive
-from naive.spacetime_paper import paper
 
 #: The paper's choices beyond naive.spacetime_paper.PAPER (Eq. 3 as printed, sec. 7).
 SETTING = dict(prior_center="mean", lower=-0.5, upper=1.5)
@@ -42,11 +43,16 @@ def optical_markers(case, seed=0):
     ref = np.asarray(case.source.marker_reference(), dtype=np.float64)
     sigma = NOISE * np.sqrt(np.mean(np.sum((ref - ref.mean(axis=0)) ** 2, axis=1)))
     x = x + sigma * np.random.default_rng(seed).normal(size=x.shape)
-    motion = np.tile(np.eye(4), (len(x), 1, 1))  # sec. 3.1: Procrustes of each frame against the neutral
+    motion = np.tile(
+        np.eye(4), (len(x), 1, 1)
+    )  # sec. 3.1: Procrustes of each frame against the neutral
     for f, frame in enumerate(x):
         motion[f, :3, :3] = rot = naive.procrustes_rotation(ref, frame)
         motion[f, :3, 3] = frame.mean(axis=0) - rot @ ref.mean(axis=0)
-    return fr.Source(fr.MarkerSequence(x, names=case.source.landmarks.names, reference=ref, fps=case.source.fps), head_motion=motion)
+    return fr.Source(
+        fr.MarkerSequence(x, names=case.source.landmarks.names, reference=ref, fps=case.source.fps),
+        head_motion=motion,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -59,8 +65,13 @@ def run(name, alpha, source, target):
     r = paper(name, alpha=alpha, **SETTING).fit(source, target)
     anim = r.retarget(source)
     diag = anim.provenance["diagnostics"]
-    return {"velocity": diag["velocity_error"], "prior": float(r.prior_.energy(anim.weights).sum()), "weights": anim.weights,
-            "in_range": diag["fraction_in_range"], "names": r.rig_.names}
+    return {
+        "velocity": diag["velocity_error"],
+        "prior": float(r.prior_.energy(anim.weights).sum()),
+        "weights": anim.weights,
+        "in_range": diag["fraction_in_range"],
+        "names": r.rig_.names,
+    }
 
 
 def eyes_closed(result) -> float:
@@ -74,8 +85,14 @@ def check_fig7(source, target):
     """Fig. 7: at equal alpha the velocity-domain prior restricts more than the per-frame prior."""
     pf, mm = run("spacetime_priorpf", 0.5, source, target), run("spacetime", 0.5, source, target)
     small = run("spacetime", 0.01, source, target)
-    assert mm["prior"] < 0.5 * pf["prior"], (mm["prior"], pf["prior"])  # (e) restricts more than (d)
-    assert eyes_closed(mm) < 0.8 * eyes_closed(pf), (eyes_closed(mm), eyes_closed(pf))  # (e): "the eyes are not closed"
+    assert mm["prior"] < 0.5 * pf["prior"], (
+        mm["prior"],
+        pf["prior"],
+    )  # (e) restricts more than (d)
+    assert eyes_closed(mm) < 0.8 * eyes_closed(pf), (
+        eyes_closed(mm),
+        eyes_closed(pf),
+    )  # (e): "the eyes are not closed"
     assert eyes_closed(mm) < 0.6
     assert eyes_closed(small) > 0.85, eyes_closed(small)  # (f): alpha = 0.01 reflects the source
 
@@ -86,7 +103,10 @@ def check_fig11(source, target, alpha=0.01):
     base = run("spacetime_noconst", alpha, source, target)["velocity"]
     mm = run("spacetime", alpha, source, target)
     pf = run("spacetime_priorpf", alpha, source, target)
-    assert mm["prior"] < pf["prior"], (mm["prior"], pf["prior"])  # the same alpha constrains more in the velocity domain
+    assert mm["prior"] < pf["prior"], (
+        mm["prior"],
+        pf["prior"],
+    )  # the same alpha constrains more in the velocity domain
     pf_alpha = alpha
     while pf["prior"] > mm["prior"] and pf_alpha < 1e3:
         pf_alpha *= np.sqrt(10.0)
@@ -112,12 +132,15 @@ def test_fig11_movement_matching_beats_prior_pf_from_equal_alpha(setting):
     assert pf_alpha > 0.01  # Prior PF had to be made stronger to constrain as much
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "measured: at the same alpha = 0.01 in the paper's setting, movement matching adds more velocity error "
-    "over No Const than Prior PF (0.18 vs 0.11 on this case), because the same alpha constrains more in "
-    "the velocity domain (prior energy 3.9e3 vs 1.5e4; Prior PF reaches 3.9e3 near alpha = 0.3 and then adds 1.5). The paper compares at alphas chosen for the same "
-    "weight range (0.01 vs 0.5), not at equal alpha; see test_fig11_movement_matching_beats_prior_pf_from_equal_alpha."
-))
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "measured: at the same alpha = 0.01 in the paper's setting, movement matching adds more velocity error "
+        "over No Const than Prior PF (0.18 vs 0.11 on this case), because the same alpha constrains more in "
+        "the velocity domain (prior energy 3.9e3 vs 1.5e4; Prior PF reaches 3.9e3 near alpha = 0.3 and then adds 1.5). The paper compares at alphas chosen for the same "
+        "weight range (0.01 vs 0.5), not at equal alpha; see test_fig11_movement_matching_beats_prior_pf_from_equal_alpha."
+    ),
+)
 def test_equal_alpha_velocity_error_order(setting):
     source, target = setting
     base = run("spacetime_noconst", 0.01, source, target)["velocity"]
@@ -138,6 +161,8 @@ def test_the_checks_fail_when_movement_matching_is_per_frame(setting, monkeypatc
     monkeypatch.setattr(retargeter_module, "solve_movement", per_frame_instead_of_movement)
     mutant = run("spacetime", 0.5, source, target)
     same = run("spacetime_priorpf", 0.5, source, target)
-    np.testing.assert_allclose(mutant["weights"], same["weights"], atol=1e-9)  # the mutant is in place
+    np.testing.assert_allclose(
+        mutant["weights"], same["weights"], atol=1e-9
+    )  # the mutant is in place
     with pytest.raises(AssertionError):
         check(source, target)

@@ -5,6 +5,7 @@ Acceptance: without head motion the result is below 0.05 degrees and 0.01% of th
 height (here: exactly the identity); measured on real rig pairs, the previous Procrustes +
 3 Gauss-Newton steps invented 1.4-2.2 degrees.
 """
+
 import numpy as np
 import pytest
 
@@ -19,9 +20,19 @@ MAX_TRANSLATION = 1e-4  # of the source's face height
 def degrees(motion, truth=None):
     """Rotation angle per frame (of ``motion`` relative to ``truth``), accurate near 0."""
     m = np.asarray(motion, dtype=float)
-    rot = m[:, :3, :3] if truth is None else np.swapaxes(np.asarray(truth)[:, :3, :3], 1, 2) @ m[:, :3, :3]
+    rot = (
+        m[:, :3, :3]
+        if truth is None
+        else np.swapaxes(np.asarray(truth)[:, :3, :3], 1, 2) @ m[:, :3, :3]
+    )
     cos = (np.trace(rot, axis1=1, axis2=2) - 1) / 2
-    sin = 0.5 * np.linalg.norm(np.stack([rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0], rot[:, 1, 0] - rot[:, 0, 1]], 1), axis=1)
+    sin = 0.5 * np.linalg.norm(
+        np.stack(
+            [rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0], rot[:, 1, 0] - rot[:, 0, 1]],
+            1,
+        ),
+        axis=1,
+    )
     return np.degrees(np.arctan2(sin, cos))
 
 
@@ -33,7 +44,9 @@ def held(case, prefixes, n_frames=90, ramp=10):
     assert chosen, prefixes
     w = np.zeros((n_frames, rig.n_shapes))
     w[:, chosen] = np.clip(np.arange(n_frames) / ramp, 0.0, 1.0)[:, None]
-    seq = fr.MeshSequence(rig.evaluate(w), rig.neutral.triangles, fps=case.source.fps, reference=rig.neutral)
+    seq = fr.MeshSequence(
+        rig.evaluate(w), rig.neutral.triangles, fps=case.source.fps, reference=rig.neutral
+    )
     return fr.Source(seq, landmarks=case.source.landmarks)
 
 
@@ -77,7 +90,14 @@ def test_no_head_motion_invented_by_a_held_expression(which, expression, still_c
 
 def marker_source(case, x):
     """The case's markers ``x (F, N, 3)`` (NaN = missing) as a marker source."""
-    return fr.Source(fr.MarkerSequence(x, names=case.source.landmarks.names, reference=case.source.marker_reference(), fps=case.source.fps))
+    return fr.Source(
+        fr.MarkerSequence(
+            x,
+            names=case.source.landmarks.names,
+            reference=case.source.marker_reference(),
+            fps=case.source.fps,
+        )
+    )
 
 
 def test_no_head_motion_invented_with_missing_markers(still_cases):
@@ -94,9 +114,15 @@ def test_rigidity_weights_halve_the_leak(still_cases, fitted):
     r = fitted["ict_transferred"]
     x, ref = r._source_markers(still_cases["ict_transferred"].source)
     weighted = degrees(estimate_head_motion(ref, x, basis=r.marker_basis_, significance=None)).max()
-    uniform = degrees(estimate_head_motion(
-        ref, x, basis=r.marker_basis_, significance=None, marker_weights=1 / rigidity_weights(ref, r.marker_basis_)
-    )).max()
+    uniform = degrees(
+        estimate_head_motion(
+            ref,
+            x,
+            basis=r.marker_basis_,
+            significance=None,
+            marker_weights=1 / rigidity_weights(ref, r.marker_basis_),
+        )
+    ).max()
     assert weighted < 0.6 * uniform
 
 
@@ -110,7 +136,10 @@ def test_exact_rig_recovers_head_motion_exactly(make_toy):
     np.testing.assert_allclose(anim.head_motion[:, :3, 3], toy.motion[:, :3, 3], atol=1e-8)
 
 
-@pytest.mark.parametrize("which, bound", [("synthetic", 0.2), ("ict", 0.3), ("ict_transferred", 0.75), ("cross_rig", 0.5)])
+@pytest.mark.parametrize(
+    "which, bound",
+    [("synthetic", 0.2), ("ict", 0.3), ("ict_transferred", 0.75), ("cross_rig", 0.5)],
+)
 def test_real_head_motion_recovered(which, bound):
     """10 degrees of head motion: the rotation error stays within what the rig mismatch
     allows (measured at 300 frames: synthetic 0.09, ICT 0.15, transferred ICT 0.47,
@@ -118,7 +147,9 @@ def test_real_head_motion_recovered(which, bound):
     make = {
         "synthetic": lambda: fr.cases.synthetic(head_motion=True, n_frames=90, resolution=800),
         "ict": lambda: fr.cases.ict(head_motion=True, n_frames=90),
-        "ict_transferred": lambda: fr.cases.ict(head_motion=True, n_frames=90, expressions="transferred"),
+        "ict_transferred": lambda: fr.cases.ict(
+            head_motion=True, n_frames=90, expressions="transferred"
+        ),
         "cross_rig": lambda: fr.cases.cross_rig(n_frames=240, head_motion=True),
     }[which]
     case = make()
@@ -162,7 +193,11 @@ def test_refinement_is_opt_in_and_only_refines_detected_motion(still_cases, fitt
     r = SpacetimeRetargeter(head_motion_refinement=2).fit(case.source, case.target)
     assert_no_head_motion(r.retarget(case.source), case)  # nothing detected: nothing to refine
     plain = SpacetimeRetargeter().fit(ict_case.source, ict_case.target).retarget(ict_case.source)
-    refined = SpacetimeRetargeter(head_motion_refinement=2).fit(ict_case.source, ict_case.target).retarget(ict_case.source)
+    refined = (
+        SpacetimeRetargeter(head_motion_refinement=2)
+        .fit(ict_case.source, ict_case.target)
+        .retarget(ict_case.source)
+    )
     assert refined.provenance["diagnostics"]["head_motion"] == "estimated"
     assert degrees(refined.head_motion, ict_case.meta["head_motion"]).max() < 0.5
     assert not np.allclose(refined.head_motion, plain.head_motion)  # the steps ran

@@ -15,12 +15,13 @@
   (``naive.spacetime_paper``), with an independently computed basis, alpha, ridge and boundary values.
 Paper-exact settings (``naive.spacetime_paper.PAPER``).
 """
+
 import numpy as np
 import pytest
+from naive.spacetime_paper import constrained_resolve, mean_centred_prior, paper, prior_rows
 
 import faceretarget as fr
 from faceretarget import config
-from naive.spacetime_paper import constrained_resolve, mean_centred_prior, paper, prior_rows
 
 ALPHA = 1.0
 
@@ -31,7 +32,9 @@ def dependent_target(toy, seed=0):
     rng = np.random.default_rng(seed)
     mesh = toy.rig.neutral
     deltas = np.array(toy.rig.deltas)
-    extra = np.exp(-np.sum((mesh.vertices - mesh.vertices[rng.integers(mesh.n_vertices)]) ** 2, axis=1) / 8.0)[:, None] * rng.normal(0, 0.5, 3)
+    extra = np.exp(
+        -np.sum((mesh.vertices - mesh.vertices[rng.integers(mesh.n_vertices)]) ** 2, axis=1) / 8.0
+    )[:, None] * rng.normal(0, 0.5, 3)
     extra[toy.landmarks] = 0.0
     deltas[2] = deltas[0] + deltas[1] + extra
     rig = fr.BlendshapeRig(mesh, deltas, toy.rig.names)
@@ -47,7 +50,9 @@ def exact_basis(rig, toy):
 def effective_alpha(toy, alpha=ALPHA):
     ref = toy.src_neutral
     size = np.sqrt(np.mean(np.sum((ref - ref.mean(axis=0)) ** 2, axis=1)))
-    return alpha * (size / 60.0) ** 2  # face-size normalisation at 30 fps (per frame and movement alike)
+    return (
+        alpha * (size / 60.0) ** 2
+    )  # face-size normalisation at 30 fps (per frame and movement alike)
 
 
 def null_ridge(basis):
@@ -67,13 +72,29 @@ def reference(toy, rig, deltas, alpha):
     q_mat, q_vec, const = mean_centred_prior(neutral[None] + basis.T, basis, neutral)
     ridge = null_ridge(basis)
     s = deltas.reshape(len(deltas), -1)
-    per_frame = np.linalg.solve(basis.T @ basis + alpha * q_mat + ridge, (s[[0, -1]] @ basis + alpha * q_vec).T).T
+    per_frame = np.linalg.solve(
+        basis.T @ basis + alpha * q_mat + ridge, (s[[0, -1]] @ basis + alpha * q_vec).T
+    ).T
     known = np.zeros(len(deltas), bool)
     known[[0, -1]] = True
     values = np.zeros((len(deltas), rig.n_shapes))
     values[[0, -1]] = per_frame
     a_mat, a_vec = prior_rows(q_mat, q_vec, const)
-    return constrained_resolve(basis, deltas, known, values, prior_factor=a_mat, prior_offset=a_vec, alpha=alpha, ridge=ridge), basis, q_mat, q_vec
+    return (
+        constrained_resolve(
+            basis,
+            deltas,
+            known,
+            values,
+            prior_factor=a_mat,
+            prior_offset=a_vec,
+            alpha=alpha,
+            ridge=ridge,
+        ),
+        basis,
+        q_mat,
+        q_vec,
+    )
 
 
 def retarget(source, target, center, alpha=ALPHA):
@@ -109,7 +130,9 @@ def test_source_at_rest_is_pulled_toward_the_mean_with_dependent_shapes(at_rest)
     w = anim.weights
     assert np.abs(w).max() > 1e-3  # it moves
     toward = basis.T.mean(axis=0)  # (t_mean - n) at the markers: the mean of the shapes' deltas
-    pull = (w @ basis.T) @ toward / (toward @ toward)  # share of the way to the mean face, per frame
+    pull = (
+        (w @ basis.T) @ toward / (toward @ toward)
+    )  # share of the way to the mean face, per frame
     assert np.all(pull > 0.0), pull
     # the boundary frames balance the data (stay at rest) against the prior; inside, only the
     # velocity term holds the face back, so the pull grows toward the middle of the shot
@@ -128,7 +151,9 @@ def test_mean_centred_retarget_matches_the_assembled_solve(make_toy):
     # the same expressive performance, seen through the dependent rig's markers
     source = toy.source
     r, anim = retarget(source, target, "mean")
-    want, basis, q_mat, q_vec = reference(toy, rig, toy.world - toy.src_neutral, effective_alpha(toy))
+    want, basis, q_mat, q_vec = reference(
+        toy, rig, toy.world - toy.src_neutral, effective_alpha(toy)
+    )
     np.testing.assert_allclose(r.prior_.matrix, q_mat, atol=1e-8 * np.abs(q_mat).max())
     np.testing.assert_allclose(r.prior_.vector, q_vec, atol=1e-8 * np.abs(q_mat).max())
     assert_same_solution(anim.weights, want, basis)
@@ -147,8 +172,12 @@ def test_independent_shapes_rest_pose_energy_is_as_predicted(make_toy):
     np.testing.assert_allclose(neutral.prior_.matrix, k * np.eye(k), atol=1e-8 * k)
     assert np.abs(still.weights).max() < 1e-10
     mean, moved = retarget(rest.source, rest.target, "mean")
-    want, basis, q_mat, q_vec = reference(rest, rest.rig, rest.world - rest.src_neutral, effective_alpha(rest))
-    _, _, const = mean_centred_prior(rest.src_neutral.ravel()[None] + basis.T, basis, rest.src_neutral.ravel())
+    want, basis, q_mat, q_vec = reference(
+        rest, rest.rig, rest.world - rest.src_neutral, effective_alpha(rest)
+    )
+    _, _, const = mean_centred_prior(
+        rest.src_neutral.ravel()[None] + basis.T, basis, rest.src_neutral.ravel()
+    )
     assert mean.prior_.energy(np.zeros((1, k)))[0] == pytest.approx(const, rel=1e-8)
     assert const > 0.1  # a generic rig: the mean delta is not orthogonal to the centred span
     assert np.abs(moved.weights - want).max() < 1e-8 * np.abs(want).max()

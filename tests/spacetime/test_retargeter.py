@@ -1,6 +1,8 @@
 """Behaviour of the spacetime retargeter (Seol et al. 2012) on toy, synthetic and ICT parallel rigs."""
+
 import numpy as np
 import pytest
+from naive import spacetime as naive
 
 import faceretarget as fr
 from faceretarget.plugins.spacetime.retargeter import PAPER
@@ -11,8 +13,6 @@ def SpacetimeRetargeter(**params):
     """The paper's method as published (these tests check its equations); the defaults'
     departures from the paper are tested in test_bounded.py and test_fidelity.py."""
     return DefaultSpacetime(**{**PAPER, **params})
-from naive import spacetime as naive
-
 
 
 def rms(a, b):
@@ -22,7 +22,12 @@ def rms(a, b):
 def noisy_markers(case, sigma, seed=1, head_motion=True):
     x = case.source.marker_positions()
     x = x + sigma * np.random.default_rng(seed).normal(size=x.shape)
-    markers = fr.MarkerSequence(x, names=case.source.landmarks.names, reference=case.source.marker_reference(), fps=case.source.fps)
+    markers = fr.MarkerSequence(
+        x,
+        names=case.source.landmarks.names,
+        reference=case.source.marker_reference(),
+        fps=case.source.fps,
+    )
     return fr.Source(markers, head_motion=case.meta["head_motion"] if head_motion else None)
 
 
@@ -41,8 +46,12 @@ def test_movement_equals_per_frame_without_constraints_toy(make_toy):
 def test_movement_equals_per_frame_without_constraints_cases(which, request):
     case = request.getfixturevalue(which)
     move = SpacetimeRetargeter(alpha=0.0).fit(case.source, case.target).retarget(case.source)
-    per_frame = SpacetimeRetargeter(mode="noconst").fit(case.source, case.target).retarget(case.source)
-    assert np.abs(move.weights - per_frame.weights).max() < 1e-6 * max(np.abs(per_frame.weights).max(), 1.0)
+    per_frame = (
+        SpacetimeRetargeter(mode="noconst").fit(case.source, case.target).retarget(case.source)
+    )
+    assert np.abs(move.weights - per_frame.weights).max() < 1e-6 * max(
+        np.abs(per_frame.weights).max(), 1.0
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -55,7 +64,9 @@ METHODS = ("spacetime_noconst", "spacetime_rangepf", "spacetime_priorpf", "space
 
 def compare(source, target):
     """Velocity error added over No Const, and fraction of weights in range, per method."""
-    diag = {k: fr.get(k).fit(source, target).retarget(source).provenance["diagnostics"] for k in METHODS}
+    diag = {
+        k: fr.get(k).fit(source, target).retarget(source).provenance["diagnostics"] for k in METHODS
+    }
     base = diag["spacetime_noconst"]["velocity_error"]
     added = {k: d["velocity_error"] - base for k, d in diag.items()}
     inside = {k: d["fraction_in_range"] for k, d in diag.items()}
@@ -85,7 +96,11 @@ def test_fig11_velocity_prior_beats_per_frame_prior_on_parallel_rigs(which):
     error than the per-frame prior. (Range PF rarely binds on these well-matched rigs and then
     adds less than either; the paper's ordering against it needs weights that leave the range
     often, as above.)"""
-    case = fr.cases.ict(n_frames=60) if which == "ict" else fr.cases.synthetic(resolution=600, n_frames=60)
+    case = (
+        fr.cases.ict(n_frames=60)
+        if which == "ict"
+        else fr.cases.synthetic(resolution=600, n_frames=60)
+    )
     added, _ = compare(noisy_markers(case, 0.03), case.target)
     assert added["spacetime_paper"] < 0.5 * added["spacetime_priorpf"], added
 
@@ -111,7 +126,10 @@ def test_prior_is_pareto_optimal_against_prior_pf(stylized_noisy):
         if pf.prior_.energy(a_pf.weights).sum() <= energy_move:
             break
     assert pf.prior_.energy(a_pf.weights).sum() <= energy_move
-    assert a_move.provenance["diagnostics"]["velocity_error"] < a_pf.provenance["diagnostics"]["velocity_error"]
+    assert (
+        a_move.provenance["diagnostics"]["velocity_error"]
+        < a_pf.provenance["diagnostics"]["velocity_error"]
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -120,9 +138,16 @@ def test_prior_is_pareto_optimal_against_prior_pf(stylized_noisy):
 @pytest.mark.parametrize("mode", ["movement", "noconst", "rangepf", "priorpf"])
 def test_exact_parallel_toy_rig_recovers_weights(make_toy, mode):
     toy = make_toy(head_motion=True)
-    anim = fr.get(f"spacetime_{mode}" if mode != "movement" else "spacetime_paper", alpha=0.0).fit(toy.source, toy.target).retarget(toy.source)
+    anim = (
+        fr.get(f"spacetime_{mode}" if mode != "movement" else "spacetime_paper", alpha=0.0)
+        .fit(toy.source, toy.target)
+        .retarget(toy.source)
+    )
     assert np.abs(anim.weights - toy.weights).max() < 1e-6
-    truth = np.einsum("fij,fvj->fvi", toy.motion[:, :3, :3], toy.rig.evaluate(toy.weights)) + toy.motion[:, None, :3, 3]
+    truth = (
+        np.einsum("fij,fvj->fvi", toy.motion[:, :3, :3], toy.rig.evaluate(toy.weights))
+        + toy.motion[:, None, :3, 3]
+    )
     assert rms(anim.vertices, truth) < 1e-6
 
 
@@ -133,7 +158,9 @@ def test_default_prior_bias_is_small_on_exact_rig(make_toy):
     assert rms(anim.local_vertices, truth) / toy.rig.neutral.height < 2e-3
 
 
-@pytest.mark.parametrize("which, bound, weight_bound", [("synthetic_case", 0.005, 0.15), ("ict_case", 0.004, 0.1)])
+@pytest.mark.parametrize(
+    "which, bound, weight_bound", [("synthetic_case", 0.005, 0.15), ("ict_case", 0.004, 0.1)]
+)
 def test_cases_recover_ground_truth(which, bound, weight_bound, request):
     """Stated tolerances (default parameters, head motion estimated): RMS vertex error below
     0.5% (synthetic; measured 0.13%) / 0.4% (ICT; measured 0.24%) of the face height; mean
@@ -159,7 +186,11 @@ def test_head_motion_estimate_beats_plain_procrustes(ict_case):
 
     r = SpacetimeRetargeter().fit(ict_case.source, ict_case.target)
     markers, reference = r._source_markers(ict_case.source)
-    assert rotation_error(r.retarget(ict_case.source).head_motion) < 0.5 < rotation_error(calibration.head_motion(reference, markers))
+    assert (
+        rotation_error(r.retarget(ict_case.source).head_motion)
+        < 0.5
+        < rotation_error(calibration.head_motion(reference, markers))
+    )
 
 
 # ---------------------------------------------------------------------------------------
@@ -186,7 +217,11 @@ def test_given_head_motion_is_used_and_reapplied(make_toy):
 
 def test_no_head_motion_removal_keeps_world_coordinates(make_toy):
     toy = make_toy(head_motion=False)
-    anim = SpacetimeRetargeter(alpha=0.0, remove_head_motion=False).fit(toy.source, toy.target).retarget(toy.source)
+    anim = (
+        SpacetimeRetargeter(alpha=0.0, remove_head_motion=False)
+        .fit(toy.source, toy.target)
+        .retarget(toy.source)
+    )
     assert anim.head_motion is None
     assert np.abs(anim.weights - toy.weights).max() < 1e-7
 
@@ -205,22 +240,37 @@ def test_missing_markers_drop_rows(make_toy):
 
 def test_missing_markers_match_the_assembled_reference(make_toy):
     toy = make_toy(noise=0.05, missing=0.2, extra_source_shapes=2)
-    r = SpacetimeRetargeter(alpha=0.05, beta=0.1, remove_head_motion=False).fit(toy.source, toy.target)
+    r = SpacetimeRetargeter(alpha=0.05, beta=0.1, remove_head_motion=False).fit(
+        toy.source, toy.target
+    )
     anim = r.retarget(toy.source)
     deltas = anim.extras["spacetime"]["deltas"]
     known = np.zeros(len(deltas), bool)
     known[[0, -1]] = True
     values = np.zeros_like(anim.weights)
     values[known] = anim.weights[known]
-    want = naive.solve_rows(r.basis_, deltas, known, values, prior_factor=r.prior_.factor, prior_offset=r.prior_.offset,
-                            alpha=r.alpha_effective_, beta=0.1, ridge=r.system_.ridge_matrix)
+    want = naive.solve_rows(
+        r.basis_,
+        deltas,
+        known,
+        values,
+        prior_factor=r.prior_.factor,
+        prior_offset=r.prior_.offset,
+        alpha=r.alpha_effective_,
+        beta=0.1,
+        ridge=r.system_.ridge_matrix,
+    )
     assert np.linalg.norm(anim.weights - want) / np.linalg.norm(want) < 1e-8
 
 
 def test_mesh_source_is_sampled_at_its_landmarks(synthetic_case):
     case = synthetic_case
-    markers = fr.MarkerSequence(case.source.marker_positions(), names=case.source.landmarks.names,
-                                reference=case.source.marker_reference(), fps=case.source.fps)
+    markers = fr.MarkerSequence(
+        case.source.marker_positions(),
+        names=case.source.landmarks.names,
+        reference=case.source.marker_reference(),
+        fps=case.source.fps,
+    )
     a = SpacetimeRetargeter().fit(case.source, case.target).retarget(case.source)
     b = SpacetimeRetargeter().fit(fr.Source(markers), case.target).retarget(fr.Source(markers))
     np.testing.assert_allclose(a.weights, b.weights, atol=1e-10)
@@ -230,12 +280,20 @@ def test_markers_are_paired_by_name(make_toy):
     toy = make_toy()
     perm = np.random.default_rng(3).permutation(len(toy.landmarks))
     perf = toy.source.performance
-    shuffled = fr.Source(fr.MarkerSequence(perf.positions[:, perm], names=[perf.names[i] for i in perm], reference=perf.reference[perm]))
+    shuffled = fr.Source(
+        fr.MarkerSequence(
+            perf.positions[:, perm],
+            names=[perf.names[i] for i in perm],
+            reference=perf.reference[perm],
+        )
+    )
     r = SpacetimeRetargeter().fit(toy.source, toy.target)
     a = r.retarget(toy.source)
     b = SpacetimeRetargeter().fit(shuffled, toy.target).retarget(shuffled)
     np.testing.assert_allclose(a.weights, b.weights, atol=1e-10)
-    np.testing.assert_allclose(r.retarget(shuffled).weights, a.weights, atol=1e-10)  # re-paired at retarget
+    np.testing.assert_allclose(
+        r.retarget(shuffled).weights, a.weights, atol=1e-10
+    )  # re-paired at retarget
 
 
 # ---------------------------------------------------------------------------------------
@@ -252,26 +310,47 @@ def test_alpha_is_normalized_by_face_size(make_toy):
     """The same face in millimetres instead of centimetres gives the same weights."""
     toy = make_toy(noise=0.05, extra_source_shapes=2)
     perf = toy.source.performance
-    mm_source = fr.Source(fr.MarkerSequence(10 * perf.positions, names=perf.names, reference=10 * perf.reference))
+    mm_source = fr.Source(
+        fr.MarkerSequence(10 * perf.positions, names=perf.names, reference=10 * perf.reference)
+    )
     mesh = toy.rig.neutral
-    mm_rig = fr.BlendshapeRig(fr.Mesh(10 * mesh.vertices, mesh.triangles), 10 * toy.rig.deltas, toy.rig.names)
+    mm_rig = fr.BlendshapeRig(
+        fr.Mesh(10 * mesh.vertices, mesh.triangles), 10 * toy.rig.deltas, toy.rig.names
+    )
     mm_target = fr.TargetRig(mm_rig.neutral, blendshapes=mm_rig, landmarks=toy.target.landmarks)
     cm = SpacetimeRetargeter(alpha=1.0).fit(toy.source, toy.target).retarget(toy.source)
     mm = SpacetimeRetargeter(alpha=1.0).fit(mm_source, mm_target).retarget(mm_source)
     np.testing.assert_allclose(mm.weights, cm.weights, atol=1e-8)
-    raw = SpacetimeRetargeter(alpha=1.0, scale_alpha=False).fit(mm_source, mm_target).retarget(mm_source)
+    raw = (
+        SpacetimeRetargeter(alpha=1.0, scale_alpha=False)
+        .fit(mm_source, mm_target)
+        .retarget(mm_source)
+    )
     assert np.abs(raw.weights - cm.weights).max() > 1e-3
 
 
 def test_alpha_is_normalized_by_frame_rate(make_toy):
     """The same motion captured at 30 and at 60 fps gives the same weights at the same times."""
+
     def curves(fps, n):
         t = np.arange(n)[:, None] / fps
-        return 0.5 + 0.4 * np.sin(2 * np.pi * t * np.array([0.3, 0.7, 0.5, 1.1, 0.2, 0.9]) + np.arange(6))
+        return 0.5 + 0.4 * np.sin(
+            2 * np.pi * t * np.array([0.3, 0.7, 0.5, 1.1, 0.2, 0.9]) + np.arange(6)
+        )
 
     def weights(fps, n, scale):
-        toy = make_toy(weights=curves(fps, n), extra_source_shapes=2, extra_weights=curves(fps, n)[:, :2] ** 2, fps=fps)
-        return SpacetimeRetargeter(alpha=1.0, scale_alpha=scale).fit(toy.source, toy.target).retarget(toy.source).weights
+        toy = make_toy(
+            weights=curves(fps, n),
+            extra_source_shapes=2,
+            extra_weights=curves(fps, n)[:, :2] ** 2,
+            fps=fps,
+        )
+        return (
+            SpacetimeRetargeter(alpha=1.0, scale_alpha=scale)
+            .fit(toy.source, toy.target)
+            .retarget(toy.source)
+            .weights
+        )
 
     for scale, tolerance in ((True, 0.02), (False, None)):
         w30, w60 = weights(30.0, 61, scale), weights(60.0, 121, scale)
@@ -299,10 +378,16 @@ def test_prior_from_target_animations(make_toy):
     toy = make_toy()
     frames = np.random.default_rng(5).uniform(0, 1, (12, toy.rig.n_shapes))
     by_weights = SpacetimeRetargeter(prior_animations=frames).fit(toy.source, toy.target)
-    by_vertices = SpacetimeRetargeter(prior_animations=toy.rig.evaluate(frames)).fit(toy.source, toy.target)
+    by_vertices = SpacetimeRetargeter(prior_animations=toy.rig.evaluate(frames)).fit(
+        toy.source, toy.target
+    )
     assert by_weights.prior_.n_samples == 12  # animations only, no blendshapes
-    np.testing.assert_allclose(by_vertices.prior_.matrix, by_weights.prior_.matrix, rtol=1e-6, atol=1e-8)
-    both = SpacetimeRetargeter(prior_animations=frames, prior_shapes=list(range(toy.rig.n_shapes))).fit(toy.source, toy.target)
+    np.testing.assert_allclose(
+        by_vertices.prior_.matrix, by_weights.prior_.matrix, rtol=1e-6, atol=1e-8
+    )
+    both = SpacetimeRetargeter(
+        prior_animations=frames, prior_shapes=list(range(toy.rig.n_shapes))
+    ).fit(toy.source, toy.target)
     assert both.prior_.n_samples == 12 + toy.rig.n_shapes
 
 
@@ -313,7 +398,9 @@ def test_sobolev_term_enforces_positions_at_weighted_markers(make_toy):
     lips = [f"m{i}" for i in range(6)]
 
     def lip_error(beta):
-        r = SpacetimeRetargeter(alpha=0.1, beta=beta, marker_weights={n: 1.0 for n in lips}, remove_head_motion=False)
+        r = SpacetimeRetargeter(
+            alpha=0.1, beta=beta, marker_weights={n: 1.0 for n in lips}, remove_head_motion=False
+        )
         anim = r.fit(toy.source, toy.target).retarget(toy.source)
         deltas = anim.extras["spacetime"]["deltas"]
         fit = (anim.weights @ r.basis_.T).reshape(deltas.shape)
@@ -328,7 +415,9 @@ def test_sobolev_term_enforces_positions_at_weighted_markers(make_toy):
     assert strong < 1.01 * floor
     per_frame = np.zeros((60, len(toy.landmarks)))
     per_frame[20:30, :6] = 1.0  # only at some frames
-    framed = SpacetimeRetargeter(alpha=0.1, beta=2.0, marker_weights=per_frame, remove_head_motion=False).fit(toy.source, toy.target)
+    framed = SpacetimeRetargeter(
+        alpha=0.1, beta=2.0, marker_weights=per_frame, remove_head_motion=False
+    ).fit(toy.source, toy.target)
     anim = framed.retarget(toy.source)
     assert anim.provenance["diagnostics"]["solver"] == "block_tridiagonal"
 
@@ -339,14 +428,24 @@ def test_sobolev_term_enforces_positions_at_weighted_markers(make_toy):
 def test_boundary_options_and_constraints(make_toy):
     toy = make_toy()
     m = toy.rig.n_shapes
-    neutral = SpacetimeRetargeter(boundary="neutral").fit(toy.source, toy.target).retarget(toy.source)
+    neutral = (
+        SpacetimeRetargeter(boundary="neutral").fit(toy.source, toy.target).retarget(toy.source)
+    )
     assert np.array_equal(neutral.weights[[0, -1]], np.zeros((2, m)))
     given = np.stack([np.full(m, 0.2), np.full(m, 0.7)])
-    anim = SpacetimeRetargeter(boundary=given, constraints={10: np.full(m, 0.5), -5: {"shape1": 0.9}}).fit(toy.source, toy.target).retarget(toy.source)
+    anim = (
+        SpacetimeRetargeter(boundary=given, constraints={10: np.full(m, 0.5), -5: {"shape1": 0.9}})
+        .fit(toy.source, toy.target)
+        .retarget(toy.source)
+    )
     assert np.array_equal(anim.weights[[0, -1]], given)
     assert np.array_equal(anim.weights[10], np.full(m, 0.5))
     assert anim.weights[-5, 1] == 0.9 and np.all(np.delete(anim.weights[-5], 1) == 0.0)
-    baseline = SpacetimeRetargeter(constraints={10: np.full(m, 0.5)}, mode="rangepf").fit(toy.source, toy.target).retarget(toy.source)
+    baseline = (
+        SpacetimeRetargeter(constraints={10: np.full(m, 0.5)}, mode="rangepf")
+        .fit(toy.source, toy.target)
+        .retarget(toy.source)
+    )
     assert np.array_equal(baseline.weights[10], np.full(m, 0.5))
 
 
@@ -383,22 +482,32 @@ def test_edits_accumulate_and_whole_sequence_edit(make_toy):
     r = SpacetimeRetargeter().fit(toy.source, toy.target)
     anim = r.retarget(toy.source)
     first = r.edit(anim, frame=20, weights={"shape0": 1.2}, window=(10, 30))
-    assert first.weights[20, 0] == 1.2 and np.array_equal(first.weights[20, 1:], anim.weights[20, 1:])
+    assert first.weights[20, 0] == 1.2 and np.array_equal(
+        first.weights[20, 1:], anim.weights[20, 1:]
+    )
     second = r.edit(first, frame=40, weights=np.zeros(toy.rig.n_shapes))  # whole sequence re-solve
-    assert np.array_equal(second.weights[20], first.weights[20])  # the earlier edit stays a constraint
+    assert np.array_equal(
+        second.weights[20], first.weights[20]
+    )  # the earlier edit stays a constraint
     assert np.array_equal(second.weights[[0, -1]], anim.weights[[0, -1]])
     assert np.array_equal(second.weights[40], np.zeros(toy.rig.n_shapes))
     assert len(second.provenance["edits"]) == 2
-    assert np.array_equal(anim.weights, r.retarget(toy.source).weights)  # the input animation is unchanged
+    assert np.array_equal(
+        anim.weights, r.retarget(toy.source).weights
+    )  # the input animation is unchanged
 
 
 def test_edit_with_missing_markers_in_window(make_toy):
     toy = make_toy(n_frames=50, missing=0.1)
     r = SpacetimeRetargeter().fit(toy.source, toy.target)
     anim = r.retarget(toy.source)
-    edited = r.edit(anim, frame=[20, 25], weights=np.full((2, toy.rig.n_shapes), 0.3), window=(15, 30))
+    edited = r.edit(
+        anim, frame=[20, 25], weights=np.full((2, toy.rig.n_shapes), 0.3), window=(15, 30)
+    )
     assert np.array_equal(edited.weights[[20, 25]], np.full((2, toy.rig.n_shapes), 0.3))
-    assert np.array_equal(edited.weights[:16], anim.weights[:16]) and np.array_equal(edited.weights[30:], anim.weights[30:])
+    assert np.array_equal(edited.weights[:16], anim.weights[:16]) and np.array_equal(
+        edited.weights[30:], anim.weights[30:]
+    )
 
 
 # ---------------------------------------------------------------------------------------

@@ -1,27 +1,47 @@
 """The numba kernels and structured solves agree with the brute-force references (tests/naive/spacetime.py)."""
+
 import numpy as np
 import pytest
+from naive import spacetime as naive
 
 from faceretarget.plugins.spacetime import solver
 from faceretarget.plugins.spacetime.prior import fit_prior
-from naive import spacetime as naive
 
 
-def random_problem(seed=0, n_frames=30, n_markers=7, n_shapes=5, alpha=0.3, beta=0.0, marker_weights=None, center="neutral", column_scale=None):
+def random_problem(
+    seed=0,
+    n_frames=30,
+    n_markers=7,
+    n_shapes=5,
+    alpha=0.3,
+    beta=0.0,
+    marker_weights=None,
+    center="neutral",
+    column_scale=None,
+):
     """Random basis (columns times ``column_scale``), smooth deltas, a PCA prior from the shapes and a System."""
     rng = np.random.default_rng(seed)
     basis = rng.normal(size=(3 * n_markers, n_shapes))
     if column_scale is not None:
         basis = basis * np.asarray(column_scale, dtype=np.float64)
     t = np.arange(n_frames)[:, None]
-    deltas = (np.sin(t / 5.0 + rng.uniform(0, 6, 3 * n_markers)) + 0.1 * rng.normal(size=(n_frames, 3 * n_markers)))
+    deltas = np.sin(t / 5.0 + rng.uniform(0, 6, 3 * n_markers)) + 0.1 * rng.normal(
+        size=(n_frames, 3 * n_markers)
+    )
     deltas = deltas.reshape(n_frames, n_markers, 3)
     neutral = rng.normal(size=3 * n_markers)
     samples = neutral[None] + np.vstack([basis.T, 0.5 * rng.normal(size=(3, n_shapes)) @ basis.T])
     prior = fit_prior(samples, basis, neutral, center)
     mw = np.ones(n_markers) if marker_weights is None else marker_weights
     system = solver.System(basis, alpha * prior.matrix, alpha * prior.vector, beta, mw)
-    energy = dict(prior_factor=prior.factor, prior_offset=prior.offset, alpha=alpha, beta=beta, marker_weights=mw, ridge=system.ridge_matrix)
+    energy = dict(
+        prior_factor=prior.factor,
+        prior_offset=prior.offset,
+        alpha=alpha,
+        beta=beta,
+        marker_weights=mw,
+        ridge=system.ridge_matrix,
+    )
     return system, deltas, energy
 
 
@@ -51,8 +71,16 @@ def test_structured_solve_matches_paper_kronecker_system():
     system, deltas, energy = random_problem(beta=0.2, center="mean")
     known, values = known_frames(30, [0, 17, 29], 5)
     got = solver.solve_movement(system, deltas, known, values)
-    want = naive.solve_kronecker(system.basis, deltas, known, values, prior_matrix=system.prior_matrix,
-                                 prior_vector=system.prior_vector, beta=0.2, ridge=system.ridge_matrix)
+    want = naive.solve_kronecker(
+        system.basis,
+        deltas,
+        known,
+        values,
+        prior_matrix=system.prior_matrix,
+        prior_vector=system.prior_vector,
+        beta=0.2,
+        ridge=system.ridge_matrix,
+    )
     assert rel(got, want) < 1e-8
 
 
@@ -100,10 +128,16 @@ def test_no_boundary_with_sobolev_term():
 
 def test_large_problem_normal_equation_residual():
     """At larger sizes the system's conditioning grows with frames squared: compare residuals."""
-    system, deltas, energy = random_problem(seed=8, n_frames=1200, n_markers=20, n_shapes=16, alpha=0.05)
+    system, deltas, energy = random_problem(
+        seed=8, n_frames=1200, n_markers=20, n_shapes=16, alpha=0.05
+    )
     known, values = known_frames(1200, [0, 600, 1199], 16)
     got = solver.solve_movement(system, deltas, known, values)
-    kw = dict(prior_matrix=system.prior_matrix, prior_vector=system.prior_vector, ridge=system.ridge_matrix)
+    kw = dict(
+        prior_matrix=system.prior_matrix,
+        prior_vector=system.prior_vector,
+        ridge=system.ridge_matrix,
+    )
     want = naive.solve_kronecker(system.basis, deltas, known, values, **kw)
     res_got = naive.kronecker_residual(got, system.basis, deltas, known, values, **kw)
     res_want = naive.kronecker_residual(want, system.basis, deltas, known, values, **kw)
@@ -127,9 +161,15 @@ def test_duplicate_shapes_are_regularized():
 @pytest.mark.parametrize("use_prior", [False, True])
 def test_per_frame_solve_matches_lstsq(use_prior):
     system, deltas, energy = random_problem(seed=10, alpha=0.8)
-    deltas = np.where(np.random.default_rng(11).random(deltas.shape[:2])[..., None] < 0.15, np.nan, deltas)
+    deltas = np.where(
+        np.random.default_rng(11).random(deltas.shape[:2])[..., None] < 0.15, np.nan, deltas
+    )
     got = solver.solve_per_frame(system, deltas, use_prior=use_prior)
-    kw = dict(prior_factor=energy["prior_factor"], prior_offset=energy["prior_offset"], alpha=0.8) if use_prior else {}
+    kw = (
+        dict(prior_factor=energy["prior_factor"], prior_offset=energy["prior_offset"], alpha=0.8)
+        if use_prior
+        else {}
+    )
     want = naive.per_frame(system.basis, deltas, ridge=system.ridge_matrix, **kw)
     assert rel(got, want) < 1e-8
 
@@ -140,7 +180,9 @@ def test_bounded_active_set_matches_bvls_and_kkt():
     # correlated shapes make unconstrained weights leave the box, so bounds become active
     base = rng.normal(size=(3 * n_markers, 3))
     basis = base @ rng.normal(size=(3, m)) + 0.05 * rng.normal(size=(3 * n_markers, m))
-    deltas = (basis @ rng.uniform(-0.5, 1.5, (m, 25))).T + 0.3 * rng.normal(size=(25, 3 * n_markers))
+    deltas = (basis @ rng.uniform(-0.5, 1.5, (m, 25))).T + 0.3 * rng.normal(
+        size=(25, 3 * n_markers)
+    )
     deltas = deltas.reshape(25, n_markers, 3)
     deltas[3, 4] = np.nan
     system = solver.System(basis, np.zeros((m, m)), np.zeros(m), 0.0, None)
@@ -186,7 +228,9 @@ def test_mean_centred_prior_penalizes_neutral_of_dependent_shapes():
     samples = neutral[None] + basis.T
     zero = np.zeros((1, 3))
     assert fit_prior(samples, basis, neutral, "mean").energy(zero)[0] > 0.1
-    assert fit_prior(samples, basis, neutral, "neutral").energy(zero)[0] == pytest.approx(0.0, abs=1e-12)
+    assert fit_prior(samples, basis, neutral, "neutral").energy(zero)[0] == pytest.approx(
+        0.0, abs=1e-12
+    )
 
 
 def test_single_and_two_frame_sequences():
@@ -214,6 +258,9 @@ def test_energy_terms_match_a_frame_by_frame_loop(missing, monkeypatch):
     s = deltas.reshape(30, -1)
     r = [np.where(np.isnan(s[t]), 0.0, weights[t] @ system.basis.T - s[t]) for t in range(30)]
     position = [float(np.nansum(x**2)) for x in r]
-    velocity = [0.0] + [float(np.sum(np.where(np.isnan(s[t]) | np.isnan(s[t - 1]), 0.0, r[t] - r[t - 1]) ** 2)) for t in range(1, 30)]
+    velocity = [0.0] + [
+        float(np.sum(np.where(np.isnan(s[t]) | np.isnan(s[t - 1]), 0.0, r[t] - r[t - 1]) ** 2))
+        for t in range(1, 30)
+    ]
     np.testing.assert_allclose(got["position"], position, rtol=1e-12)
     np.testing.assert_allclose(got["velocity"], velocity, rtol=1e-12)

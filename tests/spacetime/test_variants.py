@@ -1,4 +1,5 @@
 """spacetime's registered variants are plain subclasses that change only defaults."""
+
 import inspect
 
 import pytest
@@ -35,4 +36,7 @@ def test_variants_keep_their_capabilities():
     assert st.SpacetimePaper.capabilities == st.SpacetimeRetargeter.capabilities
     for cls in (st.SpacetimeNoconst, st.SpacetimeRangepf, st.SpacetimePriorpf):
         assert cls.capabilities.edit is False
-        assert {**cls.capabilities.as_dict(), "edit": True} == st.SpacetimeRetargeter.capabilities.as_dict()
+        assert {
+            **cls.capabilities.as_dict(),
+            "edit": True,
+        } == st.SpacetimeRetargeter.capabilities.as_dict()

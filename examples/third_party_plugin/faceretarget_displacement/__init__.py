@@ -4,6 +4,7 @@ Registered through the entry point ``displacement`` in the group ``faceretarget`
 (see this package's pyproject.toml). Install with ``pip install .`` and it appears in
 ``faceretarget list``.
 """
+
 import faceretarget
 
 

@@ -12,6 +12,7 @@
 The interpolation is linear in the displacements, so it is precomputed once as a
 ``(V, N)`` matrix; a frame costs one matrix product.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -30,7 +31,9 @@ class DisplacementRetargeter(fr.Retargeter):
     name = "displacement"
     summary = "landmark displacements warped by an RBF and interpolated over the target (Noh & Neumann 2001)"
     paper = "Noh & Neumann 2001, Expression Cloning, SIGGRAPH"
-    capabilities = fr.Capabilities(sources=("markers", "mesh"), needs=("landmarks", "source_landmarks"), outputs="vertices")
+    capabilities = fr.Capabilities(
+        sources=("markers", "mesh"), needs=("landmarks", "source_landmarks"), outputs="vertices"
+    )
     # what `faceretarget info displacement` shows, and what fit() checks (faceretarget.validation);
     # faceretarget.toml beside this package says the same for `faceretarget list`, which reads
     # it without importing this module (the registry checks that the two agree)
@@ -53,11 +56,19 @@ class DisplacementRetargeter(fr.Retargeter):
         src = np.asarray(source.marker_reference(), dtype=np.float64)
         tgt = target.landmarks.positions(target.neutral.vertices, target.neutral.triangles)
         if src.shape != tgt.shape:
-            raise ShapeError(f"displacement: the source has {len(src)} landmarks but the target has {len(tgt)}; they must correspond one to one")
+            raise ShapeError(
+                f"displacement: the source has {len(src)} landmarks but the target has {len(tgt)}; they must correspond one to one"
+            )
         if len(src) < 4:
-            raise DegenerateGeometryError("displacement: at least 4 landmarks are needed for the RBF warp")
+            raise DegenerateGeometryError(
+                "displacement: at least 4 landmarks are needed for the RBF warp"
+            )
         warp = fit_rbf(src, tgt, kernel="linear")
-        self.jacobians_ = _jacobians(warp, src) if self.jacobian_ else np.repeat(np.eye(3)[None], len(src), axis=0)
+        self.jacobians_ = (
+            _jacobians(warp, src)
+            if self.jacobian_
+            else np.repeat(np.eye(3)[None], len(src), axis=0)
+        )
         self.source_reference_ = src
         self.interpolation_ = _interpolation_matrix(tgt, np.asarray(target.neutral.vertices))
         self.target_neutral_ = np.array(target.neutral.vertices)
@@ -70,7 +81,9 @@ class DisplacementRetargeter(fr.Retargeter):
     def _retarget(self, source):
         markers = np.asarray(source.marker_positions(), dtype=np.float64)
         if markers.shape[1] != len(self.source_reference_):
-            raise ShapeError(f"displacement: fitted for {len(self.source_reference_)} landmarks, got {markers.shape[1]}")
+            raise ShapeError(
+                f"displacement: fitted for {len(self.source_reference_)} landmarks, got {markers.shape[1]}"
+            )
         motion = None
         if self.head_motion_:
             if source.head_motion is not None:
@@ -82,13 +95,17 @@ class DisplacementRetargeter(fr.Retargeter):
         disp = markers - self.source_reference_  # (F, N, 3); NaN where missing
         disp = np.einsum("nij,fnj->fni", self.jacobians_, disp)
         missing = np.isnan(disp).any(axis=-1)
-        disp = np.where(missing[..., None], 0.0, disp)  # a missing marker contributes no displacement
+        disp = np.where(
+            missing[..., None], 0.0, disp
+        )  # a missing marker contributes no displacement
         vertices = self.target_neutral_ + np.einsum("vn,fnd->fvd", self.interpolation_, disp)
         if motion is not None:
             motion = motion.copy()
             motion[:, :3, 3] *= self.unit_ratio_  # in the target's unit
             vertices = procrustes.apply(motion, vertices)
-        return fr.Animation(vertices=vertices, head_motion=motion, triangles=self.triangles_, fps=source.fps)
+        return fr.Animation(
+            vertices=vertices, head_motion=motion, triangles=self.triangles_, fps=source.fps
+        )
 
 
 def _size(points: np.ndarray) -> float:
