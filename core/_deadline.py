@@ -117,6 +117,7 @@ def watchdog_process() -> Iterator[None]:
             with _process_lock:
                 proc, _process = _process, None
             if proc is not None:
+                assert proc.stdin is not None  # started with stdin=PIPE
                 try:
                     proc.stdin.close()
                 except OSError:
@@ -132,6 +133,7 @@ def _tell_process(line: str) -> None:
     proc = _process
     if proc is None:
         return
+    assert proc.stdin is not None  # started with stdin=PIPE
     try:
         proc.stdin.write(line.encode("ascii") + b"\n")
         proc.stdin.flush()
@@ -154,7 +156,8 @@ def deadline(
     lock = threading.Lock()
     done = threading.Event()
     target = threading.get_ident()
-    alarm, wake = _alarm_usable(), _wake_usable()
+    alarm = _alarm_usable()
+    wake = _WAKE if _wake_usable() else None  # the waking signal, when usable
     message = (hard.rstrip("\n") + "\n").encode("utf-8", "replace") if hard else b""
 
     def expired(signum, frame):
@@ -173,9 +176,9 @@ def deadline(
                     return
                 state["fired"] = True
                 _inject(target, DeadlineExpired)
-                if wake:
+                if wake is not None:
                     try:
-                        signal.pthread_kill(target, _WAKE)
+                        signal.pthread_kill(target, wake)
                     except OSError:
                         pass
             if done.wait(_INJECT_EVERY):
@@ -189,7 +192,7 @@ def deadline(
                         os._exit(HARD_EXIT_STATUS)
 
     previous_handler = signal.getsignal(signal.SIGALRM) if alarm else None
-    previous_wake = signal.getsignal(_WAKE) if wake else None
+    previous_wake = signal.getsignal(wake) if wake is not None else None
     start = time.monotonic()
     previous_delay = previous_interval = 0.0
     completed = False
@@ -199,8 +202,8 @@ def deadline(
             previous_delay, previous_interval = signal.setitimer(
                 signal.ITIMER_REAL, seconds, _REPEAT
             )
-        if wake:
-            signal.signal(_WAKE, expired)
+        if wake is not None:
+            signal.signal(wake, expired)
         if hard:
             _tell_process(f"arm {seconds + 2 * grace:.3f} {message.hex()}")
         threading.Thread(target=watch, name="faceretarget-deadline", daemon=True).start()
@@ -220,8 +223,8 @@ def deadline(
                 if alarm:
                     signal.setitimer(signal.ITIMER_REAL, 0)
                     signal.signal(signal.SIGALRM, previous_handler)
-                if wake:
-                    signal.signal(_WAKE, previous_wake)
+                if wake is not None:
+                    signal.signal(wake, previous_wake)
                 if previous_delay:
                     left = previous_delay - (time.monotonic() - start)
                     signal.setitimer(signal.ITIMER_REAL, max(left, 1e-3), previous_interval)

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import copy
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any, NamedTuple
@@ -385,6 +386,7 @@ def _assemble(
     actor_layers = LayeredRig(
         poses(source_rig, True), landmark_masks, pose_names=pose_names, region_names=REGION_NAMES
     )
+    performance: MarkerSequence | MeshSequence
     if source_kind == "markers":
         performance = MarkerSequence(
             world,
@@ -1944,7 +1946,7 @@ def cross_topology(
 
 
 #: Built-in case generators by name.
-CASES = {
+CASES: dict[str, Callable[..., Case]] = {
     "synthetic": synthetic,
     "ict": ict,
     "cross_rig": cross_rig,

@@ -19,6 +19,7 @@ import sys
 import time
 from importlib import import_module
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from ._args import parse_sets
 from ._json import jsonable
@@ -32,6 +33,9 @@ from .errors import (
     PluginOutputError,
 )
 from .hookspecs import DATA_KINDS
+
+if TYPE_CHECKING:
+    from .registry import RetargeterInfo
 
 EXIT_FAILED = (
     1  # the command ran to its end, but some of its runs or jobs failed (see --keep-going)
@@ -493,7 +497,7 @@ def load_run_source(args):
         neutral = io.load(args.source_neutral, kind="mesh")
         options.setdefault("topology", neutral)
     source = io.load_source(args.source, kind=args.source_kind, rig=args.source_rig, **options)
-    changes = {}
+    changes: dict[str, Any] = {}
     if neutral is not None:
         perf = source.performance
         if not isinstance(perf, MeshSequence):
@@ -548,7 +552,7 @@ def load_run_target(args):
     return target
 
 
-def _check_needs(entry, source, target) -> None:
+def _check_needs(entry: RetargeterInfo, source: Any, target: Any) -> None:
     """A method that does not apply says what is missing and which option gives it."""
     from .retargeter import _has
 
@@ -557,7 +561,7 @@ def _check_needs(entry, source, target) -> None:
         return
     hints = []
     for need in entry.capabilities.needs:
-        options = need if isinstance(need, tuple) else (need,)
+        options: tuple[str, ...] = need if isinstance(need, tuple) else (need,)
         if not any(_has(source, target, n) for n in options):
             hints.append(" or ".join(RUN_OPTIONS.get(n, n) for n in options))
     hint = f"; give {'; '.join(hints)}" if hints else ""

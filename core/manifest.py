@@ -30,7 +30,7 @@ from typing import Any
 
 from . import validation
 from .errors import ConfigError
-from .retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS, Capabilities
+from .retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS, Capabilities, Retargeter
 
 __all__ = [
     "Manifest",
@@ -236,7 +236,7 @@ def find_package_manifest(module: str) -> Path | None:
     return None
 
 
-def from_class(cls: type, entry_point: str = "") -> Manifest:
+def from_class(cls: type[Retargeter], entry_point: str = "") -> Manifest:
     """The manifest a class declares on itself: ``name``, ``summary`` (else its docstring's
     first line), ``paper``, ``aliases``, ``baseline_of``, ``capabilities``, ``parameter_docs``,
     ``parameter_constraints`` and its ``__init__`` defaults."""
@@ -260,7 +260,7 @@ def from_class(cls: type, entry_point: str = "") -> Manifest:
     )
 
 
-def disagreements(cls: type, manifest: Manifest) -> list[str]:
+def disagreements(cls: type[Retargeter], manifest: Manifest) -> list[str]:
     """Where ``cls`` and its ``manifest`` differ: capabilities, parameter names, defaults and
     (when the class declares them) constraints. Empty when they agree."""
     out = []

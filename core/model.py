@@ -241,9 +241,11 @@ class Landmarks:
                 "Landmarks: give either vertex_ids, or triangle_ids with barycentric coordinates"
             )
         if vertex_ids is not None:
-            self.vertex_ids = as_index_array(vertex_ids, "Landmarks.vertex_ids", (None,))
-            self.triangle_ids = None
-            self.barycentric = None
+            self.vertex_ids: np.ndarray | None = as_index_array(
+                vertex_ids, "Landmarks.vertex_ids", (None,)
+            )
+            self.triangle_ids: np.ndarray | None = None
+            self.barycentric: np.ndarray | None = None
             count = self.vertex_ids.shape[0]
         else:
             if barycentric is None:
@@ -285,6 +287,7 @@ class Landmarks:
             raise InputError("Landmarks.positions: barycentric landmarks need the mesh triangles")
         corners = np.asarray(triangles)[self.triangle_ids]  # (N, 3)
         pts = vertices[..., corners, :]  # (..., N, 3, 3)
+        assert self.barycentric is not None  # no vertex ids: triangle ids and barycentric
         return np.einsum("...nkd,nk->...nd", pts, self.barycentric)
 
     def __repr__(self) -> str:
@@ -451,6 +454,9 @@ class WeightSequence:
     """
 
     kind = "weights"
+    #: Set by readers that find them (the Live Link Face CSV reader); absent otherwise.
+    head_motion: np.ndarray
+    extras: dict[str, Any]
 
     def __init__(self, weights, names, *, fps: float = 30.0):
         self.weights = as_float_array(weights, "WeightSequence.weights", (None, None))
@@ -599,7 +605,7 @@ class LayeredRig:
                 "LayeredRig.layers: expected a non-empty mapping of layer name -> (K, P, D) poses"
             )
         items = {}
-        shape = None
+        shape: tuple[int, ...] | None = None
         for lname, poses in layers.items():
             arr = as_array(poses, f"LayeredRig.layers[{lname!r}]")
             if arr.ndim != 3 or arr.shape[-1] not in (2, 3):
@@ -619,6 +625,7 @@ class LayeredRig:
             )
         as_names(list(items), "LayeredRig layer names")
         self.layers = items
+        assert shape is not None  # set by the first of the (non-empty) layers
         self.n_points, self.dim = int(shape[0]), int(shape[1])
         self.masks = as_float_array(masks, "LayeredRig.masks", (None, self.n_points))
         if self.masks.shape[0] == 0:
@@ -750,7 +757,9 @@ class Source:
         self.landmarks = landmarks
         self.feature_lines = _as_feature_lines(feature_lines, n_points, "Source.feature_lines")
         if examples is not None:
-            self.examples = as_float_array(examples, "Source.examples", (None, n_points, 3))
+            self.examples: np.ndarray | None = as_float_array(
+                examples, "Source.examples", (None, n_points, 3)
+            )
             self.example_names = as_names(
                 example_names,
                 "Source.example_names",
@@ -802,7 +811,7 @@ class Source:
 
         Dropping ``examples`` (``examples=None``) drops their names too.
         """
-        args = dict(
+        args: dict[str, Any] = dict(
             performance=self.performance,
             head_motion=self.head_motion,
             landmarks=self.landmarks,
@@ -932,7 +941,7 @@ class TargetRig:
             feature_lines, neutral.n_vertices, "TargetRig.feature_lines"
         )
         if examples is not None:
-            self.examples = as_float_array(
+            self.examples: np.ndarray | None = as_float_array(
                 examples, "TargetRig.examples", (None, neutral.n_vertices, 3)
             )
             self.example_names = as_names(
@@ -949,7 +958,7 @@ class TargetRig:
 
         Dropping ``examples`` (``examples=None``) drops their names too.
         """
-        args = dict(
+        args: dict[str, Any] = dict(
             neutral=self.neutral,
             blendshapes=self.blendshapes,
             layers=self.layers,
@@ -1056,7 +1065,11 @@ class Animation:
             self.weights = as_float_array(
                 weights, "Animation.weights", (None, rig.n_shapes if rig is not None else None)
             )
-        n_frames = self._vertices.shape[0] if self._vertices is not None else self.weights.shape[0]
+        if self._vertices is not None:
+            n_frames = self._vertices.shape[0]
+        else:
+            assert self.weights is not None  # checked above: without vertices, weights and a rig
+            n_frames = self.weights.shape[0]
         if (
             self._vertices is not None
             and self.weights is not None
@@ -1070,9 +1083,11 @@ class Animation:
         self.head_motion = _as_head_motion(head_motion, n_frames, "Animation.head_motion")
         if triangles is None and rig is not None:
             triangles = rig.neutral.triangles
-        n_vertices = (
-            self._vertices.shape[1] if self._vertices is not None else rig.neutral.n_vertices
-        )
+        if self._vertices is not None:
+            n_vertices = self._vertices.shape[1]
+        else:
+            assert rig is not None  # checked above: without vertices, weights and a rig
+            n_vertices = rig.neutral.n_vertices
         self.triangles = (
             None
             if triangles is None
@@ -1094,12 +1109,16 @@ class Animation:
 
     @property
     def n_frames(self) -> int:
-        return int(self._vertices.shape[0] if self._vertices is not None else self.weights.shape[0])
+        if self._vertices is not None:
+            return int(self._vertices.shape[0])
+        assert self.weights is not None  # an Animation without vertices has weights and a rig
+        return int(self.weights.shape[0])
 
     @property
     def vertices(self) -> np.ndarray:
         """(F, V, 3) final target vertices (computed from the weights on first use)."""
         if self._vertices is None:
+            assert self.rig is not None  # an Animation without vertices has weights and a rig
             local = self.rig.evaluate(self.weights)
             self._vertices = readonly(apply_head_motion(self.head_motion, local))
         return self._vertices
@@ -1128,7 +1147,7 @@ class Animation:
 
     def replace(self, **changes) -> Animation:
         """A copy with some constructor arguments changed (e.g. ``weights=...``)."""
-        args = dict(
+        args: dict[str, Any] = dict(
             vertices=self._vertices if not self.is_blendshape_based else None,
             weights=self.weights,
             rig=self.rig,
@@ -1146,12 +1165,9 @@ class Animation:
         what = []
         if self.weights is not None:
             what.append(f"{self.weights.shape[1]} weights")
-        if self._vertices is not None or self.rig is not None:
-            n_vertices = (
-                self._vertices.shape[1]
-                if self._vertices is not None
-                else self.rig.neutral.n_vertices
-            )
-            what.append(f"{n_vertices} vertices")
+        if self._vertices is not None:
+            what.append(f"{self._vertices.shape[1]} vertices")
+        elif self.rig is not None:
+            what.append(f"{self.rig.neutral.n_vertices} vertices")
         method = self.provenance.get("method")
         return f"Animation({self.n_frames} frames, {', '.join(what)}{', by ' + method if method else ''})"

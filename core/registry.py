@@ -28,6 +28,7 @@ from __future__ import annotations
 import importlib.metadata as md
 import inspect
 import sys
+from collections.abc import Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import Any
@@ -92,7 +93,7 @@ class RetargeterInfo:
     """A registered retargeter: its manifest (what ``list`` and ``info`` show) and its class,
     imported on first use of :attr:`cls` when the entry came from a manifest alone."""
 
-    def __init__(self, manifest: Manifest, plugin: PluginInfo, cls: type | None = None):
+    def __init__(self, manifest: Manifest, plugin: PluginInfo, cls: type[Retargeter] | None = None):
         self.manifest = manifest
         self.plugin = plugin
         self._cls = cls
@@ -112,7 +113,7 @@ class RetargeterInfo:
     )
 
     @property
-    def cls(self) -> type:
+    def cls(self) -> type[Retargeter]:
         """The Retargeter class (loads every plugin the first time, for an entry read from a manifest)."""
         if self._cls is None:
             self._cls = registry().resolve(self.name).cls
@@ -266,7 +267,9 @@ class Registry:
         self._check_catalogue()
         return self
 
-    def _load_external(self, external: list, allow: set, limit: float | None) -> None:
+    def _load_external(
+        self, external: list[md.EntryPoint], allow: set[str], limit: float | None
+    ) -> None:
         """Import and register third-party entry points, each under :func:`deadline`: one
         that overruns ``limit`` is skipped, one that cannot even be interrupted ends the
         program with a message naming it (:mod:`faceretarget._deadline`, layers 3-4)."""
@@ -282,9 +285,10 @@ class Registry:
                 self._fail(info, str(exc), fatal=False)
                 continue
             try:
-                with deadline(limit, hard=_stuck(info, limit, "importing")):
+                with deadline(limit, hard=_stuck(info, limit, "importing") if limit else None):
                     module = ep.load()
             except DeadlineExpired:
+                assert limit is not None  # deadline(None) never expires
                 self._fail(info, _too_slow(info, limit, "importing"), fatal=False)
                 continue
             except BaseException as exc:  # a plugin may even call sys.exit on import
@@ -294,16 +298,16 @@ class Registry:
                 self.failures.append(info)
                 continue
             before = self._snapshot()
+            registering = "calling its registration hooks"
             try:
-                with deadline(limit, hard=_stuck(info, limit, "calling its registration hooks")):
+                with deadline(limit, hard=_stuck(info, limit, registering) if limit else None):
                     self._register(module, info, fatal=False)
             except DeadlineExpired:  # roll back whatever it had registered
+                assert limit is not None  # deadline(None) never expires
                 self._restore(before)
                 if self.pm.is_registered(module):
                     self.pm.unregister(module)
-                self._fail(
-                    info, _too_slow(info, limit, "calling its registration hooks"), fatal=False
-                )
+                self._fail(info, _too_slow(info, limit, registering), fatal=False)
 
     def _snapshot(self) -> tuple:
         return (
@@ -451,12 +455,12 @@ class Registry:
             )
         init = cls.__init__
         sig = inspect.signature(init) if init is not object.__init__ else inspect.Signature()
-        for p in sig.parameters.values():
-            if p.name == "self" or p.kind == p.VAR_KEYWORD:
+        for param in sig.parameters.values():
+            if param.name == "self" or param.kind == param.VAR_KEYWORD:
                 continue
-            if p.kind != p.KEYWORD_ONLY or p.default is p.empty:
+            if param.kind != param.KEYWORD_ONLY or param.default is param.empty:
                 raise PluginLoadError(
-                    f"{where}: {cls.__name__}.__init__ parameter {p.name!r} must be keyword-only with a default"
+                    f"{where}: {cls.__name__}.__init__ parameter {param.name!r} must be keyword-only with a default"
                 )
         try:
             constraints = constraints_of(cls)
@@ -484,7 +488,7 @@ class Registry:
         return RetargeterInfo(declared, info, cls)
 
     @staticmethod
-    def _validate_record(record: Any, kind: type, hook: str, info: PluginInfo):
+    def _validate_record(record: Any, kind: type[Any], hook: str, info: PluginInfo) -> Any:
         where = f"plugin {info.name!r} ({info.origin}), hook {hook}"
         if not isinstance(record, kind):
             raise PluginLoadError(
@@ -562,11 +566,11 @@ class Registry:
     def _check_duplicates(
         self,
         entries: list[RetargeterInfo],
-        metrics: list[Metric],
+        metrics: Sequence[Metric],
         info: PluginInfo,
-        presets: list[Preset] = (),
+        presets: Sequence[Preset] = (),
     ) -> None:
-        seen = {}
+        seen: dict[str, RetargeterInfo] = {}
         for entry in entries:
             for key in (entry.name, *entry.aliases):
                 k = key.lower()

@@ -57,7 +57,7 @@ class Capabilities:
     """
 
     sources: tuple[str, ...] = ("markers",)
-    needs: tuple = ()
+    needs: tuple[str | tuple[str, ...], ...] = ()
     outputs: str = "vertices"
     stream: bool = False
     edit: bool = False
@@ -313,11 +313,11 @@ class Retargeter:
                 f"{who}: returned {animation.n_frames} frames for a source of {source.n_frames}; expected one per source frame"
             )
         target = getattr(self, "target_", None)
-        n_vertices = (
-            animation._vertices.shape[1]
-            if animation._vertices is not None
-            else animation.rig.neutral.n_vertices
-        )
+        if animation._vertices is not None:
+            n_vertices = animation._vertices.shape[1]
+        else:
+            assert animation.rig is not None  # an Animation without vertices has a rig
+            n_vertices = animation.rig.neutral.n_vertices
         if isinstance(target, TargetRig) and n_vertices != target.neutral.n_vertices:
             raise PluginOutputError(
                 f"{who}: returned {n_vertices} vertices per frame but the target has {target.neutral.n_vertices}; "
@@ -377,6 +377,7 @@ def _finite_vertices(animation: Animation, chunk: int = 64) -> bool:
         np.asarray(animation.weights, dtype=np.float64),
         animation.head_motion,
     )
+    assert rig is not None  # an Animation without vertices has a rig
     with np.errstate(over="ignore", invalid="ignore"):
         # weights and head motion are finite here: a bound on |vertex| far from overflow proves it
         largest = np.abs(rig.deltas).max(axis=(1, 2), initial=0.0)

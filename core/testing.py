@@ -194,6 +194,7 @@ def _rotation(axis, degrees: float) -> np.ndarray:
 def _moved_source(source: Source, a: _Affine) -> Source:
     """The same performance with every 3D position moved by ``a`` (2D tracks stay in the image)."""
     perf = source.performance
+    moved: MeshSequence | MarkerSequence | WeightSequence
     if isinstance(perf, MeshSequence):
         moved = MeshSequence(
             a.points(perf.vertices),
@@ -271,6 +272,8 @@ def _replace_performance(source: Source, performance) -> Source:
 def _examples_at_markers(source: Source):
     if source.landmarks is None:
         return None
+    assert isinstance(source.performance, MeshSequence)  # Source: only a mesh takes landmarks
+    assert source.examples is not None  # _replace_performance calls this only with examples
     return source.landmarks.positions(source.examples, source.performance.triangles)
 
 
@@ -641,12 +644,13 @@ def check_stream(r: Retargeter, case=None) -> None:
     source = _preferred_source(r, case)
     r.fit(source, case.target)
     batch = np.asarray(r.retarget(source).vertices)
-    if source.kind == "markers":
-        frames = list(np.asarray(source.performance.positions))
-    elif source.kind == "mesh":
-        frames = list(np.asarray(source.performance.vertices))
+    perf = source.performance
+    if isinstance(perf, MarkerSequence):
+        frames = list(np.asarray(perf.positions))
+    elif isinstance(perf, MeshSequence):
+        frames = list(np.asarray(perf.vertices))
     else:
-        frames = list(np.asarray(source.performance.weights))
+        frames = list(np.asarray(perf.weights))
     streamed = np.stack([np.asarray(f) for f in r.stream(iter(frames))])
     assert streamed.shape == batch.shape, (
         f"{_label(r)}: stream() gave {streamed.shape}, retarget() gave {batch.shape}"
@@ -732,7 +736,9 @@ def check_unit_invariance(r: Retargeter, case=None) -> None:
     base = np.asarray(_instance(r).fit(source, target).retarget(source).vertices, dtype=np.float64)
     centre = np.asarray(target.neutral.vertices).mean(axis=0)
     rigid = _Affine(1.0, _rotation([0.3, 1.0, 0.2], 25.0), np.array([1.0, -2.0, 0.5]) * height)
-    moves = [(f"source x{s:g}", _Affine(s), None) for s in UNIT_SCALES]
+    moves: list[tuple[str, _Affine | None, _Affine | None]] = [
+        (f"source x{s:g}", _Affine(s), None) for s in UNIT_SCALES
+    ]
     moves += [(f"target x{s:g}", None, _Affine(s, None, centre * (1.0 - s))) for s in UNIT_SCALES]
     moves += [("source moved rigidly", rigid, None), ("target moved rigidly", None, rigid)]
     failures = []

@@ -64,13 +64,15 @@ class Interval:
     ``"neither"``. ``int`` accepts whole floats (``3.0``) and gives ``3``; ``bool`` is never
     a number."""
 
-    kind: type
+    #: ``float`` or ``int`` (also given as ``"float"``, ``"int"``, ``numbers.Real`` or
+    #: ``numbers.Integral``; stored as ``float`` or ``int``)
+    kind: type | str
     left: float | None = None
     right: float | None = None
     closed: str = "both"
 
     def __post_init__(self):
-        kind = (
+        kind: object = (
             {"float": float, "int": int}.get(self.kind, self.kind)
             if isinstance(self.kind, str)
             else self.kind
@@ -78,7 +80,8 @@ class Interval:
         if kind not in (float, int):
             import numbers
 
-            kind = {numbers.Real: float, numbers.Integral: int}.get(kind)
+            aliases: dict[object, type] = {numbers.Real: float, numbers.Integral: int}
+            kind = aliases.get(kind)
         if kind is None:
             raise TypeError(f"Interval: kind must be float or int, got {self.kind!r}")
         object.__setattr__(self, "kind", kind)
@@ -188,6 +191,7 @@ class _Kind:
             return callable(value)
         if self.name == "no_validation":
             return True
+        assert self.type is not None  # a "type" kind carries its type (make_constraint)
         return isinstance(value, self.type) and not (
             self.type is not bool and isinstance(value, bool)
         )

@@ -62,6 +62,7 @@ def to_vertex_ids(landmarks: Landmarks, mesh: Mesh) -> Landmarks:
     landmarks.validate_for(mesh)
     if landmarks.vertex_ids is not None:
         return landmarks
+    assert landmarks.barycentric is not None  # no vertex ids: triangle ids and barycentric
     corners = mesh.triangles[landmarks.triangle_ids]
     ids = corners[np.arange(len(corners)), np.argmax(landmarks.barycentric, axis=1)]
     return Landmarks(ids, names=landmarks.names)

@@ -439,6 +439,7 @@ def resample_to_topology(
     x0 = rbf_warp(src_pos, tgt_pos)(source_mesh.vertices)
     lap = uniform_laplacian(tri_s, n)
     lm = to_barycentric(source_landmarks, source_mesh)
+    assert lm.barycentric is not None  # to_barycentric returns barycentric landmarks
     corners = tri_s[lm.triangle_ids]
     p = sp.csr_matrix(
         (lm.barycentric.ravel(), (np.repeat(np.arange(len(lm)), 3), corners.ravel())),

@@ -23,6 +23,7 @@ error below 0.05 cm, and the source landmarks following the ICT landmarks under 
 and the blinks (so no landmark sits on the wrong lip or lid).
 """
 
+import argparse
 import sys
 from pathlib import Path
 
@@ -125,5 +126,21 @@ def main(
     )
 
 
+def _parse_args(argv: list[str]) -> argparse.Namespace:
+    """The command line ``[out [target_count [agg]]]``, typed as :func:`main` takes them."""
+    parser = argparse.ArgumentParser(description="Derive ict_cross_rig_fixture.npz.")
+    parser.add_argument(
+        "out", nargs="?", default=str(HERE / "ict_cross_rig_fixture.npz"), help="the .npz to write"
+    )
+    parser.add_argument(
+        "target_count", nargs="?", type=int, default=4000, help="triangles after decimation"
+    )
+    parser.add_argument(
+        "agg", nargs="?", type=float, default=7.0, help="fast-simplification aggressiveness"
+    )
+    return parser.parse_args(argv)
+
+
 if __name__ == "__main__":
-    main(*sys.argv[1:])
+    args = _parse_args(sys.argv[1:])
+    main(args.out, args.target_count, args.agg)

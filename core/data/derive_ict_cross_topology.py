@@ -39,6 +39,7 @@ The script checks what run time relies on: 2,000-3,000 vertices, a single bounda
 face vertex within 0.05 cm of the ICT surface, and the file under 300 KB.
 """
 
+import argparse
 import os
 import sys
 from pathlib import Path
@@ -382,5 +383,24 @@ def main(
     assert size < 300, size
 
 
+def _parse_args(argv: list[str]) -> argparse.Namespace:
+    """The command line ``[out [target_count [agg]]]``, typed as :func:`main` takes them."""
+    parser = argparse.ArgumentParser(description="Derive ict_cross_topology_fixture.npz.")
+    parser.add_argument(
+        "out",
+        nargs="?",
+        default=str(HERE / "ict_cross_topology_fixture.npz"),
+        help="the .npz to write",
+    )
+    parser.add_argument(
+        "target_count", nargs="?", type=int, default=4600, help="triangles after decimation"
+    )
+    parser.add_argument(
+        "agg", nargs="?", type=float, default=7.0, help="fast-simplification aggressiveness"
+    )
+    return parser.parse_args(argv)
+
+
 if __name__ == "__main__":
-    main(*sys.argv[1:])
+    args = _parse_args(sys.argv[1:])
+    main(args.out, args.target_count, args.agg)

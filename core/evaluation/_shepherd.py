@@ -173,7 +173,7 @@ def main(argv: list[str]) -> None:
         os._exit(_NO_WORKER)
     for fd in fds:
         os.close(fd)
-    status = None
+    status: int | None = None
     while status is None:
         if stop["requested"] or os.getppid() != supervisor:
             kill_tree(worker.pid)

@@ -95,8 +95,9 @@ def method_roles(methods, registry=None) -> dict[str, MethodRole]:
     for name in methods:
         info = infos.get(name)
         citation, cls = short_citation(getattr(info, "paper", "") or ""), _class_of(info)
-        if getattr(info, "baseline_of", ()):
-            roles[name] = MethodRole(BASELINE, citation, tuple(info.baseline_of), cls)
+        baseline_of = getattr(info, "baseline_of", ())
+        if baseline_of:
+            roles[name] = MethodRole(BASELINE, citation, tuple(baseline_of), cls)
         elif info is not None and re.search(r"\bbaseline\b", info.summary or "", re.I):
             roles[name] = MethodRole(BASELINE, citation, (), cls)
         elif citation:
@@ -263,7 +264,8 @@ def _reason(result: ComparisonResult, case: str, metric: str) -> str:
 
 def _other_winners(result: ComparisonResult, case: str, metric: str, winner: str) -> str:
     """ "It is also best on a, b; METHOD is best on c." over :data:`CLAUSE_METRICS`."""
-    also, elsewhere = [], {}
+    also: list[str] = []
+    elsewhere: dict[str, list[str]] = {}
     for m in CLAUSE_METRICS:
         if m == metric or m not in result.metrics:
             continue
@@ -287,7 +289,7 @@ def _other_winners(result: ComparisonResult, case: str, metric: str, winner: str
 
 def _needs(cls) -> set[str]:
     needs = getattr(getattr(cls, "capabilities", None), "needs", ()) or ()
-    flat = set()
+    flat: set[str] = set()
     for need in needs:
         flat.update(need if isinstance(need, tuple) else (need,))
     return flat

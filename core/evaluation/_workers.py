@@ -239,6 +239,7 @@ class _Worker:
         preparation = spawn.get_preparation_data("faceretarget-worker")
         preparation.pop("authkey", None)  # not needed: the socket pair is private
         self.conn.send(preparation)
+        self.sentinel: int | None
         try:  # readable once the process has exited, even if a helper holds its pipes (Linux 5.3+)
             self.sentinel = os.pidfd_open(self.pid)
         except (AttributeError, OSError):
@@ -393,6 +394,7 @@ def run_supervised(
                 worker.close()
                 pool.remove(worker)
                 return
+            assert worker.group  # take_group gave it one
             task = worker.group.popleft()
             try:
                 payload = bytes(ForkingPickler.dumps((task.fn, task.args)))
@@ -425,6 +427,7 @@ def run_supervised(
 
     def died(worker: _Worker, now: float) -> None:
         when = "while running it" if worker.started_at else "while loading it"
+        assert worker.task is not None  # a worker in the pool has been sent a task
         outcome = Outcome(
             worker.task.key,
             DIED,
@@ -436,6 +439,7 @@ def run_supervised(
 
     def receive(worker: _Worker, now: float) -> None:
         task = worker.task
+        assert task is not None  # a worker in the pool has been sent a task
         try:
             data = worker.conn.recv_bytes()
         except (EOFError, OSError):
@@ -477,6 +481,8 @@ def run_supervised(
 
     def overran(worker: _Worker, now: float) -> None:
         task = worker.task
+        # only a task with a time limit overruns (its worker's deadline() is inf otherwise)
+        assert task is not None and task.timeout is not None
         if worker.started_at:
             note = f"did not finish within its time limit of {task.timeout:g} s"
         else:

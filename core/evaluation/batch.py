@@ -214,7 +214,8 @@ def load_manifest(path, *, registry=None) -> list[Job]:
             )
     if not entries:
         raise ConfigError(f"manifest {path}: no [[job]] entries")
-    jobs, outs = [], {}
+    jobs: list[Job] = []
+    outs: dict[str, str] = {}
     for i, entry in enumerate(entries):
         where = f"manifest {path.name}, job #{i + 1}"
         merged = {
@@ -457,7 +458,13 @@ def run_job(job: Job) -> JobResult:
 # Executors
 # ---------------------------------------------------------------------------------------
 def _job_timeout(job: Job, default: float | None) -> float | None:
-    return default if job.timeout == RUN_DEFAULT else job.timeout
+    if job.timeout == RUN_DEFAULT:
+        return default
+    if isinstance(job.timeout, str):  # only RUN_DEFAULT is text
+        raise ConfigError(
+            f"{_who(job)}: timeout must be seconds, None or RUN_DEFAULT, got {job.timeout!r}"
+        )
+    return job.timeout
 
 
 def _failed_run(job: Job, outcome) -> JobResult:
@@ -566,6 +573,7 @@ def _run_dask(
         futures = {}
         for i, job in enumerate(jobs):
             limit = _job_timeout(job, timeout)
+            call: tuple[Any, ...]
             if limit is None:
                 call = (run_job, job)
             else:  # the job goes on to a worker process (with dask_processes, run_batch made it portable already)

@@ -136,7 +136,7 @@ def case_name(case, index: int) -> str:
 @dataclass(frozen=True)
 class _Method:
     name: str
-    cls: type
+    cls: type[Retargeter]
     plugin: str
     distribution: str
     version: str
@@ -510,7 +510,7 @@ def _metric_rows(run: Run, case, metrics: Mapping[str, Metric]) -> list[dict]:
         for name, metric in metrics.items():
             add(name, None, metric, run.status, run.reason)
         return rows
-    context = {
+    context: dict[str, Any] = {
         "fit_s": run.fit_s,
         "retarget_s": run.retarget_s,
         "total_s": (run.fit_s or 0.0) + (run.retarget_s or 0.0),
@@ -677,6 +677,7 @@ def _isolated(
         )
         _failed(run, outcome.error(), m, "run" if outcome.started else "hand-over to a worker")
         if isinstance(outcome.value, str):
+            assert run.error is not None  # _failed recorded it
             run.error["traceback"] = outcome.value
         on_run(run)
 
@@ -748,16 +749,16 @@ def compare(
     from .. import config
 
     timeout = config.check_timeout(timeout, "compare: timeout")
-    named = (
+    named_cases = (
         list(cases.items())
         if isinstance(cases, Mapping)
         else [(None, c) for c in (DEFAULT_CASES if cases is None else cases)]
     )
-    if not named:
+    if not named_cases:
         raise ConfigError("compare: no cases given")
     resolved: dict[str, Any] = {}
     refs: dict[str, Any] = {}
-    for i, (given, spec) in enumerate(named):
+    for i, (given, spec) in enumerate(named_cases):
         case = resolve_case(spec)
         name = given or (spec if isinstance(spec, str) else case_name(case, i))
         base, k = name, 2

@@ -191,7 +191,7 @@ def feature_groups(
     Returns ``{"mouth" | "eye_left" | "eye_right" | "eye": (upper ids, lower ids)}`` for
     the groups found (see the module docstring for the naming rules).
     """
-    members: dict[str, dict[str, list[np.ndarray]]] = {}
+    members: dict[str, dict[str, list[tuple[str, np.ndarray]]]] = {}
     for name, chain in feature_lines.items():
         low = name.lower()
         if "lip" in low or "mouth" in low:
@@ -247,6 +247,9 @@ def opening(vertices: np.ndarray, pairs: tuple[np.ndarray, np.ndarray]) -> np.nd
     """(F,) mean over pairs of ``||x_u - x_l(u)||`` for ``vertices : (F, V, 3)``."""
     u, l = pairs
     return np.linalg.norm(vertices[:, u] - vertices[:, l], axis=-1).mean(axis=1)
+
+
+_NO_UPPER_FACE = "cannot find the upper face: the target needs eye and mouth feature lines"
 
 
 def upper_face_vertices(
@@ -455,7 +458,7 @@ def _needs_upper_face(animation, case):
     neutral = np.asarray(case.target.neutral.vertices)
     upper = upper_face_vertices(_groups(case), neutral)
     if upper is None or upper.size == 0:
-        return "cannot find the upper face: the target needs eye and mouth feature lines"
+        return _NO_UPPER_FACE
     return None
 
 
@@ -572,10 +575,21 @@ def _motion_std(
     return (mag if squared else np.sqrt(mag)).std(axis=0)
 
 
+def _upper_face(v: _Views, neutral: np.ndarray) -> np.ndarray:
+    """The upper-face vertex ids of ``v``'s target (:func:`_needs_upper_face` keeps cases
+    without them away from the metrics that use this)."""
+    ids = upper_face_vertices(_groups(v.case), neutral)
+    if ids is None:
+        from ..errors import InputError
+
+        raise InputError(_NO_UPPER_FACE)
+    return ids
+
+
 def fdd(v: _Views):
     """Upper-face dynamics deviation as in the speech-driven literature (CodeTalker, Xing et al. 2023): for each upper-face vertex, the std over time of its squared displacement magnitude ||x_t - x_neutral||^2 (head frame); the mean of it over the upper face for Y minus the same for X, in (% of H)^2. Signed: > 0 means the result's upper face moves less than the truth's."""
     neutral = np.asarray(v.target.neutral.vertices, dtype=np.float64)
-    ids = upper_face_vertices(_groups(v.case), neutral)
+    ids = _upper_face(v, neutral)
     sy = _motion_std(v.Y_local, neutral, ids, squared=True).mean()
     sx = _motion_std(v.X_local, neutral, ids, squared=True).mean()
     return float((sy - sx) * (100.0 / v.height) ** 2)
@@ -584,7 +598,7 @@ def fdd(v: _Views):
 def fdd_abs(v: _Views):
     """Upper-face dynamics deviation, absolute variant: for each upper-face vertex the std over time of its displacement magnitude ||x_t - x_neutral|| (head frame, not squared), the absolute difference between Y and X per vertex, averaged over the upper face, in % of H."""
     neutral = np.asarray(v.target.neutral.vertices, dtype=np.float64)
-    ids = upper_face_vertices(_groups(v.case), neutral)
+    ids = _upper_face(v, neutral)
     diff = _motion_std(v.Y_local, neutral, ids, squared=False) - _motion_std(
         v.X_local, neutral, ids, squared=False
     )

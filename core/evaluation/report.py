@@ -87,8 +87,8 @@ _PALETTE = (
 @dataclass
 class Series:
     name: str
-    x: Sequence[float]
-    y: Sequence[float]
+    x: Sequence[float] | np.ndarray
+    y: Sequence[float] | np.ndarray
     dashed: bool = False
     color: str | None = None
 
@@ -513,6 +513,7 @@ def _case_view(
         reference = truth_v
     heat = []
     for run in runs:
+        assert run.animation is not None  # runs keeps those with one
         verts = np.asarray(run.animation.vertices, dtype=np.float64)
         seqs.append(
             {
@@ -544,7 +545,7 @@ def _case_view(
         del h["values"]
     keys = []
     if truth is not None:
-        keys = _key_frames(to_head_frame(reference, truth.head_motion), neutral, frames)
+        keys = _key_frames(to_head_frame(truth_v, truth.head_motion), neutral, frames)
     return {
         "name": cname,
         "frames": frames.tolist(),
@@ -589,19 +590,23 @@ def _weight_plots(result: ComparisonResult, cname: str, case) -> list[Plot]:
         and r.animation.weights is not None
     ]
     truth = getattr(case, "truth", None)
-    has_truth = truth is not None and truth.weights is not None
-    if not runs and not has_truth:
+    if truth is not None and truth.weights is None:
+        truth = None  # no weight curves to show
+    has_truth = truth is not None
+    if not runs and truth is None:
         return []
-    if has_truth:
+    if truth is not None:
         names, w = list(truth.weight_names), np.asarray(truth.weights)
     else:
-        names, w = list(runs[0].animation.weight_names), np.asarray(runs[0].animation.weights)
+        first = runs[0].animation
+        assert first is not None  # runs keeps those with one
+        names, w = list(first.weight_names), np.asarray(first.weights)
     chosen = [names[i] for i in np.argsort(-w.var(axis=0))[:MAX_WEIGHT_PANELS]]
     plots = []
     frames = np.arange(case.source.n_frames)
     for shape in chosen:
         plot = Plot(f"{cname}: {shape}", xlabel="frame", ylabel="weight")
-        if has_truth:
+        if truth is not None:
             plot.series.append(
                 Series(
                     "ground truth",
@@ -612,6 +617,7 @@ def _weight_plots(result: ComparisonResult, cname: str, case) -> list[Plot]:
                 )
             )
         for i, run in enumerate(runs):
+            assert run.animation is not None  # runs keeps those with one
             if shape in run.animation.weight_names:
                 col = run.animation.weight_names.index(shape)
                 plot.series.append(
@@ -986,7 +992,7 @@ def _case_section(
     esc = html.escape
     present = {r["metric"] for r in result.rows if r["case"] == cname}
     cols = [m for m in SUMMARY_METRICS if m in present]
-    if rank_by in present and rank_by not in cols:
+    if rank_by is not None and rank_by in present and rank_by not in cols:
         cols.insert(0, rank_by)
     regions = sorted(m for m in present if m.startswith("vertex_error_region["))
     others = [

@@ -48,7 +48,7 @@ def fit_rigid(
             f"fit_rigid: reference (N, D) and frames (F, N, D) must agree, got {ref.shape} and {frm.shape}"
         )
     n_frames, n_points, dim = frm.shape
-    valid = ~np.isnan(frm).any(axis=-1)
+    valid = ~np.any(np.isnan(frm), axis=-1)
     w = (
         np.ones((n_frames, n_points))
         if weights is None

@@ -126,7 +126,20 @@ class BVH:
         )
 
     @property
-    def arrays(self) -> tuple:
+    def arrays(
+        self,
+    ) -> tuple[
+        np.ndarray,
+        np.ndarray,
+        np.ndarray,
+        np.ndarray,
+        np.ndarray,
+        np.ndarray,
+        np.ndarray,
+        np.ndarray,
+        np.ndarray,
+    ]:
+        """The hierarchy as the kernels take it (the leading arguments of each)."""
         return (
             self.node_lo,
             self.node_hi,

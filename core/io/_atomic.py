@@ -43,7 +43,9 @@ from ..errors import OutputError
 try:
     import fcntl
 except ImportError:  # pragma: no cover - not on Windows
-    fcntl = None
+    _HAS_FCNTL = False
+else:
+    _HAS_FCNTL = True
 
 __all__ = [
     "note_input",
@@ -174,7 +176,7 @@ def temp_owner(name: str) -> tuple[str, list[int], str] | None:
     batch runs) are unwrapped to the final destination; ``tag`` is ``.frtmp`` or
     ``.frold`` of the outermost name."""
     pids: list[int] = []
-    tag = None
+    tag: str | None = None
     for _ in range(8):
         m = _TEMP_NAME.match(name) or _LEGACY_NAME.match(name)
         if m is None:
@@ -183,7 +185,7 @@ def temp_owner(name: str) -> tuple[str, list[int], str] | None:
         if tag is None:
             tag = m.groupdict().get("tag") or _TMP_SUFFIX
         name = m.group("name")
-    if not pids:
+    if tag is None:  # no name matched (else the first match set it)
         return None
     return name, pids, tag
 
@@ -238,7 +240,7 @@ def _stale(entry: Path, pids: list[int], tag: str) -> bool:
     if not any(_pid_alive(p) for p in pids):
         return True
     own_scheme = _TEMP_NAME.match(entry.name) is not None and len(pids) == 1 and tag == _TMP_SUFFIX
-    return own_scheme and pids[0] != os.getpid() and fcntl is not None and not _locked(entry)
+    return own_scheme and pids[0] != os.getpid() and _HAS_FCNTL and not _locked(entry)
 
 
 def leftovers(folder, dest_name: str | None = None) -> list[Path]:
@@ -314,7 +316,7 @@ def _create_locked(dest: Path, *, folder: bool) -> tuple[Path, int]:
         raise OutputError(
             f"{dest}: cannot create a {what} in {dest.parent} ({exc.strerror or exc}); check the folder's permissions"
         ) from None
-    if fcntl is not None:
+    if _HAS_FCNTL:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -569,9 +571,13 @@ def _typed_os_errors(dest: Path) -> Iterator[None]:
 
 def write_file_synced(path: Path, data: bytes | str) -> None:
     """Write and fsync one file inside an :func:`atomic_dir` temporary folder."""
-    mode = "w" if isinstance(data, str) else "wb"
-    kwargs = {"encoding": "utf-8", "newline": "\n"} if isinstance(data, str) else {}
-    with open(path, mode, **kwargs) as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
+    if isinstance(data, str):
+        with open(path, "w", encoding="utf-8", newline="\n") as text:
+            text.write(data)
+            text.flush()
+            os.fsync(text.fileno())
+    else:
+        with open(path, "wb") as binary:
+            binary.write(data)
+            binary.flush()
+            os.fsync(binary.fileno())

@@ -245,9 +245,9 @@ class _Arrays:
         return str(value) if value.ndim == 0 else [str(v) for v in value.tolist()]
 
     def scalar(self, key: str, default: Any = ...) -> float:
-        value = self.get(key, default)
-        if value is default and default is not ...:
+        if key not in self.arrays and default is not ...:
             return default
+        value = self.get(key)
         if value.size != 1 or value.dtype.kind not in "iuf":
             raise bad(self.path, f"array {key!r} must be one number")
         return float(value.reshape(()))
@@ -400,7 +400,8 @@ def write_npz(
     arrays["format"] = np.array(PREFIX + kind)
     arrays["version"] = np.array(VERSION)
     with atomic_file(path, inputs=inputs, force=force) as fh:
-        (np.savez_compressed if compress else np.savez)(fh, **arrays)
+        # numpy's stubs read **arrays as possibly filling savez's allow_pickle keyword
+        (np.savez_compressed if compress else np.savez)(fh, **arrays)  # type: ignore[arg-type]
 
 
 def npz_type(arrays: dict[str, np.ndarray], path) -> str | None:

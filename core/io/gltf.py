@@ -36,7 +36,7 @@ import math
 import os
 import struct
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 
@@ -334,7 +334,7 @@ class _Doc:
         else:
             raise self.fail(f"{where}: primitive mode {mode} (points or lines) is not a surface")
         targets_raw = self.get(prim, "targets", list, where, [])
-        targets = []
+        targets: list[np.ndarray | None] = []
         for t, target in enumerate(targets_raw):
             tw = f"{where}.targets[{t}]"
             if not isinstance(target, dict):
@@ -644,7 +644,7 @@ def _instances(doc: _Doc) -> list[tuple[int, int, np.ndarray]]:
         scene = doc.item("scenes", scene_index, "the file's 'scene'")
         roots = doc.get(scene, "nodes", list, f"scenes[{scene_index}]", [])
     else:
-        children = set()
+        children: set[int] = set()
         for i in range(n_nodes):
             kids = doc.item("nodes", i, "the file").get("children", [])
             children.update(k for k in kids if isinstance(k, int)) if isinstance(
@@ -670,6 +670,14 @@ def _instances(doc: _Doc) -> list[tuple[int, int, np.ndarray]]:
     return out
 
 
+@overload
+def _transform(
+    world: np.ndarray, vertices: np.ndarray, deltas: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]: ...
+@overload
+def _transform(
+    world: np.ndarray, vertices: np.ndarray, deltas: None
+) -> tuple[np.ndarray, None]: ...
 def _transform(
     world: np.ndarray, vertices: np.ndarray, deltas: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -1084,6 +1092,7 @@ def read_gltf_sequence(path: Path, *, mesh=None, fps=None, **options) -> MeshSeq
     """The animation of a glTF file as a :class:`MeshSequence` (world vertices per frame)."""
     anim = _animation_from(_load(path), mesh, fps)
     if anim.is_blendshape_based:  # the per-frame vertices are computed here: size them first
+        assert anim.rig is not None  # is_blendshape_based
         check_budget(
             path,
             float(anim.n_frames) * anim.rig.neutral.n_vertices * 3 * 8.0 * 2,
@@ -1187,7 +1196,7 @@ def _rig_mesh(b: _Builder, rig: BlendshapeRig, name: str) -> dict:
     prim["targets"] = [
         {"POSITION": b.accessor(d, "VEC3", target=ARRAY_BUFFER, minmax=True)} for d in rig.deltas
     ]
-    mesh = {
+    mesh: dict[str, Any] = {
         "name": name,
         "primitives": [prim],
         "weights": [0.0] * rig.n_shapes,
@@ -1241,6 +1250,7 @@ def glb_document(obj, *, name: str = "faceretarget") -> tuple[dict, bytes]:
         exact: dict[str, Any] = {}
         times = _frame_times(obj.n_frames, obj.fps)
         if obj.is_blendshape_based:
+            assert obj.rig is not None and obj.weights is not None  # is_blendshape_based
             info["layout"] = "morph"
             meshes.append(_rig_mesh(b, obj.rig, name))
             nodes.append({"name": name, "mesh": 0})

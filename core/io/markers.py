@@ -18,6 +18,7 @@ import re
 import struct
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -191,7 +192,7 @@ def _slow_block(
 ):
     """The row-by-row parser of :func:`csv_table` for one chunk; errors name the row and column."""
     block = np.empty((len(lines), len(header)))
-    texts = {c: [] for c in text_cols}
+    texts: dict[int, list[str]] = {c: [] for c in text_cols}
     reader = csv.reader((_decode_line(ln, False) for ln in lines), delimiter=delimiter)
     for r, row in enumerate(reader):
         if len(row) != len(header):
@@ -240,7 +241,7 @@ def csv_table(path: Path, pick, *, text_cols=lambda header: ()):
             f"{n_rows} rows of {len(wanted)} numbers",
         )
         numeric = np.empty((n_rows, len(wanted)))
-        texts = {c: [] for c in texts_wanted}
+        texts: dict[int, list[str]] = {c: [] for c in texts_wanted}
         fh.seek(start)
         r = 0
         for chunk in iter_chunks(fh, CHUNK_BYTES):
@@ -303,7 +304,7 @@ def csv_kind(path: Path) -> str | None:
 @guarded_reader
 def read_marker_csv(path: Path, *, fps=None, reference=None, **options) -> MarkerSequence:
     """Markers from a CSV with ``NAME_x, NAME_y, NAME_z`` columns (empty cell = missing)."""
-    found = {}
+    found: dict[str, Any] = {}
 
     def pick(header):
         cols = _marker_columns(header)

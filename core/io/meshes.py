@@ -17,6 +17,7 @@ import os
 import re
 import struct
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -743,12 +744,12 @@ def _ply_binary(data: bytes, pos: int, elements: list[dict], order: str, path) -
             if pos + csize > len(data):
                 raise bad(path, f"truncated inside element {el['name']!r}")
             k = int(np.frombuffer(data, dtype=order + ctype, count=1, offset=pos)[0])
-            dtype = np.dtype([("n", order + ctype), ("i", order + itype, (k,))]) if k > 0 else None
-            if dtype is not None and pos + dtype.itemsize * count <= len(data):
-                arr = np.frombuffer(data, dtype=dtype, count=count, offset=pos)
+            lists = np.dtype([("n", order + ctype), ("i", order + itype, (k,))]) if k > 0 else None
+            if lists is not None and pos + lists.itemsize * count <= len(data):
+                arr = np.frombuffer(data, dtype=lists, count=count, offset=pos)
                 if np.all(arr["n"] == k):
                     out[el["name"]] = {name: arr["i"]}
-                    pos += dtype.itemsize * count
+                    pos += lists.itemsize * count
                     parsed = True
         if parsed:
             continue
@@ -785,7 +786,7 @@ def _ply_row(path, el: dict, row_id: int, row: bytes) -> dict:
     """One ASCII PLY row of element ``el``: property name -> token (or list of tokens)."""
     tokens = row.split()
     pos = 0
-    out = {}
+    out: dict[str, Any] = {}
     for name, ctype, _itype in el["props"]:
         if pos >= len(tokens):
             raise bad(path, f"element {el['name']!r} row {row_id}: too few values")
@@ -810,7 +811,8 @@ def _ply_ascii(
     path, rows: TextRows, elements: list[dict], el_v: dict, el_f: dict, fprop: str
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """(vertices, triangles, faces) of an ASCII PLY body, streamed chunk by chunk."""
-    vertices = triangles = None
+    vertices: np.ndarray | None = None
+    triangles: np.ndarray | None = None
     n_faces = 0
     for el in elements:
         count = el["count"]
@@ -839,7 +841,7 @@ def _ply_ascii(
         names = [p[0] for p in el["props"]]
         simple = all(p[1] is None for p in el["props"])
         if el is el_v:
-            vertices = np.empty((count, 3))
+            vertices = out_v = np.empty((count, 3))
             cols = [names.index(c) for c in "xyz"]
         done = 0
         while done < count:
@@ -856,9 +858,9 @@ def _ply_ascii(
                             values[k] = [float(found[c]) for c in "xyz"]
                         except (TypeError, ValueError):
                             raise bad(path, "a vertex coordinate is not a number") from None
-                    vertices[done : done + len(block)] = values
+                    out_v[done : done + len(block)] = values
                 else:
-                    vertices[done : done + len(block)] = values[:, cols]
+                    out_v[done : done + len(block)] = values[:, cols]
                 del values
             else:
                 for k, row in enumerate(block):  # other elements: checked, not kept
@@ -869,6 +871,7 @@ def _ply_ascii(
             raise bad(
                 path, f"truncated: element {el['name']!r} declares {count} rows, found {done}"
             )
+    assert vertices is not None and triangles is not None  # el_v, el_f are among elements
     return vertices, triangles, n_faces
 
 

@@ -136,10 +136,10 @@ def read_landmarks(spec, *, key: str | None = None):
             k = key or "landmarks"
             if k not in arrays:
                 raise bad(path, f"has no array {k!r}; arrays: {sorted(arrays)[:20]}")
-            names = arrays.get(f"{k}_names")
+            stored_names = arrays.get(f"{k}_names")
             return Landmarks(
                 arrays[k].astype("int64") if arrays[k].dtype.kind in "iu" else arrays[k],
-                names=None if names is None else names.tolist(),
+                names=None if stored_names is None else stored_names.tolist(),
             )
         raw = read_text(path, factor=TEXT_TOKEN_FACTOR)
         if suffix == ".json":
@@ -167,7 +167,8 @@ def read_landmarks(spec, *, key: str | None = None):
                 path,
                 "expected a list of vertex ids, {vertex_ids, names}, {triangle_ids, barycentric, names} or {name: id}",
             )
-        ids, names = [], []
+        ids: list[int] = []
+        names: list[str] = []
         for lineno, line in enumerate(raw.splitlines(), 1):
             parts = line.split("#", 1)[0].replace(",", " ").split()
             if not parts:

@@ -35,6 +35,7 @@ import csv
 import io
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -140,7 +141,7 @@ def _fps_from_timecodes(codes: list[tuple[int, float]]) -> float:
 def read_weights_csv(path: Path, *, fps=None, **options) -> WeightSequence:
     """Weight curves from a CSV (Live Link Face or ``frame, time, name...`` layouts)."""
     meta = {"timecode", "blendshapecount", "frame", "frame#", "time", "timestamp"}
-    layout = {}
+    layout: dict[str, Any] = {}
 
     def pick(header):
         lower = [h.lower() for h in header]
@@ -270,8 +271,13 @@ def write_weights_csv(
             raise InputError(
                 f"weights CSV: head_motion has shape {head.shape}; expected ({n_frames}, 4, 4) for {n_frames} frames"
             )
-        stored = [channels.get(h) for h in LIVE_LINK_EXTRA[:3]]
-        same = all(c is not None for c in stored) and np.array_equal(_rotation(*stored), head)
+        yaw, pitch, roll = (channels.get(h) for h in LIVE_LINK_EXTRA[:3])
+        same = (
+            yaw is not None
+            and pitch is not None
+            and roll is not None
+            and np.array_equal(_rotation(yaw, pitch, roll), head)
+        )
         if (
             not same
         ):  # the head moved since it was read (or was never a column): write what it is now

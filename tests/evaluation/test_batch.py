@@ -229,13 +229,14 @@ def test_dask_batch_killed_halfway_resumes_only_missing_jobs(tmp_path, fake_regi
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and proc.poll() is None:
-            if out.is_dir() and len(list(out.glob("*.fnpz"))) >= 6:
+            # finished outputs only: a killed write leaves ".shotNN.fnpz.<pid>...frtmp.fnpz"
+            if out.is_dir() and len(list(out.glob("shot*.fnpz"))) >= 6:
                 break
             time.sleep(0.05)
     finally:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-    finished = {p.name: p.stat().st_mtime_ns for p in out.glob("*.fnpz")}
+    finished = {p.name: p.stat().st_mtime_ns for p in out.glob("shot*.fnpz")}
     assert 6 <= len(finished) < count, f"{len(finished)} outputs when killed"
     for name in finished:
         assert np.load(out / name)["vertices"].shape[0] == 4  # complete files
@@ -251,7 +252,7 @@ def test_dask_batch_killed_halfway_resumes_only_missing_jobs(tmp_path, fake_regi
     done = {Path(r.out).name for r in summary.results if r.status == "done"}
     assert skipped == set(finished) and len(done) == count - len(finished) and not summary.failed
     assert {
-        p.name: p.stat().st_mtime_ns for p in out.glob("*.fnpz") if p.name in finished
+        p.name: p.stat().st_mtime_ns for p in out.glob("shot*.fnpz") if p.name in finished
     } == finished  # untouched
     assert sorted(p.name for p in out.iterdir()) == [
         f"shot{i:02d}.fnpz" for i in range(count)

@@ -386,6 +386,27 @@ def test_a_plugin_slow_to_import_is_skipped_and_named(slow_site, monkeypatch, ca
     )
 
 
+def test_no_import_time_limit_loads_third_party_plugins(tmp_path, monkeypatch):
+    """FACERETARGET_IMPORT_TIMEOUT=0 means no limit: a third-party plugin still loads (the
+    message for a stuck plugin was once built from the limit even when there was none, and
+    every third-party plugin failed with a TypeError)."""
+    info = tmp_path / "quickplugins-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: quickplugins\nVersion: 1.0\n")
+    (tmp_path / "qp_quick.py").write_text(
+        textwrap.dedent(plugin_module("bp_good").replace("bp_good", "qp_quick"))
+    )
+    (info / "entry_points.txt").write_text("[faceretarget]\nqp_quick = qp_quick\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delenv("FACERETARGET_DISABLE_PLUGINS", raising=False)
+    monkeypatch.setenv("FACERETARGET_PLUGINS", "quickplugins")
+    monkeypatch.setenv("FACERETARGET_IMPORT_TIMEOUT", "0")
+    importlib.invalidate_caches()
+    loaded = Registry().load()
+    assert loaded.failures == []
+    assert "qp_quick" in loaded.retargeters
+
+
 def test_dask_batch_stops_a_slow_job(reg, bundles, tmp_path):
     """On Dask (daemonic worker processes) a job with a limit runs in a child process of its own."""
     pytest.importorskip("distributed")
