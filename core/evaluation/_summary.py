@@ -35,21 +35,6 @@ DEFAULT_RANKING_METRIC = "vertex_error_rms"
 
 PAPER, BASELINE, OTHER = "paper method", "baseline", "other"
 
-#: Metrics named in the "also best on" clause, in this order (accuracy and motion fidelity).
-CLAUSE_METRICS = (
-    "vertex_error_rms",
-    "vertex_error_max",
-    "marker_error_mean",
-    "velocity_error",
-    "acceleration_error",
-    "lip_closure_error",
-    "eyelid_closure_error",
-    "lve",
-    "fdd_abs",
-    "detail_error",
-    "detail_correlation",
-)
-
 
 @dataclass(frozen=True)
 class MethodRole:
@@ -263,10 +248,13 @@ def _reason(result: ComparisonResult, case: str, metric: str) -> str:
 
 
 def _other_winners(result: ComparisonResult, case: str, metric: str, winner: str) -> str:
-    """ "It is also best on a, b; METHOD is best on c." over :data:`CLAUSE_METRICS`."""
+    """ "It is also best on a, b; METHOD is best on c." over the ranked metrics
+    (:data:`faceretarget.evaluation.metrics.RANKED_METRICS`, in their order)."""
+    from .metrics import RANKED_METRICS
+
     also: list[str] = []
     elsewhere: dict[str, list[str]] = {}
-    for m in CLAUSE_METRICS:
+    for m in RANKED_METRICS:
         if m == metric or m not in result.metrics:
             continue
         values = _values(result, case, m)
