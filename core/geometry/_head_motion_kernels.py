@@ -91,18 +91,3 @@ def gauss_newton(
             if big <= tol and move <= tol * size:
                 iterations[f] = it + 1
                 break
-
-
-@nb.njit(cache=True)
-def local_residual(markers, rot, trans, reference, out):
-    """``out[f, i] = R_f^T (x_fi - t_f) - n_i`` (the markers in the head frame, minus the neutral)."""
-    n_frames, n_markers = markers.shape[0], markers.shape[1]
-    for f in range(n_frames):
-        r = rot[f]
-        t0, t1, t2 = trans[f, 0], trans[f, 1], trans[f, 2]
-        for i in range(n_markers):
-            d0 = markers[f, i, 0] - t0
-            d1 = markers[f, i, 1] - t1
-            d2 = markers[f, i, 2] - t2
-            for k in range(3):
-                out[f, i, k] = r[0, k] * d0 + r[1, k] * d1 + r[2, k] * d2 - reference[i, k]

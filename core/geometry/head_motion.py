@@ -457,12 +457,9 @@ def _gains(patterns, w, gen, basis, ridge):
 def _local_residual(
     x0: np.ndarray, rot: np.ndarray, trans: np.ndarray, ref: np.ndarray
 ) -> np.ndarray:
-    """``R^T (x - t) - n`` per frame and marker ``(F, N, 3)`` (numba kernel: one pass)."""
-    from ._head_motion_kernels import local_residual
-
-    out = np.empty(x0.shape)
-    local_residual(x0, rot, trans, ref, out)
-    return out
+    """``R^T (x - t) - n`` per frame and marker ``(F, N, 3)`` (one pass of
+    :func:`procrustes.remove`'s kernel)."""
+    return procrustes.remove(procrustes.to_matrix(rot, trans), x0, ref)
 
 
 def _moments(gains, which, x0, ref):
