@@ -64,7 +64,7 @@ def modal_sweep(s, bphi, pbphi, beta, c0, lam, known, phi_t, z, y, scratch):
     if beta != 0.0:
         np.dot(s, pbphi, y)
     laplacian_rhs(z, y, beta, c0, known, y)  # y: P B Phi projection in, right-hand side out
-    tridiagonal_modes(y, lam, known, scratch, y, scratch)
+    tridiagonal_modes(y, lam, known, scratch, y, z)  # z is free again: it takes the factor
     np.dot(y, phi_t, z)
 
 
@@ -97,35 +97,72 @@ def laplacian_rhs(z, zpos, beta, c0, known, out):
 
 
 @nb.njit(cache=True)
-def tridiagonal_modes(r, lam, known, yk, y, scratch):
-    """Solve ``((1 - lam_j) L + lam_j I) y_j = r_j`` for every mode j by one Thomas sweep.
+def thomas_factor(lam, known, inv):
+    """Factor ``((1 - lam_j) L + lam_j I)`` for every mode j (Thomas algorithm, forward part).
 
-    Rows of known frames are the identity (``y_t = yk_t``). ``y`` may alias ``r`` and ``yk``
-    may alias ``scratch`` (a known row is read before its scratch entry is written).
+    ``inv[t, j]`` receives ``1 / d_t`` for the pivots ``d_t = b_t - g_j^2 / d_{t-1}``
+    (``g_j = 1 - lam_j``, ``b_t = g_j deg_t + lam_j``); rows of known frames are the identity
+    and get 0, so they cut the recurrence. Depends on ``lam`` and ``known`` only: ADMM factors
+    once per step size and then runs :func:`thomas_apply` every iteration, without divisions.
+    """
+    n_frames, m = inv.shape
+    for t in range(n_frames):
+        if known[t]:
+            for j in range(m):
+                inv[t, j] = 0.0
+            continue
+        has_prev = t > 0
+        deg = (1.0 if has_prev else 0.0) + (1.0 if t < n_frames - 1 else 0.0)
+        for j in range(m):
+            g = 1.0 - lam[j]
+            pivot = g * deg + lam[j]
+            if has_prev:
+                pivot -= g * g * inv[t - 1, j]
+            inv[t, j] = 1.0 / pivot
+
+
+@nb.njit(cache=True)
+def thomas_apply(r, r2, lam, known, yk, inv, y):
+    """Solve with the factor of :func:`thomas_factor`: ``y_j = ((1 - lam_j) L + lam_j I)^-1 (r + r2)_j``.
+
+    ``r2`` is a second right-hand side added on the fly (an empty (0, m) array for none).
+    Rows of known frames are ``y_t = yk_t``; their neighbours see the known value on the
+    right-hand side. ``y`` may alias ``r``; ``yk`` must not alias ``inv``.
     """
     n_frames, m = r.shape
+    add = r2.shape[0] > 0
     for t in range(n_frames):
         if known[t]:
             for j in range(m):
                 y[t, j] = yk[t, j]
-                scratch[t, j] = 0.0
             continue
-        has_prev = t > 0
-        has_next = t < n_frames - 1
-        deg = (1.0 if has_prev else 0.0) + (1.0 if has_next else 0.0)
-        for j in range(m):
-            g = 1.0 - lam[j]
-            diag = g * deg + lam[j]
-            if has_prev:
-                denom = diag + g * scratch[t - 1, j]
-                y[t, j] = (r[t, j] + g * y[t - 1, j]) / denom
-            else:
-                denom = diag
-                y[t, j] = r[t, j] / denom
-            scratch[t, j] = (-g / denom) if has_next else 0.0
+        if add:
+            for j in range(m):
+                y[t, j] = r[t, j] + r2[t, j]
+        else:
+            for j in range(m):
+                y[t, j] = r[t, j]
+        if t > 0:
+            for j in range(m):
+                y[t, j] = (y[t, j] + (1.0 - lam[j]) * y[t - 1, j]) * inv[t, j]
+        else:
+            for j in range(m):
+                y[t, j] *= inv[t, j]
     for t in range(n_frames - 2, -1, -1):
-        for j in range(m):
-            y[t, j] -= scratch[t, j] * y[t + 1, j]
+        if not known[t]:
+            for j in range(m):
+                y[t, j] += (1.0 - lam[j]) * inv[t, j] * y[t + 1, j]
+
+
+@nb.njit(cache=True)
+def tridiagonal_modes(r, lam, known, yk, y, scratch):
+    """Solve ``((1 - lam_j) L + lam_j I) y_j = r_j`` for every mode j by one Thomas sweep.
+
+    Rows of known frames are the identity (``y_t = yk_t``). ``y`` may alias ``r``; ``scratch``
+    (F, m) receives the factor and must not alias ``yk``.
+    """
+    thomas_factor(lam, known, scratch)
+    thomas_apply(r, r[:0], lam, known, yk, scratch, y)
 
 
 @nb.njit(cache=True)
@@ -144,14 +181,15 @@ def admm_box(
     l1,
     z,
     u,
-    w,
     max_iter,
     eps_abs,
     eps_rel,
     dual_unit,
+    w,
     ex,
     y,
-    scratch,
+    sweep,
+    inv,
 ):
     """ADMM for movement matching with box bounds and an L1 term on the weights.
 
@@ -160,18 +198,23 @@ def admm_box(
     ``w = z`` with the penalty ``rho/2 ||D^1/2 (w - z + u)||^2`` (``D = diag(scale)``): the w-step
     solves ``(H + rho I kron D) w = r + rho D (z - u)``, which keeps the Kronecker structure
     (``phi``/``lam`` are the generalized eigenpairs of ``(K + rho D, G + K + rho D)``), so it is one
-    tridiagonal sweep per mode; the z-step is the prox of the box + L1 term,
-    ``clip(soft(v, l1_j / (rho d_j)), lo_j, hi_j)``, element by element (Boyd et al. 2011, sec. 5-6, with
-    over-relaxation ``relax``).
+    tridiagonal sweep per mode, factored once (:func:`thomas_factor`); the z-step is the prox of
+    the box + L1 term, ``clip(soft(v, l1_j / (rho d_j)), lo_j, hi_j)``, element by element (Boyd
+    et al. 2011, sec. 5-6, with over-relaxation ``relax``).
+
+    The two changes of basis of the w-step, ``(F, m) x (m, m)`` products and most of an
+    iteration's time, run in the dtype of ``phi`` (float32 by default, ``solver.ADMM_SINGLE``: twice
+    the float64 speed): an inexact w-step whose relative error, about 1e-6, is far below the
+    stopping tolerance. The sweep, the prox, the iterates ``z``, ``u`` and the residuals are float64.
 
     scale, l1, lo, hi : (m,) the penalty's diagonal ``D``, per-shape L1 weights and bounds.
     r0 : (F, m) modal right-hand side ``Phi^T r`` of the unknown frames; known frames keep
-    ``yk`` (modal) and their ``z`` rows. ``z``, ``u`` (scaled dual) and ``w`` are updated in place;
-    ``ex``, ``y``, ``scratch`` are (F, m) work arrays. The dual residual has the units of the
-    system's matrices: its absolute tolerance is ``eps_abs * dual_unit`` (a typical diagonal
-    entry), so the iterations do not depend on the length unit of the data. Returns ``(iterations, primal, dual,
-    eps_primal, eps_dual)`` of the last iteration; iterations is negative if the tolerance was
-    not reached within ``max_iter``.
+    ``yk`` (modal) and their ``z`` rows. ``z``, ``u`` (scaled dual) are updated in place;
+    ``w``, ``ex``, ``y`` (the dtype of ``phi``) and ``sweep``, ``inv`` (float64) are (F, m) work arrays. The
+    dual residual has the units of the system's matrices: its absolute tolerance is
+    ``eps_abs * dual_unit`` (a typical diagonal entry), so the iterations do not depend on the
+    length unit of the data. Returns ``(iterations, primal, dual, eps_primal, eps_dual)`` of the
+    last iteration; iterations is negative if the tolerance was not reached within ``max_iter``.
     """
     n_frames, m = r0.shape
     n_free = 0
@@ -179,50 +222,47 @@ def admm_box(
         if not known[t]:
             n_free += m
     root = np.sqrt(max(n_free, 1))
+    penalty = rho * scale  # (m,) rho d_j
+    thresh = l1 / penalty  # soft threshold of the prox, per shape
+    scale2 = scale * scale
+    acc = np.zeros((5, m))  # per-shape sums (vectorized): primal, dual, |w|, |z|, |D u| squared
+    thomas_factor(lam, known, inv)
+    for t in range(n_frames):
+        for j in range(m):
+            ex[t, j] = 0.0 if known[t] else penalty[j] * (z[t, j] - u[t, j])
     primal = dual = eps_p = eps_d = 0.0
     for it in range(max_iter):
-        for t in range(n_frames):
-            if known[t]:
-                for j in range(m):
-                    ex[t, j] = 0.0
-            else:
-                for j in range(m):
-                    ex[t, j] = rho * scale[j] * (z[t, j] - u[t, j])
-        np.dot(ex, phi, y)  # BLAS: 2-3x the plain loops for these (F, m) x (m, m) products
+        np.dot(ex, phi, y)  # BLAS (sgemm)
+        thomas_apply(y, r0, lam, known, yk, inv, sweep)
         for t in range(n_frames):
             for j in range(m):
-                y[t, j] += r0[t, j]
-        tridiagonal_modes(y, lam, known, yk, y, scratch)
+                y[t, j] = sweep[t, j]
         np.dot(y, phi_t, w)
-        p2 = d2 = wn = zn = un = 0.0
+        acc[:] = 0.0
         for t in range(n_frames):
             if known[t]:
                 continue
             for j in range(m):
-                thresh = l1[j] / (rho * scale[j])
-                wr = relax * w[t, j] + (1.0 - relax) * z[t, j]
+                wt = np.float64(w[t, j])
+                wr = relax * wt + (1.0 - relax) * z[t, j]
                 v = wr + u[t, j]
-                if thresh > 0.0:
-                    if v > thresh:
-                        v -= thresh
-                    elif v < -thresh:
-                        v += thresh
-                    else:
-                        v = 0.0
+                v -= min(max(v, -thresh[j]), thresh[j])  # soft threshold, branch-free
                 zn_ = min(max(v, lo[j]), hi[j])
-                u[t, j] += wr - zn_
-                diff = w[t, j] - zn_
-                p2 += diff * diff
+                ut = u[t, j] + wr - zn_
+                diff = wt - zn_
                 dz = zn_ - z[t, j]
-                d2 += scale[j] * scale[j] * dz * dz
-                wn += w[t, j] * w[t, j]
-                zn += zn_ * zn_
-                un += scale[j] * scale[j] * u[t, j] * u[t, j]
+                acc[0, j] += diff * diff
+                acc[1, j] += scale2[j] * dz * dz
+                acc[2, j] += wt * wt
+                acc[3, j] += zn_ * zn_
+                acc[4, j] += scale2[j] * ut * ut
+                u[t, j] = ut
                 z[t, j] = zn_
-        primal = np.sqrt(p2)
-        dual = rho * np.sqrt(d2)
-        eps_p = eps_abs * root + eps_rel * np.sqrt(max(wn, zn))
-        eps_d = eps_abs * root * dual_unit + eps_rel * rho * np.sqrt(un)
+                ex[t, j] = penalty[j] * (zn_ - ut)
+        primal = np.sqrt(acc[0].sum())
+        dual = rho * np.sqrt(acc[1].sum())
+        eps_p = eps_abs * root + eps_rel * np.sqrt(max(acc[2].sum(), acc[3].sum()))
+        eps_d = eps_abs * root * dual_unit + eps_rel * rho * np.sqrt(acc[4].sum())
         if primal <= eps_p and dual <= eps_d:
             return it + 1, primal, dual, eps_p, eps_d
     return -max_iter, primal, dual, eps_p, eps_d

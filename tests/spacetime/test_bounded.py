@@ -28,6 +28,7 @@ def tight(monkeypatch):
     monkeypatch.setattr(solver, "ADMM_EPS_ABS", 1e-10)
     monkeypatch.setattr(solver, "ADMM_EPS_REL", 1e-9)
     monkeypatch.setattr(solver, "ADMM_MAX_ITER", 20000)
+    monkeypatch.setattr(solver, "ADMM_SINGLE", False)  # float32 stops near 1e-6 relative
 
 
 @pytest.mark.parametrize("beta, l1", [(0.0, 0.0), (0.7, 0.0), (0.7, 0.3)])
@@ -93,6 +94,28 @@ def test_default_tolerance_is_near_optimal_and_exactly_feasible():
         system.basis, deltas, known, values, lo, hi, **random_problem(beta=0.7, n_frames=60)[2]
     )
     assert energy(system, deltas, got) - energy(system, deltas, want) < 1e-3 * energy(
+        system, deltas, want
+    )
+
+
+def test_single_precision_w_step_matches_double(monkeypatch):
+    """The float32 changes of basis (the default) give the float64 kernel's answer at the
+    default tolerance, with known frames inside the sequence and bounds that bind."""
+    system, deltas, energy_kw = random_problem(beta=0.7, n_frames=60, n_markers=9, n_shapes=6)
+    known, values = known_frames(60, [0, 30, 59], 6)
+    values = np.clip(values, 0, 1)
+    lo, hi = np.zeros(6), np.ones(6)
+    runs = {}
+    for single in (True, False):
+        monkeypatch.setattr(solver, "ADMM_SINGLE", single)
+        stats = solver.BoundedStats()
+        got = solver.solve_movement_bounded(system, deltas, known, values, lo, hi, stats=stats)
+        assert stats.converged and stats.iterations > 1
+        runs[single] = got
+    np.testing.assert_array_equal(runs[True][known], values[known])
+    assert np.abs(runs[True] - runs[False]).max() < 1e-3
+    want = naive.solve_rows_bounded(system.basis, deltas, known, values, lo, hi, **energy_kw)
+    assert energy(system, deltas, runs[True]) - energy(system, deltas, want) < 1e-3 * energy(
         system, deltas, want
     )
 
