@@ -21,7 +21,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from faceretarget.geometry._nnls_kernels import chol_solve, cholesky
+from faceretarget.geometry._nnls_kernels import FASTMATH, chol_solve, cholesky
 
 
 @nb.njit(cache=True)
@@ -36,7 +36,8 @@ def modal_sweep(s, bphi, pbphi, beta, c0, lam, known, phi_t, z, y, scratch):
     s : (F, 3N) float64
         Source marker deltas (no missing samples).
     bphi, pbphi : (3N, m) float64
-        ``B Phi`` and ``P B Phi`` (Sobolev marker weights P; used when beta != 0).
+        ``B Phi`` and ``P B Phi`` (Sobolev marker weights P; used when beta != 0). An empty
+        (0, m) ``pbphi`` means uniform weights ``P = p_0 I``, with ``p_0`` folded into ``beta``.
     beta : float
     c0 : (m,) float64
         Prior term ``Phi^T alpha q`` (same every frame).
@@ -61,9 +62,11 @@ def modal_sweep(s, bphi, pbphi, beta, c0, lam, known, phi_t, z, y, scratch):
     (``faceretarget._threads``), so they do not fight numba for the cores.
     """
     np.dot(s, bphi, z)
-    if beta != 0.0:
+    if beta != 0.0 and pbphi.shape[0] > 0:
         np.dot(s, pbphi, y)
-    laplacian_rhs(z, y, beta, c0, known, y)  # y: P B Phi projection in, right-hand side out
+        laplacian_rhs(z, y, beta, c0, known, y)  # y: P B Phi projection in, right-hand side out
+    else:  # no Sobolev term, or uniform marker weights (beta already includes p_0)
+        laplacian_rhs(z, z, beta, c0, known, y)
     tridiagonal_modes(y, lam, known, scratch, y, z)  # z is free again: it takes the factor
     np.dot(y, phi_t, z)
 
@@ -266,6 +269,43 @@ def admm_box(
         if primal <= eps_p and dual <= eps_d:
             return it + 1, primal, dual, eps_p, eps_d
     return -max_iter, primal, dual, eps_p, eps_d
+
+
+@nb.njit(cache=True, fastmath=FASTMATH)
+def residual_energies(s, basis_t, w, velocity, position):
+    """Per-frame ``position[t] = ||B w_t - s_t||^2`` and ``velocity[t] = ||r_t - r_{t-1}||^2``
+    (``r_t = B w_t - s_t``; ``velocity[0] = 0``). Missing samples (NaN in ``s``) are dropped
+    from both; a velocity entry needs the sample at both frames. ``basis_t`` is ``B^T``
+    (m, 3N), C-contiguous. ``B w`` is a BLAS product over blocks of ``ENERGY_BLOCK`` frames
+    (the scratch stays in cache, whatever the sequence's length).
+    """
+    n_frames, k_rows = s.shape
+    block = min(ENERGY_BLOCK, n_frames)
+    cur = np.empty((block, k_rows))
+    prev = np.zeros(k_rows)
+    prev_ok = np.zeros(k_rows, dtype=np.bool_)
+    for start in range(0, n_frames, block):
+        stop = min(start + block, n_frames)
+        rows = cur[: stop - start]
+        np.dot(w[start:stop], basis_t, rows)
+        for t in range(start, stop):
+            pos = 0.0
+            vel = 0.0
+            for k in range(k_rows):
+                x = s[t, k]
+                ok = x == x  # not NaN (FASTMATH keeps NaN semantics: no 'nnan')
+                r = rows[t - start, k] - x if ok else 0.0
+                pos += r * r
+                d = r - prev[k] if (ok and prev_ok[k]) else 0.0
+                vel += d * d
+                prev[k] = r
+                prev_ok[k] = ok
+            position[t] = pos
+            velocity[t] = vel if t > 0 else 0.0
+
+
+#: Frames per BLAS block of :func:`residual_energies`.
+ENERGY_BLOCK = 128
 
 
 @nb.njit(cache=True)

@@ -91,6 +91,12 @@ class System:
         self.position_matrix = self.prior_matrix + self.ridge_matrix
 
     @property
+    def uniform_marker_weights(self) -> bool:
+        """Every marker has the same Sobolev weight ``p_0`` (the default: all 1)."""
+        p = self.marker_weights
+        return bool(np.all(p == p[0]))
+
+    @property
     def n_shapes(self) -> int:
         return int(self.basis.shape[1])
 
@@ -176,13 +182,16 @@ class System:
                     f"spacetime: generalized eigendecomposition failed ({exc})"
                 ) from None
             lam = np.clip(lam, 0.0, 1.0)
-            p = np.repeat(self.marker_weights, 3)
             bphi = self.basis @ phi
+            if self.uniform_marker_weights:  # P B Phi = p_0 B Phi: one projection, not two
+                pbphi = np.empty((0, bphi.shape[1]))
+            else:
+                pbphi = np.repeat(self.marker_weights, 3)[:, None] * bphi
             self._modal = (
                 np.ascontiguousarray(phi.T),
                 lam,
                 np.ascontiguousarray(bphi),
-                np.ascontiguousarray(p[:, None] * bphi),
+                np.ascontiguousarray(pbphi),
                 phi.T @ self.prior_vector,
                 mass @ phi,
             )
@@ -340,7 +349,7 @@ def _normal_rhs(system: System, s: np.ndarray, known: np.ndarray) -> np.ndarray:
     b = system.basis
     sb = s @ b
     p = system.marker_weights
-    if system.beta == 0.0 or np.all(p == p[0]):  # uniform Sobolev weights: P B = p_0 B
+    if system.beta == 0.0 or system.uniform_marker_weights:  # P B = p_0 B
         spb = sb * p[0] if system.beta != 0.0 and p[0] != 1.0 else sb
     else:
         spb = (s * np.repeat(p, 3)) @ b
@@ -472,7 +481,10 @@ def _solve_structured(
     out, y, scratch = np.empty((n_frames, m)), np.empty((n_frames, m)), np.empty((n_frames, m))
     if known.any():
         scratch[known] = wk[known] @ mass_phi  # modal values of the known frames
-    modal_sweep(s, bphi, pbphi, float(system.beta), c0, lam, known, phi_t, out, y, scratch)
+    beta = float(system.beta)
+    if len(pbphi) == 0:  # uniform Sobolev weights p_0: beta P B Phi = (beta p_0) B Phi
+        beta *= float(system.marker_weights[0])
+    modal_sweep(s, bphi, pbphi, beta, c0, lam, known, phi_t, out, y, scratch)
     return out
 
 
@@ -609,37 +621,19 @@ def solve_bounded(
         ) from None
 
 
-#: Frames per block of the velocity residuals in :func:`energy_terms` (bounds its scratch).
-ENERGY_CHUNK = 1024
-
-
 def energy_terms(system: System, deltas: np.ndarray, weights: np.ndarray) -> dict[str, np.ndarray]:
     """Per-frame error terms of a solution, missing rows dropped.
 
     Returns ``velocity`` (F,) with ``velocity[t] = ||B(w_t - w_{t-1}) - (s_t - s_{t-1})||^2``
     (0 at t = 0; the paper's fig. 11 measure) and ``position`` (F,) ``||B w_t - s_t||^2``.
-    Computed ``ENERGY_CHUNK`` frames at a time (``retarget()`` reports them as diagnostics:
-    no scratch of the sequence's size).
+    One pass over the frames (:func:`._kernels.residual_energies`): ``retarget()`` reports
+    them as diagnostics, with no scratch of the sequence's size.
     """
+    from ._kernels import residual_energies
+
     s = flatten_deltas(deltas)
-    w = np.asarray(weights, dtype=np.float64)
+    w = np.ascontiguousarray(weights, dtype=np.float64)
     basis_t = np.ascontiguousarray(system.basis.T)
-    n_frames = s.shape[0]
-    position, velocity = np.empty(n_frames), np.zeros(n_frames)
-    for start in range(0, n_frames, ENERGY_CHUNK):
-        first = max(start - 1, 0)  # one frame of overlap for the velocity at the chunk's start
-        sl = slice(first, start + ENERGY_CHUNK)
-        valid = ~np.isnan(s[sl])
-        resid = w[sl] @ basis_t
-        if valid.all():
-            resid -= s[sl]
-        else:
-            resid -= np.where(valid, s[sl], 0.0)
-            resid[~valid] = 0.0
-        position[start : sl.stop] = np.einsum(
-            "fk,fk->f", resid[start - first :], resid[start - first :]
-        )
-        dv = resid[1:] - resid[:-1]
-        dv *= valid[1:] & valid[:-1]
-        velocity[first + 1 : sl.stop] = np.einsum("fk,fk->f", dv, dv)
+    position, velocity = np.empty(s.shape[0]), np.empty(s.shape[0])
+    residual_energies(s, basis_t, w, velocity, position)
     return {"velocity": velocity, "position": position}

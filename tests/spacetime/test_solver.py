@@ -67,6 +67,19 @@ def test_structured_solve_matches_assembled_rows(beta, frames):
     assert np.array_equal(got[known], values[known])
 
 
+@pytest.mark.parametrize("weights", ["uniform 2.5", "varied"])
+def test_structured_solve_with_marker_weights_matches_assembled_rows(weights):
+    """Per-marker Sobolev weights in the structured solve: uniform ones (folded into beta, one
+    projection) and varied ones (a second projection) both give the assembled optimum."""
+    mw = np.full(7, 2.5) if weights == "uniform 2.5" else np.linspace(0.2, 3.0, 7)
+    system, deltas, energy = random_problem(beta=0.6, marker_weights=mw)
+    known, values = known_frames(30, [0, 29], 5)
+    got = solver.solve_movement(system, deltas, known, values)
+    want = naive.solve_rows(system.basis, deltas, known, values, **energy)
+    assert rel(got, want) < 1e-8
+    assert system.uniform_marker_weights == (weights == "uniform 2.5")
+
+
 def test_structured_solve_matches_paper_kronecker_system():
     system, deltas, energy = random_problem(beta=0.2, center="mean")
     known, values = known_frames(30, [0, 17, 29], 5)
@@ -245,22 +258,25 @@ def test_single_and_two_frame_sequences():
 
 
 @pytest.mark.parametrize("missing", [False, True])
-def test_energy_terms_match_a_frame_by_frame_loop(missing, monkeypatch):
-    """Per-frame position and velocity residuals (fig. 11's measure), across the blocks of
-    ``ENERGY_CHUNK`` frames, with missing markers dropped from both."""
-    monkeypatch.setattr(solver, "ENERGY_CHUNK", 7)
-    system, deltas, _ = random_problem(n_frames=30)
+def test_energy_terms_match_a_frame_by_frame_loop(missing):
+    """Per-frame position and velocity residuals (fig. 11's measure), across the kernel's
+    blocks of ``ENERGY_BLOCK`` frames, with missing markers dropped from both."""
+    from faceretarget.plugins.spacetime._kernels import ENERGY_BLOCK
+
+    n = 2 * ENERGY_BLOCK + 9
+    system, deltas, _ = random_problem(n_frames=n)
     deltas = deltas.copy()
     if missing:
         deltas[6, 2] = deltas[7, 4] = deltas[20, 0] = np.nan
-    weights = np.random.default_rng(5).normal(size=(30, system.n_shapes))
+        deltas[ENERGY_BLOCK - 1, 1] = deltas[ENERGY_BLOCK, 3] = np.nan  # across a block edge
+    weights = np.random.default_rng(5).normal(size=(n, system.n_shapes))
     got = solver.energy_terms(system, deltas, weights)
-    s = deltas.reshape(30, -1)
-    r = [np.where(np.isnan(s[t]), 0.0, weights[t] @ system.basis.T - s[t]) for t in range(30)]
+    s = deltas.reshape(n, -1)
+    r = [np.where(np.isnan(s[t]), 0.0, weights[t] @ system.basis.T - s[t]) for t in range(n)]
     position = [float(np.nansum(x**2)) for x in r]
     velocity = [0.0] + [
         float(np.sum(np.where(np.isnan(s[t]) | np.isnan(s[t - 1]), 0.0, r[t] - r[t - 1]) ** 2))
-        for t in range(1, 30)
+        for t in range(1, n)
     ]
     np.testing.assert_allclose(got["position"], position, rtol=1e-12)
     np.testing.assert_allclose(got["velocity"], velocity, rtol=1e-12)
