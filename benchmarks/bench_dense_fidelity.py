@@ -1,7 +1,7 @@
 """Fidelity of the dense retargeters (``coating``, ``normalmesh``) against per-frame
 ``deformation_transfer`` on real-like data (issue 14's figures).
 
-    python benchmarks/bench_dense_fidelity.py [--frames 60] [--detail-resolution 1500] [--skip cross,units,detail,cross-detail,piercing]
+    python benchmarks/bench_dense_fidelity.py [--frames 60] [--detail-resolution 1500] [--skip cross,units,detail,detail-bound,cross-detail,piercing]
 
 A fidelity benchmark: it prints no timings (so it has no time baseline) and ``run_all.py``
 does not run it. Prints tables (no pass/fail, no timing), each with the figure it is compared against:
@@ -15,6 +15,14 @@ does not run it. Prints tables (no pass/fail, no timing), each with the figure i
   presets' :data:`~faceretarget.evaluation.reproduction.DETAIL_CASES`), with the ratio to
   deformation transfer (goal <= 0.7) and the same measurement on the wrinkle-free twin (what
   the metric sees that is not wrinkles).
+- **detail-bound**: what a per-vertex transfer of the source's fine-scale motion can reach on
+  the synthetic detail cases, without running a method: the source rig's high-passed
+  displacements (the metric's high-pass, per shape, driven by the truth's weights) carried to
+  the same vertex of the target exactly, by the conventions the dense methods use (normal
+  offset onto the target's normal: coating's Eq. 16 frames, normalmesh's Eq. 8; or the
+  displacement's direction kept, as deformation gradients keep it), with and without the
+  size ratio, and an oracle per-vertex gain fitted to the truth; against per-frame
+  deformation transfer's ``detail_error``. Below 0.7 x DT only the oracle gets there.
 - **cross-detail**: the same on the wrinkled cross-topology case (``cases.cross_topology(wrinkles=True)``:
   a once-subdivided 9,313-vertex source of another topology with glabella, procerus, chin and
   perioral wrinkles onto the 9,409-vertex ICT face) and its wrinkle-free twin
@@ -163,6 +171,50 @@ def detail(resolution: int | None) -> None:
     )
 
 
+def detail_bound(frames: int) -> None:
+    """Per-vertex transfer conventions applied exactly to the synthetic rigs (see the module
+    docstring, part "detail-bound")."""
+    from faceretarget.evaluation.metrics import detail_smoothing_operator, high_pass
+    from faceretarget.geometry.mesh_ops import face_areas, vertex_normals
+
+    rows = []
+    for kind in ("human", "stylized"):
+        case = fr.cases.synthetic(resolution=1500, n_frames=frames, target=kind)
+        weights = np.asarray(case.truth.weights, dtype=np.float64)
+        src_rig, tgt_rig = case.source.rig, case.target.blendshapes
+        ns = np.asarray(src_rig.neutral.vertices, dtype=np.float64)
+        nt = np.asarray(case.target.neutral.vertices, dtype=np.float64)
+        tri = np.asarray(case.target.neutral.triangles)
+        height = float(case.target.neutral.height)
+        truth = weights @ normal_detail(np.asarray(tgt_rig.deltas), tri, nt)
+        normal = weights @ normal_detail(np.asarray(src_rig.deltas), tri, ns)
+        fine = high_pass(np.asarray(src_rig.deltas), detail_smoothing_operator(len(ns), tri))
+        kept = np.einsum("fk,kvd,vd->fv", weights, fine, vertex_normals(nt, tri))
+        ratio = float(np.sqrt(face_areas(nt, tri).sum() / face_areas(ns, tri).sum()))
+        gain = np.sum(normal * truth, axis=0) / np.maximum(np.sum(normal * normal, axis=0), 1e-300)
+        dt = METRICS["detail_error"].compute(
+            run("deformation_transfer", case.source, case.target), case, {}
+        )
+
+        def err(x, truth=truth, height=height):
+            return 100.0 * float(np.sqrt(np.mean((x - truth) ** 2))) / height
+
+        for label, x in (
+            ("normal -> normal", normal),
+            ("normal -> normal x size ratio", ratio * normal),
+            ("direction kept", kept),
+            ("direction kept x size ratio", ratio * kept),
+            ("oracle per-vertex gain (fitted to the truth)", gain * normal),
+        ):
+            rows.append((kind, label, f"{err(x):.5f}", f"{err(x) / dt:.2f}"))
+        rows.append((kind, "deformation_transfer (the method)", f"{dt:.5f}", "1.00"))
+    print(
+        f"detail bound (synthetic detail cases, 1500 vertices, {frames} frames: the source's fine-scale motion "
+        "carried vertex to vertex exactly; goal <= 0.7 x DT)"
+    )
+    table(rows, ("case", "per-vertex transfer", "detail_error (% H)", "ratio to DT"))
+
+
 def wrinkle_response(animations, cases):
     """(F, V) high-passed normal motion that the wrinkles alone change: ``animations`` and ``cases``
     are (wrinkled, twin) pairs of results or of cases (their truths)."""
@@ -301,7 +353,7 @@ def main(argv=None) -> None:
     ap.add_argument(
         "--skip",
         default="",
-        help="comma-separated parts to skip: cross, units, detail, cross-detail, piercing",
+        help="comma-separated parts to skip: cross, units, detail, detail-bound, cross-detail, piercing",
     )
     args = ap.parse_args(argv)
     C.print_machine("bench_dense_fidelity (errors only, no timings)")
@@ -312,6 +364,8 @@ def main(argv=None) -> None:
         units(min(args.frames, 20))
     if "detail" not in skip:
         detail(args.detail_resolution)
+    if "detail-bound" not in skip:
+        detail_bound(args.frames)
     if "cross-detail" not in skip:
         cross_detail(max(args.frames, 90))
     if "piercing" not in skip:
