@@ -38,6 +38,7 @@ SCRIPTS = (
     "bench_normalmesh",
     "bench_cases",
     "bench_coldstart",
+    "bench_studio",
 )
 
 
@@ -218,7 +219,7 @@ def render(
     for _name, data, _status, _wall in results:
         for e in (data or {}).get("scaling", []):
             add("")
-            add(f"### {e['name']} (`{name}.py`)")
+            add(f"### {e['name']} (`{_name}.py`)")
             add("")
             exp = e.get("exponent_min")
             add(

@@ -6,6 +6,7 @@
     faceretarget convert IN OUT             between file formats
     faceretarget formats                    readers and writers
     faceretarget compare / demo / batch     evaluation harness (see docs/evaluation.md)
+    faceretarget studio [CASE]              local web app: view, edit, export, live (docs/studio.md)
 
 Errors are printed as one line on stderr with a non-zero exit status; ``--debug``
 shows the traceback.
@@ -172,91 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="example: faceretarget run NAME --source shot.c3d --target hero.glb --landmarks hero_landmarks.json --out shot_hero.glb",
     )
     p.add_argument("name", help="retargeter name or alias (see `faceretarget list`)")
-    src = p.add_argument_group("source (the performance)")
-    src.add_argument(
-        "--source",
-        required=True,
-        help="performance: markers (c3d/trc/csv), mesh sequence (folder/npz/pc2/mdd/npy), weights csv, or a source/case bundle .npz",
-    )
-    src.add_argument(
-        "--source-kind",
-        choices=DATA_KINDS,
-        help="what to read --source as when its extension is ambiguous (e.g. a .glb)",
-    )
-    src.add_argument(
-        "--topology",
-        metavar="MESH",
-        help="mesh giving the triangles of a point cache (.pc2/.mdd/.npy) source, same vertex order",
-    )
-    src.add_argument(
-        "--source-neutral",
-        metavar="MESH",
-        help="the actor's neutral (rest) mesh of a mesh-sequence source, same vertex order (default: frame 0); also gives its triangles",
-    )
-    src.add_argument(
-        "--fps", type=float, help="frame rate of a source format that does not store it"
-    )
-    src.add_argument(
-        "--source-landmarks",
-        metavar="FILE",
-        help="landmark vertex ids on the source mesh, in the order of the target's (json/txt); markers need none",
-    )
-    src.add_argument(
-        "--source-feature-lines",
-        metavar="JSON",
-        help="feature lines on the source mesh: {line name: [vertex ids]}",
-    )
-    src.add_argument(
-        "--source-examples",
-        metavar="FILE",
-        help="source example poses: npz (examples (M, V, 3), example_names) or a folder of meshes",
-    )
-    src.add_argument(
-        "--source-rig",
-        metavar="FILE",
-        help="the actor's own blendshape rig, needed with a weight-curve source",
-    )
-    src.add_argument(
-        "--source-head-motion",
-        metavar="NPY",
-        help="(F, 4, 4) head motion of the source, when it is known",
-    )
-    src.add_argument(
-        "--actor-layers",
-        metavar="NPZ",
-        help="the actor's layered poses, a faceretarget layers .npz (layers)",
-    )
-    tgt = p.add_argument_group("target (the character)")
-    tgt.add_argument(
-        "--target",
-        required=True,
-        help="character: glb/gltf with morph targets, folder of OBJs, a mesh, or a target/case bundle .npz",
-    )
-    tgt.add_argument(
-        "--target-kind",
-        choices=DATA_KINDS,
-        help="what to read --target as, e.g. rig for a glb that also holds an animation",
-    )
-    tgt.add_argument(
-        "--landmarks",
-        metavar="FILE",
-        help="target landmark vertex ids (json/txt/file.npz:KEY), when the target file has none",
-    )
-    tgt.add_argument(
-        "--feature-lines",
-        metavar="JSON",
-        help="feature lines on the target mesh: {line name: [vertex ids]}",
-    )
-    tgt.add_argument(
-        "--examples",
-        metavar="FILE",
-        help="target example poses, paired with the source's by name: npz or folder of meshes",
-    )
-    tgt.add_argument(
-        "--layers",
-        metavar="NPZ",
-        help="the character's layered poses and region masks, a faceretarget layers .npz (layers)",
-    )
+    add_source_target_arguments(p)
     out = p.add_argument_group("output")
     out.add_argument(
         "--out",
@@ -329,7 +246,108 @@ def build_parser() -> argparse.ArgumentParser:
         "kernels they use (the first run otherwise pauses for a few minutes while they compile); prints the time per method.",
     )
     _attach(p, "faceretarget.evaluation.commands", "warmup")
+    p = sub.add_parser(
+        "studio",
+        help="open a local web app: view, compare, edit and export retargeted animation, or retarget a live stream",
+        description="Start a local web app (127.0.0.1, a random token in its URL) showing the performance and the "
+        "retargeted character side by side: switch methods, set their parameters, edit a frame and let the method "
+        "propagate it, undo, export GLB / weight CSV / PC2; with --live, retarget a Live Link Face stream frame by "
+        "frame. Prints the URL to open. Reads only the files named here (see docs/studio.md).",
+        epilog="examples: faceretarget studio synthetic-human   |   faceretarget studio --source shot.c3d --target "
+        "hero.glb --landmarks hero.json   |   faceretarget studio synthetic-human --live 11111",
+    )
+    _attach(p, "faceretarget.studio.command", "studio")
     return parser
+
+
+def add_source_target_arguments(parser: argparse.ArgumentParser, *, required: bool = True) -> None:
+    """The options that read a performance and a character from files (``run``, ``studio``):
+    ``--source`` and its parts, ``--target`` and its parts (see :func:`load_run_source`)."""
+    src = parser.add_argument_group("source (the performance)")
+    src.add_argument(
+        "--source",
+        required=required,
+        help="performance: markers (c3d/trc/csv), mesh sequence (folder/npz/pc2/mdd/npy), weights csv, or a source/case bundle .npz",
+    )
+    src.add_argument(
+        "--source-kind",
+        choices=DATA_KINDS,
+        help="what to read --source as when its extension is ambiguous (e.g. a .glb)",
+    )
+    src.add_argument(
+        "--topology",
+        metavar="MESH",
+        help="mesh giving the triangles of a point cache (.pc2/.mdd/.npy) source, same vertex order",
+    )
+    src.add_argument(
+        "--source-neutral",
+        metavar="MESH",
+        help="the actor's neutral (rest) mesh of a mesh-sequence source, same vertex order (default: frame 0); also gives its triangles",
+    )
+    src.add_argument(
+        "--fps", type=float, help="frame rate of a source format that does not store it"
+    )
+    src.add_argument(
+        "--source-landmarks",
+        metavar="FILE",
+        help="landmark vertex ids on the source mesh, in the order of the target's (json/txt); markers need none",
+    )
+    src.add_argument(
+        "--source-feature-lines",
+        metavar="JSON",
+        help="feature lines on the source mesh: {line name: [vertex ids]}",
+    )
+    src.add_argument(
+        "--source-examples",
+        metavar="FILE",
+        help="source example poses: npz (examples (M, V, 3), example_names) or a folder of meshes",
+    )
+    src.add_argument(
+        "--source-rig",
+        metavar="FILE",
+        help="the actor's own blendshape rig, needed with a weight-curve source",
+    )
+    src.add_argument(
+        "--source-head-motion",
+        metavar="NPY",
+        help="(F, 4, 4) head motion of the source, when it is known",
+    )
+    src.add_argument(
+        "--actor-layers",
+        metavar="NPZ",
+        help="the actor's layered poses, a faceretarget layers .npz (layers)",
+    )
+    tgt = parser.add_argument_group("target (the character)")
+    tgt.add_argument(
+        "--target",
+        required=required,
+        help="character: glb/gltf with morph targets, folder of OBJs, a mesh, or a target/case bundle .npz",
+    )
+    tgt.add_argument(
+        "--target-kind",
+        choices=DATA_KINDS,
+        help="what to read --target as, e.g. rig for a glb that also holds an animation",
+    )
+    tgt.add_argument(
+        "--landmarks",
+        metavar="FILE",
+        help="target landmark vertex ids (json/txt/file.npz:KEY), when the target file has none",
+    )
+    tgt.add_argument(
+        "--feature-lines",
+        metavar="JSON",
+        help="feature lines on the target mesh: {line name: [vertex ids]}",
+    )
+    tgt.add_argument(
+        "--examples",
+        metavar="FILE",
+        help="target example poses, paired with the source's by name: npz or folder of meshes",
+    )
+    tgt.add_argument(
+        "--layers",
+        metavar="NPZ",
+        help="the character's layered poses and region masks, a faceretarget layers .npz (layers)",
+    )
 
 
 def _attach(parser: argparse.ArgumentParser, module_name: str, command: str) -> None:
