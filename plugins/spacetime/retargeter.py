@@ -172,6 +172,8 @@ class SpacetimeRetargeter(Retargeter):
     # ------------------------------------------------------------------------------------
     # fit
     # ------------------------------------------------------------------------------------
+    @blas_single_threaded  # small products only; and the bounded solve's float32 w-step would
+    # turn the last-bit differences of threaded BLAS into ~1e-8 differences of the weights
     def _fit(self, source: Source, target: TargetRig) -> None:
         self._check_params()
         params = self.params_
