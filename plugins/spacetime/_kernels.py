@@ -125,32 +125,23 @@ def thomas_factor(lam, known, inv):
 
 
 @nb.njit(cache=True)
-def thomas_apply(r, r2, lam, known, yk, inv, y):
-    """Solve with the factor of :func:`thomas_factor`: ``y_j = ((1 - lam_j) L + lam_j I)^-1 (r + r2)_j``.
+def thomas_apply(r, lam, known, yk, inv, y):
+    """Solve with the factor of :func:`thomas_factor`: ``y_j = ((1 - lam_j) L + lam_j I)^-1 r_j``.
 
-    ``r2`` is a second right-hand side added on the fly (an empty (0, m) array for none).
     Rows of known frames are ``y_t = yk_t``; their neighbours see the known value on the
     right-hand side. ``y`` may alias ``r``; ``yk`` must not alias ``inv``.
     """
     n_frames, m = r.shape
-    add = r2.shape[0] > 0
     for t in range(n_frames):
         if known[t]:
             for j in range(m):
                 y[t, j] = yk[t, j]
-            continue
-        if add:
+        elif t > 0:
             for j in range(m):
-                y[t, j] = r[t, j] + r2[t, j]
+                y[t, j] = (r[t, j] + (1.0 - lam[j]) * y[t - 1, j]) * inv[t, j]
         else:
             for j in range(m):
-                y[t, j] = r[t, j]
-        if t > 0:
-            for j in range(m):
-                y[t, j] = (y[t, j] + (1.0 - lam[j]) * y[t - 1, j]) * inv[t, j]
-        else:
-            for j in range(m):
-                y[t, j] *= inv[t, j]
+                y[t, j] = r[t, j] * inv[t, j]
     for t in range(n_frames - 2, -1, -1):
         if not known[t]:
             for j in range(m):
@@ -165,7 +156,7 @@ def tridiagonal_modes(r, lam, known, yk, y, scratch):
     (F, m) receives the factor and must not alias ``yk``.
     """
     thomas_factor(lam, known, scratch)
-    thomas_apply(r, r[:0], lam, known, yk, scratch, y)
+    thomas_apply(r, lam, known, yk, scratch, y)
 
 
 @nb.njit(cache=True)
@@ -236,7 +227,10 @@ def admm_box(
     primal = dual = eps_p = eps_d = 0.0
     for it in range(max_iter):
         np.dot(ex, phi, y)  # BLAS (sgemm)
-        thomas_apply(y, r0, lam, known, yk, inv, sweep)
+        for t in range(n_frames):
+            for j in range(m):
+                sweep[t, j] = y[t, j] + r0[t, j]
+        thomas_apply(sweep, lam, known, yk, inv, sweep)
         for t in range(n_frames):
             for j in range(m):
                 y[t, j] = sweep[t, j]

@@ -97,6 +97,14 @@ class System:
         return bool(np.all(p == p[0]))
 
     @property
+    def folded_beta(self) -> float:
+        """The Sobolev weight to use with ``B`` in place of ``P B``: ``beta p_0`` when the
+        marker weights are uniform (``P = p_0 I``), else ``beta`` (``P B`` is then needed)."""
+        if self.uniform_marker_weights:
+            return float(self.beta * self.marker_weights[0])
+        return float(self.beta)
+
+    @property
     def n_shapes(self) -> int:
         return int(self.basis.shape[1])
 
@@ -348,14 +356,21 @@ def _normal_rhs(system: System, s: np.ndarray, known: np.ndarray) -> np.ndarray:
 
     b = system.basis
     sb = s @ b
-    p = system.marker_weights
-    if system.beta == 0.0 or system.uniform_marker_weights:  # P B = p_0 B
-        spb = sb * p[0] if system.beta != 0.0 and p[0] != 1.0 else sb
+    if system.beta == 0.0 or system.uniform_marker_weights:  # P B = p_0 B: in folded_beta
+        spb = sb
     else:
-        spb = (s * np.repeat(p, 3)) @ b
+        spb = (s * np.repeat(system.marker_weights, 3)) @ b
     r_w = np.empty((s.shape[0], system.n_shapes))
-    laplacian_rhs(sb, spb, float(system.beta), system.prior_vector, known, r_w)
+    laplacian_rhs(sb, spb, system.folded_beta, system.prior_vector, known, r_w)
     return r_w
+
+
+def _known_modal(wk: np.ndarray, known: np.ndarray, mass_phi: np.ndarray) -> np.ndarray:
+    """Modal values ``wk (G + K) Phi`` of the known frames (F, m), or an empty (0, m) array when
+    no frame is known (the kernels read them at known rows only)."""
+    if known.any():
+        return wk @ mass_phi
+    return np.empty((0, mass_phi.shape[1]))
 
 
 def _modal_solve(
@@ -366,7 +381,7 @@ def _modal_solve(
 
     phi, phi_t, lam, mass_phi = system.shifted_modal(rho)
     y = r_w @ phi
-    yk = wk @ mass_phi if known.any() else y[:0]  # read at known rows only
+    yk = _known_modal(wk, known, mass_phi)
     tridiagonal_modes(y, lam, known, yk, y, np.empty_like(y))
     return y @ phi_t
 
@@ -381,14 +396,13 @@ def _admm_structured(system, r_w, known, wk, lo, hi, l1, z, u, stats) -> None:
     basis_dtype = np.float32 if ADMM_SINGLE else np.float64
     single = np.empty((3, n_frames, m), dtype=basis_dtype)  # w, ex, y of admm_box
     double = np.empty((2, n_frames, m))  # its sweep and factor
-    no_known = np.empty((0, m))
     done, modal_rho = 0, None
     while True:
         if rho != modal_rho:  # the modal data change with the step size only
             phi, phi_t, lam, mass_phi = system.shifted_modal(rho)
             r0 = r_w @ phi
-            yk = wk @ mass_phi if known.any() else no_known  # read at known rows only
-            phi32, phi_t32 = phi.astype(basis_dtype), phi_t.astype(basis_dtype)
+            yk = _known_modal(wk, known, mass_phi)
+            phi_w, phi_t_w = phi.astype(basis_dtype), phi_t.astype(basis_dtype)
             modal_rho = rho
         chunk = min(ADMM_CHUNK, ADMM_MAX_ITER - done)
         it, primal, dual, eps_p, eps_d = admm_box(
@@ -396,8 +410,8 @@ def _admm_structured(system, r_w, known, wk, lo, hi, l1, z, u, stats) -> None:
             lam,
             known,
             yk,
-            phi32,
-            phi_t32,
+            phi_w,
+            phi_t_w,
             rho,
             scale,
             ADMM_RELAX,
@@ -481,10 +495,7 @@ def _solve_structured(
     out, y, scratch = np.empty((n_frames, m)), np.empty((n_frames, m)), np.empty((n_frames, m))
     if known.any():
         scratch[known] = wk[known] @ mass_phi  # modal values of the known frames
-    beta = float(system.beta)
-    if len(pbphi) == 0:  # uniform Sobolev weights p_0: beta P B Phi = (beta p_0) B Phi
-        beta *= float(system.marker_weights[0])
-    modal_sweep(s, bphi, pbphi, beta, c0, lam, known, phi_t, out, y, scratch)
+    modal_sweep(s, bphi, pbphi, system.folded_beta, c0, lam, known, phi_t, out, y, scratch)
     return out
 
 
