@@ -149,6 +149,36 @@ def thomas_apply(r, lam, known, yk, inv, y):
 
 
 @nb.njit(cache=True)
+def _thomas_shifted(y, r0, lam, known, yk, inv, sweep, carry):
+    """:func:`thomas_apply` of ``y + r0``, the result written back to ``y`` (which may be
+    float32): the forward pass reads both right-hand sides, the backward pass carries the
+    last row in float64 (``carry``, (m,)) and writes ``y`` once. ``sweep`` (F, m) float64."""
+    n_frames, m = y.shape
+    for t in range(n_frames):
+        if known[t]:
+            for j in range(m):
+                sweep[t, j] = yk[t, j]
+        elif t > 0:
+            for j in range(m):
+                sweep[t, j] = (y[t, j] + r0[t, j] + (1.0 - lam[j]) * sweep[t - 1, j]) * inv[t, j]
+        else:
+            for j in range(m):
+                sweep[t, j] = (y[t, j] + r0[t, j]) * inv[t, j]
+    for j in range(m):
+        carry[j] = sweep[n_frames - 1, j]
+        y[n_frames - 1, j] = carry[j]
+    for t in range(n_frames - 2, -1, -1):
+        if known[t]:
+            for j in range(m):
+                carry[j] = sweep[t, j]
+                y[t, j] = carry[j]
+        else:
+            for j in range(m):
+                carry[j] = sweep[t, j] + (1.0 - lam[j]) * inv[t, j] * carry[j]
+                y[t, j] = carry[j]
+
+
+@nb.njit(cache=True)
 def tridiagonal_modes(r, lam, known, yk, y, scratch):
     """Solve ``((1 - lam_j) L + lam_j I) y_j = r_j`` for every mode j by one Thomas sweep.
 
@@ -221,19 +251,14 @@ def admm_box(
     scale2 = scale * scale
     acc = np.zeros((5, m))  # per-shape sums (vectorized): primal, dual, |w|, |z|, |D u| squared
     thomas_factor(lam, known, inv)
+    carry = np.empty(m)
     for t in range(n_frames):
         for j in range(m):
             ex[t, j] = 0.0 if known[t] else penalty[j] * (z[t, j] - u[t, j])
     primal = dual = eps_p = eps_d = 0.0
     for it in range(max_iter):
         np.dot(ex, phi, y)  # BLAS (sgemm)
-        for t in range(n_frames):
-            for j in range(m):
-                sweep[t, j] = y[t, j] + r0[t, j]
-        thomas_apply(sweep, lam, known, yk, inv, sweep)
-        for t in range(n_frames):
-            for j in range(m):
-                y[t, j] = sweep[t, j]
+        _thomas_shifted(y, r0, lam, known, yk, inv, sweep, carry)
         np.dot(y, phi_t, w)
         acc[:] = 0.0
         for t in range(n_frames):

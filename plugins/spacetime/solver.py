@@ -322,7 +322,7 @@ def solve_movement_bounded(
 #: over-relaxation, iterations between step-size updates and in all.
 ADMM_EPS_ABS = 1e-5
 ADMM_EPS_REL = 2e-3
-ADMM_RELAX = 1.6
+ADMM_RELAX = 1.8
 ADMM_CHUNK = 10
 ADMM_MAX_ITER = 2000
 
