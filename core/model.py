@@ -551,8 +551,11 @@ class BlendshapeRig:
                 f"BlendshapeRig.evaluate: weights must be (M,) or (F, M) with M={self.n_shapes}, got {w.shape}"
             )
         w = as_float_array(w, "BlendshapeRig.evaluate: weights", w.shape)
-        flat = w.reshape(-1, self.n_shapes) @ self.deltas.reshape(self.n_shapes, -1)
-        flat += self.neutral.vertices.reshape(-1)
+        flat = _affine_rows(
+            w.reshape(-1, self.n_shapes),
+            self.deltas.reshape(self.n_shapes, -1),
+            self.neutral.vertices.reshape(-1),
+        )
         return flat.reshape(w.shape[:-1] + (self.neutral.n_vertices, 3))
 
     def index(self, name: str) -> int:
@@ -573,6 +576,25 @@ class BlendshapeRig:
 
     def __repr__(self) -> str:
         return f"BlendshapeRig({self.n_shapes} shapes on {self.neutral!r})"
+
+
+def _affine_rows(w: np.ndarray, d: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``w @ d + offset`` (F, K) for (F, M) ``w``, (M, K) ``d`` and (K,) ``offset``: one BLAS
+    ``dgemm`` with ``beta = 1`` onto rows filled with ``offset`` (the sum is made inside the
+    product: a separate ``+=`` pass over a 300 x 28,227 result took 6-8 ms beside the product's 10)."""
+    out = np.empty((w.shape[0], d.shape[1]))
+    if w.dtype != np.float64 or d.dtype != np.float64 or not d.flags.c_contiguous or out.size == 0:
+        np.matmul(w, d, out=out)
+        out += offset
+        return out
+    from scipy.linalg.blas import dgemm
+
+    out[:] = offset
+    # out.T (K, F), Fortran-ordered, = d.T @ w.T + out.T: transposed views, no copies
+    res = dgemm(1.0, d.T, np.asfortranarray(w.T), beta=1.0, c=out.T, overwrite_c=True)
+    if not np.shares_memory(res, out):  # not expected (out.T is Fortran-ordered float64)
+        out[:] = res.T
+    return out
 
 
 class LayeredRig:

@@ -54,7 +54,12 @@ def directed_edges(triangles: np.ndarray) -> np.ndarray:
 def unique_edges(triangles: np.ndarray) -> np.ndarray:
     """(E, 2) unique undirected edges, smaller index first, sorted."""
     e = np.sort(directed_edges(triangles), axis=1)
-    return np.unique(e, axis=0)
+    if len(e) == 0:
+        return e.reshape(0, 2)
+    # unique of 1D keys a * n + b (same order as rows (a, b)): ~5x np.unique(axis=0)
+    n = int(e.max()) + 1
+    keys = np.unique(e[:, 0].astype(np.int64) * n + e[:, 1])
+    return np.stack([keys // n, keys % n], axis=1).astype(e.dtype, copy=False)
 
 
 def boundary_edges(triangles: np.ndarray) -> np.ndarray:

@@ -125,6 +125,21 @@ def test_blendshape_rig_evaluate_and_errors():
         rig.evaluate(np.zeros(3))
 
 
+def test_blendshape_rig_evaluate_matches_a_loop_over_frames_and_shapes():
+    """The one-product evaluation (neutral added inside the BLAS call) against the definition
+    v_t = neutral + sum_j w_tj d_j, for several frames, one frame, no frame and strided weights."""
+    rng = np.random.default_rng(3)
+    v, t = quad()
+    neutral = fr.Mesh(v + rng.normal(size=v.shape), t)
+    deltas = rng.normal(size=(5, 4, 3))
+    rig = fr.BlendshapeRig(neutral, deltas, [f"s{j}" for j in range(5)])
+    w = rng.normal(size=(7, 10))[:, ::2]  # (7, 5), not contiguous
+    want = np.array([neutral.vertices + np.einsum("j,jvc->vc", row, deltas) for row in w])
+    np.testing.assert_allclose(rig.evaluate(w), want, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(rig.evaluate(w[2]), want[2], rtol=0, atol=1e-12)
+    assert rig.evaluate(np.zeros((0, 5))).shape == (0, 4, 3)
+
+
 def test_layered_rig_validation():
     poses = {"emotion": np.zeros((3, 4, 3)), "speech": np.zeros((2, 4, 3))}
     masks = np.array([[1, 1, 0, 0], [0, 0, 1, 1.0]])
