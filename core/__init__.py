@@ -13,10 +13,16 @@ and the readers/writers (``faceretarget.load``, ``faceretarget.save``).
 from __future__ import annotations
 
 from importlib import import_module
-from typing import Any
+from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 from . import _numba_cache  # noqa: E402
+from ._types import PathLike
 from ._version import __version__
+
+if TYPE_CHECKING:
+    from .registry import RetargeterInfo
 
 _numba_cache.install()  # concurrent processes sharing numba's cache never fail a call (numba is not imported here)
 
@@ -80,7 +86,7 @@ def available() -> list[dict[str, Any]]:
     return [entry.as_dict() for _, entry in sorted(catalogue().retargeters.items())]
 
 
-def get(name: str, **params) -> Retargeter:
+def get(name: str, **params: Any) -> Retargeter:
     """An unfitted retargeter by name or alias, with ``params`` set.
 
     Raises :class:`UnknownNameError` listing the valid names (or parameters).
@@ -92,21 +98,21 @@ def get(name: str, **params) -> Retargeter:
     return entry.cls(**params)
 
 
-def info(name: str):
+def info(name: str) -> RetargeterInfo:
     """The :class:`~faceretarget.registry.RetargeterInfo` of a retargeter (parameters, docs, origin)."""
     from .registry import registry
 
     return registry().resolve(name)
 
 
-def load(path, kind: str | None = None, **options):
+def load(path: PathLike, kind: str | None = None, **options: Any) -> Any:
     """Read a file with the registered reader for its extension (see ``faceretarget.io``)."""
     from .io import load as _load
 
     return _load(path, kind=kind, **options)
 
 
-def save(obj, path, **options):
+def save(obj: Any, path: PathLike, **options: Any) -> Path:
     """Write ``obj`` atomically with the registered writer for the path's extension."""
     from .io import save as _save
 
@@ -129,7 +135,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> ModuleType:
     if name in _LAZY:
         module = import_module(_LAZY[name], __name__)
         globals()[name] = module

@@ -37,6 +37,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from types import FrameType
 
 __all__ = ["deadline", "watchdog_process", "DeadlineExpired", "HARD_EXIT_STATUS", "grace_for"]
 
@@ -160,7 +161,7 @@ def deadline(
     wake = _WAKE if _wake_usable() else None  # the waking signal, when usable
     message = (hard.rstrip("\n") + "\n").encode("utf-8", "replace") if hard else b""
 
-    def expired(signum, frame):
+    def expired(signum: int, frame: FrameType | None) -> None:
         if not state["armed"] or (signum != signal.SIGALRM and not state["fired"]):
             return  # too late, or a SIGURG that is not the watchdog's
         state["fired"] = True

@@ -27,6 +27,10 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable, Sequence
+from importlib.machinery import ModuleSpec
+from types import ModuleType
+from typing import Any
 
 __all__ = ["install", "installed"]
 
@@ -41,13 +45,13 @@ def _is_save_race(exc: BaseException) -> bool:
     )
 
 
-def _patch(caching) -> None:
+def _patch(caching: ModuleType) -> None:
     cache = getattr(caching, "Cache", None)
     if cache is None or getattr(cache, _MARK, False):
         return
     save, load = cache.save_overload, cache.load_overload
 
-    def save_overload(self, sig, data):
+    def save_overload(self: Any, sig: Any, data: Any) -> Any:
         try:
             return save(self, sig, data)
         except (RuntimeError, OSError) as exc:
@@ -55,7 +59,7 @@ def _patch(caching) -> None:
                 raise
             return None  # compiled and in use; only this cache entry is not written
 
-    def load_overload(self, sig, target_context):
+    def load_overload(self: Any, sig: Any, target_context: Any) -> Any:
         try:
             found = load(self, sig, target_context)
         except (
@@ -68,7 +72,7 @@ def _patch(caching) -> None:
 
     init = cache.__init__
 
-    def __init__(self, py_func):
+    def __init__(self: Any, py_func: Callable[..., Any]) -> None:
         init(self, py_func)
         cache_file = getattr(self, "_cache_file", None)
         if cache_file is not None and _ours(py_func):
@@ -83,7 +87,7 @@ def _patch(caching) -> None:
     setattr(cache, _MARK, True)
 
 
-def _ours(py_func) -> bool:
+def _ours(py_func: object) -> bool:
     return (getattr(py_func, "__module__", "") or "").startswith("faceretarget")
 
 
@@ -141,7 +145,7 @@ _MARKER = os.path.join(
 _noticed = False
 
 
-def _notice_compiling(py_func) -> None:
+def _notice_compiling(py_func: object) -> None:
     global _noticed
     if _noticed or not _ours(py_func):
         return
@@ -163,7 +167,9 @@ def _notice_compiling(py_func) -> None:
 class _Finder(importlib.abc.MetaPathFinder):
     """Patches ``numba.core.caching`` right after it is first imported."""
 
-    def find_spec(self, fullname, path, target=None):
+    def find_spec(
+        self, fullname: str, path: Sequence[str] | None, target: ModuleType | None = None
+    ) -> ModuleSpec | None:
         if fullname != _TARGET:
             return None
         for finder in sys.meta_path:
@@ -181,10 +187,10 @@ class _Finder(importlib.abc.MetaPathFinder):
         real = loader
 
         class Loader(importlib.abc.Loader):
-            def create_module(self, spec):
+            def create_module(self, spec: ModuleSpec) -> ModuleType | None:
                 return real.create_module(spec)
 
-            def exec_module(self, module):
+            def exec_module(self, module: ModuleType) -> None:
                 original(module)
                 _patch(module)
 

@@ -14,15 +14,20 @@ from __future__ import annotations
 import contextlib
 import functools
 import threading
+from collections.abc import Callable
+from typing import Any, ParamSpec, TypeVar
 
 __all__ = ["single_threaded_blas", "default_threaded_blas"]
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
 
 _lock = threading.Lock()
 _controller = None
 _default_threads = 1
 
 
-def _get_controller():
+def _get_controller() -> Any:
     global _controller, _default_threads
     with _lock:
         if _controller is None:
@@ -39,7 +44,7 @@ def _get_controller():
     return _controller
 
 
-def single_threaded_blas():
+def single_threaded_blas() -> contextlib.AbstractContextManager[Any]:
     """Context manager: every loaded BLAS library runs on one thread inside it (about 10 us
     to enter). The limit is process-wide (threadpoolctl), restored on exit."""
     controller = _get_controller()
@@ -48,7 +53,7 @@ def single_threaded_blas():
     return controller.limit(limits=1, user_api="blas")
 
 
-def default_threaded_blas():
+def default_threaded_blas() -> contextlib.AbstractContextManager[Any]:
     """Context manager: BLAS back to the thread count it had when first asked (for one large
     product inside a single-threaded path, e.g. a chunk of frames times a character's blocks)."""
     controller = _get_controller()
@@ -57,11 +62,11 @@ def default_threaded_blas():
     return controller.limit(limits=_default_threads, user_api="blas")
 
 
-def blas_single_threaded(func):
+def blas_single_threaded(func: Callable[_P, _R]) -> Callable[_P, _R]:
     """Decorator form of :func:`single_threaded_blas`."""
 
     @functools.wraps(func)
-    def wrapper(*args, **kwargs):
+    def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _R:
         with single_threaded_blas():
             return func(*args, **kwargs)
 

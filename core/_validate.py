@@ -7,11 +7,15 @@ argument, what was wrong and how to fix it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 
 from .errors import ConfigError, IndexRangeError, InputError, NonFiniteError, ShapeError
+
+_T = TypeVar("_T")
 
 
 def readonly(array: np.ndarray) -> np.ndarray:
@@ -21,7 +25,7 @@ def readonly(array: np.ndarray) -> np.ndarray:
     return view
 
 
-def as_array(value, name: str) -> np.ndarray:
+def as_array(value: object, name: str) -> np.ndarray:
     """``np.asarray(value)``, with a :class:`ShapeError` for input numpy cannot turn into an
     array (ragged nested lists, objects whose ``__array__`` fails)."""
     if isinstance(value, np.ndarray):
@@ -35,12 +39,12 @@ def as_array(value, name: str) -> np.ndarray:
 
 
 def as_float_array(
-    value,
+    value: object,
     name: str,
     shape: Sequence[int | None],
     *,
     allow_nan: bool = False,
-    dtype=np.float64,
+    dtype: npt.DTypeLike = np.float64,
     copy: bool = False,
 ) -> np.ndarray:
     """Validate a floating-point array of the given shape (``None`` = any length).
@@ -66,7 +70,7 @@ def as_float_array(
 
 
 def as_index_array(
-    value, name: str, shape: Sequence[int | None], upper: int | None = None
+    value: object, name: str, shape: Sequence[int | None], upper: int | None = None
 ) -> np.ndarray:
     """Validate an integer index array with every entry in ``[0, upper)``."""
     arr = as_array(value, name)
@@ -114,7 +118,7 @@ def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False) -> None
 
 
 def as_names(
-    value, name: str, count: int | None = None, *, default_prefix: str | None = None
+    value: Any, name: str, count: int | None = None, *, default_prefix: str | None = None
 ) -> tuple[str, ...]:
     """Validate a sequence of unique, non-empty string names (optionally of a given count)."""
     if value is None:
@@ -151,7 +155,7 @@ def as_names(
     return names
 
 
-def as_fps(value, name: str = "fps") -> float:
+def as_fps(value: Any, name: str = "fps") -> float:
     try:
         fps = float(value)
     except (TypeError, ValueError, OverflowError):
@@ -163,7 +167,7 @@ def as_fps(value, name: str = "fps") -> float:
     return fps
 
 
-def short_repr(value, limit: int = 60) -> str:
+def short_repr(value: object, limit: int = 60) -> str:
     """``repr(value)`` cut to ``limit`` characters, for error messages (never raises)."""
     try:
         text = repr(value)
@@ -182,7 +186,7 @@ def _fmt(shape: Sequence[int | None]) -> str:
 
 
 def check_number(
-    value,
+    value: object,
     name: str,
     *,
     integer: bool = False,
@@ -191,7 +195,7 @@ def check_number(
     open_low: bool = False,
     allow_none: bool = False,
     choices: Sequence[str] = (),
-):
+) -> int | float | str | None:
     """A numeric parameter (of a retargeter, reader...) checked for type, finiteness and range.
 
     Returns the value as ``int`` or ``float`` (None passes when ``allow_none``, and one of the
@@ -227,7 +231,9 @@ def check_number(
     return number
 
 
-def did_you_mean(name, choices, *, n: int = 3, cutoff: float = 0.6) -> str:
+def did_you_mean(
+    name: object, choices: Iterable[object], *, n: int = 3, cutoff: float = 0.6
+) -> str:
     """``" (did you mean 'x'?)"`` naming the choices closest to ``name`` (difflib), or ``""``.
 
     Matching ignores case (``"JawOpen"`` suggests ``"jawOpen"``) and also tries the name
@@ -258,7 +264,7 @@ def did_you_mean(name, choices, *, n: int = 3, cutoff: float = 0.6) -> str:
     return " (did you mean " + " or ".join(repr(f) for f in found) + "?)"
 
 
-def check_choice(value, name: str, choices: Sequence[str]) -> str:
+def check_choice(value: object, name: str, choices: Sequence[str]) -> str:
     """A string parameter that must be one of ``choices`` (InputError listing them otherwise)."""
     if not isinstance(value, str) or value not in choices:
         raise InputError(
@@ -267,7 +273,7 @@ def check_choice(value, name: str, choices: Sequence[str]) -> str:
     return value
 
 
-def check_bool(value, name: str) -> bool:
+def check_bool(value: object, name: str) -> bool:
     """A flag parameter: ``True``/``False`` (also ``np.bool_`` and the integers 0 and 1).
 
     Anything else (an array, a string, None...) is an :class:`InputError` naming ``name``;
@@ -280,7 +286,9 @@ def check_bool(value, name: str) -> bool:
     raise InputError(f"{name}: expected True or False, got {short_repr(value)}")
 
 
-def check_param(check, value, name: str, *args, **kwargs):
+def check_param(
+    check: Callable[..., _T], value: object, name: str, *args: Any, **kwargs: Any
+) -> _T:
     """``check(value, name, ...)`` (:func:`check_number`, :func:`check_choice`, :func:`check_bool`)
     for a retargeter's constructor parameter: a bad value is a :class:`ConfigError` naming
     the parameter, the valid values and the value given."""

@@ -40,12 +40,13 @@ from __future__ import annotations
 
 import copy
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
+import numpy.typing as npt
 
 from . import recipes
 from ._validate import as_fps
@@ -63,6 +64,10 @@ from .model import (
     TargetRig,
     apply_head_motion,
 )
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+    from scipy.spatial import cKDTree
 
 __all__ = [
     "Case",
@@ -139,7 +144,7 @@ class Case:
 # =======================================================================================
 # Shared pieces: weight curves, head motion, layers, masks
 # =======================================================================================
-def _sigmoid(x):
+def _sigmoid(x: npt.ArrayLike) -> np.ndarray:
     """The logistic function 1 / (1 + exp(-x)), overflow-free (scipy.special costs 0.6 s to import)."""
     return 0.5 * (1.0 + np.tanh(0.5 * np.asarray(x, dtype=np.float64)))
 
@@ -166,7 +171,7 @@ def _cycling_choice(rng: np.random.Generator, choices: int, count: int) -> np.nd
 
 def _layer_curves(
     rng: np.random.Generator, n_frames: int, fps: float, n_emotions: int, n_visemes: int
-):
+) -> dict[str, np.ndarray]:
     """Layer coefficients: emotion (F, Ke) and speech (F, Ks) convex, blink (F, 2) convex."""
     # emotion: a key every 0.8-1.6 s, starting neutral; each key mixes one emotion with neutral
     times = [0.0]
@@ -226,7 +231,7 @@ def _layer_curves(
     return {"emotion": emotion, "speech": speech, "blink": blinks}
 
 
-def _layer_recipe_matrices(names) -> tuple[dict[str, np.ndarray], list[str]]:
+def _layer_recipe_matrices(names: Sequence[str]) -> tuple[dict[str, np.ndarray], list[str]]:
     """Recipe weight vectors of the three layers on a rig with shapes ``names``; unmapped names."""
     tables = {
         "emotion": (recipes.EMOTIONS, EMOTION_LAYER),
@@ -242,7 +247,7 @@ def _layer_recipe_matrices(names) -> tuple[dict[str, np.ndarray], list[str]]:
     return out, unmapped
 
 
-def _example_weights(names) -> np.ndarray:
+def _example_weights(names: Sequence[str]) -> np.ndarray:
     tables = {"emotion": recipes.EMOTIONS, "viseme": recipes.VISEMES, "blink": recipes.BLINKS}
     return np.stack(
         [recipes.resolve(tables[t][r], names, on_unmapped="ignore") for _, t, r in EXAMPLES]
@@ -356,7 +361,7 @@ def _assemble(
     ex_names = [e[0] for e in EXAMPLES]
     src_tri = source_neutral.triangles
 
-    def at_landmarks(points):
+    def at_landmarks(points: np.ndarray) -> np.ndarray:
         """(..., V, 3) source points -> (..., N, 3) at the source landmarks."""
         return src.landmarks.positions(points, src_tri)
 
@@ -370,7 +375,7 @@ def _assemble(
     # identity motion leaves the points bit-identical: skip the (F, V, 3) product
     world = apply_head_motion(motion, local) if head_motion else local
 
-    def poses(rig, on_landmarks=False):
+    def poses(rig: BlendshapeRig, on_landmarks: bool = False) -> dict[str, np.ndarray]:
         out = {}
         for layer, w in layer_w.items():
             p = rig.evaluate(w)
@@ -394,7 +399,7 @@ def _assemble(
             fps=fps,
             reference=at_landmarks(source_neutral.vertices),
         )
-        parts = dict(examples=at_landmarks(source_rig.evaluate(ex_w)))
+        parts: dict[str, Any] = dict(examples=at_landmarks(source_rig.evaluate(ex_w)))
     else:
         performance = MeshSequence(
             world,
@@ -569,7 +574,7 @@ def _marker_layout() -> dict[str, tuple[float, float]]:
 MARKER_LAYOUT = _marker_layout()
 
 
-def _ellipse_loop(cu, cv, a, b, spacing) -> np.ndarray:
+def _ellipse_loop(cu: float, cv: float, a: float, b: float, spacing: float) -> np.ndarray:
     """(n, 2) points on an ellipse at equal arc length ~``spacing``, counter-clockwise from angle 0."""
     t = np.linspace(0.0, 2 * np.pi, 4097)
     pts = np.stack([cu + a * np.cos(t), cv + b * np.sin(t)], axis=1)
@@ -580,7 +585,9 @@ def _ellipse_loop(cu, cv, a, b, spacing) -> np.ndarray:
     return np.stack([cu + a * np.cos(tt), cv + b * np.sin(tt)], axis=1)
 
 
-def _ellipse_distance(p: np.ndarray, cu, cv, a, b) -> tuple[np.ndarray, np.ndarray]:
+def _ellipse_distance(
+    p: np.ndarray, cu: float, cv: float, a: float, b: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Normalized radius q (q < 1 inside) and approximate signed distance (q - 1) / |grad q|."""
     du, dv = (p[:, 0] - cu) / a, (p[:, 1] - cv) / b
     q = np.sqrt(du * du + dv * dv)
@@ -590,7 +597,7 @@ def _ellipse_distance(p: np.ndarray, cu, cv, a, b) -> tuple[np.ndarray, np.ndarr
     return q, np.where(np.isfinite(dist), dist, -np.inf)
 
 
-def _uv_mesh(resolution: int):
+def _uv_mesh(resolution: int) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Triangulated parameter domain with about ``resolution`` vertices.
 
     Returns ``uv (V, 2)``, ``triangles (T, 3)`` (counter-clockwise in uv) and the boundary
@@ -668,7 +675,7 @@ def _base_map(p: np.ndarray, face: dict) -> np.ndarray:
     return np.stack([x, y, z], axis=1)
 
 
-def _g(u, v, cu, cv, su, sv):
+def _g(u: np.ndarray, v: np.ndarray, cu: float, cv: float, su: float, sv: float) -> np.ndarray:
     return np.exp(-(((u - cu) / su) ** 2) - (((v - cv) / sv) ** 2))
 
 
@@ -687,7 +694,7 @@ def _features(p: np.ndarray, face: dict) -> np.ndarray:
     return z
 
 
-def face_surface(uv, face: str = "actor") -> np.ndarray:
+def face_surface(uv: npt.ArrayLike, face: str = "actor") -> np.ndarray:
     """Points ``(P, 3)`` of a procedural face surface at parameter points ``uv (P, 2)``.
 
     ``face`` is "actor" (the synthetic source), "human" or "stylized" (the targets). The
@@ -726,7 +733,9 @@ def _normals(uv: np.ndarray, face: dict, step: float = 1e-4) -> np.ndarray:
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-def _segment_distance(u, v, a, b):
+def _segment_distance(
+    u: np.ndarray, v: np.ndarray, a: Sequence[float], b: Sequence[float]
+) -> tuple[np.ndarray, np.ndarray]:
     """Distance from points (u, v) to the segment a-b, and the position t in [0, 1] along it."""
     ab = np.subtract(b, a)
     t = np.clip(((u - a[0]) * ab[0] + (v - a[1]) * ab[1]) / (ab @ ab), 0.0, 1.0)
@@ -860,7 +869,7 @@ def _synthetic_rig(
     return BlendshapeRig(neutral, deltas, list(fields))
 
 
-def _chain_near_curve(uv: np.ndarray, tree, curve: np.ndarray) -> np.ndarray:
+def _chain_near_curve(uv: np.ndarray, tree: cKDTree, curve: np.ndarray) -> np.ndarray:
     """Vertex chain following a closed parameter curve (nearest vertices, repeats removed)."""
     ids = tree.query(curve)[1]
     keep = np.ones(len(ids), dtype=bool)
@@ -957,7 +966,7 @@ def _uv_masks(uv: np.ndarray) -> np.ndarray:
     return _region_masks(uv[:, 1], 0.42, -0.2, _MASK_SOFTNESS * 2 * _OUTER[3])
 
 
-def _check_counts(**values) -> None:
+def _check_counts(**values: Any) -> None:
     for k, val in values.items():
         if val is None:
             continue
@@ -1007,7 +1016,13 @@ def _load_ict_fixture() -> dict[str, np.ndarray]:
     return out
 
 
-def _ict_identity(data: dict, coeffs, default, what: str, case: str = "ict") -> np.ndarray:
+def _ict_identity(
+    data: dict,
+    coeffs: npt.ArrayLike | None,
+    default: npt.ArrayLike | None,
+    what: str,
+    case: str = "ict",
+) -> np.ndarray:
     """(V, 3) ICT face ``neutral + sum_k c_k identity_k`` for coefficients ``coeffs`` (or ``default``)."""
     n_modes = data["identity_deltas"].shape[0]
     c = np.asarray(default if coeffs is None else coeffs, dtype=np.float64)
@@ -1047,8 +1062,8 @@ def _ict_masks(mesh: Mesh, landmark_points: np.ndarray) -> np.ndarray:
 
 
 def ict(
-    source_identity=None,
-    target_identity=None,
+    source_identity: npt.ArrayLike | None = None,
+    target_identity: npt.ArrayLike | None = None,
     n_frames: int = 120,
     fps: float = 30.0,
     seed: int = 0,
@@ -1080,10 +1095,10 @@ def ict(
         )
     data = _load_ict_fixture()
 
-    def identity(coeffs, default, what):
+    def identity(coeffs: npt.ArrayLike | None, default: npt.ArrayLike, what: str) -> np.ndarray:
         return _ict_identity(data, coeffs, default, what)
 
-    def key(coeffs, default) -> tuple:
+    def key(coeffs: npt.ArrayLike | None, default: npt.ArrayLike) -> tuple:
         return tuple(
             float(c) for c in np.asarray(default if coeffs is None else coeffs, dtype=np.float64)
         )
@@ -1205,7 +1220,7 @@ def _smooth_keys(times: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.nda
 class _Track:
     """Keys of one animation track (times in seconds, strictly increasing)."""
 
-    def __init__(self, n_shapes: int):
+    def __init__(self, n_shapes: int) -> None:
         self.times: list[float] = [0.0]
         self.values: list[np.ndarray] = [np.zeros(n_shapes)]
 
@@ -1219,7 +1234,9 @@ class _Track:
         return _smooth_keys(np.asarray(self.times), np.asarray(self.values), t)
 
 
-def _performance_weights(rng: np.random.Generator, n_frames: int, fps: float, names) -> np.ndarray:
+def _performance_weights(
+    rng: np.random.Generator, n_frames: int, fps: float, names: Sequence[str]
+) -> np.ndarray:
     """(F, M) animation-like weight curves in [0, 1] on a rig with shapes ``names``.
 
     Three tracks, each keyed in seconds and smoothstep-interpolated (C1, exact holds), are
@@ -1239,7 +1256,7 @@ def _performance_weights(rng: np.random.Generator, n_frames: int, fps: float, na
     t = np.arange(n_frames, dtype=np.float64) / fps
     t_end = float(t[-1])
 
-    def vec(recipe):
+    def vec(recipe: Mapping[str, float]) -> np.ndarray:
         return recipes.resolve(recipe, names, on_unmapped="ignore")
 
     emotions = [vec(r) for k, r in recipes.EMOTIONS.items() if k != "neutral"]
@@ -1373,7 +1390,7 @@ def _gain_field(
     return 1.0 + amplitude * u / max(np.abs(u).max(), 1e-12)
 
 
-def _cross_family_mix(rng: np.random.Generator, names) -> tuple[np.ndarray, dict]:
+def _cross_family_mix(rng: np.random.Generator, names: Sequence[str]) -> tuple[np.ndarray, dict]:
     """(M, M) mix ``A`` (target shape i = sum_j A_ij transferred shape j) and its drawn parameters."""
     ix = {n: i for i, n in enumerate(names)}
     mix = np.eye(len(names))
@@ -1413,7 +1430,9 @@ def _cross_family_mix(rng: np.random.Generator, names) -> tuple[np.ndarray, dict
 
 
 @functools.lru_cache(maxsize=4)
-def _cross_rig_pair(source_identity: tuple, target_identity: tuple, seed: int):
+def _cross_rig_pair(
+    source_identity: tuple, target_identity: tuple, seed: int
+) -> tuple[_Side, _Side, dict[str, Any]]:
     """The two sides of :func:`cross_rig` (cached) and the meta entries describing them."""
     data = _load_ict_fixture()
     fixture = _load_cross_rig_fixture()
@@ -1503,7 +1522,9 @@ def _cross_rig_pair(source_identity: tuple, target_identity: tuple, seed: int):
     return src, tgt, meta
 
 
-def _identity_key(coeffs, default, what: str, case: str) -> tuple:
+def _identity_key(
+    coeffs: npt.ArrayLike | None, default: npt.ArrayLike, what: str, case: str
+) -> tuple:
     """Identity coefficients as a hashable key for the cached rig pairs (validated when given)."""
     if coeffs is not None:
         _ict_identity(_load_ict_fixture(), coeffs, default, what, case)
@@ -1518,8 +1539,8 @@ def cross_rig(
     fps: float = 30.0,
     head_motion: bool = False,
     source_kind: str = "mesh",
-    source_identity=None,
-    target_identity=None,
+    source_identity: npt.ArrayLike | None = None,
+    target_identity: npt.ArrayLike | None = None,
 ) -> Case:
     """A pair of *different* rigs built from the ICT-FaceKit data, like a real production pair.
 
@@ -1645,7 +1666,9 @@ CROSS_TOPOLOGY_WRINKLE_WAVELENGTH = 1.5
 CROSS_TOPOLOGY_WRINKLE_DEPTH = 0.06
 
 
-def _midpoint_subdivision(triangles: np.ndarray, n_vertices: int):
+def _midpoint_subdivision(
+    triangles: np.ndarray, n_vertices: int
+) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
     """One 1-to-4 midpoint split: ``(S (V', V) sparse, triangles (4T, 3), edge (V'-V, 2))``.
 
     New vertex ``n_vertices + k`` is the midpoint of ``edge[k]``; triangle ``4t + c`` is child
@@ -1678,7 +1701,9 @@ def _midpoint_subdivision(triangles: np.ndarray, n_vertices: int):
     return matrix, children.reshape(-1, 3), edges
 
 
-def _subdivided_landmarks(triangle_ids: np.ndarray, barycentric: np.ndarray):
+def _subdivided_landmarks(
+    triangle_ids: np.ndarray, barycentric: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Landmark ``(triangle, barycentric)`` pairs moved into the children of :func:`_midpoint_subdivision`
     (the same surface points)."""
     bary = np.asarray(barycentric, dtype=np.float64)
@@ -1699,7 +1724,9 @@ def _subdivided_landmarks(triangle_ids: np.ndarray, barycentric: np.ndarray):
     return 4 * np.asarray(triangle_ids, dtype=np.int64) + child, out
 
 
-def _cross_topology_wrinkle_fields(material: np.ndarray, names) -> dict[str, np.ndarray]:
+def _cross_topology_wrinkle_fields(
+    material: np.ndarray, names: Iterable[str]
+) -> dict[str, np.ndarray]:
     """Wrinkle depth (P,) per shape at material points ``(P, 3)`` (the generic ICT neutral, cm):
     the normal offset, at weight 1 and on a face of the source's size, of the cross-topology
     wrinkles. Three families, each on the shapes the performance holds (``browDown``,
@@ -1717,7 +1744,7 @@ def _cross_topology_wrinkle_fields(material: np.ndarray, names) -> dict[str, np.
     k = 2.0 * np.pi / CROSS_TOPOLOGY_WRINKLE_WAVELENGTH
     amp = CROSS_TOPOLOGY_WRINKLE_DEPTH
 
-    def window(cx, cy, sx, sy):
+    def window(cx: float, cy: float, sx: float, sy: float) -> np.ndarray:
         return np.exp(-(((x - cx) / sx) ** 2) - ((y - cy) / sy) ** 2)
 
     out = {}
@@ -1735,7 +1762,7 @@ def _cross_topology_wrinkle_fields(material: np.ndarray, names) -> dict[str, np.
 @functools.lru_cache(maxsize=4)
 def _cross_topology_pair(
     source_identity: tuple, target_identity: tuple, subdivisions: int = 0, wrinkles: bool = False
-):
+) -> tuple[_Side, _Side, dict[str, Any]]:
     """The two sides of :func:`cross_topology` (cached) and the meta entries describing them."""
     import scipy.sparse as sp
 
@@ -1789,7 +1816,7 @@ def _cross_topology_pair(
         # normal offset of each neutral, its depth scaled by each face's size
         from .geometry.mesh_ops import vertex_normals
 
-        def size(face):
+        def size(face: np.ndarray) -> float:
             return float(np.sqrt(np.mean(np.sum((face - face.mean(axis=0)) ** 2, axis=1))))
 
         ratio = size(t_identity) / size(s_identity)
@@ -1821,7 +1848,7 @@ def _cross_topology_pair(
 
     tree = cKDTree(s_vertices)
 
-    def chain(points):
+    def chain(points: np.ndarray) -> np.ndarray:
         ids = tree.query(points)[1]
         ids = ids[np.r_[True, ids[1:] != ids[:-1]]]
         _, first = np.unique(ids, return_index=True)
@@ -1851,8 +1878,8 @@ def cross_topology(
     n_frames: int = 120,
     fps: float = 30.0,
     head_motion: bool = False,
-    source_identity=None,
-    target_identity=None,
+    source_identity: npt.ArrayLike | None = None,
+    target_identity: npt.ArrayLike | None = None,
     wrinkles: bool = False,
     source_subdivisions: int | None = None,
 ) -> Case:

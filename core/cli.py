@@ -18,9 +18,10 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from importlib import import_module
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from ._args import parse_sets
 from ._json import jsonable
@@ -36,7 +37,12 @@ from .errors import (
 from .hookspecs import DATA_KINDS
 
 if TYPE_CHECKING:
-    from .registry import RetargeterInfo
+    import numpy as np
+
+    from .model import LayeredRig, Source, TargetRig
+    from .registry import PluginInfo, RetargeterInfo
+
+_T = TypeVar("_T")
 
 EXIT_FAILED = (
     1  # the command ran to its end, but some of its runs or jobs failed (see --keep-going)
@@ -58,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     return code
 
 
-def _dispatch(args) -> tuple[int, str]:
+def _dispatch(args: argparse.Namespace) -> tuple[int, str]:
     """Run the sub-command: ``(exit status, error line or "")``. With ``--debug`` the
     traceback is printed too, and the exit status stays the same (2 for an error)."""
     try:
@@ -88,7 +94,7 @@ def _dispatch(args) -> tuple[int, str]:
         )
 
 
-def _traceback(args) -> None:
+def _traceback(args: argparse.Namespace) -> None:
     """With ``--debug``: the traceback of the exception being handled, on stderr."""
     if getattr(args, "debug", False):
         import traceback
@@ -110,7 +116,7 @@ def _origin(exc: BaseException) -> str:
     return f"{tb.tb_frame.f_code.co_filename}:{tb.tb_lineno}"
 
 
-def _warn_skipped_plugins(args) -> None:
+def _warn_skipped_plugins(args: argparse.Namespace) -> None:
     """One warning line per third-party plugin that failed to load and was skipped (``list``
     shows them in its own output), if this command loaded the plugins at all."""
     if getattr(args, "command", None) == "list":
@@ -359,7 +365,7 @@ def _attach(parser: argparse.ArgumentParser, module_name: str, command: str) -> 
     except (ImportError, AttributeError) as exc:
         reason = f"{module_name} is not available ({exc})"
 
-        def run(args, _reason=reason):
+        def run(args: argparse.Namespace, _reason: str = reason) -> int:
             raise FaceRetargetError(f"`faceretarget {command}` cannot run: {_reason}")
 
         parser.add_argument("rest", nargs=argparse.REMAINDER)
@@ -367,7 +373,7 @@ def _attach(parser: argparse.ArgumentParser, module_name: str, command: str) -> 
 
 
 # ---------------------------------------------------------------------------------------
-def cmd_list(args) -> int:
+def cmd_list(args: argparse.Namespace) -> int:
     from .registry import catalogue
 
     reg = catalogue()  # manifests only: no plugin code imported
@@ -399,7 +405,7 @@ def cmd_list(args) -> int:
     return 0
 
 
-def cmd_info(args) -> int:
+def cmd_info(args: argparse.Namespace) -> int:
     from .registry import catalogue
 
     entry = catalogue().resolve(args.name)  # its manifest: no plugin code imported
@@ -433,7 +439,7 @@ def cmd_info(args) -> int:
     return 0
 
 
-def cmd_formats(args) -> int:
+def cmd_formats(args: argparse.Namespace) -> int:
     from .io import formats, shadow_note
 
     rows = formats()
@@ -470,7 +476,7 @@ RUN_OPTIONS = {
 }
 
 
-def _run_inputs(args) -> list[str]:
+def _run_inputs(args: argparse.Namespace) -> list[str]:
     """Every file ``run`` reads (the output may be none of them)."""
     names = (
         "source",
@@ -491,7 +497,7 @@ def _run_inputs(args) -> list[str]:
     return [getattr(args, n) for n in names if getattr(args, n, None)]
 
 
-def _read_layers(path: str, option: str):
+def _read_layers(path: str, option: str) -> LayeredRig:
     from .io.bundle import read_npz_object
     from .model import LayeredRig
 
@@ -503,7 +509,7 @@ def _read_layers(path: str, option: str):
     return obj
 
 
-def load_run_source(args):
+def load_run_source(args: argparse.Namespace) -> Source:
     """The :class:`~faceretarget.model.Source` of ``run``: the --source file with the parts
     given by the --source-* options (which replace a bundle's)."""
     from . import io
@@ -546,7 +552,7 @@ def load_run_source(args):
     return source.replace(**changes) if changes else source
 
 
-def _read_npy(path: str):
+def _read_npy(path: str) -> np.ndarray:
     import numpy as np
 
     from .io._common import guarded_reader, load_npy
@@ -554,7 +560,7 @@ def _read_npy(path: str):
     return guarded_reader(lambda p: np.asarray(load_npy(p, mmap=False)))(Path(path))
 
 
-def load_run_target(args):
+def load_run_target(args: argparse.Namespace) -> TargetRig:
     """The :class:`~faceretarget.model.TargetRig` of ``run``: --target with its parts from the options."""
     from . import io
 
@@ -586,7 +592,7 @@ def _check_needs(entry: RetargeterInfo, source: Any, target: Any) -> None:
     raise CapabilityError(f"{reason}{hint} (see `faceretarget run --help`)")
 
 
-def cmd_run(args) -> int:
+def cmd_run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from . import get, io
@@ -638,7 +644,9 @@ def _check_output_path(out: str, inputs: list[str], force: bool) -> None:
     )
 
 
-def _plugin_call(who, stage: str, call, *args):
+def _plugin_call(
+    who: tuple[str, PluginInfo], stage: str, call: Callable[..., _T], *args: Any
+) -> _T:
     """``call(*args)`` for ``who = (retargeter name, PluginInfo)``: a failure of a third-party
     plugin (or an invalid output of any) is reported with the plugin's name and distribution."""
     name, plugin = who

@@ -141,7 +141,7 @@ def seconds_setting(name: str, default: float) -> float | None:
     return check_timeout(value, f"{name}={raw!r}")
 
 
-def check_timeout(value, what: str = "timeout") -> float | None:
+def check_timeout(value: object, what: str = "timeout") -> float | None:
     """``value`` as a time limit in seconds (None or 0 = no limit); ConfigError otherwise."""
     from .errors import ConfigError
 

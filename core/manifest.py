@@ -290,7 +290,7 @@ def disagreements(cls: type[Retargeter], manifest: Manifest) -> list[str]:
     return out
 
 
-def _same_default(a, b) -> bool:
+def _same_default(a: object, b: object) -> bool:
     numbers = (
         isinstance(a, (int, float))
         and isinstance(b, (int, float))

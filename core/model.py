@@ -14,11 +14,15 @@ read-only. This module knows nothing of plugins, files or the CLI.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from functools import cached_property
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:
+    from scipy import sparse
 
 from . import config
 from ._validate import (
@@ -82,7 +86,14 @@ class Mesh:
 
     __slots__ = ("vertices", "triangles", "name", "__dict__")
 
-    def __init__(self, vertices, triangles, *, name: str | None = None, _trusted: bool = False):
+    def __init__(
+        self,
+        vertices: npt.ArrayLike,
+        triangles: npt.ArrayLike,
+        *,
+        name: str | None = None,
+        _trusted: bool = False,
+    ) -> None:
         self.vertices = as_float_array(vertices, "Mesh.vertices", (None, 3))
         if _trusted:
             self.triangles = readonly(np.asarray(triangles, dtype=np.int64))
@@ -101,7 +112,7 @@ class Mesh:
         self.name = name
 
     # construction helpers -------------------------------------------------------------
-    def with_vertices(self, vertices) -> Mesh:
+    def with_vertices(self, vertices: npt.ArrayLike) -> Mesh:
         """A mesh with the same triangles and new ``vertices : (V, 3)``."""
         vertices = as_float_array(vertices, "vertices", (self.n_vertices, 3))
         return Mesh(vertices, self.triangles, name=self.name, _trusted=True)
@@ -162,7 +173,7 @@ class Mesh:
         return readonly(np.unique(boundary_edges(self.triangles)))
 
     @cached_property
-    def adjacency(self):
+    def adjacency(self) -> sparse.csr_matrix:
         """(V, V) scipy CSR 0/1 vertex adjacency (read-only use)."""
         from .geometry.mesh_ops import vertex_adjacency
 
@@ -191,14 +202,14 @@ class Mesh:
     def __repr__(self) -> str:
         return f"Mesh({self.n_vertices} vertices, {self.n_triangles} triangles{', ' + repr(self.name) if self.name else ''})"
 
-    def __getstate__(self):
+    def __getstate__(self) -> dict[str, Any]:
         return {
             "vertices": np.array(self.vertices),
             "triangles": np.array(self.triangles),
             "name": self.name,
         }
 
-    def __setstate__(self, state):
+    def __setstate__(self, state: dict[str, Any]) -> None:
         self.__init__(state["vertices"], state["triangles"], name=state["name"], _trusted=True)  # type: ignore[misc]
 
 
@@ -235,7 +246,14 @@ class Landmarks:
         Names, used to pair landmarks with source markers of the same name.
     """
 
-    def __init__(self, vertex_ids=None, *, triangle_ids=None, barycentric=None, names=None):
+    def __init__(
+        self,
+        vertex_ids: npt.ArrayLike | None = None,
+        *,
+        triangle_ids: npt.ArrayLike | None = None,
+        barycentric: npt.ArrayLike | None = None,
+        names: Iterable[str] | None = None,
+    ) -> None:
         if (vertex_ids is None) == (triangle_ids is None):
             raise InputError(
                 "Landmarks: give either vertex_ids, or triangle_ids with barycentric coordinates"
@@ -313,7 +331,14 @@ class MarkerSequence:
 
     kind = "markers"
 
-    def __init__(self, positions, *, names=None, fps: float = 30.0, reference=None):
+    def __init__(
+        self,
+        positions: npt.ArrayLike,
+        *,
+        names: Iterable[str] | None = None,
+        fps: float = 30.0,
+        reference: npt.ArrayLike | None = None,
+    ) -> None:
         arr = as_array(positions, "MarkerSequence.positions")
         if getattr(arr, "ndim", 0) != 3 or arr.shape[-1] not in (2, 3):
             raise ShapeError(
@@ -387,8 +412,14 @@ class MeshSequence:
     kind = "mesh"
 
     def __init__(
-        self, vertices, triangles, *, fps: float = 30.0, reference=None, name: str | None = None
-    ):
+        self,
+        vertices: npt.ArrayLike,
+        triangles: npt.ArrayLike,
+        *,
+        fps: float = 30.0,
+        reference: Mesh | npt.ArrayLike | None = None,
+        name: str | None = None,
+    ) -> None:
         arr = as_array(vertices, "MeshSequence.vertices")
         # 4- and 8-byte floats of either byte order are kept as given, so a memory-mapped
         # point cache (PC2 little-endian, MDD big-endian) stays on disk.
@@ -458,7 +489,7 @@ class WeightSequence:
     head_motion: np.ndarray
     extras: dict[str, Any]
 
-    def __init__(self, weights, names, *, fps: float = 30.0):
+    def __init__(self, weights: npt.ArrayLike, names: Iterable[str], *, fps: float = 30.0) -> None:
         self.weights = as_float_array(weights, "WeightSequence.weights", (None, None))
         if self.weights.shape[0] == 0:
             raise ShapeError("WeightSequence.weights: the sequence has no frames")
@@ -511,7 +542,14 @@ class BlendshapeRig:
         Artist weight range per shape (lower, upper); default none.
     """
 
-    def __init__(self, neutral: Mesh, deltas, names, *, bounds=None):
+    def __init__(
+        self,
+        neutral: Mesh,
+        deltas: npt.ArrayLike,
+        names: Iterable[str],
+        *,
+        bounds: npt.ArrayLike | None = None,
+    ) -> None:
         if not isinstance(neutral, Mesh):
             raise InputError(
                 f"BlendshapeRig.neutral: expected a Mesh, got {type(neutral).__name__}"
@@ -543,7 +581,7 @@ class BlendshapeRig:
         """(3V, M) float64 column matrix of the deltas (x-y-z interleaved per vertex)."""
         return readonly(np.ascontiguousarray(self.deltas.reshape(self.n_shapes, -1).T))
 
-    def evaluate(self, weights) -> np.ndarray:
+    def evaluate(self, weights: npt.ArrayLike) -> np.ndarray:
         """Vertices for ``weights : (M,) or (F, M)`` -> ``(V, 3)`` or ``(F, V, 3)``."""
         w = as_array(weights, "BlendshapeRig.evaluate: weights")
         if w.ndim not in (1, 2) or w.shape[-1] != self.n_shapes:
@@ -616,12 +654,12 @@ class LayeredRig:
 
     def __init__(
         self,
-        layers: Mapping[str, Any],
-        masks,
+        layers: Mapping[str, npt.ArrayLike],
+        masks: npt.ArrayLike,
         *,
         pose_names: Mapping[str, Sequence[str]] | None = None,
-        region_names=None,
-    ):
+        region_names: Iterable[str] | None = None,
+    ) -> None:
         if not isinstance(layers, Mapping) or not layers:
             raise InputError(
                 "LayeredRig.layers: expected a non-empty mapping of layer name -> (K, P, D) poses"
@@ -687,7 +725,7 @@ class LayeredRig:
 # ---------------------------------------------------------------------------------------
 # What a retargeter consumes
 # ---------------------------------------------------------------------------------------
-def _as_head_motion(value, n_frames: int, name: str) -> np.ndarray | None:
+def _as_head_motion(value: npt.ArrayLike | None, n_frames: int, name: str) -> np.ndarray | None:
     if value is None:
         return None
     arr = as_float_array(value, name, (n_frames, 4, 4))
@@ -698,7 +736,9 @@ def _as_head_motion(value, n_frames: int, name: str) -> np.ndarray | None:
     return arr
 
 
-def _as_feature_lines(value, n_points: int | None, name: str) -> dict[str, np.ndarray]:
+def _as_feature_lines(
+    value: Mapping[str, npt.ArrayLike] | None, n_points: int | None, name: str
+) -> dict[str, np.ndarray]:
     if value is None:
         return {}
     if not isinstance(value, Mapping):
@@ -740,19 +780,19 @@ class Source:
 
     def __init__(
         self,
-        performance,
+        performance: MarkerSequence | MeshSequence | WeightSequence,
         *,
-        head_motion=None,
+        head_motion: npt.ArrayLike | None = None,
         landmarks: Landmarks | None = None,
-        feature_lines=None,
-        examples=None,
-        example_names=None,
+        feature_lines: Mapping[str, npt.ArrayLike] | None = None,
+        examples: npt.ArrayLike | None = None,
+        example_names: Iterable[str] | None = None,
         rig: BlendshapeRig | None = None,
         actor_layers: LayeredRig | None = None,
         tracks2d: MarkerSequence | None = None,
         actor_layers_2d: LayeredRig | None = None,
         name: str | None = None,
-    ):
+    ) -> None:
         if not isinstance(performance, (MarkerSequence, MeshSequence, WeightSequence)):
             raise InputError(
                 f"Source.performance: expected a MarkerSequence, MeshSequence or WeightSequence, got {type(performance).__name__}"
@@ -828,7 +868,7 @@ class Source:
             raise InputError("Source.actor_layers_2d: given without tracks2d")
         self.actor_layers_2d = actor_layers_2d
 
-    def replace(self, **changes) -> Source:
+    def replace(self, **changes: Any) -> Source:
         """A new Source with some constructor arguments changed (validated again).
 
         Dropping ``examples`` (``examples=None``) drops their names too.
@@ -927,11 +967,11 @@ class TargetRig:
         blendshapes: BlendshapeRig | None = None,
         layers: LayeredRig | None = None,
         landmarks: Landmarks | None = None,
-        feature_lines=None,
-        examples=None,
-        example_names=None,
+        feature_lines: Mapping[str, npt.ArrayLike] | None = None,
+        examples: npt.ArrayLike | None = None,
+        example_names: Iterable[str] | None = None,
         name: str | None = None,
-    ):
+    ) -> None:
         if not isinstance(neutral, Mesh):
             raise InputError(f"TargetRig.neutral: expected a Mesh, got {type(neutral).__name__}")
         self.neutral = neutral
@@ -975,7 +1015,7 @@ class TargetRig:
         else:
             self.examples, self.example_names = None, ()
 
-    def replace(self, **changes) -> TargetRig:
+    def replace(self, **changes: Any) -> TargetRig:
         """A new TargetRig with some constructor arguments changed (validated again).
 
         Dropping ``examples`` (``examples=None``) drops their names too.
@@ -1044,16 +1084,16 @@ class Animation:
     def __init__(
         self,
         *,
-        vertices=None,
-        weights=None,
+        vertices: npt.ArrayLike | None = None,
+        weights: npt.ArrayLike | None = None,
         rig: BlendshapeRig | None = None,
-        head_motion=None,
-        triangles=None,
+        head_motion: npt.ArrayLike | None = None,
+        triangles: npt.ArrayLike | None = None,
         fps: float = 30.0,
-        weight_names=None,
+        weight_names: Iterable[str] | None = None,
         provenance: dict | None = None,
         extras: dict | None = None,
-    ):
+    ) -> None:
         if vertices is None and (weights is None or rig is None):
             raise InputError(
                 "Animation: give vertices, or weights together with the rig that turns them into vertices"
@@ -1140,7 +1180,8 @@ class Animation:
     def vertices(self) -> np.ndarray:
         """(F, V, 3) final target vertices (computed from the weights on first use)."""
         if self._vertices is None:
-            assert self.rig is not None  # an Animation without vertices has weights and a rig
+            # an Animation without vertices has weights and a rig
+            assert self.rig is not None and self.weights is not None
             local = self.rig.evaluate(self.weights)
             self._vertices = readonly(apply_head_motion(self.head_motion, local))
         return self._vertices
@@ -1167,7 +1208,7 @@ class Animation:
             np.asarray(self.vertices[frame], dtype=np.float64), self.triangles, _trusted=True
         )
 
-    def replace(self, **changes) -> Animation:
+    def replace(self, **changes: Any) -> Animation:
         """A copy with some constructor arguments changed (e.g. ``weights=...``)."""
         args: dict[str, Any] = dict(
             vertices=self._vertices if not self.is_blendshape_based else None,

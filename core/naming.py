@@ -38,10 +38,16 @@ import tomllib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
+import numpy.typing as npt
 
+from ._types import PathLike
 from .errors import ConfigError, InputError, UnknownNameError
+
+if TYPE_CHECKING:
+    from .model import WeightSequence
 
 __all__ = [
     "ARKIT_NAMES",
@@ -288,7 +294,11 @@ class Mapping:
         counts = a.sum(axis=1, keepdims=True)
         return np.divide(a, counts, out=np.zeros_like(a), where=counts > 0)
 
-    def apply(self, weights):
+    @overload
+    def apply(self, weights: WeightSequence) -> WeightSequence: ...
+    @overload
+    def apply(self, weights: npt.ArrayLike) -> np.ndarray: ...
+    def apply(self, weights: WeightSequence | npt.ArrayLike) -> WeightSequence | np.ndarray:
         """Weights over ``from_names`` -> weights over ``to_names``.
 
         ``weights``: ``(F, M_from)`` or ``(M_from,)`` array, or a
@@ -341,7 +351,7 @@ class Mapping:
         return self
 
 
-def _as_names(names, what: str) -> tuple[str, ...]:
+def _as_names(names: str | Iterable[str], what: str) -> tuple[str, ...]:
     if isinstance(names, str):
         return name_set(names)
     try:
@@ -358,7 +368,12 @@ def _as_names(names, what: str) -> tuple[str, ...]:
     return out
 
 
-def map_names(from_names, to_names, preset: str = "auto", mapping=None) -> Mapping:
+def map_names(
+    from_names: str | Iterable[str],
+    to_names: str | Iterable[str],
+    preset: str = "auto",
+    mapping: dict[str, Any] | PathLike | None = None,
+) -> Mapping:
     """Pair ``from_names`` with ``to_names``; see the module docstring for the rules.
 
     Parameters
@@ -438,7 +453,7 @@ def map_names(from_names, to_names, preset: str = "auto", mapping=None) -> Mappi
     return Mapping(src, dst, targets, rules, tuple(ignored), unused)
 
 
-def _normalize_mapping(data, origin: str) -> dict[str, tuple[str, ...]]:
+def _normalize_mapping(data: object, origin: str) -> dict[str, tuple[str, ...]]:
     if not isinstance(data, dict):
         raise ConfigError(
             f"{origin}: a name mapping must be a table/object of from-name -> to-name(s)"
@@ -460,7 +475,7 @@ def _normalize_mapping(data, origin: str) -> dict[str, tuple[str, ...]]:
     return out
 
 
-def load_mapping(path) -> dict[str, tuple[str, ...]]:
+def load_mapping(path: PathLike) -> dict[str, tuple[str, ...]]:
     """Read a user name-mapping file (``.toml``, ``.json`` or two-column ``.csv``).
 
     Returns from-name -> tuple of to-names (empty: ignore that name). Raises

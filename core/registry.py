@@ -93,7 +93,9 @@ class RetargeterInfo:
     """A registered retargeter: its manifest (what ``list`` and ``info`` show) and its class,
     imported on first use of :attr:`cls` when the entry came from a manifest alone."""
 
-    def __init__(self, manifest: Manifest, plugin: PluginInfo, cls: type[Retargeter] | None = None):
+    def __init__(
+        self, manifest: Manifest, plugin: PluginInfo, cls: type[Retargeter] | None = None
+    ) -> None:
         self.manifest = manifest
         self.plugin = plugin
         self._cls = cls
@@ -146,7 +148,7 @@ def read_catalogue(
 class Registry:
     """Everything the installed plugins provide. Build with :func:`registry`."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.pm = pluggy.PluginManager(PROJECT)
         self.pm.add_hookspecs(FaceRetargetSpec)
         if config.env_flag(config.ENV_TRACE):

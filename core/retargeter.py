@@ -20,7 +20,7 @@ import inspect
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -28,8 +28,14 @@ from ._json import jsonable
 from .errors import CapabilityError, InputError, NotFittedError, PluginOutputError
 from .model import Animation, Source, TargetRig
 
+if TYPE_CHECKING:
+    from .manifest import Manifest
+
 __all__ = ["Capabilities", "Retargeter", "clone", "SOURCE_KINDS", "RIG_PARTS"]
 
+#: The package of the built-in plugins: a class defined under it takes its capabilities and
+#: summary from the packaged ``registry.toml`` (:meth:`Retargeter.packaged_manifest`).
+BUILTIN_PACKAGE = "faceretarget.plugins"
 #: Kinds of performance a retargeter can consume.
 SOURCE_KINDS = ("markers", "mesh", "weights")
 #: Rig parts (see :attr:`TargetRig.PARTS`) and source extras a retargeter can need.
@@ -146,8 +152,11 @@ def missing_needs(
 class Retargeter:
     """Base class of every retargeter, built-in or third-party.
 
-    Subclasses set :attr:`name` and :attr:`capabilities`, write an ``__init__`` with
-    keyword-only parameters stored as-is, and implement ``_fit`` and ``_retarget``.
+    Subclasses set :attr:`name`, write an ``__init__`` with keyword-only parameters stored
+    as-is, and implement ``_fit`` and ``_retarget``. A third-party class also sets
+    :attr:`capabilities` (and :attr:`summary`); a built-in one (defined under
+    :data:`BUILTIN_PACKAGE`) takes both from its ``registry.toml`` entry, by its name, when
+    the class is created (:meth:`packaged_manifest`), so the manifest is their one source.
     """
 
     name: ClassVar[str] = ""
@@ -156,6 +165,26 @@ class Retargeter:
     summary: ClassVar[str] = ""
     #: Parameter meanings shown by ``faceretarget info``: name -> text.
     parameter_docs: ClassVar[dict[str, str]] = {}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        entry = cls.packaged_manifest()
+        if entry is not None:  # what the class states itself stays (the registry compares)
+            if "capabilities" not in vars(cls):
+                cls.capabilities = entry.capabilities
+            if "summary" not in vars(cls):
+                cls.summary = entry.summary
+
+    @classmethod
+    def packaged_manifest(cls) -> Manifest | None:
+        """This class's entry of the packaged ``registry.toml`` when it is a built-in: defined
+        in a module under :data:`BUILTIN_PACKAGE` and setting its own :attr:`name`, which the
+        manifest lists; else None. Reads the manifest only (no other plugin is imported)."""
+        if "name" not in vars(cls) or not cls.__module__.startswith(BUILTIN_PACKAGE + "."):
+            return None
+        from . import manifest
+
+        return manifest.builtin().get(cls.name)
 
     # -- parameters ------------------------------------------------------------------
     @classmethod
@@ -180,7 +209,7 @@ class Retargeter:
         """The constructor parameters and their current values."""
         return {n: getattr(self, n) for n in self._param_names()}
 
-    def set_params(self, **params) -> Retargeter:
+    def set_params(self, **params: Any) -> Retargeter:
         """Set constructor parameters; unknown names raise. Returns self."""
         self.check_params(params, who=type(self).__name__)
         for k, v in params.items():
@@ -188,7 +217,7 @@ class Retargeter:
         return self
 
     @classmethod
-    def check_params(cls, params, who: str | None = None) -> None:
+    def check_params(cls, params: Iterable[str], who: str | None = None) -> None:
         """Raise :class:`~faceretarget.errors.UnknownNameError` for keyword names that are
         not constructor parameters of this retargeter, each with the closest valid name
         ("did you mean") and the full list of valid parameters."""
@@ -287,7 +316,7 @@ class Retargeter:
             f"{self.name or type(self).__name__} does not stream; use retarget() on the whole sequence"
         )
 
-    def edit(self, animation: Animation, **constraints) -> Animation:
+    def edit(self, animation: Animation, **constraints: Any) -> Animation:
         """Spacetime editing (only where ``capabilities.edit``)."""
         raise CapabilityError(f"{self.name or type(self).__name__} does not support editing")
 
@@ -355,7 +384,7 @@ def clone(retargeter: Retargeter) -> Retargeter:
     return type(retargeter)(**copy.deepcopy(retargeter.get_params()))
 
 
-def _same(a, b) -> bool:
+def _same(a: Any, b: Any) -> bool:
     try:
         return bool(np.all(a == b)) if not isinstance(a, (dict, list)) else a == b
     except Exception:

@@ -48,9 +48,11 @@ import copy
 import functools
 import hashlib
 import pickle
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, TypeAlias, overload
 
 import numpy as np
+import numpy.typing as npt
 
 from .errors import CapabilityError, FaceRetargetError, NotFittedError
 from .model import (
@@ -64,6 +66,15 @@ from .model import (
     WeightSequence,
 )
 from .retargeter import Retargeter, clone
+
+if TYPE_CHECKING:
+    import pytest
+
+    from ._types import Performance
+    from .cases import Case
+
+#: A retargeter class or instance (the checks take either).
+RetargeterLike: TypeAlias = Retargeter | type[Retargeter]
 
 __all__ = [
     "check_retargeter",
@@ -92,13 +103,13 @@ CROSS_NEUTRAL_TOLERANCE = 1e-4
 
 
 @functools.lru_cache(maxsize=4)
-def _build_tiny_case(seed: int):
+def _build_tiny_case(seed: int) -> Case:
     from . import cases
 
     return cases.synthetic(seed=seed, resolution=600, n_frames=16)
 
 
-def tiny_case(seed: int = 0):
+def tiny_case(seed: int = 0) -> Case:
     """A small synthetic parallel-rig case carrying every rig part.
 
     Built once per seed; each call returns a deep copy, so a retargeter that mutates
@@ -108,13 +119,13 @@ def tiny_case(seed: int = 0):
 
 
 @functools.lru_cache(maxsize=2)
-def _build_tiny_cross_topology_case(seed: int):
+def _build_tiny_cross_topology_case(seed: int) -> Case:
     from . import cases
 
     return cases.cross_topology(seed=seed, n_frames=6)
 
 
-def tiny_cross_topology_case(seed: int = 0):
+def tiny_cross_topology_case(seed: int = 0) -> Case:
     """A short case whose source is of another topology than the target: the closed-eye head
     with a mouth bag and another outline of :func:`faceretarget.cases.cross_topology` (2,357
     vertices) onto the open-eye ICT face (9,409 vertices), 6 frames. A deep copy per call."""
@@ -127,26 +138,39 @@ def tiny_cross_topology_case(seed: int = 0):
 class _Affine:
     """``x -> scale * R x + t`` on points, ``scale * R d`` on displacements."""
 
-    def __init__(self, scale: float = 1.0, rotation=None, translation=None):
+    def __init__(
+        self,
+        scale: float = 1.0,
+        rotation: npt.ArrayLike | None = None,
+        translation: npt.ArrayLike | None = None,
+    ) -> None:
         self.scale = float(scale)
         self.rotation = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
         self.translation = (
             np.zeros(3) if translation is None else np.asarray(translation, dtype=np.float64)
         )
 
-    def points(self, x):
+    @overload
+    def points(self, x: None) -> None: ...
+    @overload
+    def points(self, x: npt.ArrayLike) -> np.ndarray: ...
+    def points(self, x: npt.ArrayLike | None) -> np.ndarray | None:
         return (
             None
             if x is None
             else self.scale * (np.asarray(x, dtype=np.float64) @ self.rotation.T) + self.translation
         )
 
-    def vectors(self, d):
+    @overload
+    def vectors(self, d: None) -> None: ...
+    @overload
+    def vectors(self, d: npt.ArrayLike) -> np.ndarray: ...
+    def vectors(self, d: npt.ArrayLike | None) -> np.ndarray | None:
         return (
             None if d is None else self.scale * (np.asarray(d, dtype=np.float64) @ self.rotation.T)
         )
 
-    def inverse_points(self, y):
+    def inverse_points(self, y: npt.ArrayLike) -> np.ndarray:
         return ((np.asarray(y, dtype=np.float64) - self.translation) @ self.rotation) / self.scale
 
     def matrix(self) -> np.ndarray:
@@ -155,7 +179,7 @@ class _Affine:
         m[:3, 3] = self.translation
         return m
 
-    def conjugate(self, motion):
+    def conjugate(self, motion: npt.ArrayLike | None) -> np.ndarray | None:
         """Rigid motions ``(F, 4, 4)`` seen in the moved frame: ``A M A^-1``."""
         if motion is None:
             return None
@@ -165,14 +189,14 @@ class _Affine:
     def mesh(self, mesh: Mesh) -> Mesh:
         return Mesh(self.points(mesh.vertices), mesh.triangles, name=mesh.name)
 
-    def rig(self, rig):
+    def rig(self, rig: BlendshapeRig | None) -> BlendshapeRig | None:
         if rig is None:
             return None
         return BlendshapeRig(
             self.mesh(rig.neutral), self.vectors(rig.deltas), rig.names, bounds=rig.bounds
         )
 
-    def layers(self, layers):
+    def layers(self, layers: LayeredRig | None) -> LayeredRig | None:
         if layers is None:
             return None
         return LayeredRig(
@@ -183,7 +207,7 @@ class _Affine:
         )
 
 
-def _rotation(axis, degrees: float) -> np.ndarray:
+def _rotation(axis: Sequence[float] | np.ndarray, degrees: float) -> np.ndarray:
     axis = np.asarray(axis, dtype=np.float64)
     axis = axis / np.linalg.norm(axis)
     k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
@@ -239,7 +263,7 @@ def _moved_target(target: TargetRig, a: _Affine) -> TargetRig:
     )
 
 
-def _instance(obj) -> Retargeter:
+def _instance(obj: RetargeterLike) -> Retargeter:
     if isinstance(obj, Retargeter):
         return clone(obj)
     if isinstance(obj, type) and issubclass(obj, Retargeter):
@@ -247,11 +271,11 @@ def _instance(obj) -> Retargeter:
     raise TypeError(f"expected a Retargeter subclass or instance, got {obj!r}")
 
 
-def _label(r: Retargeter) -> str:
+def _label(r: RetargeterLike) -> str:
     return r.name or type(r).__name__
 
 
-def _replace_performance(source: Source, performance) -> Source:
+def _replace_performance(source: Source, performance: Performance) -> Source:
     """``source`` with another performance, keeping every extra that still fits."""
     keep_landmarks = isinstance(performance, MeshSequence)
     same_frames = source.tracks2d is not None and source.tracks2d.n_frames == performance.n_frames
@@ -269,7 +293,7 @@ def _replace_performance(source: Source, performance) -> Source:
     )
 
 
-def _examples_at_markers(source: Source):
+def _examples_at_markers(source: Source) -> np.ndarray | None:
     if source.landmarks is None:
         return None
     assert isinstance(source.performance, MeshSequence)  # Source: only a mesh takes landmarks
@@ -277,13 +301,15 @@ def _examples_at_markers(source: Source):
     return source.landmarks.positions(source.examples, source.performance.triangles)
 
 
-def _source_of_kind(case, kind: str) -> Source:
+def _source_of_kind(case: Case, kind: str) -> Source:
     src = case.source
     if src.kind == kind:
         return src
     if kind == "markers":
+        positions = src.marker_positions()
+        assert src.landmarks is not None  # else marker_positions() raised CapabilityError
         markers = MarkerSequence(
-            src.marker_positions(),
+            positions,
             names=src.landmarks.names,
             fps=src.fps,
             reference=src.marker_reference(),
@@ -301,7 +327,7 @@ def _source_of_kind(case, kind: str) -> Source:
     raise AssertionError(f"cannot build a {kind!r} source from the tiny case")
 
 
-def _preferred_source(r: Retargeter, case) -> Source:
+def _preferred_source(r: Retargeter, case: Case) -> Source:
     kinds = r.capabilities.sources
     for kind in ("mesh", "markers", "weights"):
         if kind in kinds:
@@ -363,7 +389,7 @@ def _rms(a: np.ndarray, b: np.ndarray) -> float:
     )
 
 
-def _fingerprint(obj) -> str:
+def _fingerprint(obj: object) -> str:
     """Hash of every numpy array reachable from a model object (to detect mutation).
 
     Cached derived operators (``functools.cached_property``) are skipped: they are
@@ -372,7 +398,7 @@ def _fingerprint(obj) -> str:
     h = hashlib.sha256()
     seen: dict[int, object] = {}  # id -> object, kept alive so ids are not reused
 
-    def visit(x):
+    def visit(x: object) -> None:
         if isinstance(x, (str, bytes, int, float, bool, type(None))):
             h.update(repr(x).encode())
             return
@@ -407,7 +433,11 @@ def _fingerprint(obj) -> str:
     return h.hexdigest()
 
 
-def _f32(x):
+@overload
+def _f32(x: None) -> None: ...
+@overload
+def _f32(x: npt.ArrayLike) -> np.ndarray: ...
+def _f32(x: npt.ArrayLike | None) -> np.ndarray | None:
     """A float32, read-only copy of ``x`` (None stays None)."""
     if x is None:
         return None
@@ -416,7 +446,7 @@ def _f32(x):
     return y
 
 
-def _layers32(layers):
+def _layers32(layers: LayeredRig | None) -> LayeredRig | None:
     if layers is None:
         return None
     return LayeredRig(
@@ -427,7 +457,7 @@ def _layers32(layers):
     )
 
 
-def _performance32(perf):
+def _performance32(perf: Performance) -> Performance:
     if isinstance(perf, MeshSequence):
         return MeshSequence(
             _f32(perf.vertices),
@@ -442,7 +472,7 @@ def _performance32(perf):
     return WeightSequence(_f32(perf.weights), perf.names, fps=perf.fps)
 
 
-def _rig32(rig):
+def _rig32(rig: BlendshapeRig | None) -> BlendshapeRig | None:
     if rig is None:
         return None
     return BlendshapeRig(
@@ -489,7 +519,7 @@ def _target32(target: TargetRig) -> TargetRig:
 # ------------------------------------------------------------------------------------
 # the checks
 # ------------------------------------------------------------------------------------
-def check_params(r: Retargeter, case=None) -> None:
+def check_params(r: RetargeterLike, case: Case | None = None) -> None:
     r = _instance(r)
     params = r.get_params()
     fresh = type(r)(**params)
@@ -507,7 +537,7 @@ def check_params(r: Retargeter, case=None) -> None:
     )
 
 
-def check_not_fitted(r: Retargeter, case=None) -> None:
+def check_not_fitted(r: RetargeterLike, case: Case | None = None) -> None:
     case = case or tiny_case()
     r = _instance(r)
     source = _preferred_source(r, case)
@@ -520,7 +550,7 @@ def check_not_fitted(r: Retargeter, case=None) -> None:
     )
 
 
-def check_output(r: Retargeter, case=None) -> None:
+def check_output(r: RetargeterLike, case: Case | None = None) -> None:
     case = case or tiny_case()
     r = _instance(r)
     source = _preferred_source(r, case)
@@ -532,7 +562,7 @@ def check_output(r: Retargeter, case=None) -> None:
     assert anim.provenance.get("method") == r.name, f"{_label(r)}: provenance lacks the method name"
 
 
-def check_rest_pose(r: Retargeter, case=None) -> None:
+def check_rest_pose(r: RetargeterLike, case: Case | None = None) -> None:
     case = case or tiny_case()
     r = _instance(r)
     source = _static_source(_preferred_source(r, case))
@@ -546,7 +576,7 @@ def check_rest_pose(r: Retargeter, case=None) -> None:
     )
 
 
-def check_rigid_motion(r: Retargeter, case=None) -> None:
+def check_rigid_motion(r: RetargeterLike, case: Case | None = None) -> None:
     case = case or tiny_case()
     r = _instance(r)
     base = _preferred_source(r, case)
@@ -569,7 +599,7 @@ def check_rigid_motion(r: Retargeter, case=None) -> None:
         )
 
 
-def check_inputs_unchanged(r: Retargeter, case=None) -> None:
+def check_inputs_unchanged(r: RetargeterLike, case: Case | None = None) -> None:
     case = case or tiny_case()
     r = _instance(r)
     source = _preferred_source(r, case)
@@ -580,7 +610,7 @@ def check_inputs_unchanged(r: Retargeter, case=None) -> None:
     assert before[1] == after[1], f"{_label(r)}: fit/retarget modified the target rig"
 
 
-def check_float32_readonly(r: Retargeter, case=None) -> None:
+def check_float32_readonly(r: RetargeterLike, case: Case | None = None) -> None:
     case = case or tiny_case()
     source = _preferred_source(_instance(r), case)
     ref = _instance(r).fit(source, case.target).retarget(source).vertices
@@ -600,7 +630,7 @@ def check_float32_readonly(r: Retargeter, case=None) -> None:
     )
 
 
-def check_deterministic(r: Retargeter, case=None) -> None:
+def check_deterministic(r: RetargeterLike, case: Case | None = None) -> None:
     case = case or tiny_case()
     source = _preferred_source(_instance(r), case)
     a = _instance(r).fit(source, case.target).retarget(source)
@@ -610,7 +640,7 @@ def check_deterministic(r: Retargeter, case=None) -> None:
     )
 
 
-def check_clone_pickle(r: Retargeter, case=None) -> None:
+def check_clone_pickle(r: RetargeterLike, case: Case | None = None) -> None:
     case = case or tiny_case()
     r = _instance(r)
     twin = clone(r)
@@ -630,7 +660,7 @@ def check_clone_pickle(r: Retargeter, case=None) -> None:
     )
 
 
-def check_stream(r: Retargeter, case=None) -> None:
+def check_stream(r: RetargeterLike, case: Case | None = None) -> None:
     r = _instance(r)
     if not r.capabilities.stream:
         try:
@@ -661,7 +691,7 @@ def check_stream(r: Retargeter, case=None) -> None:
     )
 
 
-def check_capabilities(r: Retargeter, case=None) -> None:
+def check_capabilities(r: RetargeterLike, case: Case | None = None) -> None:
     case = case or tiny_case()
     r = _instance(r)
     caps = r.capabilities
@@ -723,7 +753,7 @@ def check_capabilities(r: Retargeter, case=None) -> None:
             )
 
 
-def check_unit_invariance(r: Retargeter, case=None) -> None:
+def check_unit_invariance(r: RetargeterLike, case: Case | None = None) -> None:
     """Rescaling (x0.01, x100, x1000) or rigidly moving the source or the target changes
     nothing but the units and frame of the result.
 
@@ -763,7 +793,7 @@ def check_unit_invariance(r: Retargeter, case=None) -> None:
     )
 
 
-def _without_head_motion(case):
+def _without_head_motion(case: Case) -> Case:
     """The case with its mesh performance rebuilt from the source rig and true weights
     (expressions only): head motion is applied in world coordinates, so moving the target
     would rightly change where a head turn takes it (check_rigid_motion covers head motion)."""
@@ -774,6 +804,7 @@ def _without_head_motion(case):
     if src.kind != "mesh" or src.rig is None or weights is None:
         return case
     perf = src.performance
+    assert isinstance(perf, MeshSequence)  # src.kind == "mesh"
     local = MeshSequence(
         src.rig.evaluate(weights),
         perf.triangles,
@@ -784,7 +815,7 @@ def _without_head_motion(case):
     return dataclasses.replace(case, source=src.replace(performance=local, head_motion=None))
 
 
-def check_cross_topology_neutral(r: Retargeter, case=None) -> None:
+def check_cross_topology_neutral(r: RetargeterLike, case: Case | None = None) -> None:
     """A source of another topology resting at its neutral gives the target's neutral.
 
     Uses :func:`tiny_cross_topology_case` (``case`` is ignored: the check needs a pair of
@@ -796,6 +827,7 @@ def check_cross_topology_neutral(r: Retargeter, case=None) -> None:
     if not kinds:
         return  # weight curves have no topology
     xcase = tiny_cross_topology_case()
+    assert isinstance(xcase.source.performance, MeshSequence)  # cross_topology: a mesh source
     source = _static_source(_source_of_kind(xcase, kinds[0]))
     if type(r).why_not(source, xcase.target) is not None:
         return
@@ -812,7 +844,9 @@ def check_cross_topology_neutral(r: Retargeter, case=None) -> None:
     )
 
 
-def _stripped_variants(source: Source, target: TargetRig):
+def _stripped_variants(
+    source: Source, target: TargetRig
+) -> Iterator[tuple[str, Source, TargetRig]]:
     """(label, source, target): the pair as given, then with one part removed at a time."""
     yield "as given", source, target
     for part in TargetRig.PARTS:
@@ -840,7 +874,7 @@ def _stripped_variants(source: Source, target: TargetRig):
         )
 
 
-def check_declared_needs(r: Retargeter, case=None) -> None:
+def check_declared_needs(r: RetargeterLike, case: Case | None = None) -> None:
     """Where ``why_not(source, target)`` is None, ``fit`` must not raise CapabilityError.
 
     Tried on the given (or tiny) case and on :func:`tiny_cross_topology_case`, each as given
@@ -873,7 +907,7 @@ def _target_without(target: TargetRig, parts: Iterable[str]) -> TargetRig:
     return target.replace(**{p: None for p in parts})
 
 
-def _equal(a, b) -> bool:
+def _equal(a: Any, b: Any) -> bool:
     if isinstance(a, dict) and isinstance(b, dict):
         return a.keys() == b.keys() and all(_equal(a[k], b[k]) for k in a)
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
@@ -901,7 +935,7 @@ CHECKS: tuple[Callable, ...] = (
 )
 
 
-def check_retargeter(retargeter, case=None) -> None:
+def check_retargeter(retargeter: RetargeterLike, case: Case | None = None) -> None:
     """Run every conformance check on a Retargeter class or instance.
 
     Raises AssertionError (the first failed invariant, by name). ``case`` defaults to
@@ -919,7 +953,7 @@ def check_retargeter(retargeter, case=None) -> None:
             ) from exc
 
 
-def parametrize_with_checks(retargeters: Iterable):
+def parametrize_with_checks(retargeters: Iterable[RetargeterLike]) -> pytest.MarkDecorator:
     """A pytest decorator: one test per (retargeter, check), ids like ``spacetime-check_rest_pose``.
 
     The decorated test takes the arguments ``retargeter`` and ``check``.
@@ -942,7 +976,7 @@ try:  # pragma: no cover - only when pytest is importable
     import pytest as _pytest
 
     @_pytest.fixture(scope="session")
-    def faceretarget_case():
+    def faceretarget_case() -> Case:
         """A tiny synthetic parallel-rig case with every rig part (see ``tiny_case``)."""
         return tiny_case()
 

@@ -71,7 +71,7 @@ class Interval:
     right: float | None = None
     closed: str = "both"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         kind: object = (
             {"float": float, "int": int}.get(self.kind, self.kind)
             if isinstance(self.kind, str)
@@ -102,7 +102,7 @@ class Interval:
             ),
         )
 
-    def accepts(self, value) -> bool:
+    def accepts(self, value: object) -> bool:
         if isinstance(value, (bool, np.bool_)) or not isinstance(
             value, (int, float, np.integer, np.floating)
         ):
@@ -125,7 +125,7 @@ class Interval:
         )
         return low_ok and high_ok
 
-    def convert(self, value):
+    def convert(self, value: Any) -> int | float:
         return int(value) if self.kind is int else float(value)
 
     def __str__(self) -> str:
@@ -147,22 +147,22 @@ class Options:
 
     options: tuple[str, ...]
 
-    def __init__(self, options: Iterable[str]):
+    def __init__(self, options: Iterable[str]) -> None:
         items = sorted(options) if isinstance(options, (set, frozenset)) else list(options)
         if not items or not all(isinstance(o, str) for o in items):
             raise TypeError(f"Options: expected a non-empty collection of strings, got {options!r}")
         object.__setattr__(self, "options", tuple(dict.fromkeys(items)))
 
-    def __eq__(self, other) -> bool:
+    def __eq__(self, other: object) -> bool:
         return isinstance(other, Options) and set(self.options) == set(other.options)
 
     def __hash__(self) -> int:
         return hash(frozenset(self.options))
 
-    def accepts(self, value) -> bool:
+    def accepts(self, value: object) -> bool:
         return isinstance(value, str) and value in self.options
 
-    def convert(self, value):
+    def convert(self, value: Any) -> Any:
         return value
 
     def __str__(self) -> str:
@@ -176,7 +176,7 @@ class _Kind:
     name: str
     type: type | None = None
 
-    def accepts(self, value) -> bool:
+    def accepts(self, value: object) -> bool:
         if self.name == "none":
             return value is None
         if self.name == "boolean":
@@ -196,7 +196,7 @@ class _Kind:
             self.type is not bool and isinstance(value, bool)
         )
 
-    def convert(self, value):
+    def convert(self, value: Any) -> Any:
         return bool(value) if self.name == "boolean" else value
 
     def __str__(self) -> str:
@@ -215,7 +215,7 @@ class _Kind:
 _NAMED = {"boolean", "array-like", "mapping", "callable", "no_validation"}
 
 
-def make_constraint(spec) -> Interval | Options | _Kind:
+def make_constraint(spec: object) -> Interval | Options | _Kind:
     """One constraint from its declaration (see the module docstring)."""
     if isinstance(spec, (Interval, Options, _Kind)):
         return spec
@@ -233,7 +233,7 @@ def make_constraint(spec) -> Interval | Options | _Kind:
     )
 
 
-def describe(constraints) -> str:
+def describe(constraints: Iterable[object]) -> str:
     """The valid values in words, as errors and ``faceretarget info`` show them
     (``"'auto' or a whole number in [0, 7]"``); ``""`` when anything goes."""
     parts: list[str] = []
@@ -246,7 +246,7 @@ def describe(constraints) -> str:
 
 
 # -- checking ------------------------------------------------------------------------------
-def check_value(value, constraints, name: str, who: str = ""):
+def check_value(value: Any, constraints: Iterable[object], name: str, who: str = "") -> Any:
     """``value`` converted by the first constraint it satisfies (``int``/``float``/``bool``);
     a :class:`ParameterError` naming ``who``, ``name``, the valid values and the value given
     (with "did you mean" for a near-miss string) otherwise. No constraints: anything goes."""
@@ -277,7 +277,7 @@ def constraints_of(cls: type) -> dict[str, list]:
 
 
 def validate_params(
-    estimator, params: Mapping[str, Any] | None = None, *, who: str | None = None
+    estimator: Any, params: Mapping[str, Any] | None = None, *, who: str | None = None
 ) -> dict[str, Any]:
     """Every constructor parameter of ``estimator`` (or the given ``params``) checked against
     its class's ``parameter_constraints``: ``{name: value}`` with numbers and flags converted
@@ -359,7 +359,7 @@ def from_manifest(spec: Mapping[str, Any], where: str) -> list:
     return out
 
 
-def _interval(kind: str, text, where: str) -> Interval:
+def _interval(kind: str, text: object, where: str) -> Interval:
     """``"[0, 1e12]"``, ``"(0, inf)"``... -> :class:`Interval`."""
     bad = ConfigError(
         f'{where}: range must be an interval such as "[0, 1]", "(0, inf)" or "[-1, 1e6]", got {text!r}'

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import ShapeError, TopologyMismatchError
 from ..model import Landmarks, Mesh
@@ -22,7 +25,9 @@ def landmark_positions(mesh: Mesh, landmarks: Landmarks) -> np.ndarray:
     return np.asarray(landmarks.positions(mesh.vertices, mesh.triangles), dtype=np.float64)
 
 
-def project_landmarks(mesh: Mesh, points, names=None) -> Landmarks:
+def project_landmarks(
+    mesh: Mesh, points: npt.ArrayLike, names: Iterable[str] | None = None
+) -> Landmarks:
     """Barycentric landmarks at the closest surface points of ``mesh`` to ``points (N, 3)``."""
     from ..geometry.raycast import RayCaster
 
@@ -68,7 +73,9 @@ def to_vertex_ids(landmarks: Landmarks, mesh: Mesh) -> Landmarks:
     return Landmarks(ids, names=landmarks.names)
 
 
-def paired_positions(mesh_a: Mesh, landmarks_a: Landmarks, mesh_b: Mesh, landmarks_b: Landmarks):
+def paired_positions(
+    mesh_a: Mesh, landmarks_a: Landmarks, mesh_b: Mesh, landmarks_b: Landmarks
+) -> tuple[np.ndarray, np.ndarray]:
     """Positions of two landmark sets paired by order: ``(N, 3)`` and ``(N, 3)``."""
     if len(landmarks_a) != len(landmarks_b):
         raise TopologyMismatchError(

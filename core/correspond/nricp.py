@@ -33,9 +33,12 @@ accepted or rejected on the face normal of whichever triangle a tie picked, at c
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 
 from ..config import (
@@ -61,6 +64,9 @@ from ..model import Landmarks, Mesh
 from .landmarks import paired_positions, to_barycentric
 from .topology import boundary_loops
 from .warp import rbf_warp
+
+if TYPE_CHECKING:
+    from ..geometry.raycast import RayCaster, RayHits
 
 __all__ = ["QualityReport", "resample_to_topology", "DEFAULT_STIFFNESS"]
 
@@ -167,7 +173,7 @@ class QualityReport:
         out: list[tuple[str, str]] = []
         regions = d.get("regions", {})
 
-        def where(key):
+        def where(key: str) -> str:
             r = regions.get(key) or {}
             return " (" + ", ".join(f"{k}: {v}" for k, v in list(r.items())[:5]) + ")" if r else ""
 
@@ -242,7 +248,12 @@ def _edge_keys(edges: np.ndarray, n: int) -> np.ndarray:
 
 
 def _on_boundary(
-    tri_ids, bary, triangles, boundary_vertex, boundary_keys, n_vertices
+    tri_ids: np.ndarray,
+    bary: np.ndarray,
+    triangles: np.ndarray,
+    boundary_vertex: np.ndarray,
+    boundary_keys: np.ndarray,
+    n_vertices: int,
 ) -> np.ndarray:
     """(P,) bool: the closest point lies on a boundary edge or boundary vertex of the mesh."""
     corners = triangles[tri_ids]
@@ -260,8 +271,13 @@ def _on_boundary(
 
 
 def _match_loops(
-    src_points, src_loops, tgt_vertices, tgt_loops, src_triangles=None, max_distance=np.inf
-):
+    src_points: np.ndarray,
+    src_loops: Sequence[np.ndarray],
+    tgt_vertices: np.ndarray,
+    tgt_loops: Sequence[np.ndarray],
+    src_triangles: np.ndarray | None = None,
+    max_distance: float = np.inf,
+) -> list[int]:
     """For each source loop, the target loop nearest on average (index into ``tgt_loops``),
     or -1 when even that one does not follow it: the mean distance from the source loop to
     the target loop, or back, exceeds ``max_distance`` (a closed-eye source's outline cut
@@ -305,7 +321,9 @@ def _landmark_radius(positions: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((positions - positions.mean(axis=0)) ** 2, axis=1))))
 
 
-def canonical_frames(source_positions, target_positions) -> tuple[_Frame, _Frame]:
+def canonical_frames(
+    source_positions: npt.ArrayLike, target_positions: npt.ArrayLike
+) -> tuple[_Frame, _Frame]:
     """The frames in which :func:`resample_to_topology` works: each face centred on its
     landmarks' centroid and scaled to unit RMS landmark radius; the source turned to the
     principal axes of its landmarks (each axis signed by the third moment along it), the
@@ -342,7 +360,7 @@ def resample_to_topology(
     target_mesh: Mesh,
     target_landmarks: Landmarks,
     *,
-    stiffness=DEFAULT_STIFFNESS,
+    stiffness: Sequence[float] = DEFAULT_STIFFNESS,
     iterations: int = DEFAULT_ITERATIONS,
     landmark_weight: float = DEFAULT_LANDMARK_WEIGHT,
     match_boundaries: bool = True,
@@ -453,7 +471,7 @@ def resample_to_topology(
     x = x0.copy()
     lx0 = lap @ x0
 
-    def solve(alpha, targets, weights):
+    def solve(alpha: float, targets: np.ndarray, weights: np.ndarray) -> np.ndarray:
         a = sp.diags(weights) + alpha * lap + ptp
         b = weights[:, None] * targets + alpha * lx0 + pt_t
         return SPDFactor(a, what="the non-rigid ICP system").solve(b)
@@ -532,7 +550,7 @@ class _Matcher:
 
     def __init__(
         self, target: Mesh, source: Mesh, match_boundaries: bool, loop_distance: float = np.inf
-    ):
+    ) -> None:
         from ..geometry.mesh_ops import boundary_edges
         from ..geometry.raycast import RayCaster
 
@@ -571,7 +589,7 @@ class _Matcher:
             else []
         )
 
-    def __call__(self, x: np.ndarray):
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Targets ``(V, 3)`` and weights ``(V,)`` in {0, 1} for the current fit ``x``."""
         from ..geometry.mesh_ops import vertex_normals
 
@@ -612,7 +630,7 @@ class _Matcher:
         return targets, ok.astype(np.float64)
 
 
-def _normals_at(vertex_normals: np.ndarray, triangles: np.ndarray, hits) -> np.ndarray:
+def _normals_at(vertex_normals: np.ndarray, triangles: np.ndarray, hits: RayHits) -> np.ndarray:
     """(P, 3) unit target normals at closest points: the barycentric blend of the vertex
     normals, continuous over the surface. (The face normal of the triangle found is not: a
     closest point on an edge or a vertex belongs to every triangle meeting there and the
@@ -621,7 +639,7 @@ def _normals_at(vertex_normals: np.ndarray, triangles: np.ndarray, hits) -> np.n
     return unit_rows(blend)
 
 
-def _flipped(x: np.ndarray, triangles: np.ndarray, caster, target: Mesh) -> np.ndarray:
+def _flipped(x: np.ndarray, triangles: np.ndarray, caster: RayCaster, target: Mesh) -> np.ndarray:
     """(T,) bool: triangles of the fit ``x`` whose normal points against the target surface
     under them: the sum of the target normals at the closest points of the centroid and of
     the three corners (a triangle straddling a sharp crease, a lip or lid margin, is judged
@@ -635,7 +653,9 @@ def _flipped(x: np.ndarray, triangles: np.ndarray, caster, target: Mesh) -> np.n
     return np.einsum("ij,ij->i", face_normals(x, triangles), ref) < 0
 
 
-def _snap(x, targets, accepted, triangles):
+def _snap(
+    x: np.ndarray, targets: np.ndarray, accepted: np.ndarray, triangles: np.ndarray
+) -> np.ndarray:
     """Move accepted vertices onto their targets, keeping the old position around any triangle that would flip."""
     from ..geometry.mesh_ops import face_normals
 
@@ -675,7 +695,10 @@ def _region_of(name: str | None, index: int) -> str:
 
 
 def _regions(
-    points: np.ndarray, landmark_points: np.ndarray, names, boundary: np.ndarray | None = None
+    points: np.ndarray,
+    landmark_points: np.ndarray,
+    names: Sequence[str],
+    boundary: np.ndarray | None = None,
 ) -> dict[str, int]:
     """Count ``points (P, 3)`` per named region (nearest landmark's name; "boundary" where ``boundary``)."""
     if len(points) == 0:
@@ -694,7 +717,7 @@ def quality_report(
     resampled: Mesh,
     source_landmarks: Landmarks,
     target_mesh: Mesh,
-    target_landmark_positions,
+    target_landmark_positions: npt.ArrayLike,
     *,
     rejected: int = 0,
     iterations: int = 0,
@@ -702,7 +725,7 @@ def quality_report(
     target_landmarks: Landmarks | None = None,
     released: int = 0,
     untangle_rounds: int = 0,
-    loops_paired=None,
+    loops_paired: Iterable[int] | None = None,
 ) -> QualityReport:
     """Measure how well ``resampled`` (source topology) fits ``target_mesh``.
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 
 from ..errors import ShapeError
@@ -40,7 +41,7 @@ class Correspondence:
             shape=(len(corners), self.n_vertices),
         )
 
-    def apply(self, values) -> np.ndarray:
+    def apply(self, values: npt.ArrayLike) -> np.ndarray:
         """Interpolate per-vertex ``values`` at the corresponding points.
 
         ``values`` has the vertex axis second to last, ``(..., V, K)``, or is ``(V,)``;
@@ -65,7 +66,7 @@ class Correspondence:
         return out[:, 0] if squeeze else out
 
 
-def closest_point_transfer(points, mesh: Mesh) -> Correspondence:
+def closest_point_transfer(points: Mesh | npt.ArrayLike, mesh: Mesh) -> Correspondence:
     """Closest points on ``mesh`` of ``points`` (a Mesh's vertices or a (P, 3) array)."""
     from ..geometry.raycast import RayCaster
 
@@ -82,7 +83,7 @@ def closest_point_transfer(points, mesh: Mesh) -> Correspondence:
     )
 
 
-def transfer_back(resampled: Mesh, values, target: Mesh) -> np.ndarray:
+def transfer_back(resampled: Mesh, values: npt.ArrayLike, target: Mesh) -> np.ndarray:
     """Carry per-vertex ``values`` of a resampled mesh back to the target's own vertices.
 
     ``resampled`` is the target surface in another topology (e.g. from

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import DegenerateGeometryError, ShapeError
 from ..geometry.rbf import RBFInterpolant, _merge_duplicates, kernel_values, solve_system
@@ -39,7 +40,9 @@ class _Warp(RBFInterpolant):
         return out.reshape(lead + (self.weights.shape[1],))
 
 
-def rbf_warp(source_positions, target_positions, *, kernel: str = "linear") -> RBFInterpolant:
+def rbf_warp(
+    source_positions: npt.ArrayLike, target_positions: npt.ArrayLike, *, kernel: str = "linear"
+) -> RBFInterpolant:
     """A smooth map of 3D space taking ``source_positions (N, 3)`` onto ``target_positions (N, 3)``.
 
     ``f(x) = sum_i w_i phi(|x - s_i|) + A x + b`` with phi(r) = r (the biharmonic kernel

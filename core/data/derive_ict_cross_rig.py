@@ -32,7 +32,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 
 
-def load_ict(path: Path):
+def load_ict(path: Path) -> dict[str, np.ndarray]:
     with np.load(path) as d:
         out = {k: d[k] for k in d.files}
     out["expression_deltas"] = (
@@ -91,7 +91,7 @@ def main(
     src_loops, ict_loops = boundary_loops(dec_t), boundary_loops(ict_t)
     assert len(src_loops) == len(ict_loops) == 4, (len(src_loops), len(ict_loops))
 
-    def box(points):
+    def box(points: np.ndarray) -> np.ndarray:
         return np.concatenate([points.min(axis=0), points.max(axis=0)])
 
     for loop in ict_loops:

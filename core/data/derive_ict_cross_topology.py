@@ -43,8 +43,12 @@ import argparse
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 HERE = Path(__file__).resolve().parent
 #: Region codes of the source vertices.
@@ -57,7 +61,7 @@ BAG_RINGS = 8
 BAG_DEPTH = 3.0
 
 
-def load_ict(path: Path):
+def load_ict(path: Path) -> dict[str, np.ndarray]:
     with np.load(path) as d:
         out = {k: d[k] for k in d.files}
     out["expression_deltas"] = (
@@ -69,7 +73,7 @@ def load_ict(path: Path):
 class Builder:
     """A triangle mesh whose vertices are affine combinations of ICT vertices + offsets."""
 
-    def __init__(self, ict_v: np.ndarray, ict_t: np.ndarray):
+    def __init__(self, ict_v: np.ndarray, ict_t: np.ndarray) -> None:
         import scipy.sparse as sp
 
         n = len(ict_v)
@@ -80,10 +84,10 @@ class Builder:
         self.tri = ict_t.copy()
 
     @property
-    def vertices(self):
+    def vertices(self) -> np.ndarray:
         return self.rows @ self.base + self.offset
 
-    def add(self, rows, offset, region):
+    def add(self, rows: "sp.spmatrix", offset: np.ndarray, region: int) -> np.ndarray:
         import scipy.sparse as sp
 
         start = self.rows.shape[0]
@@ -92,7 +96,7 @@ class Builder:
         self.region = np.concatenate([self.region, np.full(rows.shape[0], region, dtype=np.int8)])
         return np.arange(start, start + rows.shape[0])
 
-    def compact(self):
+    def compact(self) -> None:
         used = np.zeros(self.rows.shape[0], dtype=bool)
         used[self.tri] = True
         remap = np.cumsum(used) - 1
@@ -113,13 +117,14 @@ def fill_polygon(loop: np.ndarray, xy: np.ndarray) -> list:
     sign = 1.0 if area > 0 else -1.0
     out = []
 
-    def cross(o, a, b):
+    def cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
         return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
 
     guard = 0
     while len(ids) > 3 and guard < 100000:
         guard += 1
-        best, best_q = None, -np.inf
+        best: int | None = None
+        best_q: float | np.floating = -np.inf
         for k in range(len(ids)):
             a, b, c = ids[k - 1], ids[k], ids[(k + 1) % len(ids)]
             if sign * cross(pts[a], pts[b], pts[c]) <= 0:
@@ -145,8 +150,8 @@ def fill_polygon(loop: np.ndarray, xy: np.ndarray) -> list:
     return out
 
 
-def _inside(p, a, b, c, sign):
-    def cross(o, u, v):
+def _inside(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, sign: float) -> bool:
+    def cross(o: np.ndarray, u: np.ndarray, v: np.ndarray) -> float:
         return (u[0] - o[0]) * (v[1] - o[1]) - (u[1] - o[1]) * (v[0] - o[0])
 
     return sign * cross(a, b, p) > 0 and sign * cross(b, c, p) > 0 and sign * cross(c, a, p) > 0

@@ -20,7 +20,7 @@ import sys
 import numpy as np
 
 
-def quantize(deltas: np.ndarray):
+def quantize(deltas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     scales = np.abs(deltas).reshape(len(deltas), -1).max(axis=1) / 32767.0
     scales[scales == 0] = 1.0
     q = np.round(deltas / scales[:, None, None]).astype(np.int16)

@@ -11,6 +11,7 @@ See ``docs/evaluation.md`` for the metric definitions, the report and the batch 
 from __future__ import annotations
 
 from importlib import import_module
+from typing import Any
 
 __all__ = [
     "compare",
@@ -39,7 +40,7 @@ _EXPORTS = {
 }
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     if name in _EXPORTS:
         value = getattr(import_module(_EXPORTS[name], __name__), name)
         globals()[name] = value
@@ -47,5 +48,5 @@ def __getattr__(name: str):
     raise AttributeError(f"module 'faceretarget.evaluation' has no attribute {name!r}")
 
 
-def __dir__():
+def __dir__() -> list[str]:
     return sorted(set(globals()) | set(__all__))

@@ -25,6 +25,7 @@ import signal
 import subprocess
 import sys
 import time
+from types import FrameType
 
 PR_SET_PDEATHSIG = 1
 PR_SET_CHILD_SUBREAPER = 36
@@ -149,10 +150,10 @@ def main(argv: list[str]) -> None:
     supervisor = int(argv[0])
     stop = {"requested": False}
 
-    def request_stop(signum, frame) -> None:
+    def request_stop(signum: int, frame: FrameType | None) -> None:
         stop["requested"] = True
 
-    def parent_died(signum, frame) -> None:
+    def parent_died(signum: int, frame: FrameType | None) -> None:
         if os.getppid() != supervisor:
             stop["requested"] = True
 

@@ -13,13 +13,16 @@
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .._validate import did_you_mean
 from ..errors import ConfigError, UnknownNameError
 from .harness import OK, ComparisonResult
+
+if TYPE_CHECKING:
+    from ..registry import Registry
 
 __all__ = [
     "MethodRole",
@@ -70,7 +73,7 @@ def short_citation(paper: str) -> str:
     return f"{' & '.join(authors)} {match.group(2)}"
 
 
-def method_roles(methods, registry=None) -> dict[str, MethodRole]:
+def method_roles(methods: Iterable[str], registry: Registry | None = None) -> dict[str, MethodRole]:
     """The :class:`MethodRole` of each method name, from the registry's catalogue (default the
     process-wide registry): a method whose manifest declares ``baseline_of``, or whose summary
     calls it a baseline, is a baseline; one with a paper citation is a paper method; the rest
@@ -92,7 +95,7 @@ def method_roles(methods, registry=None) -> dict[str, MethodRole]:
     return _pair_baselines(roles)
 
 
-def _class_of(info) -> type | None:
+def _class_of(info: object) -> type | None:
     """The entry's class (imported on first use by the registry); None when it cannot be had."""
     try:
         return getattr(info, "cls", None)
@@ -111,7 +114,7 @@ def _pair_baselines(roles: dict[str, MethodRole]) -> dict[str, MethodRole]:
     return roles
 
 
-def _registry_infos(registry) -> Mapping[str, Any]:
+def _registry_infos(registry: Registry | None) -> Mapping[str, Any]:
     if registry is None:
         from ..registry import registry as _registry
 
@@ -275,7 +278,7 @@ def _other_winners(result: ComparisonResult, case: str, metric: str, winner: str
     return " ".join(parts)
 
 
-def _needs(cls) -> set[str]:
+def _needs(cls: type | None) -> set[str]:
     needs = getattr(getattr(cls, "capabilities", None), "needs", ()) or ()
     flat: set[str] = set()
     for need in needs:
@@ -283,15 +286,21 @@ def _needs(cls) -> set[str]:
     return flat
 
 
-def _outputs(cls) -> str:
+def _outputs(cls: type | None) -> str:
     return getattr(getattr(cls, "capabilities", None), "outputs", "")
 
 
-def _why(result: ComparisonResult, case: str, winner: str, runner: str | None, roles) -> str:
+def _why(
+    result: ComparisonResult,
+    case: str,
+    winner: str,
+    runner: str | None,
+    roles: Mapping[str, MethodRole],
+) -> str:
     """A reason from what the case's ground truth is made of and what the methods consume."""
     meta = getattr(result.cases.get(case), "meta", None) or {}
     cls = getattr(roles.get(winner), "cls", None)
-    other = getattr(roles.get(runner), "cls", None)
+    other = getattr(roles.get(runner), "cls", None) if runner is not None else None
     if cls is None:
         return ""
     if "layers" in _needs(cls) and meta.get("layer_coefficients") is not None:

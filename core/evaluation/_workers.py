@@ -204,7 +204,7 @@ class _Worker:
     process id cannot have been reused by then.
     """
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.group: deque[Task] | None = None
         self._start()
 
@@ -265,7 +265,7 @@ class _Worker:
         self._writer = threading.Thread(target=write, name="faceretarget-task-writer", daemon=True)
         self._writer.start()
 
-    def status(self):
+    def status(self) -> os.waitid_result | int | None:
         """The exit status (``os.waitid_result``) without reaping, or None while running."""
         try:
             return os.waitid(os.P_PID, self.pid, os.WEXITED | os.WNOHANG | os.WNOWAIT)

@@ -42,12 +42,21 @@ import secrets
 import sys
 import time
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Hashable, Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigError, UnknownNameError
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
+
+    from .._types import PathLike
+    from ..hookspecs import Writer
+    from ..model import Animation, Source, TargetRig
+    from ..registry import Registry
+    from ._workers import Outcome
 
 __all__ = [
     "Job",
@@ -135,7 +144,7 @@ def _inside(root: Path, value: str, what: str, where: str) -> str:
     return str(path)
 
 
-def writer_for(out: Path, registry, where: str):
+def writer_for(out: Path, registry: Registry, where: str) -> Writer:
     """The registered animation :class:`~faceretarget.Writer` for ``out``'s extension."""
     suffix = out.suffix.lower()
     candidates = [
@@ -160,7 +169,7 @@ def writer_for(out: Path, registry, where: str):
     return candidates[0]
 
 
-def load_manifest(path, *, registry=None) -> list[Job]:
+def load_manifest(path: PathLike, *, registry: Registry | None = None) -> list[Job]:
     """Parse and check a manifest; returns its jobs (nothing runs).
 
     Raises :class:`ConfigError` (malformed, unsafe paths, duplicate outputs, no writer)
@@ -321,7 +330,7 @@ def job_inputs(job: Job) -> list[str]:
     return out
 
 
-def run_inputs(jobs: list[Job], manifest=None) -> list[str]:
+def run_inputs(jobs: list[Job], manifest: PathLike | None = None) -> list[str]:
     """Every file a batch run reads (the manifest, each job's inputs) or writes (each
     job's output): what a summary or any other file of the run must never replace."""
     found = [str(manifest)] if manifest is not None else []
@@ -334,7 +343,7 @@ def run_inputs(jobs: list[Job], manifest=None) -> list[str]:
 # ---------------------------------------------------------------------------------------
 # One job (runs in a worker process or thread)
 # ---------------------------------------------------------------------------------------
-def _load_source(spec: str):
+def _load_source(spec: str) -> Source:
     from .harness import cached_case
 
     if spec.startswith(CASE_PREFIX):
@@ -348,7 +357,7 @@ def _load_source(spec: str):
     return io.load_source(spec)
 
 
-def _load_target(spec: str, landmarks: str | None):
+def _load_target(spec: str, landmarks: str | None) -> TargetRig:
     from .harness import cached_case
 
     if spec.startswith(CASE_PREFIX):
@@ -363,7 +372,12 @@ def _load_target(spec: str, landmarks: str | None):
 
 
 def write_animation(
-    animation, out: Path, writer: Callable, *, force: bool = True, inputs=()
+    animation: Animation,
+    out: Path,
+    writer: Callable[[Animation, Path], object],
+    *,
+    force: bool = True,
+    inputs: Iterable = (),
 ) -> Path:
     """Write through ``writer`` into a temporary beside ``out`` (faceretarget's one naming
     scheme, :func:`faceretarget.io._atomic.temp_path`), then replace ``out``.
@@ -382,7 +396,7 @@ def write_animation(
     return out
 
 
-def remove_leftovers(out) -> list[Path]:
+def remove_leftovers(out: PathLike) -> list[Path]:
     """Temporaries of killed writers of ``out`` removed (see :mod:`faceretarget.io._atomic`)."""
     from ..io._atomic import remove_leftovers as remove
 
@@ -467,7 +481,7 @@ def _job_timeout(job: Job, default: float | None) -> float | None:
     return job.timeout
 
 
-def _failed_run(job: Job, outcome) -> JobResult:
+def _failed_run(job: Job, outcome: Outcome) -> JobResult:
     """The result of a job whose worker failed it (time limit, crash, task not movable)."""
     remove_leftovers(job.out)
     error = outcome.error()
@@ -487,9 +501,9 @@ def _supervised(
     """Jobs in supervised worker processes, each killed when it overruns its time limit."""
     from ._workers import DONE, Task, run_supervised
 
-    by_name = {job.name: job for job in jobs}
+    by_name: dict[Hashable, Job] = {job.name: job for job in jobs}  # by task key
 
-    def on_outcome(outcome) -> None:
+    def on_outcome(outcome: Outcome) -> None:
         job = by_name[outcome.key]
         on_result(outcome.value if outcome.status == DONE else _failed_run(job, outcome))
 
@@ -516,7 +530,7 @@ def run_job_supervised(job: Job, timeout: float | None) -> JobResult:
     return results[0]
 
 
-def _run_local(jobs: list[Job], workers: int, timeout: float | None, bar) -> list[JobResult]:
+def _run_local(jobs: list[Job], workers: int, timeout: float | None, bar: tqdm) -> list[JobResult]:
     from .harness import single_threaded_children
 
     results = []
@@ -537,7 +551,7 @@ def _run_dask(
     scheduler: str | None,
     processes: bool,
     timeout: float | None,
-    bar,
+    bar: tqdm,
 ) -> list[JobResult]:
     from .harness import single_threaded_children
 
@@ -603,14 +617,14 @@ def _run_dask(
 
 
 def run_batch(
-    manifest,
+    manifest: PathLike | list[Job],
     *,
     executor: str = "local",
     scheduler: str | None = None,
     workers: int | None = None,
     redo: bool = False,
     dask_processes: bool = True,
-    registry=None,
+    registry: Registry | None = None,
     progress: bool = True,
     timeout: float | None = None,
 ) -> BatchSummary:
@@ -671,7 +685,9 @@ def run_batch(
     return summary
 
 
-def write_summary(summary: BatchSummary, path, *, force: bool = False, inputs=()) -> Path:
+def write_summary(
+    summary: BatchSummary, path: PathLike, *, force: bool = False, inputs: Iterable = ()
+) -> Path:
     """The summary as JSON (atomically); never over a file of the run (``inputs``: see
     :func:`run_inputs`), an existing file only with ``force``."""
     from ..io._atomic import write_bytes

@@ -11,10 +11,18 @@ import argparse
 import datetime as _dt
 import sys
 import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
 
 from .._args import parse_sets
 from ..errors import ConfigError, OutputError
+
+if TYPE_CHECKING:
+    from .._types import PathLike
+    from ..hookspecs import Writer
+    from ..registry import Registry
+    from .harness import ComparisonResult
 
 __all__ = [
     "add_compare_arguments",
@@ -66,7 +74,7 @@ def _failed_exit(n_failed: int, total: int, what: str, keep_going: bool) -> int:
     return 1
 
 
-def _failed_runs(result) -> int:
+def _failed_runs(result: ComparisonResult) -> int:
     from .harness import ERROR
 
     return sum(run.status == ERROR for run in result.runs)
@@ -81,7 +89,7 @@ def _timeout(value: float | None) -> float | None:
     return config.check_timeout(value, "--timeout")
 
 
-def _print_ranking(result, stream=None) -> None:
+def _print_ranking(result: ComparisonResult, stream: TextIO | None = None) -> None:
     from .report import _fmt
 
     stream = stream or sys.stdout
@@ -197,7 +205,7 @@ def add_compare_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def check_outputs(paths, *, force: bool, inputs=()) -> None:
+def check_outputs(paths: Iterable[PathLike], *, force: bool, inputs: Iterable = ()) -> None:
     """The one destination check of :mod:`faceretarget.io._atomic` for every file a command
     will write, before any slow work: never an input (``inputs``, or a file read by this
     process), never an existing file without ``--force``, never two outputs on one file."""
@@ -216,7 +224,7 @@ def check_outputs(paths, *, force: bool, inputs=()) -> None:
         check_destination(p, inputs=inputs, force=force)
 
 
-def run_compare(args) -> int:
+def run_compare(args: argparse.Namespace) -> int:
     from .harness import compare
     from .presets import run_presets
     from .report import REPORT_FILES, check_report_folder, write_report
@@ -298,7 +306,7 @@ def _jobs(value: int | None, default: int) -> int:
     return min(jobs, os.cpu_count() or 1) if value is None else jobs
 
 
-def run_demo(args) -> int:
+def run_demo(args: argparse.Namespace) -> int:
     from ..registry import registry
     from .batch import write_animation, writer_for
     from .harness import compare
@@ -356,7 +364,7 @@ def warmup_cases() -> list:
     ]
 
 
-def run_warmup(args) -> int:
+def run_warmup(args: argparse.Namespace) -> int:
     import warnings
 
     import numpy as np
@@ -395,7 +403,13 @@ def run_warmup(args) -> int:
     return 1 if failed else 0
 
 
-def _write_glbs(result, folder: Path, reg, write_animation, writer_for) -> str:
+def _write_glbs(
+    result: ComparisonResult,
+    folder: Path,
+    reg: Registry,
+    write_animation: Callable[..., Path],
+    writer_for: Callable[[Path, Registry, str], Writer],
+) -> str:
     try:
         writer = writer_for(Path("x.glb"), reg, "demo")
     except ConfigError as exc:
@@ -463,7 +477,7 @@ def add_batch_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def run_batch(args) -> int:
+def run_batch(args: argparse.Namespace) -> int:
     from . import batch
 
     jobs = batch.load_manifest(args.manifest)

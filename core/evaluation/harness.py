@@ -30,11 +30,11 @@ import os
 import time
 import traceback
 import tracemalloc
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -49,6 +49,12 @@ from ..errors import (
 from ..hookspecs import Metric
 from ..model import Animation
 from ..retargeter import Retargeter
+
+if TYPE_CHECKING:
+    from .._types import PathLike
+    from ..cases import Case
+    from ..registry import Registry, RetargeterInfo
+    from ._workers import Outcome
 
 __all__ = [
     "ComparisonResult",
@@ -85,7 +91,7 @@ DEFAULT_CASES = ("synthetic-human", "synthetic-stylized", "ict")
 # ---------------------------------------------------------------------------------------
 # Cases
 # ---------------------------------------------------------------------------------------
-def resolve_case(spec):
+def resolve_case(spec: str | Case) -> Case:
     """A case object from a name such as ``"synthetic-stylized"`` or ``"ict?n_frames=40"``.
 
     The part after ``?`` gives keyword arguments (``k=v`` joined by ``&``; values are
@@ -123,7 +129,7 @@ def parse_case_spec(spec: str) -> tuple[str, dict[str, Any]]:
     return name, kwargs
 
 
-def case_name(case, index: int) -> str:
+def case_name(case: object, index: int) -> str:
     for value in (getattr(case, "name", None), (getattr(case, "meta", None) or {}).get("name")):
         if isinstance(value, str) and value:
             return value
@@ -142,7 +148,7 @@ class _Method:
     version: str
 
 
-def _methods(methods, registry) -> list[_Method]:
+def _methods(methods: Iterable[str | type[Retargeter]] | None, registry: Registry) -> list[_Method]:
     if methods is None:
         return [_from_info(info) for _, info in sorted(registry.retargeters.items())]
     out = []
@@ -161,7 +167,7 @@ def _methods(methods, registry) -> list[_Method]:
     return out
 
 
-def _from_info(info) -> _Method:
+def _from_info(info: RetargeterInfo) -> _Method:
     return _Method(
         info.name, info.cls, info.plugin.name, info.plugin.distribution, info.plugin.version
     )
@@ -231,7 +237,14 @@ class ComparisonResult:
     presets : paper reproductions attached by :func:`faceretarget.evaluation.presets.run_presets`
     """
 
-    def __init__(self, rows, runs, cases, metrics, presets=None):
+    def __init__(
+        self,
+        rows: list[dict],
+        runs: list[Run],
+        cases: dict[str, Any],
+        metrics: dict[str, Metric],
+        presets: Iterable | None = None,
+    ) -> None:
         self.rows: list[dict] = rows
         self.runs: list[Run] = runs
         self.cases: dict[str, Any] = cases
@@ -334,7 +347,7 @@ class ComparisonResult:
         return float(np.mean(vals)) if vals else None
 
     # -- export ------------------------------------------------------------------------
-    def to_csv(self, path, *, force: bool = False, inputs=()) -> Path:
+    def to_csv(self, path: PathLike, *, force: bool = False, inputs: Iterable = ()) -> Path:
         """Write the tidy table as CSV (atomically; an existing file only with ``force``,
         never an input); returns the path."""
         buf = io.StringIO()
@@ -357,7 +370,7 @@ class ComparisonResult:
             "presets": [p.as_dict() for p in self.presets],
         }
 
-    def to_json(self, path, *, force: bool = False, inputs=()) -> Path:
+    def to_json(self, path: PathLike, *, force: bool = False, inputs: Iterable = ()) -> Path:
         """Write rows, ranking, runs (with errors), metric definitions and presets as JSON
         (atomically; an existing file only with ``force``, never an input)."""
         return atomic_write_text(
@@ -382,13 +395,15 @@ def _mean_ranks(values: np.ndarray) -> np.ndarray:
     return ranks
 
 
-def _fmt_csv(value):
+def _fmt_csv(value: object) -> object:
     if isinstance(value, float):
         return repr(value)
     return value
 
 
-def atomic_write_bytes(path, data: bytes, *, force: bool = False, inputs=()) -> Path:
+def atomic_write_bytes(
+    path: PathLike, data: bytes, *, force: bool = False, inputs: Iterable = ()
+) -> Path:
     """Write ``data`` to ``path`` atomically (``faceretarget.io``'s temp file + fsync + rename),
     with its destination check: never an input, an existing file only with ``force``."""
     from ..io._atomic import write_bytes
@@ -396,7 +411,9 @@ def atomic_write_bytes(path, data: bytes, *, force: bool = False, inputs=()) -> 
     return write_bytes(path, data, force=force, inputs=inputs)
 
 
-def atomic_write_text(path, text: str, *, force: bool = False, inputs=()) -> Path:
+def atomic_write_text(
+    path: PathLike, text: str, *, force: bool = False, inputs: Iterable = ()
+) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"), force=force, inputs=inputs)
 
 
@@ -426,7 +443,7 @@ def _failed(run: Run, exc: BaseException, method: _Method, stage: str) -> Run:
 
 
 @contextmanager
-def _compile_clock():
+def _compile_clock() -> Iterator[Callable[[], float]]:
     """Yields a function giving the seconds spent in numba's compiler inside the block
     (outermost compiler-lock spans: compiling kernels and loading them from the disk cache)."""
     try:
@@ -439,7 +456,7 @@ def _compile_clock():
         yield lambda: timer.duration if timer.done else 0.0
 
 
-def _run_one(case, cname: str, method: _Method, params: dict) -> Run:
+def _run_one(case: Case, cname: str, method: _Method, params: dict) -> Run:
     run = Run(
         cname,
         method.name,
@@ -490,10 +507,10 @@ def _run_one(case, cname: str, method: _Method, params: dict) -> Run:
     return run
 
 
-def _metric_rows(run: Run, case, metrics: Mapping[str, Metric]) -> list[dict]:
+def _metric_rows(run: Run, case: Case, metrics: Mapping[str, Metric]) -> list[dict]:
     rows = []
 
-    def add(name, value, metric, status, reason=""):
+    def add(name: str, value: object, metric: Metric, status: str, reason: str = "") -> None:
         rows.append(
             {
                 "case": run.case,
@@ -558,7 +575,7 @@ def _metric_rows(run: Run, case, metrics: Mapping[str, Metric]) -> list[dict]:
 _CASE_CACHE: dict[str, Any] = {}
 
 
-def cached_case(spec: str):
+def cached_case(spec: str) -> Case:
     """:func:`resolve_case` with a small per-process cache (workers reuse built cases)."""
     if spec not in _CASE_CACHE:
         if len(_CASE_CACHE) >= 4:
@@ -597,14 +614,14 @@ class _CaseByName:
     """A case sent to a worker by name: unpickling it there builds (or reuses) the case,
     so the building happens while the task loads, before the run's clock starts."""
 
-    def __init__(self, spec: str):
+    def __init__(self, spec: str) -> None:
         self.spec = spec
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple[Callable[[str], Case], tuple[str]]:
         return (cached_case, (self.spec,))
 
 
-def _run_item(method: _Method, params: dict, cname: str, case) -> Run:
+def _run_item(method: _Method, params: dict, cname: str, case: Case) -> Run:
     """Worker side of an isolated compare: one method on one case (heavy extras dropped)."""
     run = _run_one(case, cname, method, params)
     if run.animation is not None and run.animation.extras:
@@ -623,7 +640,7 @@ _THREAD_VARIABLES = (
 
 
 @contextmanager
-def single_threaded_children():
+def single_threaded_children() -> Iterator[None]:
     """Within this block, spawned child processes use one BLAS / OpenMP / numba thread
     each (variables the user set are kept)."""
     saved = {k: os.environ.get(k) for k in _THREAD_VARIABLES}
@@ -640,7 +657,12 @@ def single_threaded_children():
 
 
 def _isolated(
-    refs: dict, chosen: list[_Method], per_method: dict, n_jobs: int, timeout: float | None, on_run
+    refs: dict,
+    chosen: list[_Method],
+    per_method: dict,
+    n_jobs: int,
+    timeout: float | None,
+    on_run: Callable[[Run], None],
 ) -> None:
     """Every run in a supervised worker process (killed after ``timeout`` seconds).
 
@@ -666,8 +688,8 @@ def _isolated(
                 )
             )
 
-    def on_outcome(outcome) -> None:
-        cname, name = outcome.key
+    def on_outcome(outcome: Outcome) -> None:
+        cname, name = cast("tuple[str, str]", outcome.key)  # the keys of the tasks above
         if outcome.status == DONE:
             on_run(outcome.value)
             return
@@ -686,12 +708,12 @@ def _isolated(
 
 
 def compare(
-    cases=None,
-    methods=None,
+    cases: Sequence[Case | str] | Mapping[str, Case | str] | None = None,
+    methods: Sequence[str | type[Retargeter]] | None = None,
     params: Mapping[str, Mapping[str, Any]] | None = None,
     *,
     metrics: Sequence[str] | None = None,
-    registry=None,
+    registry: Registry | None = None,
     keep_animations: bool = True,
     progress: bool = False,
     n_jobs: int = 1,

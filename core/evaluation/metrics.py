@@ -60,11 +60,23 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
 
 from ..hookspecs import Metric, hookimpl
+from ..model import Animation, Landmarks, TargetRig
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+
+    from ..cases import Case
+
+#: The ``context`` dict of a metric's ``compute`` (the harness's timings, the shared views'
+#: cache, the reasons of the metrics that did not apply), or None.
+Context: TypeAlias = "dict[str, Any] | None"
+#: A structural check: the reason a metric does not apply to (animation, case), or None.
+Check: TypeAlias = "Callable[[Animation, Case], str | None]"
 
 __all__ = [
     "METRICS",
@@ -111,17 +123,31 @@ class NotApplicable(Exception):
 class _Views:
     """Float64 arrays derived once per (animation, case) and shared by the metrics."""
 
-    def __init__(self, animation, case):
+    def __init__(self, animation: Animation, case: Case) -> None:
         self.animation = animation
         self.case = case
         self.target = case.target
         self.height = float(case.target.neutral.height) or 1.0
         self._cache: dict[str, Any] = {}
 
-    def get(self, key: str, make: Callable[[], Any]):
+    def get(self, key: str, make: Callable[[], Any]) -> Any:
         if key not in self._cache:
             self._cache[key] = make()
         return self._cache[key]
+
+    @property
+    def truth(self) -> Animation:
+        """The case's ground truth (the metrics that read it need it: ``_needs_truth``)."""
+        truth = self.case.truth
+        assert truth is not None  # _needs_truth ran before any metric that reads it
+        return truth
+
+    @property
+    def landmarks(self) -> Landmarks:
+        """The target's landmarks (the metrics that read them need them: ``_needs_landmarks``)."""
+        landmarks = self.target.landmarks
+        assert landmarks is not None  # _needs_landmarks ran before any metric that reads them
+        return landmarks
 
     @property
     def X(self) -> np.ndarray:
@@ -129,15 +155,15 @@ class _Views:
 
     @property
     def Y(self) -> np.ndarray:
-        return self.get("Y", lambda: np.asarray(self.case.truth.vertices, dtype=np.float64))
+        return self.get("Y", lambda: np.asarray(self.truth.vertices, dtype=np.float64))
 
     @property
     def X_local(self) -> np.ndarray:
-        return self.get("X_local", lambda: to_head_frame(self.X, self.case.truth.head_motion))
+        return self.get("X_local", lambda: to_head_frame(self.X, self.truth.head_motion))
 
     @property
     def Y_local(self) -> np.ndarray:
-        return self.get("Y_local", lambda: to_head_frame(self.Y, self.case.truth.head_motion))
+        return self.get("Y_local", lambda: to_head_frame(self.Y, self.truth.head_motion))
 
     @property
     def distances(self) -> np.ndarray:
@@ -147,7 +173,7 @@ class _Views:
         )
 
 
-def _views(animation, case, context) -> _Views:
+def _views(animation: Animation, case: Case, context: Context) -> _Views:
     if context is None:
         return _Views(animation, case)
     cache = context.setdefault("cache", {})
@@ -266,7 +292,7 @@ def upper_face_vertices(
     return np.flatnonzero(neutral[:, 1] > 0.5 * (y_eye + y_mouth))
 
 
-def regions(target) -> dict[str, np.ndarray]:
+def regions(target: TargetRig) -> dict[str, np.ndarray]:
     """Region name -> vertex ids (layer masks, else upper / lower face; may be empty)."""
     if target.layers is not None:
         masks = np.asarray(target.layers.masks)
@@ -302,7 +328,9 @@ def velocity_error_per_frame(
     return np.einsum("fnd,fnd->f", diff, diff) / height**2
 
 
-def landmark_velocity_curve(vertices: np.ndarray, truth, target) -> np.ndarray:
+def landmark_velocity_curve(
+    vertices: np.ndarray, truth: Animation, target: TargetRig
+) -> np.ndarray:
     """(F-1,) :func:`velocity_error_per_frame` of ``target.landmarks`` on ``vertices : (F, V, 3)``
     against ``truth`` (an Animation), both in the truth's head frame, relative to the face height.
 
@@ -310,6 +338,7 @@ def landmark_velocity_curve(vertices: np.ndarray, truth, target) -> np.ndarray:
     mapped to the head frame.
     """
     lm, tri = target.landmarks, target.neutral.triangles
+    assert lm is not None  # the callers check that the target has landmarks
     p = to_head_frame(lm.positions(np.asarray(vertices, dtype=np.float64), tri), truth.head_motion)
     q = to_head_frame(
         lm.positions(np.asarray(truth.vertices, dtype=np.float64), tri), truth.head_motion
@@ -324,7 +353,7 @@ def second_difference(x: np.ndarray) -> np.ndarray:
 
 def smoothing_operator(
     n_vertices: int, triangles: np.ndarray, lam: float = DETAIL_SMOOTHING_LAMBDA
-):
+) -> sp.csr_matrix:
     """Sparse ``S = (1 - lam) I + lam D^-1 A`` (one uniform Laplacian smoothing step; isolated vertices stay)."""
     import scipy.sparse as sp
 
@@ -337,7 +366,7 @@ def smoothing_operator(
 
 def detail_smoothing_operator(
     n_vertices: int, triangles: np.ndarray, lam: float = DETAIL_SMOOTHING_LAMBDA
-):
+) -> sp.csr_matrix:
     """Sparse ``S`` of the detail metrics: :func:`smoothing_operator`, except that a vertex on a
     boundary edge averages only its neighbours along boundary edges (a smooth field along an
     eye, mouth or outer rim stays nearly smooth, as it would in the interior).
@@ -388,7 +417,7 @@ def normal_detail(
 
 
 def high_pass(
-    displacements: np.ndarray, smoother, steps: int = DETAIL_SMOOTHING_STEPS
+    displacements: np.ndarray, smoother: sp.spmatrix, steps: int = DETAIL_SMOOTHING_STEPS
 ) -> np.ndarray:
     """``d - S^steps d`` for ``displacements : (F, V, 3)`` with sparse ``smoother : (V, V)``."""
     f, v, _ = displacements.shape
@@ -402,22 +431,23 @@ def high_pass(
 # ---------------------------------------------------------------------------------------
 # Applicability checks: each returns None or the reason
 # ---------------------------------------------------------------------------------------
-def _needs_truth(animation, case):
-    if getattr(case, "truth", None) is None:
+def _needs_truth(animation: Animation, case: Case) -> str | None:
+    truth = getattr(case, "truth", None)
+    if truth is None:
         return "the case has no ground truth"
-    if tuple(np.shape(case.truth.vertices)) != tuple(np.shape(animation.vertices)):
-        return f"result shape {np.shape(animation.vertices)} differs from the ground truth's {np.shape(case.truth.vertices)}"
+    if tuple(np.shape(truth.vertices)) != tuple(np.shape(animation.vertices)):
+        return f"result shape {np.shape(animation.vertices)} differs from the ground truth's {np.shape(truth.vertices)}"
     return None
 
 
-def _needs_landmarks(animation, case):
+def _needs_landmarks(animation: Animation, case: Case) -> str | None:
     if case.target.landmarks is None:
         return "the target has no landmarks"
     return None
 
 
-def _frames(n):
-    def check(animation, case):
+def _frames(n: int) -> Check:
+    def check(animation: Animation, case: Case) -> str | None:
         if animation.n_frames < n:
             return f"needs at least {n} frames; the result has {animation.n_frames}"
         return None
@@ -425,13 +455,13 @@ def _frames(n):
     return check
 
 
-def _needs_weights(animation, case):
+def _needs_weights(animation: Animation, case: Case) -> str | None:
     if animation.weights is None:
         return "the method outputs vertices, not blendshape weights"
     return None
 
 
-def _needs_truth_weights(animation, case):
+def _needs_truth_weights(animation: Animation, case: Case) -> str | None:
     truth = getattr(case, "truth", None)
     if truth is None or truth.weights is None:
         return "the ground truth has no blendshape weights"
@@ -440,12 +470,12 @@ def _needs_truth_weights(animation, case):
     return None
 
 
-def _groups(case):
+def _groups(case: Case) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     return feature_groups(case.target.feature_lines, np.asarray(case.target.neutral.vertices))
 
 
-def _needs_group(kind):
-    def check(animation, case):
+def _needs_group(kind: str) -> Check:
+    def check(animation: Animation, case: Case) -> str | None:
         found = [g for g in _groups(case) if g.startswith(kind)]
         if not found:
             return f"the target has no {kind} feature lines (names containing {'lip/mouth' if kind == 'mouth' else 'eye/lid'})"
@@ -454,7 +484,7 @@ def _needs_group(kind):
     return check
 
 
-def _needs_upper_face(animation, case):
+def _needs_upper_face(animation: Animation, case: Case) -> str | None:
     neutral = np.asarray(case.target.neutral.vertices)
     upper = upper_face_vertices(_groups(case), neutral)
     if upper is None or upper.size == 0:
@@ -462,13 +492,13 @@ def _needs_upper_face(animation, case):
     return None
 
 
-def _needs_regions(animation, case):
+def _needs_regions(animation: Animation, case: Case) -> str | None:
     if not regions(case.target):
         return "the target has neither layer region masks nor eye and mouth feature lines"
     return None
 
 
-def _needs_triangles(animation, case):
+def _needs_triangles(animation: Animation, case: Case) -> str | None:
     if case.target.neutral.n_vertices != animation.vertices.shape[1]:
         return "the result is not on the target's topology"
     return None
@@ -477,29 +507,29 @@ def _needs_triangles(animation, case):
 # ---------------------------------------------------------------------------------------
 # The metrics (docstring = pinned definition)
 # ---------------------------------------------------------------------------------------
-def vertex_error_mean(v: _Views):
+def vertex_error_mean(v: _Views) -> float:
     """Mean over frames and vertices of ||X - Y||, in % of H."""
     return float(v.distances.mean())
 
 
-def vertex_error_rms(v: _Views):
+def vertex_error_rms(v: _Views) -> float:
     """sqrt(mean over frames and vertices of ||X - Y||^2), in % of H (the fidelity check's measure)."""
     return float(np.sqrt(np.mean(v.distances**2)))
 
 
-def vertex_error_max(v: _Views):
+def vertex_error_max(v: _Views) -> float:
     """Max over frames and vertices of ||X - Y||, in % of H."""
     return float(v.distances.max())
 
 
-def vertex_error_region(v: _Views):
+def vertex_error_region(v: _Views) -> dict[str, float]:
     """Per region (layer masks >= 0.5, else upper / lower face): mean over frames and the region's vertices of ||X - Y||, in % of H."""
     return {name: float(v.distances[:, ids].mean()) for name, ids in regions(v.target).items()}
 
 
 def _landmark_distances(v: _Views) -> np.ndarray:
-    def make():
-        lm, tri = v.target.landmarks, v.target.neutral.triangles
+    def make() -> np.ndarray:
+        lm, tri = v.landmarks, v.target.neutral.triangles
         return (
             100.0
             * np.linalg.norm(lm.positions(v.X, tri) - lm.positions(v.Y, tri), axis=-1)
@@ -509,35 +539,35 @@ def _landmark_distances(v: _Views) -> np.ndarray:
     return v.get("landmark_distances", make)
 
 
-def marker_error_mean(v: _Views):
+def marker_error_mean(v: _Views) -> float:
     """Mean over frames and target landmarks of ||P - Q|| (landmark positions on X and Y), in % of H."""
     return float(_landmark_distances(v).mean())
 
 
-def marker_error_max(v: _Views):
+def marker_error_max(v: _Views) -> float:
     """Max over frames and target landmarks of ||P - Q||, in % of H."""
     return float(_landmark_distances(v).max())
 
 
-def velocity_error(v: _Views):
+def velocity_error(v: _Views) -> float:
     """Seol et al. 2012 fig. 11: ||D P - D Q||_F^2 / H^2 summed over frames, where D is the forward difference in time and P, Q the landmarks of X and Y in the head frame (the ground truth's landmarks stand in for the paper's warped source markers). Dimensionless."""
-    return float(landmark_velocity_curve(v.X, v.case.truth, v.target).sum())
+    return float(landmark_velocity_curve(v.X, v.truth, v.target).sum())
 
 
-def acceleration_error(v: _Views):
+def acceleration_error(v: _Views) -> float:
     """RMS over frames t = 1..F-2 and vertices of ||A X - A Y|| in the head frame, A x_t = x_{t+1} - 2 x_t + x_{t-1}, in % of H per frame^2."""
     diff = second_difference(v.X_local) - second_difference(v.Y_local)
     return float(100.0 * np.sqrt(np.mean(np.einsum("fvd,fvd->fv", diff, diff))) / v.height)
 
 
-def jitter_excess(v: _Views):
+def jitter_excess(v: _Views) -> float:
     """Mean over frames and vertices of ||A X|| minus the same of ||A Y|| (head frame, A the second difference), in % of H per frame^2; > 0 means the result shakes more than the truth."""
     ax = np.linalg.norm(second_difference(v.X_local), axis=-1).mean()
     ay = np.linalg.norm(second_difference(v.Y_local), axis=-1).mean()
     return float(100.0 * (ax - ay) / v.height)
 
 
-def _closure_error(v: _Views, kind: str):
+def _closure_error(v: _Views, kind: str) -> float:
     neutral = np.asarray(v.target.neutral.vertices)
     errors = []
     for name, (upper, lower) in feature_groups(v.target.feature_lines, neutral).items():
@@ -547,12 +577,12 @@ def _closure_error(v: _Views, kind: str):
     return float(100.0 * np.mean(errors) / v.height)
 
 
-def lip_closure_error(v: _Views):
+def lip_closure_error(v: _Views) -> float:
     """Mean over frames of |d_X(t) - d_Y(t)|, d(t) = mean over closure pairs (u, l(u)) of the mouth of ||x_u - x_l(u)||, in % of H."""
     return _closure_error(v, "mouth")
 
 
-def eyelid_closure_error(v: _Views):
+def eyelid_closure_error(v: _Views) -> float:
     """Mean over eyes and frames of |d_X(t) - d_Y(t)|, d(t) = mean over the eye's closure pairs (u, l(u)) of ||x_u - x_l(u)||, in % of H."""
     return _closure_error(v, "eye")
 
@@ -562,7 +592,7 @@ def _mouth_vertices(v: _Views) -> np.ndarray:
     return np.unique(np.concatenate(groups["mouth"]))
 
 
-def lve(v: _Views):
+def lve(v: _Views) -> float:
     """Lip vertex error: for each frame the max over lip vertices (the mouth feature-line vertices) of the Euclidean distance ||X - Y||, averaged over frames, in % of H (FaceFormer's code uses the squared distance; here it is the distance)."""
     return float(v.distances[:, _mouth_vertices(v)].max(axis=1).mean())
 
@@ -586,7 +616,7 @@ def _upper_face(v: _Views, neutral: np.ndarray) -> np.ndarray:
     return ids
 
 
-def fdd(v: _Views):
+def fdd(v: _Views) -> float:
     """Upper-face dynamics deviation as in the speech-driven literature (CodeTalker, Xing et al. 2023): for each upper-face vertex, the std over time of its squared displacement magnitude ||x_t - x_neutral||^2 (head frame); the mean of it over the upper face for Y minus the same for X, in (% of H)^2. Signed: > 0 means the result's upper face moves less than the truth's."""
     neutral = np.asarray(v.target.neutral.vertices, dtype=np.float64)
     ids = _upper_face(v, neutral)
@@ -595,7 +625,7 @@ def fdd(v: _Views):
     return float((sy - sx) * (100.0 / v.height) ** 2)
 
 
-def fdd_abs(v: _Views):
+def fdd_abs(v: _Views) -> float:
     """Upper-face dynamics deviation, absolute variant: for each upper-face vertex the std over time of its displacement magnitude ||x_t - x_neutral|| (head frame, not squared), the absolute difference between Y and X per vertex, averaged over the upper face, in % of H."""
     neutral = np.asarray(v.target.neutral.vertices, dtype=np.float64)
     ids = _upper_face(v, neutral)
@@ -608,7 +638,7 @@ def fdd_abs(v: _Views):
 def _normal_details(v: _Views) -> tuple[np.ndarray, np.ndarray]:
     """(hn(X - N), hn(Y - N)), each (F, V), in the head frame (cached per run)."""
 
-    def make():
+    def make() -> tuple[np.ndarray, np.ndarray]:
         neutral = np.asarray(v.target.neutral.vertices, dtype=np.float64)
         both = np.concatenate([v.X_local - neutral, v.Y_local - neutral])
         details = normal_detail(both, np.asarray(v.target.neutral.triangles), neutral)
@@ -617,13 +647,13 @@ def _normal_details(v: _Views) -> tuple[np.ndarray, np.ndarray]:
     return v.get("normal_details", make)
 
 
-def detail_error(v: _Views):
+def detail_error(v: _Views) -> float:
     """Fine-scale (wrinkle) error: sqrt(mean over frames and vertices of (hn(X - N) - hn(Y - N))^2) in the head frame, in % of H, where N is the target neutral and hn(d) the component along the neutral's vertex normal of the high-pass h(d) = d - S^5 d, S = 0.5 I + 0.5 D^-1 A one step of uniform Laplacian smoothing on the target mesh (a boundary vertex averages its boundary neighbours only). Blind to smooth (low-frequency) and tangential errors; dropping the truth's wrinkles costs their whole high-pass."""
     hx, hy = _normal_details(v)
     return float(100.0 * np.sqrt(np.mean((hx - hy) ** 2)) / v.height)
 
 
-def detail_correlation(v: _Views):
+def detail_correlation(v: _Views) -> float:
     """Detail preservation: Pearson correlation, pooled over frames and vertices, of hn(X - N) and hn(Y - N) (the fine-scale normal motion of detail_error: the high-pass by 5 steps of uniform Laplacian smoothing on the target mesh, along the neutral's normals, head frame). 1 = the truth's fine-scale motion reproduced up to a factor; 0 = none of it."""
     hx, hy = _normal_details(v)
     hx, hy = hx.ravel(), hy.ravel()
@@ -639,17 +669,17 @@ def _weights(v: _Views) -> np.ndarray:
     return np.asarray(v.animation.weights, dtype=np.float64)
 
 
-def weight_min(v: _Views):
+def weight_min(v: _Views) -> float:
     """Smallest blendshape weight over frames and shapes (descriptive, not ranked)."""
     return float(_weights(v).min())
 
 
-def weight_max(v: _Views):
+def weight_max(v: _Views) -> float:
     """Largest blendshape weight over frames and shapes (descriptive, not ranked)."""
     return float(_weights(v).max())
 
 
-def weight_outside_share(v: _Views):
+def weight_outside_share(v: _Views) -> float:
     """Share (0..1) of (frame, shape) weights outside their artist range by more than 1e-6: the rig's bounds when the animation's rig has them, else [0, 1]."""
     w = _weights(v)
     rig = v.animation.rig
@@ -660,14 +690,14 @@ def weight_outside_share(v: _Views):
     return float(np.mean((w < lo - RANGE_TOLERANCE) | (w > hi + RANGE_TOLERANCE)))
 
 
-def weight_sparsity(v: _Views):
+def weight_sparsity(v: _Views) -> float:
     """Share (0..1) of (frame, shape) weights with |w| < 0.01 (inactive shapes); higher = sparser, easier to edit."""
     return float(np.mean(np.abs(_weights(v)) < SPARSITY_THRESHOLD))
 
 
-def weight_error_rms(v: _Views):
+def weight_error_rms(v: _Views) -> float:
     """RMS over frames and the shapes named in both the result and the ground truth of w_result - w_truth (weights are unitless)."""
-    truth = v.case.truth
+    truth = v.truth
     common = [n for n in v.animation.weight_names if n in truth.weight_names]
     wr = _weights(v)[:, [v.animation.weight_names.index(n) for n in common]]
     wt = np.asarray(truth.weights, dtype=np.float64)[
@@ -676,8 +706,8 @@ def weight_error_rms(v: _Views):
     return float(np.sqrt(np.mean((wr - wt) ** 2)))
 
 
-def _from_context(key: str):
-    def compute(v: _Views, context):
+def _from_context(key: str) -> Callable[[_Views, Context], float]:
+    def compute(v: _Views, context: Context) -> float:
         value = (context or {}).get(key)
         if value is None:
             raise NotApplicable(
@@ -688,22 +718,22 @@ def _from_context(key: str):
     return compute
 
 
-def time_fit(v: _Views, context):
+def time_fit(v: _Views, context: Context) -> float:
     """Wall-clock seconds of fit(source, target), measured by the harness."""
     return _from_context("fit_s")(v, context)
 
 
-def time_retarget(v: _Views, context):
+def time_retarget(v: _Views, context: Context) -> float:
     """Wall-clock seconds of retarget(source), measured by the harness."""
     return _from_context("retarget_s")(v, context)
 
 
-def time_total(v: _Views, context):
+def time_total(v: _Views, context: Context) -> float:
     """Wall-clock seconds of fit + retarget, measured by the harness."""
     return _from_context("total_s")(v, context)
 
 
-def peak_memory(v: _Views, context):
+def peak_memory(v: _Views, context: Context) -> float:
     """Peak traced memory (tracemalloc: Python and numpy allocations) during fit + retarget, in MiB."""
     return _from_context("peak_memory_mib")(v, context)
 
@@ -758,14 +788,16 @@ _CONTEXT_METRICS = {time_fit, time_retarget, time_total, peak_memory}
 def _make(fn: Callable, unit: str, better: str, checks: tuple) -> Metric:
     name = fn.__name__
 
-    def structural(animation, case):
+    def structural(animation: Animation, case: Case) -> str | None:
         for check in checks:
             reason = check(animation, case)
             if reason:
                 return reason
         return None
 
-    def compute(animation, case, context=None):
+    def compute(
+        animation: Animation, case: Case, context: Context = None
+    ) -> float | dict[str, float] | None:
         reason = structural(animation, case)
         if reason is None:
             views = _views(animation, case, context)
@@ -777,7 +809,7 @@ def _make(fn: Callable, unit: str, better: str, checks: tuple) -> Metric:
             context.setdefault("reasons", {})[name] = reason
         return None
 
-    def why_not(animation, case):
+    def why_not(animation: Animation, case: Case) -> str | None:
         reason = structural(animation, case)
         if reason is None:
             context: dict = {}
@@ -805,5 +837,5 @@ METRICS = {m.name: m for m in builtin_metrics()}
 
 
 @hookimpl
-def faceretarget_metrics():
+def faceretarget_metrics() -> list[Metric]:
     return builtin_metrics()

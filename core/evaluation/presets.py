@@ -20,14 +20,18 @@ returned with status ``not applicable`` / ``error`` and the reason, and the repo
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .._json import jsonable
 from ..errors import CapabilityError, UnknownNameError
 from ..hookspecs import Preset
 from .harness import ERROR, NOT_APPLICABLE, OK, resolve_case
+
+if TYPE_CHECKING:
+    from ..cases import Case
+    from .harness import ComparisonResult
 
 __all__ = [
     "PresetResult",
@@ -96,10 +100,10 @@ class Cases:
     :data:`PRESET_CASES` by its spec there, anything else as
     :func:`faceretarget.evaluation.harness.resolve_case` reads it)."""
 
-    def __init__(self, given: Mapping[str, Any] | None = None):
+    def __init__(self, given: Mapping[str, Any] | None = None) -> None:
         self.given = dict(given or {})
 
-    def __call__(self, name: str):
+    def __call__(self, name: str) -> Case:
         if name not in self.given:
             self.given[name] = resolve_case(PRESET_CASES.get(name, name))
         return self.given[name]
@@ -148,7 +152,9 @@ def run_preset(
 
 
 def run_presets(
-    result=None, names=None, cases: Mapping[str, Any] | None = None
+    result: ComparisonResult | None = None,
+    names: Iterable[str] | None = None,
+    cases: Mapping[str, Any] | None = None,
 ) -> list[PresetResult]:
     """Run presets (default all); with ``result``, reuse its cases and attach to ``result.presets``."""
     pool = Cases({**(result.cases if result is not None else {}), **(cases or {})})
@@ -158,7 +164,7 @@ def run_presets(
     return out
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     if name == "PRESETS":  # the registered presets by name (read when asked: plugins register them)
         return available_presets()
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -32,16 +32,25 @@ import base64
 import datetime as _dt
 import html
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, SupportsFloat
 
 import numpy as np
 
 from ..errors import OutputError
-from .harness import ERROR, NOT_APPLICABLE, OK, ComparisonResult, atomic_write_text
+from ..model import MarkerSequence, MeshSequence
+from .harness import ERROR, NOT_APPLICABLE, OK, ComparisonResult, Run, atomic_write_text
 from .metrics import landmark_velocity_curve, per_vertex_error, to_head_frame
+
+if TYPE_CHECKING:
+    from .._types import PathLike
+    from ..cases import Case
+    from ..registry import Registry
+    from ._summary import CaseSummary, MethodRole
+    from .presets import PresetResult
 
 __all__ = ["write_report", "Plot", "Series", "svg_plot", "decimate", "render_html"]
 
@@ -122,7 +131,7 @@ class Plot:
         }
 
 
-def _finite(v) -> float | None:
+def _finite(v: SupportsFloat) -> float | None:
     v = float(v)
     return v if np.isfinite(v) else None
 
@@ -137,7 +146,7 @@ def _ticks(lo: float, hi: float, n: int = 5) -> list[float]:
     return [float(t) for t in np.arange(start, hi + 0.5 * step, step)][: n * 3]
 
 
-def _fmt(v) -> str:
+def _fmt(v: SupportsFloat | None) -> str:
     if v is None:
         return ""
     v = float(v)
@@ -153,7 +162,7 @@ _SUPERSCRIPT = str.maketrans(
 )
 
 
-def format_number(v) -> str:
+def format_number(v: SupportsFloat | None) -> str:
     """A number for people: ``12,934``, ``0.5468``, ``2.99×10⁻⁵`` (never ``1.29e+04``); "" for None / NaN."""
     if v is None or not np.isfinite(float(v)):
         return ""
@@ -195,7 +204,9 @@ def _wrap(text: str, width: float, size: float = TITLE_PX) -> list[str]:
     return lines + [line] if line else lines
 
 
-def _spaced_ticks(lo: float, hi: float, length: float, label) -> list[float]:
+def _spaced_ticks(
+    lo: float, hi: float, length: float, label: Callable[[float], str]
+) -> list[float]:
     """Ticks whose labels (``label(t)``) fit ``length`` px side by side without touching."""
     tolerance = 1e-9 * (hi - lo)
     for n in (5, 4, 3, 2, 1):
@@ -461,7 +472,9 @@ def _quantize(points: np.ndarray) -> dict:
     return {"q": _b64(q), "lo": lo.tolist(), "step": step.tolist()}
 
 
-def _mesh_block(vertices: np.ndarray, triangles: np.ndarray, max_vertices: int):
+def _mesh_block(
+    vertices: np.ndarray, triangles: np.ndarray, max_vertices: int
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     keep, tris, labels = decimate(vertices, triangles, max_vertices)
     return (
         keep,
@@ -486,7 +499,7 @@ def _key_frames(
 
 
 def _case_view(
-    result: ComparisonResult, cname: str, case, max_vertices: int, max_frames: int
+    result: ComparisonResult, cname: str, case: Case, max_vertices: int, max_frames: int
 ) -> dict:
     runs = [
         r for r in result.runs if r.case == cname and r.status == OK and r.animation is not None
@@ -528,16 +541,17 @@ def _case_view(
             heat.append(
                 {"label": run.method, "values": _cluster_mean(err, labels, len(keep)).tolist()}
             )
-    source = {"kind": case.source.kind}
+    source: dict[str, Any] = {"kind": case.source.kind}
     perf = case.source.performance
     if case.source.kind == "mesh":
+        assert isinstance(perf, MeshSequence)  # a Source's kind is its performance's
         s_keep, _, s_mesh = _mesh_block(
             np.asarray(perf.reference.vertices), np.asarray(perf.triangles), max_vertices
         )
         source.update(
             mesh=s_mesh, **_quantize(np.asarray(perf.vertices, dtype=np.float64)[frames][:, s_keep])
         )
-    elif case.source.kind == "markers" and perf.dim == 3:
+    elif case.source.kind == "markers" and isinstance(perf, MarkerSequence) and perf.dim == 3:
         source.update(**_quantize(np.asarray(perf.positions, dtype=np.float64)[frames]))
     heat_max = max([max(h["values"]) for h in heat if h["values"]] + [1e-9])
     for h in heat:
@@ -564,7 +578,7 @@ def _case_view(
 # ---------------------------------------------------------------------------------------
 # Figures per case
 # ---------------------------------------------------------------------------------------
-def _velocity_plot(result: ComparisonResult, cname: str, case) -> Plot | None:
+def _velocity_plot(result: ComparisonResult, cname: str, case: Case) -> Plot | None:
     truth = getattr(case, "truth", None)
     if truth is None or case.target.landmarks is None or case.source.n_frames < 2:
         return None
@@ -580,7 +594,7 @@ def _velocity_plot(result: ComparisonResult, cname: str, case) -> Plot | None:
     return plot if plot.series else None
 
 
-def _weight_plots(result: ComparisonResult, cname: str, case) -> list[Plot]:
+def _weight_plots(result: ComparisonResult, cname: str, case: Case) -> list[Plot]:
     runs = [
         r
         for r in result.runs
@@ -649,7 +663,7 @@ def _breakable(name: str) -> str:
     return "_<wbr>".join(html.escape(part) for part in name.split("_"))
 
 
-def _role_tag(role) -> str:
+def _role_tag(role: MethodRole | None) -> str:
     if role is None:
         return ""
     return f'<span class="role {role.kind.split()[0]}" title="{html.escape(role.label)}">{html.escape(role.label)}</span>'
@@ -756,7 +770,7 @@ def _all_metrics_table(
     return "".join(out)
 
 
-def _excl_compile(run) -> float | None:
+def _excl_compile(run: Run) -> float | None:
     """Seconds of fit + retarget without numba compilation (None when not measured)."""
     if run.fit_s is None or run.retarget_s is None:
         return None
@@ -842,7 +856,7 @@ def _summaries_html(summaries: Sequence) -> str:
     return f'<ul class="summaries">{items}</ul>'
 
 
-def _summary_html(summary, index: int | None = None) -> str:
+def _summary_html(summary: CaseSummary, index: int | None = None) -> str:
     esc = html.escape
     link = f' <a href="#case-{index}">details</a>' if index is not None else ""
     notes = "".join(f' <span class="behind">{esc(n)}</span>' for n in summary.notes)
@@ -851,7 +865,7 @@ def _summary_html(summary, index: int | None = None) -> str:
     return f'<li class="summary" data-case="{esc(summary.case)}"><strong>{esc(summary.verdict)}</strong>{others}{why}{notes}{link}</li>'
 
 
-def _reproductions_line(presets) -> str:
+def _reproductions_line(presets: Sequence[PresetResult]) -> str:
     """One line under the summary: how many paper reproductions agree, and which disagree (in red)."""
     if not presets:
         return ""
@@ -886,7 +900,7 @@ def _roles_legend(roles: Mapping) -> str:
     return f'<p class="note roles">{"; ".join(parts)}.</p>'
 
 
-def _table_cell(value) -> str:
+def _table_cell(value: object) -> str:
     if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
         return f'<td class="num">{format_number(value)}</td>'
     return f"<td>{html.escape('' if value is None else str(value))}</td>"
@@ -900,7 +914,7 @@ _VERDICTS = {
 }
 
 
-def _verdict_html(preset) -> str:
+def _verdict_html(preset: PresetResult) -> str:
     """The reproduction's verdict: green when it agrees with the paper's claim, red with the
     measured numbers when it disagrees, grey when it was not decided."""
     esc = html.escape
@@ -912,7 +926,7 @@ def _verdict_html(preset) -> str:
     return f'<div class="verdict {cls}" data-verdict="{cls}"><strong>{label}</strong>: {esc(evidence)}</div>'
 
 
-def _claim_html(preset) -> str:
+def _claim_html(preset: PresetResult) -> str:
     esc = html.escape
     out = []
     claim, setting = getattr(preset, "claim", ""), getattr(preset, "setting", "")
@@ -925,7 +939,7 @@ def _claim_html(preset) -> str:
     return "".join(out)
 
 
-def _presets_summary(presets) -> str:
+def _presets_summary(presets: Sequence[PresetResult]) -> str:
     """One line per reproduction: its claim and whether the measurement agrees (coloured as the verdict)."""
     esc = html.escape
     if not presets:
@@ -945,7 +959,7 @@ def _presets_summary(presets) -> str:
     )
 
 
-def _preset_html(preset) -> str:
+def _preset_html(preset: PresetResult) -> str:
     esc = html.escape
     out = [
         f'<section class="preset" id="preset-{esc(preset.name)}"><h3>{esc(preset.title)}</h3><p class="paper">{esc(preset.paper)}</p>'
@@ -984,8 +998,8 @@ def _case_section(
     result: ComparisonResult,
     ci: int,
     cname: str,
-    case,
-    summary,
+    case: Case,
+    summary: CaseSummary,
     roles: Mapping,
     rank_by: str | None,
 ) -> str:
@@ -1051,7 +1065,7 @@ def render_html(
     max_frames: int = MAX_FRAMES,
     max_vertices: int = MAX_VERTICES,
     rank_by: str | None = None,
-    registry=None,
+    registry: Registry | None = None,
 ) -> str:
     """The self-contained report page as a string.
 
@@ -1104,7 +1118,7 @@ def render_html(
 REPORT_FILES = ("report.html", "results.csv", "results.json")
 
 
-def check_report_folder(folder) -> Path:
+def check_report_folder(folder: PathLike) -> Path:
     """Refuse a report folder that is a file or whose parent does not exist."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
@@ -1116,16 +1130,16 @@ def check_report_folder(folder) -> Path:
 
 def write_report(
     result: ComparisonResult,
-    folder,
+    folder: PathLike,
     *,
     title: str = "faceretarget comparison",
     max_bytes: int = MAX_BYTES,
     max_frames: int = MAX_FRAMES,
     max_vertices: int = MAX_VERTICES,
     force: bool = False,
-    inputs=(),
+    inputs: Iterable = (),
     rank_by: str | None = None,
-    registry=None,
+    registry: Registry | None = None,
 ) -> dict[str, Path]:
     """Write ``report.html``, ``results.csv`` and ``results.json`` into ``folder``.
 

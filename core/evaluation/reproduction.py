@@ -20,12 +20,16 @@ disagreeing, and the report shows it in red with the numbers.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .metrics import METRICS, normal_detail, to_head_frame
 from .presets import Cases, PresetResult
+
+if TYPE_CHECKING:
+    from ..cases import Case
+    from ..model import Animation, Source
 
 __all__ = [
     "OPTICAL_NOISE",
@@ -75,7 +79,7 @@ def require(*names: str) -> None:
         registry().resolve(name)
 
 
-def run_method(name: str, case, source=None, **params):
+def run_method(name: str, case: Case, source: Source | None = None, **params: Any) -> Animation:
     """``faceretarget.get(name, **params)`` fitted to the case and run on ``source`` (default the case's)."""
     import faceretarget
 
@@ -97,11 +101,17 @@ def num(v: float) -> str:
     return format_number(float(f"{v:.3g}"))
 
 
-def rms_per_frame(animation, case) -> np.ndarray:
+def _truth(case: Case) -> Animation:
+    """The ground truth of a case these reproductions use (the built-in cases all have one)."""
+    assert case.truth is not None  # the built-in cases are made with their ground truth
+    return case.truth
+
+
+def rms_per_frame(animation: Animation, case: Case) -> np.ndarray:
     """Per frame, the RMS distance of the result from the ground truth, % of the target face height."""
     height = float(case.target.neutral.height)
     diff = np.asarray(animation.vertices, dtype=np.float64) - np.asarray(
-        case.truth.vertices, dtype=np.float64
+        _truth(case).vertices, dtype=np.float64
     )
     return 100.0 * np.sqrt(np.einsum("fvd,fvd->fv", diff, diff).mean(axis=1)) / height
 
@@ -113,12 +123,12 @@ def face_size(points: np.ndarray) -> float:
 
 
 def noisy_markers(
-    source,
+    source: Source,
     relative_sigma: float = OPTICAL_NOISE,
     seed: int = NOISE_SEED,
     *,
     procrustes: bool = False,
-):
+) -> tuple[Source, float]:
     """``(Source, sigma)``: the source's markers (a mesh source sampled at its landmarks) plus
     Gaussian noise of ``relative_sigma`` times the RMS radius of its neutral markers, as an
     optical capture would deliver them (actor layers kept). Head motion: none known, or with
@@ -129,7 +139,13 @@ def noisy_markers(
     reference = np.asarray(source.marker_reference(), dtype=np.float64)
     sigma = relative_sigma * face_size(reference)
     noisy = x + sigma * np.random.default_rng(seed).normal(size=x.shape)  # NaN (missing) stays NaN
-    names = source.performance.names if source.kind == "markers" else source.landmarks.names
+    perf, landmarks = source.performance, source.landmarks
+    if source.kind == "markers":
+        assert isinstance(perf, MarkerSequence)  # a Source's kind is its performance's
+        names = perf.names
+    else:
+        assert landmarks is not None  # marker_positions() above needs them
+        names = landmarks.names
     markers = MarkerSequence(noisy, names=names, reference=reference, fps=source.fps)
     motion = procrustes_head_motion(reference, noisy) if procrustes else None
     return Source(markers, head_motion=motion, actor_layers=source.actor_layers), sigma
@@ -169,7 +185,7 @@ def _no_wrinkles(spec: str) -> str:
     return spec + ("&" if "?" in spec else "?") + "wrinkles=False"
 
 
-def _measure(animation, case) -> dict:
+def _measure(animation: Animation, case: Case) -> dict:
     return {
         m: METRICS[m].compute(animation, case, {})
         for m in ("detail_error", "detail_correlation", "vertex_error_rms")
@@ -205,12 +221,12 @@ def detail_transfer(
         case = cases(spec)
         height = float(case.target.neutral.height)
         twin = cases(_no_wrinkles(spec))
-        if np.shape(twin.truth.vertices) != np.shape(case.truth.vertices):
+        if np.shape(_truth(twin).vertices) != np.shape(_truth(case).vertices):
             skipped.append(f"{label}: the wrinkle-free twin does not match the case")
             continue
         neutral = np.asarray(case.target.neutral.vertices, dtype=np.float64)
         local = [
-            to_head_frame(np.asarray(c.truth.vertices, dtype=np.float64), c.truth.head_motion)
+            to_head_frame(np.asarray(_truth(c).vertices, dtype=np.float64), _truth(c).head_motion)
             for c in (case, twin)
         ]
         wrinkle = (
@@ -242,7 +258,7 @@ def detail_transfer(
             got[key] = _measure(anim, case)
             # what the wrinkles alone change in the result (the twin differs only by them)
             moved = [
-                to_head_frame(np.asarray(a.vertices, dtype=np.float64), c.truth.head_motion)
+                to_head_frame(np.asarray(a.vertices, dtype=np.float64), _truth(c).head_motion)
                 for a, c in ((anim, case), (plain, twin))
             ]
             response = normal_detail(moved[0] - moved[1], case.target.neutral.triangles, neutral)

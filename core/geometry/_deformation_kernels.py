@@ -7,7 +7,9 @@ import numpy as np
 
 
 @nb.njit(parallel=True, cache=True)
-def gradient_columns(points, triangles, inv_ref, out, bad):
+def gradient_columns(
+    points: np.ndarray, triangles: np.ndarray, inv_ref: np.ndarray, out: np.ndarray, bad: np.ndarray
+) -> None:
     """Deformation gradients of a batch of meshes, laid out as least-squares columns.
 
     points : (C, V, 3) deformed meshes; triangles : (T, 3); inv_ref : (T, 3, 3) inverse

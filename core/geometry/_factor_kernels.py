@@ -13,7 +13,17 @@ import numpy as np
 
 
 @nb.njit(parallel=True, cache=True)
-def lu_solve(l_ptr, l_ind, l_val, u_ptr, u_ind, u_val, u_diag, x, n_blocks):
+def lu_solve(
+    l_ptr: np.ndarray,
+    l_ind: np.ndarray,
+    l_val: np.ndarray,
+    u_ptr: np.ndarray,
+    u_ind: np.ndarray,
+    u_val: np.ndarray,
+    u_diag: np.ndarray,
+    x: np.ndarray,
+    n_blocks: int,
+) -> None:
     """Solve ``L U z = x`` in place; L unit lower (strict part stored), U upper (strict part
     stored, diagonal in ``u_diag``), both CSC; ``x : (n, k)``."""
     n, k = x.shape
@@ -40,8 +50,19 @@ def lu_solve(l_ptr, l_ind, l_val, u_ptr, u_ind, u_val, u_diag, x, n_blocks):
 
 @nb.njit(parallel=True, cache=True)
 def lu_solve_frames(
-    order, l_ptr, l_ind, l_val, u_ptr, u_ind, u_val, u_diag, rhs, add, out, n_blocks
-):
+    order: np.ndarray,
+    l_ptr: np.ndarray,
+    l_ind: np.ndarray,
+    l_val: np.ndarray,
+    u_ptr: np.ndarray,
+    u_ind: np.ndarray,
+    u_val: np.ndarray,
+    u_diag: np.ndarray,
+    rhs: np.ndarray,
+    add: np.ndarray,
+    out: np.ndarray,
+    n_blocks: int,
+) -> None:
     """Solve ``A x = rhs`` for per-frame right-hand sides ``rhs : (C, n, 3)`` and write
     ``out = add + x`` (``(C, n, 3)``) for a symmetric pivoting (``order[i]``: the original
     index of pivot ``i``). Each thread gathers its block of the ``3C`` columns into a

@@ -15,8 +15,19 @@ import numpy as np
 
 @nb.njit(cache=True)
 def gauss_newton(
-    moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, iterations, warm
-):
+    moments: np.ndarray,
+    sums: np.ndarray,
+    offsets: np.ndarray,
+    which: np.ndarray,
+    centre: np.ndarray,
+    size: float,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    max_iter: int,
+    tol: float,
+    iterations: np.ndarray,
+    warm: np.ndarray,
+) -> None:
     """Iterate every frame in place on ``rot (F, 3, 3)``, ``trans (F, 3)``.
 
     ``iterations[f]`` receives the steps frame ``f`` took, or -1 if it did not converge in

@@ -12,7 +12,9 @@ import numpy as np
 
 
 @nb.njit(cache=True)
-def fill_cotangent(vertices, triangles, slots, data):
+def fill_cotangent(
+    vertices: np.ndarray, triangles: np.ndarray, slots: np.ndarray, data: np.ndarray
+) -> None:
     """Refill the values of a cotangent Laplacian whose CSR pattern is fixed.
 
     vertices : (V, 3) float64; triangles : (T, 3) int64
@@ -44,7 +46,14 @@ def fill_cotangent(vertices, triangles, slots, data):
 
 
 @nb.njit(cache=True)
-def _umbrella_step(indptr, indices, weights, x, out, lam):
+def _umbrella_step(
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    weights: np.ndarray,
+    x: np.ndarray,
+    out: np.ndarray,
+    lam: float,
+) -> None:
     """out = x + lam * (W x - x) for a row-stochastic W (CSR)."""
     n, c = x.shape
     keep = 1.0 - lam
@@ -59,7 +68,18 @@ def _umbrella_step(indptr, indices, weights, x, out, lam):
 
 
 @nb.njit(parallel=True, cache=True)
-def taubin_frames(indptr, indices, weights, points, out, iterations, lam, mu, n_blocks, proto):
+def taubin_frames(
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    weights: np.ndarray,
+    points: np.ndarray,
+    out: np.ndarray,
+    iterations: int,
+    lam: float,
+    mu: float,
+    n_blocks: int,
+    proto: np.ndarray,
+) -> None:
     """Taubin smoothing of meshes ``points : (C, V, 3)`` into ``out`` (float64, same shape).
 
     The ``3C`` coordinate columns are split into ``n_blocks`` blocks; each thread gathers
@@ -92,7 +112,7 @@ def taubin_frames(indptr, indices, weights, points, out, iterations, lam, mu, n_
 
 
 @nb.njit(cache=True)
-def _face_cross(points, f, triangles, cross):
+def _face_cross(points: np.ndarray, f: int, triangles: np.ndarray, cross: np.ndarray) -> None:
     """Unnormalised face normals (edge cross products) of mesh ``f`` into ``cross (T, 3)``."""
     for t in range(triangles.shape[0]):
         a = triangles[t, 0]
@@ -110,7 +130,15 @@ def _face_cross(points, f, triangles, cross):
 
 
 @nb.njit(cache=True, inline="always")
-def _vertex_frame(points, f, v, cross, vt_ptr, vt_tri, neighbors):
+def _vertex_frame(
+    points: np.ndarray,
+    f: int,
+    v: int,
+    cross: np.ndarray,
+    vt_ptr: np.ndarray,
+    vt_tri: np.ndarray,
+    neighbors: np.ndarray,
+) -> tuple[float, float, float, float, float, float, float, float, float, bool]:
     """Frame of vertex ``v`` in mesh ``f``: (tangent, bitangent, normal) as 9 numbers + ok."""
     nx = 0.0
     ny = 0.0
@@ -155,7 +183,21 @@ def _vertex_frame(points, f, v, cross, vt_ptr, vt_tri, neighbors):
 
 
 @nb.njit(cache=True, inline="always")
-def _rotate(tx, ty, tz, bx, by, bz, nx, ny, nz, a, b, c, inverse):
+def _rotate(
+    tx: float,
+    ty: float,
+    tz: float,
+    bx: float,
+    by: float,
+    bz: float,
+    nx: float,
+    ny: float,
+    nz: float,
+    a: float,
+    b: float,
+    c: float,
+    inverse: bool,
+) -> tuple[float, float, float]:
     """``F^T (a, b, c)`` (``inverse``: world -> local) or ``F (a, b, c)`` for ``F = [t, b, n]``."""
     if inverse:
         return tx * a + ty * b + tz * c, bx * a + by * b + bz * c, nx * a + ny * b + nz * c
@@ -163,7 +205,14 @@ def _rotate(tx, ty, tz, bx, by, bz, nx, ny, nz, a, b, c, inverse):
 
 
 @nb.njit(parallel=True, cache=True)
-def vertex_frames(points, triangles, vt_ptr, vt_tri, neighbors, out):
+def vertex_frames(
+    points: np.ndarray,
+    triangles: np.ndarray,
+    vt_ptr: np.ndarray,
+    vt_tri: np.ndarray,
+    neighbors: np.ndarray,
+    out: np.ndarray,
+) -> np.ndarray:
     """Per-vertex orthonormal frames of a batch of meshes.
 
     points : (F, V, 3) float; triangles : (T, 3) int64
@@ -203,8 +252,18 @@ def vertex_frames(points, triangles, vt_ptr, vt_tri, neighbors, out):
 
 @nb.njit(parallel=True, cache=True)
 def frame_apply(
-    points, triangles, vt_ptr, vt_tri, neighbors, vectors, out, inverse, m_ptr, m_ind, m_val
-):
+    points: np.ndarray,
+    triangles: np.ndarray,
+    vt_ptr: np.ndarray,
+    vt_tri: np.ndarray,
+    neighbors: np.ndarray,
+    vectors: np.ndarray,
+    out: np.ndarray,
+    inverse: bool,
+    m_ptr: np.ndarray,
+    m_ind: np.ndarray,
+    m_val: np.ndarray,
+) -> np.ndarray:
     """Apply each vertex's frame (computed on the fly from ``points``) to per-vertex vectors.
 
     ``inverse``: world -> local (``F^T d``), else local -> world (``F c``). The vectors are

@@ -35,7 +35,7 @@ _RIDGE_START = 1e-13  # relative ridge tried first when a free block is singular
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def cholesky(a, n, ridge, pivot_min, out):
+def cholesky(a: np.ndarray, n: int, ridge: float, pivot_min: float, out: np.ndarray) -> bool:
     """Lower Cholesky factor of ``a[:n, :n] + ridge * I`` into ``out[:n, :n]`` (upper part
     untouched). False, with ``out`` partly written, if a pivot is not above ``pivot_min``
     (0: not positive definite; ``rtol * max(diag)``: numerically singular) or is NaN."""
@@ -58,7 +58,7 @@ def cholesky(a, n, ridge, pivot_min, out):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def forward(fac, n, rhs):
+def forward(fac: np.ndarray, n: int, rhs: np.ndarray) -> None:
     """``rhs <- L^-1 rhs`` for the lower factor ``L = fac[:n, :n]`` (in place)."""
     for i in range(n):
         fi = fac[i]
@@ -69,7 +69,7 @@ def forward(fac, n, rhs):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def backward(fac, n, rhs):
+def backward(fac: np.ndarray, n: int, rhs: np.ndarray) -> None:
     """``rhs <- L^-T rhs`` (in place), reading L by rows."""
     for i in range(n - 1, -1, -1):
         fi = fac[i]
@@ -80,14 +80,14 @@ def backward(fac, n, rhs):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def chol_solve(fac, n, rhs):
+def chol_solve(fac: np.ndarray, n: int, rhs: np.ndarray) -> None:
     """Solve ``fac fac^T y = rhs`` in place (first ``n`` entries)."""
     forward(fac, n, rhs)
     backward(fac, n, rhs)
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def factor(a, n, scale, out):
+def factor(a: np.ndarray, n: int, scale: float, out: np.ndarray) -> None:
     """Cholesky with an escalating ridge (relative to ``scale``) for singular blocks."""
     ridge = 0.0
     for _ in range(40):
@@ -97,7 +97,17 @@ def factor(a, n, scale, out):
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def active_set_qp(G, c, lo, hi, group, sums, x, max_iter, tol):
+def active_set_qp(
+    G: np.ndarray,
+    c: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    group: np.ndarray,
+    sums: np.ndarray,
+    x: np.ndarray,
+    max_iter: int,
+    tol: float,
+) -> int:
     """Solve the QP above in place, starting from the feasible ``x : (n,)``.
 
     ``group[i]`` is the group of variable i (-1: none); ``sums[g]`` its total. Returns
@@ -260,7 +270,9 @@ def active_set_qp(G, c, lo, hi, group, sums, x, max_iter, tol):
 
 
 @nb.njit(cache=True)
-def _finish(x, lo, hi, group, sums):
+def _finish(
+    x: np.ndarray, lo: np.ndarray, hi: np.ndarray, group: np.ndarray, sums: np.ndarray
+) -> None:
     """Clip to the bounds and rescale each (non-negative) group to its exact total."""
     n = x.shape[0]
     for i in range(n):
@@ -281,7 +293,18 @@ def _finish(x, lo, hi, group, sums):
 
 
 @nb.njit(cache=True)
-def active_set_qp_many(G, C, lo, hi, group, sums, X, max_iter, tol, iterations):
+def active_set_qp_many(
+    G: np.ndarray,
+    C: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    group: np.ndarray,
+    sums: np.ndarray,
+    X: np.ndarray,
+    max_iter: int,
+    tol: float,
+    iterations: np.ndarray,
+) -> None:
     """:func:`active_set_qp` for each row of ``C : (k, n)`` (one shared ``G``), in place on ``X``."""
     for r in range(C.shape[0]):
         iterations[r] = active_set_qp(G, C[r], lo, hi, group, sums, X[r], max_iter, tol)
@@ -289,8 +312,20 @@ def active_set_qp_many(G, C, lo, hi, group, sums, X, max_iter, tol, iterations):
 
 @nb.njit(cache=True)
 def active_set_qp_frames(
-    G, block_grams, dropped, C, lo, hi, x0, ridge, pivot_rtol, X, max_iter, tol, iterations
-):
+    G: np.ndarray,
+    block_grams: np.ndarray,
+    dropped: np.ndarray,
+    C: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    x0: np.ndarray,
+    ridge: float,
+    pivot_rtol: float,
+    X: np.ndarray,
+    max_iter: int,
+    tol: float,
+    iterations: np.ndarray,
+) -> None:
     """:func:`active_set_qp` without groups for each frame ``t`` (row ``C[t]``), in order,
     each warm-started from the previous frame's solution (frame 0 from ``x0``), into ``X[t]``.
 

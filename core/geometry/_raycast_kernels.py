@@ -18,7 +18,17 @@ _BARY_EPS = 1e-10  # barycentric slack so a line through a shared edge hits one 
 
 
 @nb.njit(cache=True, inline="always")
-def line_triangle(vertices, triangles, tri, o0, o1, o2, d0, d1, d2):
+def line_triangle(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    tri: int,
+    o0: float,
+    o1: float,
+    o2: float,
+    d0: float,
+    d1: float,
+    d2: float,
+) -> tuple[bool, float, float, float]:
     """Moller-Trumbore for the line o + t d and triangle ``tri``: (ok, t, u, v).
 
     ``ok`` is False when the line is parallel to the triangle's plane; (u, v) are the
@@ -53,12 +63,12 @@ def line_triangle(vertices, triangles, tri, o0, o1, o2, d0, d1, d2):
 
 
 @nb.njit(cache=True, inline="always")
-def _inside(u, v):
+def _inside(u: float, v: float) -> bool:
     return u >= -_BARY_EPS and v >= -_BARY_EPS and u + v <= 1.0 + _BARY_EPS
 
 
 @nb.njit(cache=True)
-def _highest_bit(x):
+def _highest_bit(x: int) -> int:
     b = 0
     while (x >> (b + 1)) != 0:
         b += 1
@@ -66,7 +76,9 @@ def _highest_bit(x):
 
 
 @nb.njit(cache=True)
-def build_topology(codes, leaf_size):
+def build_topology(
+    codes: np.ndarray, leaf_size: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Node arrays (left, right, start, count) of a BVH over Morton-sorted ``codes (T,) int64``."""
     n = codes.shape[0]
     max_nodes = 2 * n + 1
@@ -117,7 +129,17 @@ def build_topology(codes, leaf_size):
 
 
 @nb.njit(cache=True, nogil=True)
-def refit_bounds(left, right, start, count, order, vertices, triangles, node_lo, node_hi):
+def refit_bounds(
+    left: np.ndarray,
+    right: np.ndarray,
+    start: np.ndarray,
+    count: np.ndarray,
+    order: np.ndarray,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    node_lo: np.ndarray,
+    node_hi: np.ndarray,
+) -> None:
     """Recompute every node box (in place) for new ``vertices``; children follow parents."""
     for node in range(left.shape[0] - 1, -1, -1):
         if left[node] < 0:
@@ -142,7 +164,19 @@ def refit_bounds(left, right, start, count, order, vertices, triangles, node_lo,
 
 
 @nb.njit(cache=True, inline="always")
-def _slab(lo, hi, node, o0, o1, o2, d0, d1, d2, tmin, tmax):
+def _slab(
+    lo: np.ndarray,
+    hi: np.ndarray,
+    node: int,
+    o0: float,
+    o1: float,
+    o2: float,
+    d0: float,
+    d1: float,
+    d2: float,
+    tmin: float,
+    tmax: float,
+) -> tuple[float, float]:
     """Parameter interval [a, b] of the line o + t d inside box ``node`` clipped to [tmin, tmax]."""
     a, b = tmin, tmax
     for k in range(3):
@@ -170,7 +204,7 @@ def _slab(lo, hi, node, o0, o1, o2, d0, d1, d2, tmin, tmax):
 
 
 @nb.njit(cache=True, inline="always")
-def _abs_lower(a, b):
+def _abs_lower(a: float, b: float) -> float:
     if a <= 0.0 <= b:
         return 0.0
     return min(abs(a), abs(b))
@@ -178,24 +212,24 @@ def _abs_lower(a, b):
 
 @nb.njit(cache=True)
 def cast_one(
-    node_lo,
-    node_hi,
-    left,
-    right,
-    start,
-    count,
-    order,
-    vertices,
-    triangles,
-    o0,
-    o1,
-    o2,
-    d0,
-    d1,
-    d2,
-    max_dist,
-    both,
-):
+    node_lo: np.ndarray,
+    node_hi: np.ndarray,
+    left: np.ndarray,
+    right: np.ndarray,
+    start: np.ndarray,
+    count: np.ndarray,
+    order: np.ndarray,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    o0: float,
+    o1: float,
+    o2: float,
+    d0: float,
+    d1: float,
+    d2: float,
+    max_dist: float,
+    both: bool,
+) -> tuple[int, float, float, float]:
     """Nearest hit by |t| of the line ``o + t d`` with |t| <= max_dist (t >= 0 unless ``both``).
 
     Returns (triangle or -1, t, u, v) with (u, v) the barycentric weights of corners 1, 2.
@@ -251,24 +285,24 @@ def cast_one(
 
 @nb.njit(cache=True, parallel=True)
 def cast_lines(
-    node_lo,
-    node_hi,
-    left,
-    right,
-    start,
-    count,
-    order,
-    vertices,
-    triangles,
-    origins,
-    directions,
-    max_dist,
-    both,
-    out_tri,
-    out_t,
-    out_u,
-    out_v,
-):
+    node_lo: np.ndarray,
+    node_hi: np.ndarray,
+    left: np.ndarray,
+    right: np.ndarray,
+    start: np.ndarray,
+    count: np.ndarray,
+    order: np.ndarray,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    max_dist: np.ndarray,
+    both: bool,
+    out_tri: np.ndarray,
+    out_t: np.ndarray,
+    out_u: np.ndarray,
+    out_v: np.ndarray,
+) -> None:
     """:func:`cast_one` for every line (threads over lines); writes triangle (-1 = miss), t, u, v."""
     for r in nb.prange(origins.shape[0]):
         out_tri[r], out_t[r], out_u[r], out_v[r] = cast_one(
@@ -294,24 +328,24 @@ def cast_lines(
 
 @nb.njit(cache=True, nogil=True)
 def cast_lines_serial(
-    node_lo,
-    node_hi,
-    left,
-    right,
-    start,
-    count,
-    order,
-    vertices,
-    triangles,
-    origins,
-    directions,
-    max_dist,
-    both,
-    out_tri,
-    out_t,
-    out_u,
-    out_v,
-):
+    node_lo: np.ndarray,
+    node_hi: np.ndarray,
+    left: np.ndarray,
+    right: np.ndarray,
+    start: np.ndarray,
+    count: np.ndarray,
+    order: np.ndarray,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    max_dist: np.ndarray,
+    both: bool,
+    out_tri: np.ndarray,
+    out_t: np.ndarray,
+    out_u: np.ndarray,
+    out_v: np.ndarray,
+) -> None:
     """:func:`cast_lines` without threads (small batches: waking the pool costs more)."""
     for r in range(origins.shape[0]):
         out_tri[r], out_t[r], out_u[r], out_v[r] = cast_one(
@@ -336,7 +370,7 @@ def cast_lines_serial(
 
 
 @nb.njit(cache=True, inline="always")
-def _box_dist2(lo, hi, node, p0, p1, p2):
+def _box_dist2(lo: np.ndarray, hi: np.ndarray, node: int, p0: float, p1: float, p2: float) -> float:
     d = 0.0
     for k in range(3):
         p = p0 if k == 0 else (p1 if k == 1 else p2)
@@ -348,7 +382,20 @@ def _box_dist2(lo, hi, node, p0, p1, p2):
 
 
 @nb.njit(cache=True)
-def closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+def closest_on_triangle(
+    px: float,
+    py: float,
+    pz: float,
+    ax: float,
+    ay: float,
+    az: float,
+    bx: float,
+    by: float,
+    bz: float,
+    cx: float,
+    cy: float,
+    cz: float,
+) -> tuple[float, float, float]:
     """Barycentric coordinates (wa, wb, wc) of the point of triangle abc closest to p (Ericson 5.1.5)."""
     abx, aby, abz = bx - ax, by - ay, bz - az
     acx, acy, acz = cx - ax, cy - ay, cz - az
@@ -390,8 +437,20 @@ def closest_on_triangle(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
 
 @nb.njit(cache=True)
 def closest_one(
-    node_lo, node_hi, left, right, start, count, order, vertices, triangles, p0, p1, p2, max_dist2
-):
+    node_lo: np.ndarray,
+    node_hi: np.ndarray,
+    left: np.ndarray,
+    right: np.ndarray,
+    start: np.ndarray,
+    count: np.ndarray,
+    order: np.ndarray,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    p0: float,
+    p1: float,
+    p2: float,
+    max_dist2: float,
+) -> tuple[int, float, float, float, float]:
     """Closest surface point to p within squared distance ``max_dist2``: (triangle or -1, wa, wb, wc, d2)."""
     best = max_dist2
     best_tri = -1
@@ -446,21 +505,21 @@ def closest_one(
 
 @nb.njit(cache=True, parallel=True)
 def closest_points(
-    node_lo,
-    node_hi,
-    left,
-    right,
-    start,
-    count,
-    order,
-    vertices,
-    triangles,
-    points,
-    max_dist2,
-    out_tri,
-    out_bary,
-    out_d2,
-):
+    node_lo: np.ndarray,
+    node_hi: np.ndarray,
+    left: np.ndarray,
+    right: np.ndarray,
+    start: np.ndarray,
+    count: np.ndarray,
+    order: np.ndarray,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    points: np.ndarray,
+    max_dist2: np.ndarray,
+    out_tri: np.ndarray,
+    out_bary: np.ndarray,
+    out_d2: np.ndarray,
+) -> None:
     """:func:`closest_one` for every point (threads over points)."""
     for q in nb.prange(points.shape[0]):
         out_tri[q], out_bary[q, 0], out_bary[q, 1], out_bary[q, 2], out_d2[q] = closest_one(
@@ -481,7 +540,20 @@ def closest_points(
 
 
 @nb.njit(cache=True, nogil=True)
-def walk_one(vertices, triangles, neighbors, o0, o1, o2, d0, d1, d2, tri, max_dist, max_steps):
+def walk_one(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    neighbors: np.ndarray,
+    o0: float,
+    o1: float,
+    o2: float,
+    d0: float,
+    d1: float,
+    d2: float,
+    tri: int,
+    max_dist: float,
+    max_steps: int,
+) -> tuple[int, float, float, float]:
     """One line's walk (see :func:`walk_lines`): (triangle, t, u, v); triangle -2 when the walk
     left the mesh across a boundary edge, -3 when the crossing it reached is farther than
     ``max_dist``, -4 when it would step back (the line grazes a crease between two triangles
@@ -516,19 +588,19 @@ def walk_one(vertices, triangles, neighbors, o0, o1, o2, d0, d1, d2, tri, max_di
 
 @nb.njit(cache=True, nogil=True)
 def walk_lines(
-    vertices,
-    triangles,
-    neighbors,
-    origins,
-    directions,
-    start,
-    max_dist,
-    max_steps,
-    out_tri,
-    out_t,
-    out_u,
-    out_v,
-):
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    neighbors: np.ndarray,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    start: np.ndarray,
+    max_dist: np.ndarray,
+    max_steps: int,
+    out_tri: np.ndarray,
+    out_t: np.ndarray,
+    out_u: np.ndarray,
+    out_v: np.ndarray,
+) -> None:
     """Line/surface hits found by walking over the mesh from ``start`` triangles.
 
     From each start triangle the line is intersected with the triangle's plane; while the
@@ -558,8 +630,17 @@ def walk_lines(
 
 @nb.njit(cache=True, nogil=True)
 def cast_lines_brute(
-    vertices, triangles, origins, directions, max_dist, both, out_tri, out_t, out_u, out_v
-):
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    max_dist: np.ndarray,
+    both: bool,
+    out_tri: np.ndarray,
+    out_t: np.ndarray,
+    out_u: np.ndarray,
+    out_v: np.ndarray,
+) -> None:
     """Nearest hit by |t| (|t| <= max_dist, t >= 0 unless ``both``) testing every triangle: O(lines x T).
 
     For the few lines a walk loses, where refitting a BVH would cost more.

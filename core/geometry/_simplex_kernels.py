@@ -7,7 +7,7 @@ import numpy as np
 
 
 @nb.njit(cache=True)
-def project_row(v, radius, out):
+def project_row(v: np.ndarray, radius: float, out: np.ndarray) -> None:
     """Euclidean projection of ``v : (n,)`` onto ``{x >= 0, sum x = radius}`` into ``out``.
 
     Sort-based (Held, Wolfe & Crowder 1974; Duchi et al. 2008): with ``u`` sorted in
@@ -36,7 +36,7 @@ def project_row(v, radius, out):
 
 
 @nb.njit(cache=True)
-def project_rows(values, radius, out):
+def project_rows(values: np.ndarray, radius: float, out: np.ndarray) -> None:
     """Row-wise :func:`project_row` of ``values : (B, n)``."""
     for b in range(values.shape[0]):
         project_row(values[b], radius, out[b])

@@ -13,7 +13,9 @@ import numpy as np
 _PAIRS_PER_BLOCK = 1 << 18
 
 
-def closest_on_segments(points: np.ndarray, p0: np.ndarray, p1: np.ndarray):
+def closest_on_segments(
+    points: np.ndarray, p0: np.ndarray, p1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Closest point of each segment ``p0 -> p1`` to each point (broadcast).
 
     Returns ``closest (..., 3)`` and ``t (...)`` in [0, 1] with ``closest = p0 + t (p1 - p0)``.
@@ -25,7 +27,9 @@ def closest_on_segments(points: np.ndarray, p0: np.ndarray, p1: np.ndarray):
     return a + t[..., None] * ab, t
 
 
-def closest_on_polyline(points: np.ndarray, vertices: np.ndarray, edges: np.ndarray):
+def closest_on_polyline(
+    points: np.ndarray, vertices: np.ndarray, edges: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Closest points on the segments ``edges (B, 2)`` (vertex ids into ``vertices (V, 3)``).
 
     Brute force over the segments, in blocks of points (boundary polylines are short).

@@ -31,6 +31,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
@@ -277,10 +278,10 @@ class DeformationTransfer:
         target_reference: np.ndarray,
         triangles: np.ndarray,
         *,
-        feature_lines=None,
+        feature_lines: Mapping[str, npt.ArrayLike] | Sequence[npt.ArrayLike] | None = None,
         sigma: float = 100.0,
-        gauge_weights=None,
-    ):
+        gauge_weights: npt.ArrayLike | None = None,
+    ) -> None:
         ref = np.asarray(target_reference, dtype=np.float64)
         t = np.asarray(triangles, dtype=np.int64)
         if ref.ndim != 2 or ref.shape[1] != 3:
@@ -414,7 +415,10 @@ class DeformationTransfer:
 
     # -- source side -----------------------------------------------------------------
     def line_targets(
-        self, source_reference: np.ndarray, source_deformed: np.ndarray, source_chains=None
+        self,
+        source_reference: np.ndarray,
+        source_deformed: np.ndarray,
+        source_chains: Mapping[str, npt.ArrayLike] | Sequence[npt.ArrayLike] | None = None,
     ) -> np.ndarray | None:
         """(F, S, 3, 3) source feature-line deformations paired with the target's segments.
 
@@ -455,8 +459,8 @@ class DeformationTransfer:
         source_reference: np.ndarray,
         source_deformed: np.ndarray,
         *,
-        source_feature_lines=None,
-        mean_displacement=None,
+        source_feature_lines: Mapping[str, npt.ArrayLike] | Sequence[npt.ArrayLike] | None = None,
+        mean_displacement: np.ndarray | None = None,
     ) -> np.ndarray:
         """Transfer deformations ``source_deformed : (V, 3) or (F, V, 3)`` onto the target.
 
@@ -484,12 +488,12 @@ class DeformationTransfer:
 
 
 def deformation_transfer(
-    source_reference,
-    source_deformed,
-    target_reference,
-    triangles,
+    source_reference: np.ndarray,
+    source_deformed: np.ndarray,
+    target_reference: np.ndarray,
+    triangles: np.ndarray,
     *,
-    feature_lines=None,
+    feature_lines: Mapping[str, npt.ArrayLike] | Sequence[npt.ArrayLike] | None = None,
     sigma: float = 100.0,
 ) -> np.ndarray:
     """One-shot :class:`DeformationTransfer` (same topology; the same chains on both meshes)."""
@@ -497,7 +501,9 @@ def deformation_transfer(
     return dt.transfer(source_reference, source_deformed, source_feature_lines=feature_lines)
 
 
-def _as_chains(feature_lines) -> dict[str, np.ndarray]:
+def _as_chains(
+    feature_lines: Mapping[str, npt.ArrayLike] | Sequence[npt.ArrayLike] | None,
+) -> dict[str, np.ndarray]:
     if feature_lines is None:
         return {}
     if isinstance(feature_lines, Mapping):

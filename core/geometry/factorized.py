@@ -12,7 +12,10 @@ A factor pickles as its matrix and is refactorized on first use after unpickling
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
@@ -36,7 +39,7 @@ class SPDFactor:
         Name used in error messages ("the Poisson system of the target mesh").
     """
 
-    def __init__(self, matrix, *, what: str = "matrix"):
+    def __init__(self, matrix: sp.spmatrix | npt.ArrayLike, *, what: str = "matrix") -> None:
         m = sp.csc_matrix(matrix, dtype=np.float64)
         if m.shape[0] != m.shape[1]:
             raise ShapeError(f"{what}: expected a square matrix, got {m.shape}")
@@ -48,7 +51,7 @@ class SPDFactor:
     def n(self) -> int:
         return int(self.matrix.shape[0])
 
-    def _factor(self):
+    def _factor(self) -> Any:
         if self._lu is not None:
             return self._lu
         m = self.matrix
@@ -148,14 +151,14 @@ class SPDFactor:
         )
         return out
 
-    def __getstate__(self):
+    def __getstate__(self) -> dict[str, Any]:
         return {"matrix": self.matrix, "what": self.what}
 
-    def __setstate__(self, state):
+    def __setstate__(self, state: dict[str, Any]) -> None:
         self.__init__(state["matrix"], what=state["what"])  # type: ignore[misc]
 
 
-def _strict(m: sp.csc_matrix, keep: np.ndarray):
+def _strict(m: sp.csc_matrix, keep: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(indptr, indices, values) of the entries of CSC ``m`` selected by ``keep``."""
     cols = np.repeat(np.arange(m.shape[1]), np.diff(m.indptr))
     counts = np.bincount(cols[keep], minlength=m.shape[1])

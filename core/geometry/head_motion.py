@@ -52,8 +52,10 @@ Missing samples are NaN (a marker with any NaN coordinate is missing in that fra
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
+import numpy.typing as npt
 
 from .. import config
 from .._threads import blas_single_threaded
@@ -107,7 +109,9 @@ class HeadMotionInfo:
     unidentifiable_frames: np.ndarray
 
 
-def rigidity_weights(reference, basis=None, *, eps: float | None = None) -> np.ndarray:
+def rigidity_weights(
+    reference: npt.ArrayLike, basis: npt.ArrayLike | None = None, *, eps: float | None = None
+) -> np.ndarray:
     """``(N,)`` marker weights ``1 / (eps^2 + m_i^2)``, normalized to mean 1.
 
     ``m_i`` is the RMS displacement of marker ``i`` over the columns of ``basis (3N, M)``
@@ -133,19 +137,47 @@ def rigidity_weights(reference, basis=None, *, eps: float | None = None) -> np.n
 
 
 @blas_single_threaded  # many small products per chunk of frames (faceretarget._threads)
+@overload
 def estimate_head_motion(
-    reference,
-    markers,
+    reference: npt.ArrayLike,
+    markers: npt.ArrayLike,
     *,
-    basis=None,
-    marker_weights=None,
+    basis: npt.ArrayLike | None = None,
+    marker_weights: npt.ArrayLike | None = None,
+    ridge: float | None = None,
+    significance: float | None = config.HEAD_MOTION_SIGNIFICANCE,
+    window: int = config.HEAD_MOTION_WINDOW,
+    max_iter: int = DEFAULT_MAX_ITER,
+    tol: float = DEFAULT_TOL,
+    return_info: Literal[False] = False,
+) -> np.ndarray: ...
+@overload
+def estimate_head_motion(
+    reference: npt.ArrayLike,
+    markers: npt.ArrayLike,
+    *,
+    basis: npt.ArrayLike | None = None,
+    marker_weights: npt.ArrayLike | None = None,
+    ridge: float | None = None,
+    significance: float | None = config.HEAD_MOTION_SIGNIFICANCE,
+    window: int = config.HEAD_MOTION_WINDOW,
+    max_iter: int = DEFAULT_MAX_ITER,
+    tol: float = DEFAULT_TOL,
+    return_info: Literal[True],
+) -> tuple[np.ndarray, HeadMotionInfo]: ...
+def estimate_head_motion(
+    reference: npt.ArrayLike,
+    markers: npt.ArrayLike,
+    *,
+    basis: npt.ArrayLike | None = None,
+    marker_weights: npt.ArrayLike | None = None,
     ridge: float | None = None,
     significance: float | None = config.HEAD_MOTION_SIGNIFICANCE,
     window: int = config.HEAD_MOTION_WINDOW,
     max_iter: int = DEFAULT_MAX_ITER,
     tol: float = DEFAULT_TOL,
     return_info: bool = False,
-):
+) -> np.ndarray | tuple[np.ndarray, HeadMotionInfo]:
     """Rigid head motion ``(F, 4, 4)`` of ``markers`` relative to ``reference`` (see the module doc).
 
     Parameters
@@ -298,7 +330,19 @@ def estimate_head_motion(
 
 
 def _evidence(
-    x0, valid, ref, w, basis, rot, trans, centre, size, schur, ainv, which, window
+    x0: np.ndarray,
+    valid: np.ndarray,
+    ref: np.ndarray,
+    w: np.ndarray,
+    basis: np.ndarray | None,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    centre: np.ndarray,
+    size: float,
+    schur: np.ndarray,
+    ainv: np.ndarray | None,
+    which: np.ndarray,
+    window: int,
 ) -> float:
     """The gate's statistic: the largest ``sum_f (c0_f - c1_f) / sum_f (c1_f + floor_f)`` over
     ``window`` consecutive frames (the whole shot if shorter).
@@ -342,7 +386,7 @@ def _evidence(
 # ---------------------------------------------------------------------------------------
 # pieces
 # ---------------------------------------------------------------------------------------
-def _reference(reference) -> np.ndarray:
+def _reference(reference: npt.ArrayLike) -> np.ndarray:
     ref = np.asarray(reference, dtype=np.float64)
     if ref.ndim != 2 or ref.shape[1] != 3 or ref.shape[0] < 3:
         raise ShapeError(
@@ -355,7 +399,7 @@ def _reference(reference) -> np.ndarray:
     return ref
 
 
-def _basis(basis, n: int) -> np.ndarray:
+def _basis(basis: npt.ArrayLike, n: int) -> np.ndarray:
     b = np.asarray(basis, dtype=np.float64)
     if b.ndim != 2 or b.shape[0] != 3 * n:
         raise ShapeError(
@@ -383,7 +427,13 @@ def _generator(q: np.ndarray) -> np.ndarray:
     return g.reshape(-1, 6)
 
 
-def _gains(patterns, w, gen, basis, ridge):
+def _gains(
+    patterns: np.ndarray,
+    w: np.ndarray,
+    gen: np.ndarray,
+    basis: np.ndarray | None,
+    ridge: float | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
     """Per pattern of visible markers: the Gauss-Newton gain ``(P, 6, 3N)``, the rigid normal
     matrix after eliminating the expressions ``(P, 6, 6)``, the inverse expression Gram matrix
     ``A^-1 (P, M, M)`` (None without a basis) and whether a rigid direction is unidentifiable ``(P,)``.
@@ -451,7 +501,8 @@ def _gains(patterns, w, gen, basis, ridge):
     half = linv.transpose(0, 2, 1) @ vec  # (P, 6, 6)
     pinv = (half * inv_mu[:, None, :]) @ half.transpose(0, 2, 1)
     gains = np.matmul(pinv, corrected)  # (P, 6, 3N)
-    return gains, schur, ainv, ~keep.all(axis=1)
+    # numpy's stubs type all(axis=1) as a scalar or an array; of (P, 6) it is a (P,) array
+    return gains, schur, ainv, ~keep.all(axis=1)  # type: ignore[return-value]
 
 
 def _local_residual(
@@ -462,7 +513,9 @@ def _local_residual(
     return procrustes.remove(procrustes.to_matrix(rot, trans), x0, ref)
 
 
-def _moments(gains, which, x0, ref):
+def _moments(
+    gains: np.ndarray, which: np.ndarray, x0: np.ndarray, ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What the gains need of the markers, once: the gain applied to the local residual
     ``y = R^T (x - t) - n`` is ``sum_ab P[k, a, b] R[b, a] - s[k] . (R^T t) - g[k]`` with
     ``P = sum_i K_i^T x_i`` (per frame), ``s = sum_i K_i``, ``g = sum_i K_i n_i`` (per pattern);
@@ -512,8 +565,18 @@ def _rotation_vectors(rot: np.ndarray) -> np.ndarray:
 
 
 def _gauss_newton(
-    moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, warm=None
-):
+    moments: np.ndarray,
+    sums: np.ndarray,
+    offsets: np.ndarray,
+    which: np.ndarray,
+    centre: np.ndarray,
+    size: float,
+    rot: np.ndarray,
+    trans: np.ndarray,
+    max_iter: int,
+    tol: float,
+    warm: npt.ArrayLike | None = None,
+) -> tuple[int, np.ndarray]:
     """Gauss-Newton steps on ``rot (F, 3, 3)`` / ``trans (F, 3)`` in place (numba kernel, one
     frame at a time until it converges; frames where ``warm (F,)`` is set start from the
     previous frame's result); returns (most steps taken, converged (F,))."""
@@ -543,10 +606,18 @@ def _gauss_newton(
     return int(np.where(done, steps, max_iter).max(initial=0)), done
 
 
-def _unexplained(y, wd, basis, ainv, which):
+def _unexplained(
+    y: np.ndarray,
+    wd: np.ndarray,
+    basis: np.ndarray | None,
+    ainv: np.ndarray | None,
+    which: np.ndarray,
+) -> np.ndarray:
     """Weighted residual energy per frame after the best expression fit: ``y^T W y - u^T A^-1 u``
     with ``u = B^T W y`` (``wd``: ``(3N,)`` shared or ``(F, 3N)`` per-frame weights)."""
-    if basis is not None and ainv.shape[0] == 1 and wd.ndim == 1:  # shared weights: one product
+    # ainv (A^-1) is None exactly when basis is (see _gains)
+    if basis is not None and ainv is not None and ainv.shape[0] == 1 and wd.ndim == 1:
+        # shared weights: one product
         root = np.sqrt(wd)
         ys = y * root
         # u^T A^-1 u = |K^T u|^2 with A^-1 = K K^T and u = B^T W y = (W^1/2 B)^T (W^1/2 y)
@@ -556,6 +627,7 @@ def _unexplained(y, wd, basis, ainv, which):
     total = np.einsum("fr,fr->f", yw, y)
     if basis is None:
         return total
+    assert ainv is not None  # _gains gives A^-1 with a basis
     u = yw @ basis  # (F, M)
     if ainv.shape[0] == 1:
         explained = np.einsum("fk,fk->f", u @ ainv[0], u)

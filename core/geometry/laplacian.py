@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 
 from ..errors import DegenerateGeometryError, ShapeError
@@ -30,7 +31,7 @@ __all__ = [
 ]
 
 
-def _check(vertices, triangles):
+def _check(vertices: npt.ArrayLike, triangles: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     v = np.asarray(vertices, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     if v.ndim != 2 or v.shape[1] != 3:
@@ -137,7 +138,7 @@ def laplacian_pattern(triangles: np.ndarray, n_vertices: int) -> LaplacianPatter
     rows = np.repeat(np.arange(n_vertices, dtype=np.int64), np.diff(indptr))
     keys = rows * n_vertices + indices  # increasing: CSR rows in order, sorted columns
 
-    def slot(r, c):
+    def slot(r: np.ndarray, c: np.ndarray) -> np.ndarray:
         return np.searchsorted(keys, r * n_vertices + c)
 
     slots = np.empty((t.shape[0], 3, 4), dtype=np.int64)

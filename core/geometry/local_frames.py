@@ -14,10 +14,16 @@ are roughly aligned.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import DegenerateGeometryError, ShapeError
 from .mesh_ops import unique_edges, vertex_normals
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 __all__ = ["frame_neighbors", "VertexFrames", "vertex_frames", "to_local", "to_world"]
 
@@ -88,7 +94,7 @@ class VertexFrames:
         self.neighbors = nb_
         self.n_vertices = n_vertices
 
-    def _points(self, points, what):
+    def _points(self, points: npt.ArrayLike, what: str) -> tuple[np.ndarray, bool]:
         p = np.asarray(points)
         single = p.ndim == 2
         if single:
@@ -102,7 +108,7 @@ class VertexFrames:
         return np.ascontiguousarray(p), single
 
     @staticmethod
-    def _check(bad):
+    def _check(bad: np.ndarray) -> None:
         if bad.any():
             f = int(np.flatnonzero(bad)[0])
             raise DegenerateGeometryError(
@@ -150,7 +156,7 @@ class VertexFrames:
         )
         return out[0] if single else out
 
-    def coating(self, points: np.ndarray, smooth: np.ndarray, matrix) -> np.ndarray:
+    def coating(self, points: np.ndarray, smooth: np.ndarray, matrix: sp.spmatrix) -> np.ndarray:
         """Laplacian coating ``F(smooth)^T (M (points - smooth))`` of meshes ``(…, V, 3)``.
 
         ``matrix`` : (V, V) scipy sparse ``M`` (a Laplacian, possibly screened). One fused

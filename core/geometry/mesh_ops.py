@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import ShapeError
+
 
 def triangle_cross(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(T, 3) cross products (v1 - v0) x (v2 - v0); length = twice the area."""
@@ -35,14 +37,39 @@ def face_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return unit_rows(triangle_cross(vertices, triangles))
 
 
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(V, 3) area-weighted unit vertex normals (zero for isolated vertices)."""
-    cross = triangle_cross(vertices, triangles)
-    n = len(vertices)
-    acc = np.zeros((n, 3))
-    for k in range(3):
-        np.add.at(acc, triangles[:, k], cross)
-    return unit_rows(acc)
+def vertex_normals(
+    vertices: np.ndarray, triangles: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
+    """(V, 3) area-weighted unit vertex normals: each vertex's sum of its triangles'
+    :func:`triangle_cross` products made unit length (as :func:`unit_rows` does, at any
+    scale); zero for isolated vertices and for NaN or infinite sums.
+
+    ``out``: a C-contiguous float64 ``(V, 3)`` array to fill and return (no allocation; a
+    per-frame caller reuses it). One numba kernel (``_mesh_ops_kernels.vertex_normals``),
+    which kernels and per-frame loops may also call directly on validated arrays.
+    """
+    from ._mesh_ops_kernels import vertex_normals as kernel
+
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles)
+    if t.dtype.kind not in "iu":
+        t = t.astype(np.int64)
+    t = np.ascontiguousarray(t)
+    if v.ndim != 2 or v.shape[1] != 3 or t.ndim != 2 or t.shape[1] != 3:
+        raise ShapeError(
+            f"vertex_normals: expected vertices (V, 3) and triangles (T, 3), got {v.shape} and {t.shape}"
+        )
+    n = v.shape[0]
+    if t.size and (t.min() < -n or t.max() >= n):
+        raise IndexError(f"vertex_normals: a triangle index is outside the {n} vertices")
+    if out is None:
+        out = np.empty((n, 3))
+    elif out.shape != (n, 3) or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise ShapeError(
+            f"vertex_normals: out must be a C-contiguous float64 ({n}, 3) array, got {out.dtype} {out.shape}"
+        )
+    kernel(v, t, out)
+    return out
 
 
 def directed_edges(triangles: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ Working on ``A^T A`` squares the condition number; for the sizes this is meant f
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from ..config import PIVOT_RTOL
 from ..errors import InputError, NonFiniteError, NumericalError, ShapeError
@@ -36,7 +37,7 @@ __all__ = [
 DEFAULT_TOL = 1e-12
 
 
-def nnls(A, b, *, tol: float = DEFAULT_TOL) -> np.ndarray:
+def nnls(A: npt.ArrayLike, b: npt.ArrayLike, *, tol: float = DEFAULT_TOL) -> np.ndarray:
     """``argmin_x |A x - b|^2`` subject to ``x >= 0``.
 
     Parameters
@@ -52,7 +53,13 @@ def nnls(A, b, *, tol: float = DEFAULT_TOL) -> np.ndarray:
     return bounded_lsq(A, b, 0.0, np.inf, tol=tol)
 
 
-def nnls_gram(AtA, Atb, *, x0=None, tol: float = DEFAULT_TOL) -> np.ndarray:
+def nnls_gram(
+    AtA: npt.ArrayLike,
+    Atb: npt.ArrayLike,
+    *,
+    x0: npt.ArrayLike | None = None,
+    tol: float = DEFAULT_TOL,
+) -> np.ndarray:
     """NNLS from the normal equations: ``argmin 1/2 x^T AtA x - Atb.x``, ``x >= 0``.
 
     Parameters
@@ -70,7 +77,14 @@ def nnls_gram(AtA, Atb, *, x0=None, tol: float = DEFAULT_TOL) -> np.ndarray:
     return bounded_lsq_gram(AtA, Atb, 0.0, np.inf, x0=x0, tol=tol)
 
 
-def bounded_lsq(A, b, lower, upper, *, tol: float = DEFAULT_TOL) -> np.ndarray:
+def bounded_lsq(
+    A: npt.ArrayLike,
+    b: npt.ArrayLike,
+    lower: float | npt.ArrayLike,
+    upper: float | npt.ArrayLike,
+    *,
+    tol: float = DEFAULT_TOL,
+) -> np.ndarray:
     """``argmin_x |A x - b|^2`` subject to ``lower <= x <= upper``.
 
     ``A : (m, n)``, ``b : (m,)`` or ``(m, k)``; ``lower``, ``upper``: scalars or ``(n,)``
@@ -86,7 +100,15 @@ def bounded_lsq(A, b, lower, upper, *, tol: float = DEFAULT_TOL) -> np.ndarray:
     return x.T
 
 
-def bounded_lsq_gram(AtA, Atb, lower, upper, *, x0=None, tol: float = DEFAULT_TOL) -> np.ndarray:
+def bounded_lsq_gram(
+    AtA: npt.ArrayLike,
+    Atb: npt.ArrayLike,
+    lower: float | npt.ArrayLike,
+    upper: float | npt.ArrayLike,
+    *,
+    x0: npt.ArrayLike | None = None,
+    tol: float = DEFAULT_TOL,
+) -> np.ndarray:
     """Bounded least squares from the normal equations (see :func:`nnls_gram`)."""
     from ._nnls_kernels import active_set_qp_many
 
@@ -118,15 +140,15 @@ def bounded_lsq_gram(AtA, Atb, lower, upper, *, x0=None, tol: float = DEFAULT_TO
 
 
 def bounded_lsq_frames(
-    AtA,
-    Atb,
-    lower,
-    upper,
+    AtA: npt.ArrayLike,
+    Atb: npt.ArrayLike,
+    lower: float | npt.ArrayLike,
+    upper: float | npt.ArrayLike,
     *,
-    dropped=None,
-    block_grams=None,
+    dropped: npt.ArrayLike | None = None,
+    block_grams: npt.ArrayLike | None = None,
     ridge: float = 0.0,
-    x0=None,
+    x0: npt.ArrayLike | None = None,
     tol: float = DEFAULT_TOL,
 ) -> np.ndarray:
     """Bounded least squares for each frame of a sequence, warm-started from the frame before.
@@ -216,7 +238,7 @@ def _max_iter(n: int) -> int:
     return 10 * n + 50
 
 
-def _gram(value) -> np.ndarray:
+def _gram(value: npt.ArrayLike) -> np.ndarray:
     gram = _matrix(value, "AtA")
     n = gram.shape[1]
     if gram.shape != (n, n):
@@ -228,14 +250,14 @@ def _gram(value) -> np.ndarray:
     return gram
 
 
-def _matrix(value, name: str) -> np.ndarray:
+def _matrix(value: npt.ArrayLike, name: str) -> np.ndarray:
     arr = _finite(value, name)
     if arr.ndim != 2 or arr.shape[0] == 0 or arr.shape[1] == 0:
         raise ShapeError(f"nnls: {name} must be a non-empty 2D array, got shape {arr.shape}")
     return np.ascontiguousarray(arr)
 
 
-def _finite(value, name: str) -> np.ndarray:
+def _finite(value: npt.ArrayLike, name: str) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -247,7 +269,9 @@ def _finite(value, name: str) -> np.ndarray:
     return arr
 
 
-def _bounds(lower, upper, n: int) -> tuple[np.ndarray, np.ndarray]:
+def _bounds(
+    lower: float | npt.ArrayLike, upper: float | npt.ArrayLike, n: int
+) -> tuple[np.ndarray, np.ndarray]:
     try:
         lo = np.array(np.broadcast_to(np.asarray(lower, dtype=np.float64), (n,)))
         hi = np.array(np.broadcast_to(np.asarray(upper, dtype=np.float64), (n,)))

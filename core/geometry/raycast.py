@@ -18,8 +18,10 @@ The brute-force O(N*M) references the tests compare against live in ``tests/naiv
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from .._validate import check_finite
 from ..errors import ShapeError
@@ -153,7 +155,7 @@ class BVH:
         )
 
 
-def _as_points(x, name: str) -> np.ndarray:
+def _as_points(x: npt.ArrayLike, name: str) -> np.ndarray:
     a = np.ascontiguousarray(np.asarray(x, dtype=np.float64))
     if a.ndim != 2 or a.shape[1] != 3:
         raise ShapeError(f"{name}: expected shape (N, 3), got {a.shape}")
@@ -161,7 +163,7 @@ def _as_points(x, name: str) -> np.ndarray:
     return a
 
 
-def _as_triangles(t, n_vertices: int) -> np.ndarray:
+def _as_triangles(t: npt.ArrayLike, n_vertices: int) -> np.ndarray:
     a = np.ascontiguousarray(np.asarray(t, dtype=np.int64))
     if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] == 0:
         raise ShapeError(f"triangles: expected shape (T, 3) with T >= 1, got {a.shape}")
@@ -187,7 +189,7 @@ def build_bvh(vertices: np.ndarray, triangles: np.ndarray, *, leaf_size: int = L
     return BVH(v, t, lo, hi, left, right, start, count, order)
 
 
-def _unit_directions(directions: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+def _unit_directions(directions: npt.ArrayLike, n: int) -> tuple[np.ndarray, np.ndarray]:
     d = _as_points(directions, "directions")
     if d.shape[0] != n:
         raise ShapeError(
@@ -200,14 +202,16 @@ def _unit_directions(directions: np.ndarray, n: int) -> tuple[np.ndarray, np.nda
     return unit, ok
 
 
-def _limits(max_distance, n: int) -> np.ndarray:
+def _limits(max_distance: float | npt.ArrayLike, n: int) -> np.ndarray:
     m = np.broadcast_to(np.asarray(max_distance, dtype=np.float64), (n,)).copy()
     if np.isnan(m).any() or (m < 0).any():
         raise ShapeError("max_distance must be >= 0 (inf for unlimited)")
     return m
 
 
-def _hits(vertices, triangles, tri, bary, dist) -> RayHits:
+def _hits(
+    vertices: np.ndarray, triangles: np.ndarray, tri: np.ndarray, bary: np.ndarray, dist: np.ndarray
+) -> RayHits:
     miss = tri < 0
     bary = np.where(miss[:, None], np.nan, bary)
     dist = np.where(miss, np.nan, dist)
@@ -217,7 +221,13 @@ def _hits(vertices, triangles, tri, bary, dist) -> RayHits:
     return RayHits(tri, bary, dist, pts)
 
 
-def _refine_lines(vertices, triangles, tri, origins, directions):
+def _refine_lines(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    tri: np.ndarray,
+    origins: np.ndarray,
+    directions: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact float64 line/triangle intersection ``(t, u, v)`` with the given triangles."""
     p0 = vertices[triangles[tri, 0]]
     e1 = vertices[triangles[tri, 1]] - p0
@@ -245,7 +255,14 @@ class RayCaster:
         "brute" tests every triangle (no set-up; for a handful of lines).
     """
 
-    def __init__(self, vertices, triangles, *, backend: str = "auto", bvh: BVH | None = None):
+    def __init__(
+        self,
+        vertices: npt.ArrayLike,
+        triangles: npt.ArrayLike,
+        *,
+        backend: str = "auto",
+        bvh: BVH | None = None,
+    ) -> None:
         self.vertices = _as_points(vertices, "vertices")
         self.triangles = _as_triangles(triangles, len(self.vertices))
         if backend not in ("auto", "embree", "bvh", "brute"):
@@ -270,7 +287,7 @@ class RayCaster:
             self._bvh = build_bvh(self.vertices, self.triangles)
         return self._bvh
 
-    def _embree_scene(self):
+    def _embree_scene(self) -> Any:
         if self._scene is None:
             from embreex import rtcore_scene
             from embreex.mesh_construction import TriangleMesh
@@ -285,7 +302,12 @@ class RayCaster:
         return self._scene
 
     def cast(
-        self, origins, directions, *, both_directions: bool = True, max_distance=np.inf
+        self,
+        origins: npt.ArrayLike,
+        directions: npt.ArrayLike,
+        *,
+        both_directions: bool = True,
+        max_distance: float | npt.ArrayLike = np.inf,
     ) -> RayHits:
         """Nearest hit (by |t|) of lines ``origins + t * directions`` with |t| <= ``max_distance``.
 
@@ -305,7 +327,9 @@ class RayCaster:
         bary = np.stack([1.0 - u - v, u, v], axis=1)
         return _hits(self.vertices, self.triangles, tri, bary, t)
 
-    def _cast_bvh(self, o, d, limit, both):
+    def _cast_bvh(
+        self, o: np.ndarray, d: np.ndarray, limit: np.ndarray, both: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         from . import _raycast_kernels as k
 
         n = len(o)
@@ -315,7 +339,9 @@ class RayCaster:
         kernel(*self.bvh.arrays, o, d, limit, bool(both), tri, t, u, v)
         return tri, t, u, v
 
-    def _cast_brute(self, o, d, limit, both):
+    def _cast_brute(
+        self, o: np.ndarray, d: np.ndarray, limit: np.ndarray, both: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         from . import _raycast_kernels as k
 
         n = len(o)
@@ -324,7 +350,9 @@ class RayCaster:
         k.cast_lines_brute(self.vertices, self.triangles, o, d, limit, bool(both), tri, t, u, v)
         return tri, t, u, v
 
-    def _cast_embree(self, o, d, limit, both):
+    def _cast_embree(
+        self, o: np.ndarray, d: np.ndarray, limit: np.ndarray, both: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         scene = self._embree_scene()
         o32, d32 = o.astype(np.float32), d.astype(np.float32)
         far = np.minimum(limit, np.finfo(np.float32).max).astype(np.float32)
@@ -350,7 +378,9 @@ class RayCaster:
         tri[beyond] = -1
         return tri, t, u, v
 
-    def closest(self, points, *, max_distance=np.inf) -> RayHits:
+    def closest(
+        self, points: npt.ArrayLike, *, max_distance: float | npt.ArrayLike = np.inf
+    ) -> RayHits:
         """Closest surface point of each of ``points (P, 3)`` within ``max_distance``.
 
         ``distance`` is signed: positive on the side the triangle's normal points to.
@@ -377,13 +407,13 @@ class RayCaster:
 
 
 def cast_rays(
-    vertices,
-    triangles,
-    origins,
-    directions,
+    vertices: npt.ArrayLike,
+    triangles: npt.ArrayLike,
+    origins: npt.ArrayLike,
+    directions: npt.ArrayLike,
     *,
     both_directions: bool = True,
-    max_distance=np.inf,
+    max_distance: float | npt.ArrayLike = np.inf,
     backend: str = "auto",
 ) -> RayHits:
     """One-off line query (see :meth:`RayCaster.cast`)."""
@@ -392,7 +422,13 @@ def cast_rays(
     )
 
 
-def closest_points(vertices, triangles, points, *, max_distance=np.inf) -> RayHits:
+def closest_points(
+    vertices: npt.ArrayLike,
+    triangles: npt.ArrayLike,
+    points: npt.ArrayLike,
+    *,
+    max_distance: float | npt.ArrayLike = np.inf,
+) -> RayHits:
     """One-off closest-point query (see :meth:`RayCaster.closest`)."""
     return RayCaster(vertices, triangles, backend="bvh").closest(points, max_distance=max_distance)
 
@@ -425,14 +461,14 @@ def triangle_neighbors(triangles: np.ndarray) -> np.ndarray:
 
 
 def walk_rays(
-    vertices,
-    triangles,
-    neighbors,
-    origins,
-    directions,
-    start,
+    vertices: npt.ArrayLike,
+    triangles: npt.ArrayLike,
+    neighbors: npt.ArrayLike,
+    origins: npt.ArrayLike,
+    directions: npt.ArrayLike,
+    start: npt.ArrayLike,
     *,
-    max_distance=np.inf,
+    max_distance: float | npt.ArrayLike = np.inf,
     max_steps: int = WALK_STEPS,
 ) -> RayHits:
     """Hits of lines ``origins + t * directions`` (both directions) found by walking the mesh.

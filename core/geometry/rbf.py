@@ -116,7 +116,9 @@ def fit_rbf(
     return RBFInterpolant(x, weights, affine, kernel, float(c))
 
 
-def solve_system(x: np.ndarray, y: np.ndarray, phi: np.ndarray, use_linear: bool, message: str):
+def solve_system(
+    x: np.ndarray, y: np.ndarray, phi: np.ndarray, use_linear: bool, message: str
+) -> tuple[np.ndarray, np.ndarray]:
     """Weights (N, K) and affine part (D+1, K) of the RBF interpolant with kernel matrix
     ``phi`` (N, N) at centres ``x`` (N, D): the saddle-point system with the polynomial
     (linear + constant if ``use_linear``, else constant) and a ridge relative to the largest
@@ -145,7 +147,7 @@ def solve_system(x: np.ndarray, y: np.ndarray, phi: np.ndarray, use_linear: bool
     return sol[:n], affine
 
 
-def _merge_duplicates(x: np.ndarray, y: np.ndarray):
+def _merge_duplicates(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Merge centres closer than 1e-12 of the cloud's extent (their values averaged)."""
     extent = float(np.max(np.ptp(x, axis=0))) if len(x) > 1 else 0.0
     tol = extent * 1e-12 if extent > 0 and np.isfinite(extent) else 1.0

@@ -12,14 +12,17 @@ rescaled at the end so it sums to ``r`` within a few ulps.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import InputError, NonFiniteError, NumericalError, ShapeError
 
 __all__ = ["project_simplex", "simplex_qp", "group_index"]
 
 
-def project_simplex(values, radius: float = 1.0) -> np.ndarray:
+def project_simplex(values: npt.ArrayLike, radius: float = 1.0) -> np.ndarray:
     """Euclidean projection of each row of ``values : (..., n)`` onto the simplex.
 
     Parameters
@@ -50,7 +53,7 @@ def project_simplex(values, radius: float = 1.0) -> np.ndarray:
     return out.reshape(arr.shape)
 
 
-def group_index(sizes) -> np.ndarray:
+def group_index(sizes: Sequence[int] | np.ndarray) -> np.ndarray:
     """``(n,)`` group id of each variable for consecutive groups of the given ``sizes``."""
     sizes = np.asarray(sizes, dtype=np.int64)
     if sizes.ndim != 1 or sizes.size == 0 or np.any(sizes < 1):
@@ -60,7 +63,14 @@ def group_index(sizes) -> np.ndarray:
     return np.repeat(np.arange(sizes.size, dtype=np.int64), sizes)
 
 
-def simplex_qp(G, c, groups=None, *, x0=None, tol: float = 1e-12) -> np.ndarray:
+def simplex_qp(
+    G: npt.ArrayLike,
+    c: npt.ArrayLike,
+    groups: npt.ArrayLike | None = None,
+    *,
+    x0: npt.ArrayLike | None = None,
+    tol: float = 1e-12,
+) -> np.ndarray:
     """``argmin_x 1/2 x^T G x - c^T x``, every group of ``x`` on the unit simplex.
 
     Parameters

@@ -14,6 +14,7 @@ vertices on 2 cores).
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import ShapeError
 from .laplacian import umbrella_operator
@@ -46,15 +47,15 @@ class TaubinSmoother:
 
     def __init__(
         self,
-        triangles,
+        triangles: npt.ArrayLike,
         n_vertices: int,
         *,
         iterations: int = 40,
         lam: float = TAUBIN_LAMBDA,
         mu: float = TAUBIN_MU,
-        dtype=np.float64,
+        dtype: npt.DTypeLike = np.float64,
         adjoint: bool = False,
-    ):
+    ) -> None:
         w = umbrella_operator(np.asarray(triangles, dtype=np.int64), int(n_vertices))
         if adjoint:
             w = w.T.tocsr()
@@ -113,7 +114,7 @@ def taubin_smooth(
     iterations: int = 40,
     lam: float = TAUBIN_LAMBDA,
     mu: float = TAUBIN_MU,
-    dtype=np.float64,
+    dtype: npt.DTypeLike = np.float64,
 ) -> np.ndarray:
     """Taubin-smooth ``points : (V, 3)`` or ``(F, V, 3)`` on the mesh ``triangles : (T, 3)``.
 

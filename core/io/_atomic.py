@@ -38,6 +38,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO
 
+from .._types import PathLike
 from ..errors import OutputError
 
 try:
@@ -83,7 +84,7 @@ def _identity(path: Path) -> tuple[int, int] | None:
     return (st.st_dev, st.st_ino)
 
 
-def note_input(path) -> None:
+def note_input(path: PathLike) -> None:
     """Record ``path`` as an input of this process (writers will refuse to replace it)."""
     p = Path(path)
     _INPUTS[os.path.realpath(p)] = _identity(p)
@@ -103,7 +104,7 @@ def clear_inputs() -> None:
     _INPUTS.clear()
 
 
-def is_input(path, inputs: Iterable = ()) -> bool:
+def is_input(path: PathLike, inputs: Iterable = ()) -> bool:
     """Whether ``path`` is (the same file as) an input read by this process or listed in ``inputs``."""
     p = Path(path)
     real = os.path.realpath(p)
@@ -117,7 +118,7 @@ def is_input(path, inputs: Iterable = ()) -> bool:
 
 
 def check_destination(
-    path, *, inputs: Iterable = (), force: bool = False, folder: bool = False
+    path: PathLike, *, inputs: Iterable = (), force: bool = False, folder: bool = False
 ) -> Path:
     """Validate a destination before writing; returns it as a :class:`Path`.
 
@@ -148,7 +149,7 @@ def check_destination(
     return p
 
 
-def temp_path(dest) -> Path:
+def temp_path(dest: PathLike) -> Path:
     """The temporary name for ``dest`` (the one naming scheme of faceretarget):
     ``.NAME.PID.TOKEN.frtmp`` + ``dest``'s suffix, in ``dest``'s folder. The suffix is kept
     so a writer that dispatches on the extension (a plugin's) can be given the temporary
@@ -243,7 +244,7 @@ def _stale(entry: Path, pids: list[int], tag: str) -> bool:
     return own_scheme and pids[0] != os.getpid() and _HAS_FCNTL and not _locked(entry)
 
 
-def leftovers(folder, dest_name: str | None = None) -> list[Path]:
+def leftovers(folder: PathLike, dest_name: str | None = None) -> list[Path]:
     """Temporaries in ``folder`` left by writers that are gone (of ``dest_name`` only, if
     given): every name of the scheme of :func:`temp_path`, the old folders moved aside
     (``.frold``) and the batch runner's former ``.frbatch-`` names, nested ones included."""
@@ -261,7 +262,7 @@ def leftovers(folder, dest_name: str | None = None) -> list[Path]:
     return found
 
 
-def remove_leftovers(dest) -> list[Path]:
+def remove_leftovers(dest: PathLike) -> list[Path]:
     """Clean up after killed writers of ``dest``: delete their temporaries, and put back an
     old folder moved aside if ``dest`` went missing. Returns what was removed or restored."""
     dest = Path(dest)
@@ -345,7 +346,7 @@ def _discard(tmp: Path) -> None:
 
 @contextmanager
 def atomic_file(
-    path, *, inputs: Iterable = (), force: bool = False, text: bool = False
+    path: PathLike, *, inputs: Iterable = (), force: bool = False, text: bool = False
 ) -> Iterator[IO]:
     """Open a temporary file that replaces ``path`` when the ``with`` block succeeds.
 
@@ -402,7 +403,7 @@ def _direct_file(tmp: Path, dest: Path, inputs: Iterable, text: bool) -> Iterato
 
 
 @contextmanager
-def atomic_path(path, *, inputs: Iterable = (), force: bool = False) -> Iterator[Path]:
+def atomic_path(path: PathLike, *, inputs: Iterable = (), force: bool = False) -> Iterator[Path]:
     """A temporary path beside file ``path`` for a writer that takes a path (a registered
     writer, maybe a plugin's): what the block writes there replaces ``path`` when the
     block succeeds, after the destination is checked again (inputs read meanwhile, for
@@ -436,7 +437,7 @@ def atomic_path(path, *, inputs: Iterable = (), force: bool = False) -> Iterator
     _fsync_dir(dest.parent)
 
 
-def write_bytes(path, data: bytes, *, inputs: Iterable = (), force: bool = False) -> Path:
+def write_bytes(path: PathLike, data: bytes, *, inputs: Iterable = (), force: bool = False) -> Path:
     """Atomically write ``data`` to ``path``."""
     with atomic_file(path, inputs=inputs, force=force) as fh:
         fh.write(data)
@@ -445,7 +446,7 @@ def write_bytes(path, data: bytes, *, inputs: Iterable = (), force: bool = False
 
 @contextmanager
 def atomic_dir(
-    path,
+    path: PathLike,
     *,
     inputs: Iterable = (),
     force: bool = False,
@@ -492,7 +493,7 @@ def atomic_dir(
     _fsync_dir(dest.parent)
 
 
-def _check_foreign(dest: Path, allowed_suffixes) -> None:
+def _check_foreign(dest: Path, allowed_suffixes: tuple[str, ...] | None) -> None:
     """Refuse to replace an existing folder holding anything but regular files with
     ``allowed_suffixes`` (``None``: not checked here; a writer given the temporary folder
     checks it with its own suffixes)."""

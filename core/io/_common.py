@@ -10,13 +10,15 @@ import re
 import stat
 import warnings
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 
 from .. import config
+from .._types import PathLike
 from ..errors import (
     FaceRetargetError,
     FileFormatError,
@@ -26,6 +28,9 @@ from ..errors import (
     ResourceLimitError,
 )
 from ._atomic import note_input
+
+_T = TypeVar("_T")
+_E = TypeVar("_E", bound=FileFormatError | None)
 
 __all__ = [
     "bad",
@@ -68,7 +73,7 @@ CHUNK_BYTES = 1 << 18
 CHUNK_FACTOR = 24
 
 
-def chunk_work(fh) -> float:
+def chunk_work(fh: IO[bytes]) -> float:
     """Working memory of a streaming text reader on open file ``fh``, beyond its result
     (checked against the budget with the result's size): one chunk's work, or less for a
     file smaller than a chunk (a chunk may carry a partial line: up to two chunks' text)."""
@@ -76,12 +81,12 @@ def chunk_work(fh) -> float:
     return float(CHUNK_FACTOR * min(size, 2 * CHUNK_BYTES))
 
 
-def bad(path, what: str) -> FileFormatError:
+def bad(path: PathLike | None, what: str) -> FileFormatError:
     """A :class:`FileFormatError` whose message starts with the file name."""
     return FileFormatError(f"{path}: {what}")
 
 
-def to_float32(values, what: str, dtype: str = "<f4") -> np.ndarray:
+def to_float32(values: npt.ArrayLike, what: str, dtype: str = "<f4") -> np.ndarray:
     """``values`` converted for a float32 format (``dtype`` sets the byte order). Raises
     :class:`OutputError` if a value lies beyond float32's range (it would be stored as inf);
     NaN (a missing marker sample) passes."""
@@ -105,7 +110,7 @@ def human_size(n: float) -> str:
     return f"{n:.1f} TiB"
 
 
-def check_budget(path, nbytes: float, what: str) -> None:
+def check_budget(path: PathLike, nbytes: float, what: str) -> None:
     """Refuse (before allocating) when ``nbytes`` exceeds :func:`faceretarget.config.memory_budget`."""
     budget = config.memory_budget()
     if not math.isfinite(float(nbytes)) or nbytes > budget:
@@ -115,7 +120,7 @@ def check_budget(path, nbytes: float, what: str) -> None:
         )
 
 
-def guarded_reader(fn: Callable) -> Callable:
+def guarded_reader(fn: Callable[..., _T]) -> Callable[..., _T]:
     """Wrap a ``read(path, **options)`` so every failure is a typed error naming the file.
 
     The path is recorded as an input (writers will not replace it); a missing path is a
@@ -125,7 +130,7 @@ def guarded_reader(fn: Callable) -> Callable:
     """
 
     @functools.wraps(fn)
-    def read(path, **options):
+    def read(path: PathLike, **options: Any) -> _T:
         p = Path(path)
         check_regular(p, folder_ok=True)
         note_input(p)
@@ -166,7 +171,7 @@ def guarded_reader(fn: Callable) -> Callable:
     return read
 
 
-def _mismatch_or(path: Path, error):
+def _mismatch_or(path: Path, error: _E) -> FormatMismatchError | _E:
     """The :class:`FormatMismatchError` naming what ``path`` really is, when its content is
     another kind of file than its extension says (:func:`format_mismatch`); else ``error``."""
     if not path.is_file():
@@ -183,7 +188,7 @@ _KINDS = (
 )
 
 
-def _not_regular(path, st: os.stat_result) -> FileFormatError:
+def _not_regular(path: PathLike, st: os.stat_result) -> FileFormatError:
     what = next((name for test, name in _KINDS if test(st.st_mode)), "not a regular file")
     via = " (through a symbolic link)" if os.path.islink(path) else ""
     return FileFormatError(
@@ -192,7 +197,7 @@ def _not_regular(path, st: os.stat_result) -> FileFormatError:
     )
 
 
-def check_regular(path, *, folder_ok: bool = False) -> os.stat_result:
+def check_regular(path: PathLike, *, folder_ok: bool = False) -> os.stat_result:
     """Refuse (FileFormatError) a path that is missing or not a regular file (a FIFO, a
     device such as /dev/zero, a socket; links are followed) without opening it, so it can
     never hang or read forever. Folders pass when ``folder_ok``."""
@@ -209,7 +214,7 @@ def check_regular(path, *, folder_ok: bool = False) -> os.stat_result:
     raise _not_regular(path, st)
 
 
-def open_regular(path):
+def open_regular(path: PathLike) -> IO[bytes]:
     """``path`` opened for binary reading, refused unless it is a regular file.
 
     The file is opened non-blocking (a FIFO swapped in after a check cannot hang the
@@ -265,7 +270,7 @@ def read_text(path: Path, *, allow_empty: bool = False, factor: float = TEXT_MEM
         return data.decode("latin-1")
 
 
-def iter_chunks(fh, size: int = 1 << 20):
+def iter_chunks(fh: IO[bytes], size: int = 1 << 20) -> Iterator[bytes]:
     """Binary chunks of an open file, each ending at a line end (the last one at the end
     of the file): text readers parse a file chunk by chunk, holding one chunk at a time."""
     rest = b""
@@ -297,7 +302,9 @@ class TextRows:
     with ``strip=False`` only the line end removed, ``comment`` and what follows it cut), for readers that stream a file: the rows of one
     chunk are held at a time. ``lineno`` counts the rows handed out so far."""
 
-    def __init__(self, path, fh, *, comment: bytes | None = None, strip: bool = True):
+    def __init__(
+        self, path: PathLike, fh: IO[bytes], *, comment: bytes | None = None, strip: bool = True
+    ) -> None:
         self.path, self.comment, self.strip = path, comment, strip
         self._chunks = iter_chunks(fh, CHUNK_BYTES)
         self.work = chunk_work(fh)  #: working memory beyond the result (for the budget)
@@ -338,7 +345,7 @@ class TextRows:
         got = self.take(1)
         return got[0] if got else None
 
-    def rest(self):
+    def rest(self) -> Iterator[list[bytes]]:
         """The remaining rows, chunk by chunk (lists of rows)."""
         while True:
             rows = self.take(1 << 30)
@@ -348,7 +355,11 @@ class TextRows:
 
 
 def number_block(
-    rows: list[bytes], columns: int, dtype=np.float64, *, delimiter=None
+    rows: list[bytes],
+    columns: int,
+    dtype: npt.DTypeLike = np.float64,
+    *,
+    delimiter: str | None = None,
 ) -> np.ndarray | None:
     """The first ``columns`` values of each row as a ``(len(rows), columns)`` array, parsed
     in C (numpy); None when a row has fewer values or one is not a number (the caller's
@@ -385,7 +396,7 @@ def fmt_float(value: float) -> str:
     return repr(float(value))
 
 
-def parse_float(text: str, path, where: str) -> float:
+def parse_float(text: str, path: PathLike, where: str) -> float:
     try:
         value = float(text)
     except (TypeError, ValueError):
@@ -393,7 +404,7 @@ def parse_float(text: str, path, where: str) -> float:
     return value
 
 
-def parse_int(text: str, path, where: str, *, minimum: int | None = 0) -> int:
+def parse_int(text: str, path: PathLike, where: str, *, minimum: int | None = 0) -> int:
     try:
         value = int(text)
     except (TypeError, ValueError):
@@ -406,7 +417,9 @@ def parse_int(text: str, path, where: str, *, minimum: int | None = 0) -> int:
 # ---------------------------------------------------------------------------------------
 # npy / npz without pickle, sizes checked before loading
 # ---------------------------------------------------------------------------------------
-def npy_header(fh, path, name: str = "") -> tuple[tuple[int, ...], np.dtype, bool]:
+def npy_header(
+    fh: IO[bytes], path: PathLike, name: str = ""
+) -> tuple[tuple[int, ...], np.dtype, bool]:
     """Read an ``.npy`` header from an open binary file: (shape, dtype, fortran_order)."""
     where = f"array {name!r}" if name else "the npy header"
     try:
@@ -523,7 +536,7 @@ def split_arrays(value: Any) -> tuple[Any, list[np.ndarray]]:
     arrays natively next to JSON metadata)."""
     arrays: list[np.ndarray] = []
 
-    def strip(v):
+    def strip(v: Any) -> Any:
         if isinstance(v, np.ndarray):
             if v.dtype.kind in "biufU":
                 arrays.append(v)
@@ -692,7 +705,7 @@ def _sniff_text(head: bytes) -> tuple[str, str, str] | None:
     return "text", "a text file", ".txt"
 
 
-def sniff(path) -> tuple[str, str, str] | None:
+def sniff(path: PathLike) -> tuple[str, str, str] | None:
     """What a file actually is, from its first bytes: ``(family, description, usual
     extension)``, e.g. ``("png", "a PNG image", ".png")``, or None when nothing is
     recognised (most binary data without a signature: MDD, binary STL, raw arrays).
@@ -733,7 +746,7 @@ def sniff(path) -> tuple[str, str, str] | None:
     return None
 
 
-def _sniff_zip(path, family: str, what: str, ext: str) -> tuple[str, str, str]:
+def _sniff_zip(path: PathLike, family: str, what: str, ext: str) -> tuple[str, str, str]:
     """A ZIP archive told apart: a NumPy .npz (every member ``.npy``) or an Office/other zip."""
     try:
         with zipfile.ZipFile(path) as zf:
@@ -747,7 +760,7 @@ def _sniff_zip(path, family: str, what: str, ext: str) -> tuple[str, str, str]:
     return family, what, ext
 
 
-def format_mismatch(path, expected_ext: str | None = None) -> str | None:
+def format_mismatch(path: PathLike, expected_ext: str | None = None) -> str | None:
     """``"this looks like a PNG image, not a C3D file"`` when the file's content is
     another kind of file than its extension (or ``expected_ext``) promises, else None.
     Only a confident recognition counts: unknown binary content is never a mismatch."""
@@ -772,7 +785,7 @@ def format_mismatch(path, expected_ext: str | None = None) -> str | None:
 
 
 def mismatch_error(
-    path, expected_ext: str | None = None, detail: str = ""
+    path: PathLike, expected_ext: str | None = None, detail: str = ""
 ) -> FormatMismatchError | None:
     """A :class:`FormatMismatchError` naming what ``path`` really is (see
     :func:`format_mismatch`), or None when its content fits its extension."""

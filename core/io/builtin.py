@@ -14,6 +14,10 @@ Format modules are imported on first use (``_lazy``), so registering costs no pa
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
 from ..hookspecs import DATA_KINDS, Reader, Writer, hookimpl
 
 __all__ = ["builtin_readers", "builtin_writers", "faceretarget_readers", "faceretarget_writers"]
@@ -21,10 +25,10 @@ __all__ = ["builtin_readers", "builtin_writers", "faceretarget_readers", "facere
 _GLTF_EXT = (".glb", ".gltf")
 
 
-def _lazy(module: str, name: str):
+def _lazy(module: str, name: str) -> Callable[..., Any]:
     """A callable importing ``faceretarget.io.<module>.<name>`` on first call."""
 
-    def call(*args, **kwargs):
+    def call(*args: Any, **kwargs: Any) -> Any:
         from importlib import import_module
 
         return getattr(import_module(f"{__package__}.{module}"), name)(*args, **kwargs)
@@ -34,8 +38,8 @@ def _lazy(module: str, name: str):
     return call
 
 
-def _npz_reader(kind: str):
-    def read(path, **options):
+def _npz_reader(kind: str) -> Callable[..., Any]:
+    def read(path: Path, **options: Any) -> Any:
         from .bundle import read_npz_object
 
         return read_npz_object(path, kind=kind, **options)
@@ -336,10 +340,10 @@ def builtin_writers() -> list[Writer]:
 
 
 @hookimpl
-def faceretarget_readers():
+def faceretarget_readers() -> list[Reader]:
     return builtin_readers()
 
 
 @hookimpl
-def faceretarget_writers():
+def faceretarget_writers() -> list[Writer]:
     return builtin_writers()

@@ -20,11 +20,13 @@ Foreign ``.npz`` files without a ``format`` key are read by their keys (``vertic
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .._types import PathLike
 from ..errors import InputError
 from ..model import (
     Animation,
@@ -96,7 +98,7 @@ def type_of(obj: Any) -> str:
 # ---------------------------------------------------------------------------------------
 # encoding
 # ---------------------------------------------------------------------------------------
-def _text(values) -> np.ndarray:
+def _text(values: Iterable[object]) -> np.ndarray:
     values = [str(v) for v in values]
     return np.array(values, dtype=str) if values else np.zeros(0, dtype="<U1")
 
@@ -195,10 +197,11 @@ def encode(obj: Any, prefix: str = "") -> dict[str, np.ndarray]:
     return out
 
 
-def _encode_parts(out: dict, obj, p: str) -> None:
+def _encode_parts(out: dict, obj: Source | TargetRig, p: str) -> None:
     """Parts shared by Source and TargetRig: head motion, landmarks, feature lines, examples, name."""
-    if getattr(obj, "head_motion", None) is not None:
-        out[p + "head_motion"] = np.asarray(obj.head_motion)
+    head_motion = getattr(obj, "head_motion", None)  # a Source's (a TargetRig has none)
+    if head_motion is not None:
+        out[p + "head_motion"] = np.asarray(head_motion)
     lm = obj.landmarks
     if lm is not None:
         if lm.vertex_ids is not None:
@@ -220,7 +223,7 @@ def _encode_parts(out: dict, obj, p: str) -> None:
 # decoding
 # ---------------------------------------------------------------------------------------
 class _Arrays:
-    def __init__(self, arrays: dict[str, np.ndarray], path):
+    def __init__(self, arrays: dict[str, np.ndarray], path: PathLike | None) -> None:
         self.arrays, self.path = arrays, path
 
     def has(self, key: str) -> bool:
@@ -270,7 +273,9 @@ class _Arrays:
         return {n: self.get(f"{prefix}{i}") for i, n in enumerate(names)}
 
 
-def decode(arrays: _Arrays | dict, kind: str, prefix: str = "", path=None) -> Any:
+def decode(
+    arrays: _Arrays | dict, kind: str, prefix: str = "", path: PathLike | None = None
+) -> Any:
     """Rebuild the object of type ``kind`` stored under ``prefix`` (see :func:`encode`)."""
     a = arrays if isinstance(arrays, _Arrays) else _Arrays(arrays, path)
     p = prefix
@@ -387,7 +392,13 @@ def _decode_parts(a: _Arrays, p: str) -> dict[str, Any]:
 # files
 # ---------------------------------------------------------------------------------------
 def write_npz(
-    obj: Any, path, *, force: bool = False, inputs=(), compress: bool = False, **options
+    obj: Any,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    compress: bool = False,
+    **options: Any,
 ) -> None:
     """Write any model object, Source, TargetRig or case as a faceretarget ``.npz`` (atomic)."""
     kind = type_of(obj)
@@ -404,7 +415,7 @@ def write_npz(
         (np.savez_compressed if compress else np.savez)(fh, **arrays)  # type: ignore[arg-type]
 
 
-def npz_type(arrays: dict[str, np.ndarray], path) -> str | None:
+def npz_type(arrays: dict[str, np.ndarray], path: PathLike) -> str | None:
     """The stored type of a faceretarget npz (None for a foreign npz)."""
     if "format" not in arrays:
         return None
@@ -433,7 +444,7 @@ _ALIASES = {
 }
 
 
-def _first(arrays: dict, group: str):
+def _first(arrays: dict, group: str) -> np.ndarray | None:
     return next((arrays[k] for k in _ALIASES[group] if k in arrays), None)
 
 
@@ -468,7 +479,7 @@ def _decode_foreign(arrays: dict, kind: str, path: Path, options: dict) -> Any:
             )
         return BlendshapeRig(
             Mesh(arrays["neutral"], tris, name=name),
-            _first(arrays, "deltas"),
+            _first(arrays, "deltas"),  # type: ignore[arg-type]  # None: BlendshapeRig's error
             [str(n) for n in names.tolist()],
         )
     if kind == "weights":
@@ -482,7 +493,7 @@ def _decode_foreign(arrays: dict, kind: str, path: Path, options: dict) -> Any:
     if kind == "markers":
         names = arrays.get("names")
         return MarkerSequence(
-            _first(arrays, "positions"),
+            _first(arrays, "positions"),  # type: ignore[arg-type]  # None: MarkerSequence's error
             names=None if names is None else [str(n) for n in names.tolist()],
             fps=fps or float(arrays.get("fps", 30.0)),
         )
@@ -494,7 +505,7 @@ def _decode_foreign(arrays: dict, kind: str, path: Path, options: dict) -> Any:
         if kind == "mesh":
             if tris is None:
                 raise bad(path, "a mesh npz needs 'vertices' and 'triangles' (or 'faces')")
-            return Mesh(vertices, tris, name=name)
+            return Mesh(vertices, tris, name=name)  # type: ignore[arg-type]  # None: Mesh's error
         if vertices is None or vertices.ndim != 3:
             raise bad(path, "a mesh-sequence npz needs 'vertices' of shape (F, V, 3)")
         if tris is None:
@@ -522,7 +533,7 @@ def _convert(obj: Any, have: str, want: str, path: Path) -> Any:
 
 
 @guarded_reader
-def read_npz_object(path: Path, *, kind: str | None = None, **options) -> Any:
+def read_npz_object(path: Path, *, kind: str | None = None, **options: Any) -> Any:
     """Read a faceretarget or foreign ``.npz``; ``kind`` converts (e.g. an animation to a mesh sequence)."""
     arrays = read_npz(path)
     stored = npz_type(arrays, path)
@@ -538,7 +549,7 @@ def read_npz_object(path: Path, *, kind: str | None = None, **options) -> Any:
     return obj if kind is None else _convert(obj, stored, kind, path)
 
 
-def npz_kind(path) -> str | None:
+def npz_kind(path: PathLike) -> str | None:
     """The stored or guessed type of an npz without building objects (None if unreadable)."""
     import zipfile
 

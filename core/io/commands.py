@@ -19,11 +19,21 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable, Iterable
+from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from .._json import jsonable
 from ..errors import OutputError
 from ..hookspecs import DATA_KINDS
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from .._types import PathLike
+    from ..cases import Case
+    from ..model import Landmarks, Source, TargetRig
 
 __all__ = [
     "add_convert_arguments",
@@ -72,7 +82,9 @@ def _same_path(a: Path, b: Path) -> bool:
         return False
 
 
-def convert(src, dst, *, kind: str | None = None, force: bool = False, **options) -> Path:
+def convert(
+    src: PathLike, dst: PathLike, *, kind: str | None = None, force: bool = False, **options: Any
+) -> Path:
     """Read ``src`` and write it to ``dst`` (see the module docstring)."""
     from . import load, save
 
@@ -100,11 +112,7 @@ def run_convert(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------------------
 # faceretarget cases export NAME DIR
 # ---------------------------------------------------------------------------------------
-#: Methods the exported manifest and README.txt list, when they apply to the case.
-EXPORT_METHODS = ("spacetime", "layers", "normalmesh", "coating", "deformation_transfer")
-
-
-def _landmarks_json(lm) -> dict:
+def _landmarks_json(lm: Landmarks) -> dict:
     data: dict = {}
     if lm.vertex_ids is not None:
         data["vertex_ids"] = jsonable(lm.vertex_ids)
@@ -116,7 +124,7 @@ def _landmarks_json(lm) -> dict:
     return data
 
 
-def export_case(case, folder, *, force: bool = False) -> dict[str, Path]:
+def export_case(case: Case | str, folder: PathLike, *, force: bool = False) -> dict[str, Path]:
     """Write ``case`` (a :class:`faceretarget.cases.Case` or a case spec such as
     ``"synthetic-human?n_frames=40"``) as ordinary files in ``folder`` (created; it must be
     new or empty unless ``force``), and return ``{part: path}``.
@@ -156,20 +164,20 @@ def export_case(case, folder, *, force: bool = False) -> dict[str, Path]:
     folder.mkdir(parents=True, exist_ok=True)
     written: dict[str, Path] = {}
 
-    def put(part: str, name: str, write) -> None:
+    def put(part: str, name: str, write: Callable[[Path], object]) -> None:
         path = folder / name
         write(path)
         written[part] = path
 
-    def put_json(part: str, name: str, data) -> None:
+    def put_json(part: str, name: str, data: object) -> None:
         put(
             part,
             name,
             lambda p: write_bytes(p, (json.dumps(data, indent=1) + "\n").encode(), force=force),
         )
 
-    def put_examples(part: str, name: str, examples, names) -> None:
-        def write(p):
+    def put_examples(part: str, name: str, examples: npt.ArrayLike, names: Iterable[str]) -> None:
+        def write(p: Path) -> None:
             with atomic_file(p, force=force) as fh:
                 np.savez(
                     fh,
@@ -190,11 +198,12 @@ def export_case(case, folder, *, force: bool = False) -> dict[str, Path]:
         put("source", "source.csv", lambda p: save(perf, p, force=force))
     if source.rig is not None and source.kind == "weights":
         put("source_rig", "source_rig.glb", lambda p: save(source.rig, p, force=force))
-    if source.head_motion is not None:
+    head_motion = source.head_motion
+    if head_motion is not None:
         put(
             "source_head_motion",
             "source_head_motion.npy",
-            lambda p: _save_npy(p, source.head_motion, force),
+            lambda p: _save_npy(p, head_motion, force),
         )
     if target.blendshapes is not None:
         put("character", "character.glb", lambda p: save(target.blendshapes, p, force=force))
@@ -213,13 +222,9 @@ def export_case(case, folder, *, force: bool = False) -> dict[str, Path]:
             put_examples(
                 f"{side}_examples", f"{side}_examples.npz", obj.examples, obj.example_names
             )
-        layers = obj.actor_layers if side == "source" else obj.layers
+        layers = source.actor_layers if side == "source" else target.layers
         if layers is not None:
-            put(
-                f"{side}_layers",
-                f"{side}_layers.npz",
-                lambda p, layers=layers: write_npz(layers, p, force=force),
-            )
+            put(f"{side}_layers", f"{side}_layers.npz", partial(write_npz, layers, force=force))
     if getattr(case, "truth", None) is not None:
         put("truth", "truth.npz", lambda p: write_npz(case.truth, p, force=force))
     put("case", "case.npz", lambda p: write_npz(case, p, force=force))
@@ -238,7 +243,7 @@ def export_case(case, folder, *, force: bool = False) -> dict[str, Path]:
     return written
 
 
-def _save_npy(path: Path, array, force: bool) -> None:
+def _save_npy(path: Path, array: npt.ArrayLike, force: bool) -> None:
     import numpy as np
 
     from ._atomic import atomic_file
@@ -247,18 +252,30 @@ def _save_npy(path: Path, array, force: bool) -> None:
         np.save(fh, np.asarray(array), allow_pickle=False)
 
 
-def _applicable(source, target) -> list[str]:
+def _applicable(source: Source, target: TargetRig) -> list[str]:
+    """The methods the exported manifest and README.txt list: from the registry's manifests,
+    one per paper (the first the manifests list, ``registry.toml`` order first: a paper's
+    variants and ablations are left out, its baselines from other papers are not), each
+    when it applies to (source, target). The registry is imported here, at call time: no
+    io module imports it when imported (``tests/io/test_layering.py``)."""
     from ..registry import registry
 
     reg = registry()
-    return [
-        m
-        for m in EXPORT_METHODS
-        if m in reg.retargeters and reg.retargeters[m].cls.why_not(source, target) is None
-    ]
+    order = {name: i for i, name in enumerate(reg.manifests)}
+    infos = sorted(reg.retargeters.values(), key=lambda info: order.get(info.name, len(order)))
+    papers: set[str] = set()
+    methods = []
+    for info in infos:
+        paper = info.paper or info.name
+        if paper in papers:
+            continue
+        papers.add(paper)
+        if info.cls.why_not(source, target) is None:
+            methods.append(info.name)
+    return methods
 
 
-def _manifest(methods: list[str], case) -> str:
+def _manifest(methods: list[str], case: Case) -> str:
     lines = [
         f"# faceretarget batch manifest for the exported case {getattr(case, 'name', '')!r}:",
         "#   faceretarget batch batch.toml",
@@ -301,7 +318,7 @@ def run_commands(written: dict[str, Path], methods: list[str]) -> list[str]:
     return [f"faceretarget run {m} {source} {target} --out out/{m}.glb" for m in methods]
 
 
-def _export_readme(case, written: dict[str, Path], methods: list[str]) -> str:
+def _export_readme(case: Case, written: dict[str, Path], methods: list[str]) -> str:
     name = getattr(case, "name", "case")
     lines = [f"faceretarget case {name!r}, exported as ordinary files.", "", "Files:"]
     for part, path in written.items():

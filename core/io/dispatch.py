@@ -19,10 +19,11 @@ an existing file).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
+from .._types import PathLike
 from ..errors import FileFormatError, InputError, UnknownNameError
 from ..hookspecs import DATA_KINDS, Writer
 from ._atomic import note_input
@@ -158,7 +159,9 @@ def _read_with(formats: FormatTable, readers: list[Entry], path: Path, options: 
     )
 
 
-def read(path, kind: str | None = None, *, format: str | None = None, **options) -> Any:
+def read(
+    path: PathLike, kind: str | None = None, *, format: str | None = None, **options: Any
+) -> Any:
     """Read ``path`` with the registered reader for its extension (or folder); see
     :func:`faceretarget.io.load`, which also returns faceretarget bundles whole."""
     from ._common import check_regular
@@ -189,7 +192,7 @@ def kind_of(obj: Any) -> str:
     )
 
 
-def _coerce(obj: Any, kind: str, want: set[str]):
+def _coerce(obj: Any, kind: str, want: set[str]) -> tuple[Any, str | None]:
     """``obj`` as one of the kinds ``want`` (animation <-> sequence, animation -> weights)."""
     from ..model import Animation, MeshSequence, WeightSequence
 
@@ -206,7 +209,13 @@ def _coerce(obj: Any, kind: str, want: set[str]):
 
 
 def write(
-    obj: Any, path, *, force: bool = False, inputs=(), format: str | None = None, **options
+    obj: Any,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    format: str | None = None,
+    **options: Any,
 ) -> Path:
     """Write a model object with the registered writer for the path's extension (or the one
     named ``format``), atomically; see :func:`faceretarget.io.save`, which also writes bundles."""
@@ -240,7 +249,14 @@ def write(
 
 
 def _write_through(
-    formats: FormatTable, entry: Entry, obj: Any, dest: Path, *, force: bool, inputs, options: dict
+    formats: FormatTable,
+    entry: Entry,
+    obj: Any,
+    dest: Path,
+    *,
+    force: bool,
+    inputs: Iterable,
+    options: dict,
 ) -> None:
     """The one way any writer, built-in or a plugin's, reaches the disk: it is handed a
     temporary path beside ``dest`` (an empty file with ``dest``'s suffix, or an empty
@@ -283,7 +299,7 @@ def _plugin_folder_suffixes(formats: FormatTable, writer: Writer) -> tuple[str, 
     return tuple(sorted(exts | {".json"}))
 
 
-def _stamp(path: Path):
+def _stamp(path: Path) -> tuple[int, int, int, int] | None:
     try:
         st = os.stat(path)
     except OSError:
@@ -291,7 +307,7 @@ def _stamp(path: Path):
     return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
 
 
-def _watch(dest: Path, inputs) -> dict:
+def _watch(dest: Path, inputs: Iterable[PathLike]) -> dict:
     """``{path: stamp}`` of the destination and every input: what a writer must not touch."""
     from ._atomic import recorded_inputs
 

@@ -74,7 +74,7 @@ class FormatTable:
 
     def __init__(
         self, readers: Iterable[tuple[Any, Any]] = (), writers: Iterable[tuple[Any, Any]] = ()
-    ):
+    ) -> None:
         self._entries = {"read": _entries(readers), "write": _entries(writers)}
 
     # -- lookups -------------------------------------------------------------------------

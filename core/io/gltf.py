@@ -35,13 +35,15 @@ import json
 import math
 import os
 import struct
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, overload
 
 import numpy as np
 
 from .._json import jsonable
-from ..errors import InputError, OutputError
+from .._types import PathLike
+from ..errors import FileFormatError, InputError, OutputError
 from ..model import Animation, BlendshapeRig, Mesh, MeshSequence
 from ._atomic import note_input, write_bytes
 from ._common import (
@@ -88,16 +90,16 @@ DEFAULT_FPS = 30.0
 class _Doc:
     """A parsed glTF document with typed, bounds-checked access (errors name the file)."""
 
-    def __init__(self, path: Path, gltf: dict, buffers: list[bytes]):
+    def __init__(self, path: Path, gltf: dict, buffers: list[bytes]) -> None:
         self.path = path
         self.gltf = gltf
         self.buffers = buffers
 
     # -- typed access ----------------------------------------------------------------
-    def fail(self, what: str):
+    def fail(self, what: str) -> FileFormatError:
         return bad(self.path, what)
 
-    def get(self, obj: dict, key: str, kind, where: str, default: Any = ...):
+    def get(self, obj: dict, key: str, kind: type, where: str, default: Any = ...) -> Any:
         if key not in obj:
             if default is ...:
                 raise self.fail(f"{where} lacks the required '{key}'")
@@ -564,7 +566,7 @@ def _read_json_only(path: Path) -> dict:
     return _parse_json(raw, path)
 
 
-def gltf_kind(path) -> str | None:
+def gltf_kind(path: PathLike) -> str | None:
     """'animation', 'rig' or 'mesh': what a glTF file holds (None if it cannot be told)."""
     try:
         doc = _read_json_only(Path(path))
@@ -611,7 +613,7 @@ def _local_matrix(doc: _Doc, node: dict, where: str) -> np.ndarray:
         out = np.array(m, dtype=np.float64).reshape(4, 4).T
     else:
 
-        def vec(key, n, default):
+        def vec(key: str, n: int, default: list[float]) -> np.ndarray:
             v = node.get(key, default)
             if (
                 not isinstance(v, list)
@@ -709,7 +711,9 @@ def _select(
 
 
 @guarded_reader
-def read_gltf_mesh(path: Path, *, mesh=None, merge=None, **options) -> Mesh:
+def read_gltf_mesh(
+    path: Path, *, mesh: int | str | None = None, merge: bool | None = None, **options: Any
+) -> Mesh:
     """The mesh a glTF scene shows, in scene space (node transforms applied), primitives
     joined, morph targets ignored.
 
@@ -760,7 +764,7 @@ def _rig_from(doc: _Doc, index: int, world: np.ndarray | None = None) -> Blendsh
 
 
 @guarded_reader
-def read_gltf_rig(path: Path, *, mesh=None, **options) -> BlendshapeRig:
+def read_gltf_rig(path: Path, *, mesh: int | str | None = None, **options: Any) -> BlendshapeRig:
     """A :class:`BlendshapeRig` from the morph targets of a glTF mesh (names from
     ``extras.targetNames``), in scene space (its node's world transform applied; deltas
     by its linear part). ``mesh=`` (mesh index, mesh name or node name) picks one; by
@@ -846,7 +850,7 @@ def _matrix_to_quat(rot: np.ndarray) -> np.ndarray:
 
 
 class _Channel:
-    def __init__(self, times, values, interpolation):
+    def __init__(self, times: np.ndarray, values: np.ndarray, interpolation: str) -> None:
         self.times, self.values, self.interpolation = times, values, interpolation
 
 
@@ -912,7 +916,7 @@ def _tree(doc: _Doc, info: dict, key: str) -> dict:
     if not isinstance(specs, list):
         raise doc.fail(f"asset.extras.{_EXTRAS_KEY}.{key}_arrays must be a list")
 
-    def fetch(i):
+    def fetch(i: int) -> np.ndarray:
         if not 0 <= i < len(specs):
             raise doc.fail(
                 f"asset.extras.{_EXTRAS_KEY}.{key} refers to array {i} but {len(specs)} are stored"
@@ -926,7 +930,7 @@ def _tree(doc: _Doc, info: dict, key: str) -> dict:
 MAX_FPS = 1e6
 
 
-def _checked_fps(doc: _Doc, fps, what: str) -> float:
+def _checked_fps(doc: _Doc, fps: object, what: str) -> float:
     """A frame rate from the file (or ``fps=``): a finite number in (0, MAX_FPS]."""
     if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)):
         raise doc.fail(f"{what} {fps!r:.40} is not a number")
@@ -938,7 +942,9 @@ def _checked_fps(doc: _Doc, fps, what: str) -> float:
     return value
 
 
-def _animation_from(doc: _Doc, mesh_option, fps_option) -> Animation:
+def _animation_from(
+    doc: _Doc, mesh_option: int | str | None, fps_option: float | None
+) -> Animation:
     info = doc.ours()
     exact = info.get("arrays", {}) if isinstance(info.get("arrays"), dict) else {}
     provenance, extras = (_tree(doc, info, key) for key in ("provenance", "extras"))
@@ -1082,13 +1088,17 @@ def _animated_rig(
 
 
 @guarded_reader
-def read_gltf_animation(path: Path, *, mesh=None, fps=None, **options) -> Animation:
+def read_gltf_animation(
+    path: Path, *, mesh: int | str | None = None, fps: float | None = None, **options: Any
+) -> Animation:
     """An :class:`Animation`: morph-target weights over the rig, or per-frame meshes we wrote."""
     return _animation_from(_load(path), mesh, fps)
 
 
 @guarded_reader
-def read_gltf_sequence(path: Path, *, mesh=None, fps=None, **options) -> MeshSequence:
+def read_gltf_sequence(
+    path: Path, *, mesh: int | str | None = None, fps: float | None = None, **options: Any
+) -> MeshSequence:
     """The animation of a glTF file as a :class:`MeshSequence` (world vertices per frame)."""
     anim = _animation_from(_load(path), mesh, fps)
     if anim.is_blendshape_based:  # the per-frame vertices are computed here: size them first
@@ -1098,7 +1108,12 @@ def read_gltf_sequence(path: Path, *, mesh=None, fps=None, **options) -> MeshSeq
             float(anim.n_frames) * anim.rig.neutral.n_vertices * 3 * 8.0 * 2,
             f"{anim.n_frames} frames of {anim.rig.neutral.n_vertices} vertices",
         )
-    return MeshSequence(anim.vertices, anim.triangles, fps=anim.fps, name=path.stem)
+    return MeshSequence(  # triangles None: MeshSequence rejects it with its own error
+        anim.vertices,
+        anim.triangles,  # type: ignore[arg-type]
+        fps=anim.fps,
+        name=path.stem,
+    )
 
 
 # =======================================================================================
@@ -1107,7 +1122,7 @@ def read_gltf_sequence(path: Path, *, mesh=None, fps=None, **options) -> MeshSeq
 class _Builder:
     """Accumulates the binary buffer, buffer views and accessors of one glTF document."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.blob = bytearray()
         self.views: list[dict] = []
         self.accessors: list[dict] = []
@@ -1220,7 +1235,9 @@ def _head_channels(
         channels.append({"sampler": len(samplers) - 1, "target": {"node": node, "path": path}})
 
 
-def glb_document(obj, *, name: str = "faceretarget") -> tuple[dict, bytes]:
+def glb_document(
+    obj: Mesh | BlendshapeRig | MeshSequence | Animation, *, name: str = "faceretarget"
+) -> tuple[dict, bytes]:
     """The glTF JSON and binary buffer for a Mesh, BlendshapeRig, MeshSequence or Animation."""
     from .._version import __version__
 
@@ -1362,7 +1379,7 @@ def glb_bytes(doc: dict, blob: bytes) -> bytes:
     return b"".join(out)
 
 
-def final_stem(path) -> str:
+def final_stem(path: PathLike) -> str:
     """The stem of the file ``path`` will become: a writer handed an atomic temporary
     (``.NAME.PID.TOKEN.frtmp.glb``, or the batch runner's former ``.NAME.frbatch-...``)
     names its nodes and meshes after ``NAME``, never after the temporary."""
@@ -1374,7 +1391,13 @@ def final_stem(path) -> str:
 
 
 def write_gltf(
-    obj, path, *, force: bool = False, inputs=(), name: str | None = None, **options
+    obj: Mesh | BlendshapeRig | MeshSequence | Animation,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    name: str | None = None,
+    **options: Any,
 ) -> None:
     """Write ``obj`` as ``.glb`` (binary) or ``.gltf`` (JSON with an embedded buffer), atomically."""
     p = Path(path)

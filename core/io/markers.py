@@ -17,11 +17,14 @@ import io
 import re
 import struct
 import warnings
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
+import numpy.typing as npt
 
+from .._types import PathLike
 from ..errors import FaceRetargetWarning, InputError
 from ..model import MarkerSequence
 from ._atomic import atomic_file, write_bytes
@@ -62,7 +65,7 @@ META_COLUMNS = ("frame", "frame#", "time", "timestamp", "timecode", "blendshapec
 _MISSING = ("", "nan", "-nan", "na", "null")
 
 
-def _reference(path, positions: np.ndarray, names) -> np.ndarray:
+def _reference(path: PathLike, positions: np.ndarray, names: list[str]) -> np.ndarray:
     """Frame 0, with each missing marker filled by its first observed sample."""
     ref = np.array(positions[0])
     missing = np.isnan(ref[:, 0])
@@ -76,7 +79,13 @@ def _reference(path, positions: np.ndarray, names) -> np.ndarray:
     return ref
 
 
-def _markers(path, positions: np.ndarray, names, fps: float, reference=None) -> MarkerSequence:
+def _markers(
+    path: PathLike,
+    positions: np.ndarray,
+    names: list[str],
+    fps: float,
+    reference: npt.ArrayLike | None = None,
+) -> MarkerSequence:
     if positions.shape[0] == 0:
         raise bad(path, "holds no frames")
     if reference is None:
@@ -84,7 +93,7 @@ def _markers(path, positions: np.ndarray, names, fps: float, reference=None) -> 
     return MarkerSequence(positions, names=names, fps=fps, reference=reference)
 
 
-def _cell(text: str, path, row: int, column: str) -> float:
+def _cell(text: str, path: PathLike, row: int, column: str) -> float:
     t = text.strip()
     if t.lower() in _MISSING:
         return np.nan
@@ -101,7 +110,7 @@ def _delimiter(first_line: str) -> str:
     return max(",;\t", key=first_line.count)
 
 
-def _raw_lines(path: Path, fh):
+def _raw_lines(path: Path, fh: IO[bytes]) -> Iterator[bytes]:
     """The file's lines as bytes (line ends kept), a chunk at a time; NUL bytes refused."""
     for chunk in iter_chunks(fh, CHUNK_BYTES):
         if b"\x00" in chunk:
@@ -109,7 +118,7 @@ def _raw_lines(path: Path, fh):
         yield from chunk.splitlines(keepends=True)
 
 
-def _header_of(path: Path, fh) -> tuple[list[str], str, int]:
+def _header_of(path: Path, fh: IO[bytes]) -> tuple[list[str], str, int]:
     """(header cells, delimiter, byte offset of the data) from the first non-blank line."""
     offset = 0
     for line in _raw_lines(path, fh):
@@ -183,13 +192,13 @@ def _fast_block(lines: list[bytes], delimiter: bytes, width: int) -> np.ndarray 
 
 
 def _slow_block(
-    path,
+    path: PathLike,
     lines: list[bytes],
     delimiter: str,
     header: list[str],
     row0: int,
     text_cols: tuple[int, ...],
-):
+) -> tuple[np.ndarray, dict[int, list[str]]]:
     """The row-by-row parser of :func:`csv_table` for one chunk; errors name the row and column."""
     block = np.empty((len(lines), len(header)))
     texts: dict[int, list[str]] = {c: [] for c in text_cols}
@@ -211,7 +220,12 @@ def _slow_block(
     return block, texts
 
 
-def csv_table(path: Path, pick, *, text_cols=lambda header: ()):
+def csv_table(
+    path: Path,
+    pick: Callable[[list[str]], Iterable[int]],
+    *,
+    text_cols: Callable[[list[str]], Iterable[int]] = lambda header: (),
+) -> tuple[list[str], np.ndarray, dict[int, list[str]]]:
     """Stream a CSV file into arrays: ``(header, numeric, texts)``.
 
     ``pick(header)`` returns the column ids wanted as numbers; ``numeric`` is their
@@ -302,11 +316,13 @@ def csv_kind(path: Path) -> str | None:
 
 
 @guarded_reader
-def read_marker_csv(path: Path, *, fps=None, reference=None, **options) -> MarkerSequence:
+def read_marker_csv(
+    path: Path, *, fps: float | None = None, reference: npt.ArrayLike | None = None, **options: Any
+) -> MarkerSequence:
     """Markers from a CSV with ``NAME_x, NAME_y, NAME_z`` columns (empty cell = missing)."""
     found: dict[str, Any] = {}
 
-    def pick(header):
+    def pick(header: list[str]) -> list[int]:
         cols = _marker_columns(header)
         if cols is None:
             raise bad(
@@ -348,7 +364,7 @@ def read_marker_csv(path: Path, *, fps=None, reference=None, **options) -> Marke
     return _markers(path, positions, names, fps, reference)
 
 
-def _final_name(path) -> str:
+def _final_name(path: PathLike) -> str:
     """The name ``path`` will have once written: a writer handed an atomic temporary
     (``.NAME.PID.TOKEN.frtmp.EXT``) records ``NAME``, never the temporary's name."""
     from ._atomic import temp_owner
@@ -357,7 +373,7 @@ def _final_name(path) -> str:
     return owner[0] if owner is not None else Path(path).name
 
 
-def _check_names(names, what: str, forbidden: str) -> None:
+def _check_names(names: Iterable[str], what: str, forbidden: str) -> None:
     for n in names:
         if any(ch in n for ch in forbidden):
             raise InputError(
@@ -366,7 +382,12 @@ def _check_names(names, what: str, forbidden: str) -> None:
 
 
 def write_marker_csv(
-    markers: MarkerSequence, path, *, force: bool = False, inputs=(), **options
+    markers: MarkerSequence,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    **options: Any,
 ) -> None:
     """Write markers as CSV: ``frame, time, NAME_x, NAME_y[, NAME_z]`` (empty cell = missing)."""
     if not isinstance(markers, MarkerSequence):
@@ -389,7 +410,9 @@ def write_marker_csv(
 # TRC (OpenSim / Motion Analysis, tab separated)
 # ---------------------------------------------------------------------------------------
 @guarded_reader
-def read_trc(path: Path, *, fps=None, reference=None, **options) -> MarkerSequence:
+def read_trc(
+    path: Path, *, fps: float | None = None, reference: npt.ArrayLike | None = None, **options: Any
+) -> MarkerSequence:
     """Markers from a TRC file (``DataRate`` gives the fps; empty cells are missing samples)."""
     with open_regular(path) as fh:
         header: list[str] = []
@@ -468,7 +491,13 @@ def read_trc(path: Path, *, fps=None, reference=None, **options) -> MarkerSequen
 
 
 def write_trc(
-    markers: MarkerSequence, path, *, force: bool = False, inputs=(), units: str = "mm", **options
+    markers: MarkerSequence,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    units: str = "mm",
+    **options: Any,
 ) -> None:
     """Write 3D markers as a tab-separated TRC file (exact decimals; empty cell = missing)."""
     if not isinstance(markers, MarkerSequence):
@@ -499,7 +528,7 @@ def write_trc(
 C3D_KEY = 0x50
 
 
-def _c3d_param_frames(reader) -> int | None:
+def _c3d_param_frames(reader: Any) -> int | None:
     """POINT:FRAMES (a 16-bit unsigned word, or a float in some writers), or None."""
     param = reader.get("POINT:FRAMES")
     if param is None:
@@ -541,7 +570,7 @@ def _not_c3d(path: Path, head: bytes) -> str | None:
 
 @guarded_reader
 def _read_c3d(
-    path: Path, *, fps=None, reference=None, **options
+    path: Path, *, fps: float | None = None, reference: npt.ArrayLike | None = None, **options: Any
 ) -> tuple[MarkerSequence, list[str]]:
     import c3d
 
@@ -624,7 +653,13 @@ def _read_c3d(
     return _markers(path, positions, labels, fps if fps is not None else rate, reference), notes
 
 
-def read_c3d(path, *, fps=None, reference=None, **options) -> MarkerSequence:
+def read_c3d(
+    path: PathLike,
+    *,
+    fps: float | None = None,
+    reference: npt.ArrayLike | None = None,
+    **options: Any,
+) -> MarkerSequence:
     """Markers from a C3D file (``c3d`` package); a negative residual marks a missing sample.
 
     The frame count is read the way ezc3d reads it: ``POINT:FRAMES`` (or, for long takes,
@@ -640,7 +675,14 @@ def read_c3d(path, *, fps=None, reference=None, **options) -> MarkerSequence:
     return markers
 
 
-def write_c3d(markers: MarkerSequence, path, *, force: bool = False, inputs=(), **options) -> None:
+def write_c3d(
+    markers: MarkerSequence,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    **options: Any,
+) -> None:
     """Write 3D markers as C3D (float32 points; missing samples get residual -1)."""
     import c3d
 

@@ -16,11 +16,13 @@ from __future__ import annotations
 import os
 import re
 import struct
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
+from .._types import PathLike
 from ..model import Mesh
 from ._atomic import write_bytes
 from ._common import (
@@ -120,7 +122,7 @@ def _clean_polygon(poly: list[int]) -> list[int]:
 _KEY_LIMIT = 1 << 21
 
 
-def _mesh(path, vertices: np.ndarray, triangles: np.ndarray) -> Mesh:
+def _mesh(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> Mesh:
     """The :class:`Mesh` of arrays a reader has checked (ids in range, no corner repeated
     within a triangle). The model's duplicate-triangle check sorts a copy of every id
     (about 6x the triangles at its peak); here each sorted triangle is packed into one
@@ -242,13 +244,15 @@ def _polygons_to_triangles(ids: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     return np.stack([ids[base], ids[base + k + 1], ids[base + k + 2]], axis=1)
 
 
-def obj_arrays(text: str, path) -> tuple[np.ndarray, np.ndarray]:
+def obj_arrays(text: str, path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Vertices ``(V, 3)`` and fan-triangulated triangles ``(T, 3)`` of OBJ ``text``."""
     vertices, triangles, n_faces = _obj_chunk(text, path, 0, 0)
     return _obj_checked(path, vertices, triangles, n_faces)
 
 
-def _obj_chunk(text: str, path, line0: int, v0: int) -> tuple[np.ndarray, np.ndarray, int]:
+def _obj_chunk(
+    text: str, path: PathLike, line0: int, v0: int
+) -> tuple[np.ndarray, np.ndarray, int]:
     """(vertices, triangles with file-wide 0-based ids, polygon count) of whole OBJ lines
     that follow ``line0`` lines and ``v0`` vertices of the file."""
     if "\\\n" in text:
@@ -266,7 +270,7 @@ def _obj_chunk(text: str, path, line0: int, v0: int) -> tuple[np.ndarray, np.nda
 
 
 def _checked_arrays(
-    path, vertices: np.ndarray, triangles: np.ndarray, n_faces: int
+    path: PathLike, vertices: np.ndarray, triangles: np.ndarray, n_faces: int
 ) -> tuple[np.ndarray, np.ndarray]:
     n_vertices = vertices.shape[0]
     if n_vertices == 0:
@@ -285,7 +289,7 @@ def _checked_arrays(
     return vertices, triangles
 
 
-def parse_obj(text: str, path) -> tuple[np.ndarray, list[list[int]]]:
+def parse_obj(text: str, path: PathLike) -> tuple[np.ndarray, list[list[int]]]:
     """Vertices ``(V, 3)`` and polygons (0-based) of OBJ ``text``, line by line; errors name the line."""
     vertices, polygons = _parse_obj_lines(text, path, 0, 0)
     for poly_id, poly in enumerate(polygons):
@@ -297,7 +301,9 @@ def parse_obj(text: str, path) -> tuple[np.ndarray, list[list[int]]]:
     return vertices, polygons
 
 
-def _parse_obj_lines(text: str, path, line0: int, v0: int) -> tuple[np.ndarray, list[list[int]]]:
+def _parse_obj_lines(
+    text: str, path: PathLike, line0: int, v0: int
+) -> tuple[np.ndarray, list[list[int]]]:
     """:func:`parse_obj` of lines that follow ``line0`` lines and ``v0`` vertices (no
     check of indices against the vertex count: later lines may add vertices)."""
     if "\\\n" in text:
@@ -387,7 +393,7 @@ def _decode(chunk: bytes, first: bool) -> str:
         return chunk.decode("latin-1")
 
 
-def _obj_chunks(fh):
+def _obj_chunks(fh: IO[bytes]) -> Iterator[bytes]:
     """Whole-line chunks of an OBJ file (a line continued with a backslash stays whole)."""
     pending = b""
     for chunk in iter_chunks(fh, CHUNK_BYTES):
@@ -447,7 +453,7 @@ def _obj_file_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _obj_checked(
-    path, vertices: np.ndarray, triangles: np.ndarray, n_faces: int
+    path: PathLike, vertices: np.ndarray, triangles: np.ndarray, n_faces: int
 ) -> tuple[np.ndarray, np.ndarray]:
     if triangles.size and vertices.shape[0] and triangles.max() >= vertices.shape[0]:
         raise bad(
@@ -458,7 +464,7 @@ def _obj_checked(
 
 
 @guarded_reader
-def read_obj(path: Path, **options) -> Mesh:
+def read_obj(path: Path, **options: Any) -> Mesh:
     """Read a Wavefront OBJ as a :class:`Mesh` (file vertex order, n-gons fan-triangulated)."""
     return _mesh(path, *_obj_file_arrays(path))
 
@@ -476,7 +482,7 @@ def obj_text(vertices: np.ndarray, triangles: np.ndarray, header: str = "") -> s
     return "\n".join(lines) + "\n"
 
 
-def _as_mesh(obj, what: str) -> Mesh:
+def _as_mesh(obj: object, what: str) -> Mesh:
     from ..errors import InputError
 
     if isinstance(obj, Mesh):
@@ -484,7 +490,9 @@ def _as_mesh(obj, what: str) -> Mesh:
     raise InputError(f"{what} writes a Mesh, got {type(obj).__name__}")
 
 
-def write_obj(mesh: Mesh, path, *, force: bool = False, inputs=(), **options) -> None:
+def write_obj(
+    mesh: Mesh, path: PathLike, *, force: bool = False, inputs: Iterable = (), **options: Any
+) -> None:
     """Write a :class:`Mesh` as OBJ (atomic)."""
     mesh = _as_mesh(mesh, "the OBJ writer")
     from .._version import __version__
@@ -501,7 +509,7 @@ def write_obj(mesh: Mesh, path, *, force: bool = False, inputs=(), **options) ->
 # OFF
 # ---------------------------------------------------------------------------------------
 @guarded_reader
-def read_off(path: Path, **options) -> Mesh:
+def read_off(path: Path, **options: Any) -> Mesh:
     """Read an OFF file (also COFF/NOFF variants: extra per-vertex values are ignored)."""
     return _mesh(path, *_off_arrays(path))
 
@@ -560,7 +568,7 @@ def _text(token: bytes) -> str:
 
 
 def _rows_slow(
-    path, rows: list[bytes], row0: int, width: int, what: str, values: str
+    path: PathLike, rows: list[bytes], row0: int, width: int, what: str, values: str
 ) -> np.ndarray:
     """``rows`` parsed one by one (the fast path refused them): errors name the row."""
     out = np.empty((len(rows), width))
@@ -575,7 +583,7 @@ def _rows_slow(
     return out
 
 
-def _off_face(path, i: int, row: bytes) -> list[int]:
+def _off_face(path: PathLike, i: int, row: bytes) -> list[int]:
     tokens = row.split()
     k = parse_int(_text(tokens[0]), path, f"face {i}: vertex count")
     if k < 3 or len(tokens) < k + 1:
@@ -587,7 +595,11 @@ def _off_face(path, i: int, row: bytes) -> list[int]:
 
 
 def _face_rows(
-    path, rows: TextRows, n_faces: int, slow, fast: bool = True
+    path: PathLike,
+    rows: TextRows,
+    n_faces: int,
+    slow: Callable[[int, bytes], list[int]],
+    fast: bool = True,
 ) -> tuple[np.ndarray, int]:
     """Triangles of ``n_faces`` face rows, streamed: rows ``3 i0 i1 i2`` are parsed in C
     into the result (when ``fast``), others by ``slow(face id, row)`` (which returns the
@@ -634,7 +646,9 @@ def _face_rows(
     return triangles[:it], done
 
 
-def write_off(mesh: Mesh, path, *, force: bool = False, inputs=(), **options) -> None:
+def write_off(
+    mesh: Mesh, path: PathLike, *, force: bool = False, inputs: Iterable = (), **options: Any
+) -> None:
     """Write a :class:`Mesh` as OFF text with exact coordinates (atomic)."""
     mesh = _as_mesh(mesh, "the OFF writer")
     lines = ["OFF", f"{mesh.n_vertices} {mesh.n_triangles} 0"]
@@ -666,7 +680,7 @@ _PLY_TYPES = {
 }
 
 
-def _ply_header(data: bytes, path) -> tuple[str, list[dict], int]:
+def _ply_header(data: bytes, path: PathLike) -> tuple[str, list[dict], int]:
     if not data.startswith(b"ply"):
         raise bad(path, "missing the 'ply' magic line; not a PLY file")
     end = data.find(b"end_header")
@@ -719,7 +733,9 @@ def _ply_header(data: bytes, path) -> tuple[str, list[dict], int]:
     return fmt, elements, body_start
 
 
-def _ply_binary(data: bytes, pos: int, elements: list[dict], order: str, path) -> dict[str, dict]:
+def _ply_binary(
+    data: bytes, pos: int, elements: list[dict], order: str, path: PathLike
+) -> dict[str, dict]:
     out: dict[str, dict] = {}
     for el in elements:
         props, count = el["props"], el["count"]
@@ -782,7 +798,7 @@ def _ply_binary(data: bytes, pos: int, elements: list[dict], order: str, path) -
     return out
 
 
-def _ply_row(path, el: dict, row_id: int, row: bytes) -> dict:
+def _ply_row(path: PathLike, el: dict, row_id: int, row: bytes) -> dict:
     """One ASCII PLY row of element ``el``: property name -> token (or list of tokens)."""
     tokens = row.split()
     pos = 0
@@ -808,7 +824,7 @@ def _ply_row(path, el: dict, row_id: int, row: bytes) -> dict:
 
 
 def _ply_ascii(
-    path, rows: TextRows, elements: list[dict], el_v: dict, el_f: dict, fprop: str
+    path: PathLike, rows: TextRows, elements: list[dict], el_v: dict, el_f: dict, fprop: str
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """(vertices, triangles, faces) of an ASCII PLY body, streamed chunk by chunk."""
     vertices: np.ndarray | None = None
@@ -818,7 +834,7 @@ def _ply_ascii(
         count = el["count"]
         if el is el_f:
 
-            def face(i, row, el=el):
+            def face(i: int, row: bytes, el: dict = el) -> list[int]:
                 values = _ply_row(path, el, i, row)[fprop]
                 try:
                     poly = [int(t) for t in values]
@@ -875,7 +891,7 @@ def _ply_ascii(
     return vertices, triangles, n_faces
 
 
-def _ply_head(path, fh) -> bytes:
+def _ply_head(path: PathLike, fh: IO[bytes]) -> bytes:
     """The bytes of a PLY file up to and including the line ending its header."""
     head = b""
     while True:
@@ -889,7 +905,7 @@ def _ply_head(path, fh) -> bytes:
 
 
 @guarded_reader
-def read_ply(path: Path, **options) -> Mesh:
+def read_ply(path: Path, **options: Any) -> Mesh:
     """Read a PLY file (ASCII or binary, any endianness) as a :class:`Mesh`."""
     return _mesh(path, *_ply_arrays(path))
 
@@ -927,7 +943,7 @@ def _ply_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return _ply_faces(path, vertices, parsed["face"][fprop])
 
 
-def _ply_layout(path, elements: list[dict]) -> tuple[dict, dict, str]:
+def _ply_layout(path: PathLike, elements: list[dict]) -> tuple[dict, dict, str]:
     names = [e["name"] for e in elements]
     if "vertex" not in names or "face" not in names:
         raise bad(path, f"needs 'vertex' and 'face' elements, has {names}")
@@ -954,7 +970,9 @@ def _ply_layout(path, elements: list[dict]) -> tuple[dict, dict, str]:
     return el_v, el_f, fprop
 
 
-def _ply_faces(path, vertices: np.ndarray, faces) -> tuple[np.ndarray, np.ndarray]:
+def _ply_faces(
+    path: PathLike, vertices: np.ndarray, faces: np.ndarray | Sequence[Sequence[int]]
+) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(faces, np.ndarray) and faces.ndim == 2 and faces.shape[1] == 3:
         tris = faces.astype(np.int64)  # triangles: checked as arrays, never as Python lists
         repeated = (
@@ -1005,7 +1023,9 @@ def ply_bytes(vertices: np.ndarray, triangles: np.ndarray) -> bytes:
     return header + np.ascontiguousarray(vertices, dtype="<f8").tobytes() + faces.tobytes()
 
 
-def write_ply(mesh: Mesh, path, *, force: bool = False, inputs=(), **options) -> None:
+def write_ply(
+    mesh: Mesh, path: PathLike, *, force: bool = False, inputs: Iterable = (), **options: Any
+) -> None:
     """Write a :class:`Mesh` as binary little-endian PLY with float64 coordinates (atomic)."""
     mesh = _as_mesh(mesh, "the PLY writer")
     write_bytes(path, ply_bytes(mesh.vertices, mesh.triangles), inputs=inputs, force=force)
@@ -1030,7 +1050,7 @@ def _weld(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @guarded_reader
-def read_stl(path: Path, **options) -> Mesh:
+def read_stl(path: Path, **options: Any) -> Mesh:
     """Read a binary or ASCII STL as a :class:`Mesh` (identical corners joined, first-use order)."""
     return _mesh(path, *_stl_arrays(path))
 
@@ -1133,7 +1153,7 @@ _ARRAY_READERS = {
 
 
 @guarded_reader
-def mesh_arrays(path: Path, **options) -> tuple[np.ndarray, np.ndarray]:
+def mesh_arrays(path: Path, **options: Any) -> tuple[np.ndarray, np.ndarray]:
     """(vertices, triangles) of an OBJ/PLY/OFF/STL file without building a Mesh.
 
     For reading many frames of one topology: the caller validates the first frame as a
@@ -1157,7 +1177,9 @@ def stl_bytes(vertices: np.ndarray, triangles: np.ndarray) -> bytes:
     return header + struct.pack("<I", len(triangles)) + records.tobytes()
 
 
-def write_stl(mesh: Mesh, path, *, force: bool = False, inputs=(), **options) -> None:
+def write_stl(
+    mesh: Mesh, path: PathLike, *, force: bool = False, inputs: Iterable = (), **options: Any
+) -> None:
     """Write a :class:`Mesh` as binary STL (float32, atomic)."""
     mesh = _as_mesh(mesh, "the STL writer")
     write_bytes(path, stl_bytes(mesh.vertices, mesh.triangles), inputs=inputs, force=force)

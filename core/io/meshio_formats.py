@@ -30,13 +30,23 @@ import io
 import shutil
 import tempfile
 import warnings
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
+from .._types import PathLike
 from ..errors import FaceRetargetError, FaceRetargetWarning, FileFormatError
 from ..hookspecs import Reader, Writer
+
+if TYPE_CHECKING:
+    import meshio
+
+    from ..model import Mesh
 
 __all__ = [
     "MeshioFormat",
@@ -174,8 +184,8 @@ def writer_record(fmt: MeshioFormat) -> Writer:
     )
 
 
-def _reader(fmt: MeshioFormat):
-    def read(path, **options):
+def _reader(fmt: MeshioFormat) -> Callable[..., Mesh]:
+    def read(path: PathLike, **options: Any) -> Mesh:
         return read_mesh(path, fmt)
 
     read.__name__ = f"read_{fmt.name}"
@@ -183,8 +193,10 @@ def _reader(fmt: MeshioFormat):
     return read
 
 
-def _writer(fmt: MeshioFormat):
-    def write(mesh, path, *, force: bool = False, inputs=(), **options):
+def _writer(fmt: MeshioFormat) -> Callable[..., None]:
+    def write(
+        mesh: Mesh, path: PathLike, *, force: bool = False, inputs: Iterable = (), **options: Any
+    ) -> None:
         write_mesh(mesh, path, fmt, force=force, inputs=inputs)
 
     write.__name__ = f"write_{fmt.name}"
@@ -195,7 +207,7 @@ def _writer(fmt: MeshioFormat):
 # ---------------------------------------------------------------------------------------
 # meshio, imported on first use
 # ---------------------------------------------------------------------------------------
-def _meshio_module(fmt: MeshioFormat):
+def _meshio_module(fmt: MeshioFormat) -> ModuleType:
     """``meshio.<fmt.module>`` (importing meshio on first use; module names come from :data:`FORMATS`)."""
     try:
         import meshio
@@ -208,7 +220,7 @@ def _meshio_module(fmt: MeshioFormat):
 
 
 @contextlib.contextmanager
-def _quiet():
+def _quiet() -> Iterator[io.StringIO]:
     """Silence what meshio prints (it reports problems on stdout/stderr) and warns."""
     sink = io.StringIO()
     with (
@@ -223,7 +235,7 @@ def _quiet():
 # ---------------------------------------------------------------------------------------
 # reading
 # ---------------------------------------------------------------------------------------
-def read_mesh(path, fmt: MeshioFormat):
+def read_mesh(path: PathLike, fmt: MeshioFormat) -> Mesh:
     """A :class:`~faceretarget.model.Mesh` from a meshio-format file.
 
     Vertices ``(V, 3)`` are the file's points in order (2D points get ``z = 0``);
@@ -240,13 +252,13 @@ def read_mesh(path, fmt: MeshioFormat):
     return mesh
 
 
-def _read_guarded(path: Path, *, fmt: MeshioFormat):
+def _read_guarded(path: Path, *, fmt: MeshioFormat) -> tuple[Mesh, str]:
     from ._common import guarded_reader
 
     return guarded_reader(_read_checked)(path, fmt=fmt)
 
 
-def _read_checked(path: Path, *, fmt: MeshioFormat):
+def _read_checked(path: Path, *, fmt: MeshioFormat) -> tuple[Mesh, str]:
     """``(Mesh, description of skipped cells or "")``; every failure a typed error."""
     from ._common import check_budget
     from .meshes import _checked_arrays, _mesh
@@ -261,7 +273,7 @@ def _read_checked(path: Path, *, fmt: MeshioFormat):
     return _mesh(path, vertices, triangles), skipped
 
 
-def _meshio_read(path: Path, fmt: MeshioFormat):
+def _meshio_read(path: Path, fmt: MeshioFormat) -> meshio.Mesh:
     """meshio's ``Mesh`` of ``path`` (meshio's own read() would ``sys.exit`` on a bad file)."""
     module = _meshio_module(fmt)
     from meshio import ReadError
@@ -296,7 +308,7 @@ def _read_error(path: Path, fmt: MeshioFormat, detail: str) -> FileFormatError:
     return FileFormatError(f"{path}: not a readable {fmt.name} file (meshio: {first}){looks}")
 
 
-def _vertices(path: Path, points) -> np.ndarray:
+def _vertices(path: Path, points: npt.ArrayLike) -> np.ndarray:
     """``(V, 3)`` float64 vertices of meshio's ``(V, 2)`` or ``(V, 3)`` points."""
     from ._common import bad
 
@@ -311,7 +323,7 @@ def _vertices(path: Path, points) -> np.ndarray:
     return pts
 
 
-def surface_triangles(cells) -> tuple[np.ndarray, int, str]:
+def surface_triangles(cells: Iterable[meshio.CellBlock]) -> tuple[np.ndarray, int, str]:
     """Triangles ``(T, 3)`` of meshio cell blocks, the number of faces they came from,
     and a description of the blocks skipped (``"12 tetra, 4 line cells"`` or ``""``).
 
@@ -340,7 +352,7 @@ def _cell_summary(counts: dict[str, int]) -> str:
     return ", ".join(f"{n} {kind}" for kind, n in counts.items()) + (" cells" if counts else "")
 
 
-def _no_surface_error(path: Path, fmt: MeshioFormat, data) -> FileFormatError:
+def _no_surface_error(path: Path, fmt: MeshioFormat, data: meshio.Mesh) -> FileFormatError:
     """The error for a file with no triangle, quad or polygon cells: what it holds and what to do."""
     counts: dict[str, int] = {}
     for block in data.cells:
@@ -354,7 +366,9 @@ def _no_surface_error(path: Path, fmt: MeshioFormat, data) -> FileFormatError:
 # ---------------------------------------------------------------------------------------
 # writing
 # ---------------------------------------------------------------------------------------
-def write_mesh(mesh, path, fmt: MeshioFormat, *, force: bool = False, inputs=()) -> None:
+def write_mesh(
+    mesh: Mesh, path: PathLike, fmt: MeshioFormat, *, force: bool = False, inputs: Iterable = ()
+) -> None:
     """Write a :class:`~faceretarget.model.Mesh` ``(V, 3)`` / ``(T, 3)`` as one triangle
     cell block, atomically (never over an input, nor over a file without ``force``)."""
     from ._atomic import atomic_file
@@ -383,7 +397,9 @@ def write_mesh(mesh, path, fmt: MeshioFormat, *, force: bool = False, inputs=())
             shutil.copyfileobj(src, fh)
 
 
-def _meshio_write(module, made: Path, data, fmt: MeshioFormat, dest: Path) -> None:
+def _meshio_write(
+    module: ModuleType, made: Path, data: meshio.Mesh, fmt: MeshioFormat, dest: Path
+) -> None:
     """meshio's writer into scratch file ``made``; its failures become an OutputError."""
     from ..errors import OutputError
 

@@ -12,10 +12,13 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from .._types import PathLike
 from ..errors import InputError
 from ..model import BlendshapeRig, Mesh
 from ._atomic import atomic_dir, write_file_synced
@@ -46,7 +49,7 @@ def folder_kind(path: Path) -> str:
     )
 
 
-def _neutral_file(path: Path, files: list[Path], neutral) -> Path:
+def _neutral_file(path: Path, files: list[Path], neutral: str | None) -> Path:
     if neutral is not None:
         for f in files:
             if neutral in (f.name, f.stem):
@@ -66,7 +69,7 @@ def _neutral_file(path: Path, files: list[Path], neutral) -> Path:
 
 
 @guarded_reader
-def read_rig_folder(path: Path, *, neutral=None, **options) -> BlendshapeRig:
+def read_rig_folder(path: Path, *, neutral: str | None = None, **options: Any) -> BlendshapeRig:
     """A :class:`BlendshapeRig` from a folder holding a neutral mesh and one mesh per shape."""
     if not path.is_dir():
         raise bad(path, "expected a folder with a neutral mesh and one mesh per blendshape")
@@ -155,7 +158,14 @@ def _file_names(names: tuple[str, ...]) -> list[str]:
     return out
 
 
-def write_rig_folder(rig, path, *, force: bool = False, inputs=(), **options) -> None:
+def write_rig_folder(
+    rig: BlendshapeRig,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    **options: Any,
+) -> None:
     """Write ``neutral.obj``, one OBJ per shape and ``rig.json`` into folder ``path`` (atomic)."""
     if not isinstance(rig, BlendshapeRig):
         raise InputError(f"the rig-folder writer takes a BlendshapeRig, got {type(rig).__name__}")

@@ -20,10 +20,14 @@ from __future__ import annotations
 import json
 import struct
 from collections import Counter
+from collections.abc import Iterable
 from pathlib import Path
+from typing import IO, Any, TypeAlias
 
 import numpy as np
+import numpy.typing as npt
 
+from .._types import PathLike
 from ..errors import FileFormatError, InputError
 from ..model import Animation, Mesh, MeshSequence
 from ._atomic import atomic_dir, atomic_file, write_file_synced
@@ -40,6 +44,10 @@ from ._common import (
     to_float32,
 )
 from .meshes import obj_text
+
+#: The triangles of a points-only file: a Mesh, a mesh file, ``(T, 3)`` triangles, or None
+#: (a same-stem mesh beside the file).
+Topology: TypeAlias = "Mesh | PathLike | npt.ArrayLike | None"
 
 __all__ = [
     "read_mesh_folder",
@@ -93,7 +101,7 @@ def frame_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
 POINTS_ONLY = (".npy", ".npz", ".pc2", ".mdd")
 
 
-def sibling_topology(path) -> Path | None:
+def sibling_topology(path: PathLike) -> Path | None:
     """The same-stem mesh file beside points-only ``path`` that its reader takes the
     triangles from when no ``topology=`` is given (an input read indirectly), or None."""
     path = Path(path)
@@ -104,7 +112,7 @@ def sibling_topology(path) -> Path | None:
     return None
 
 
-def resolve_topology(path: Path, topology, n_vertices: int) -> Mesh | np.ndarray:
+def resolve_topology(path: Path, topology: Topology, n_vertices: int) -> Mesh | np.ndarray:
     """The triangles for a points-only file: ``topology`` or a same-stem mesh beside ``path``."""
     if topology is None:
         topology = sibling_topology(path)
@@ -130,7 +138,7 @@ def resolve_topology(path: Path, topology, n_vertices: int) -> Mesh | np.ndarray
     return tris
 
 
-def _sequence(path: Path, vertices: np.ndarray, topology, fps: float) -> MeshSequence:
+def _sequence(path: Path, vertices: np.ndarray, topology: Topology, fps: float) -> MeshSequence:
     topo = resolve_topology(path, topology, vertices.shape[1])
     triangles = topo.triangles if isinstance(topo, Mesh) else topo
     return MeshSequence(vertices, triangles, fps=fps, name=path.stem)
@@ -171,7 +179,7 @@ def _sidecar(path: Path, name: str) -> dict:
 
 
 @guarded_reader
-def read_mesh_folder(path: Path, *, fps=None, **options) -> MeshSequence:
+def read_mesh_folder(path: Path, *, fps: float | None = None, **options: Any) -> MeshSequence:
     """A folder of per-frame meshes (same topology, natural file order) as a :class:`MeshSequence`."""
     if not path.is_dir():
         raise bad(path, "expected a folder of per-frame mesh files")
@@ -208,7 +216,7 @@ def read_mesh_folder(path: Path, *, fps=None, **options) -> MeshSequence:
     return MeshSequence(vertices, first.triangles, fps=fps, name=side.get("name") or path.name)
 
 
-def as_sequence(obj) -> MeshSequence:
+def as_sequence(obj: object) -> MeshSequence:
     """A MeshSequence from a MeshSequence or a vertex :class:`Animation` (world vertices)."""
     if isinstance(obj, MeshSequence):
         return obj
@@ -220,7 +228,13 @@ def as_sequence(obj) -> MeshSequence:
 
 
 def write_obj_sequence(
-    obj, path, *, force: bool = False, inputs=(), prefix: str = "frame_", **options
+    obj: MeshSequence | Animation,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    prefix: str = "frame_",
+    **options: Any,
 ) -> None:
     """Write one OBJ per frame plus ``sequence.json`` (frame rate, order) into folder ``path``."""
     seq = as_sequence(obj)
@@ -245,7 +259,9 @@ def write_obj_sequence(
 # .npy
 # ---------------------------------------------------------------------------------------
 @guarded_reader
-def read_npy_sequence(path: Path, *, topology=None, fps=_DEFAULT_FPS, **options) -> MeshSequence:
+def read_npy_sequence(
+    path: Path, *, topology: Topology = None, fps: float = _DEFAULT_FPS, **options: Any
+) -> MeshSequence:
     """An ``(F, V, 3)`` ``.npy`` array (memory-mapped) with triangles from ``topology``."""
     arr = load_npy(path)
     if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[0] == 0 or arr.shape[1] == 0:
@@ -255,7 +271,14 @@ def read_npy_sequence(path: Path, *, topology=None, fps=_DEFAULT_FPS, **options)
     return _sequence(path, arr, topology, fps)
 
 
-def write_npy(obj, path, *, force: bool = False, inputs=(), **options) -> None:
+def write_npy(
+    obj: MeshSequence | Animation,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    **options: Any,
+) -> None:
     """Write the ``(F, V, 3)`` vertices of a sequence/animation as ``.npy`` (dtype kept)."""
     seq = as_sequence(obj)
     with atomic_file(path, inputs=inputs, force=force) as fh:
@@ -296,7 +319,9 @@ def _check_cache(
 
 
 @guarded_reader
-def read_pc2(path: Path, *, topology=None, fps=_DEFAULT_FPS, **options) -> MeshSequence:
+def read_pc2(
+    path: Path, *, topology: Topology = None, fps: float = _DEFAULT_FPS, **options: Any
+) -> MeshSequence:
     """A PC2 point cache (memory-mapped float32) as a :class:`MeshSequence`."""
     size = path.stat().st_size
     magic, version, n_points, start, rate, n_frames = PC2_HEADER.unpack(
@@ -314,7 +339,9 @@ def read_pc2(path: Path, *, topology=None, fps=_DEFAULT_FPS, **options) -> MeshS
 
 
 @guarded_reader
-def read_mdd(path: Path, *, topology=None, fps=None, **options) -> MeshSequence:
+def read_mdd(
+    path: Path, *, topology: Topology = None, fps: float | None = None, **options: Any
+) -> MeshSequence:
     """An MDD point cache (big-endian, memory-mapped) as a :class:`MeshSequence`; fps from its frame times."""
     size = path.stat().st_size
     n_frames, n_points = MDD_HEADER.unpack(_header(path, size, MDD_HEADER.size, "MDD"))
@@ -336,7 +363,7 @@ def read_mdd(path: Path, *, topology=None, fps=None, **options) -> MeshSequence:
     return _sequence(path, data, topology, fps)
 
 
-def _stream_frames(fh, vertices: np.ndarray, dtype: str) -> None:
+def _stream_frames(fh: IO[bytes], vertices: np.ndarray, dtype: str) -> None:
     step = max(1, _WRITE_CHUNK // max(1, vertices.shape[1] * 3))
     for start in range(0, vertices.shape[0], step):
         fh.write(
@@ -346,7 +373,14 @@ def _stream_frames(fh, vertices: np.ndarray, dtype: str) -> None:
         )
 
 
-def write_pc2(obj, path, *, force: bool = False, inputs=(), **options) -> None:
+def write_pc2(
+    obj: MeshSequence | Animation,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    **options: Any,
+) -> None:
     """Write a sequence/animation as a PC2 point cache (float32, streamed, atomic)."""
     seq = as_sequence(obj)
     with atomic_file(path, inputs=inputs, force=force) as fh:
@@ -354,7 +388,14 @@ def write_pc2(obj, path, *, force: bool = False, inputs=(), **options) -> None:
         _stream_frames(fh, seq.vertices, "<f4")
 
 
-def write_mdd(obj, path, *, force: bool = False, inputs=(), **options) -> None:
+def write_mdd(
+    obj: MeshSequence | Animation,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    **options: Any,
+) -> None:
     """Write a sequence/animation as an MDD point cache (big-endian float32, times in seconds)."""
     seq = as_sequence(obj)
     times = (np.arange(seq.n_frames) / seq.fps).astype(">f4")

@@ -11,11 +11,23 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 from ..errors import FileFormatError, InputError
 from . import dispatch
+
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
+
+    from .._types import PathLike
+    from ..model import BlendshapeRig, Landmarks, Source, TargetRig, WeightSequence
+
+#: Example poses: an npz (``examples``, ``example_names``), a folder of meshes, or
+#: ``(array (M, P, 3), names)``.
+ExamplesSpec: TypeAlias = "str | Path | tuple[npt.ArrayLike, Iterable[str] | None] | None"
 
 __all__ = [
     "load",
@@ -30,7 +42,9 @@ __all__ = [
 ]
 
 
-def load(path, kind: str | None = None, *, format: str | None = None, **options) -> Any:
+def load(
+    path: PathLike, kind: str | None = None, *, format: str | None = None, **options: Any
+) -> Any:
     """Read ``path`` with the registered reader for its extension (or folder).
 
     ``kind`` ('mesh', 'mesh_sequence', 'rig', 'markers', 'weights', 'animation') picks
@@ -56,7 +70,13 @@ def load(path, kind: str | None = None, *, format: str | None = None, **options)
 
 
 def save(
-    obj: Any, path, *, force: bool = False, inputs=(), format: str | None = None, **options
+    obj: Any,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    format: str | None = None,
+    **options: Any,
 ) -> Path:
     """Write ``obj`` with the registered writer for the path's extension, atomically.
 
@@ -72,7 +92,9 @@ def save(
     return dispatch.write(obj, path, force=force, inputs=inputs, format=format, **options)
 
 
-def save_bundle(obj: Any, path, *, force: bool = False, inputs=(), **options) -> Path:
+def save_bundle(
+    obj: Any, path: PathLike, *, force: bool = False, inputs: Iterable = (), **options: Any
+) -> Path:
     """Write a Source, TargetRig or case (``.source``, ``.target``, ``.truth``, ``.meta``) to one ``.npz``.
 
     Every part is stored (see :mod:`faceretarget.io.bundle`), so ``load_bundle`` gives
@@ -88,7 +110,7 @@ def save_bundle(obj: Any, path, *, force: bool = False, inputs=(), **options) ->
     return p
 
 
-def load_bundle(path) -> Any:
+def load_bundle(path: PathLike) -> Any:
     """Read any faceretarget ``.npz`` (Source, TargetRig, case bundle, or a model object)."""
     from .bundle import read_npz_object
 
@@ -98,7 +120,7 @@ def load_bundle(path) -> Any:
     return read_npz_object(p)
 
 
-def is_case(obj) -> bool:
+def is_case(obj: object) -> bool:
     """Whether ``obj`` is a case (a Source ``.source`` and a TargetRig ``.target``)."""
     from ..model import Source, TargetRig
 
@@ -107,7 +129,9 @@ def is_case(obj) -> bool:
     )
 
 
-def read_landmarks(spec, *, key: str | None = None):
+def read_landmarks(
+    spec: Landmarks | str | Path | npt.ArrayLike, *, key: str | None = None
+) -> Landmarks:
     """Landmarks from a small file: JSON, TXT or an npz key.
 
     - JSON: ``[12, 40, ...]``; ``{"vertex_ids": [...], "names": [...]}``;
@@ -195,7 +219,7 @@ def read_landmarks(spec, *, key: str | None = None):
     return read(Path(text))
 
 
-def read_feature_lines(spec) -> dict:
+def read_feature_lines(spec: str | Path | Mapping[str, npt.ArrayLike]) -> dict:
     """Feature lines ``{name: [vertex ids...]}`` from a JSON file (or a dict, returned as is)."""
     from ._common import TEXT_TOKEN_FACTOR, bad, guarded_reader, read_text
 
@@ -215,7 +239,7 @@ def read_feature_lines(spec) -> dict:
     return read(Path(spec))
 
 
-def _examples(spec) -> tuple[Any, Any]:
+def _examples(spec: ExamplesSpec) -> tuple[Any, Any]:
     """(examples (M, P, 3), names) from an npz (examples + example_names), a folder of meshes, or arrays."""
     import numpy as np
 
@@ -233,7 +257,7 @@ def _examples(spec) -> tuple[Any, Any]:
     from ._common import bad, guarded_reader, read_npz
 
     @guarded_reader
-    def read(path: Path):
+    def read(path: Path) -> tuple[np.ndarray, list[str] | None]:
         arrays = read_npz(path)
         if "examples" not in arrays:
             raise bad(path, "needs an 'examples' array (M, P, 3) and optionally 'example_names'")
@@ -243,7 +267,13 @@ def _examples(spec) -> tuple[Any, Any]:
     return read(p)
 
 
-def _weights_onto_rig(weights, rig, path, mapping, preset):
+def _weights_onto_rig(
+    weights: WeightSequence,
+    rig: BlendshapeRig,
+    path: PathLike,
+    mapping: dict[str, Any] | str | Path | None,
+    preset: str,
+) -> WeightSequence:
     """Weight curves renamed/combined onto the rig's shapes (Live Link Face head/eye rotation
     columns are set aside with a warning; any other curve without a counterpart is an error)."""
     import warnings
@@ -270,18 +300,18 @@ def _weights_onto_rig(weights, rig, path, mapping, preset):
 
 
 def load_source(
-    path,
+    path: PathLike,
     *,
     kind: str | None = None,
-    landmarks=None,
-    rig=None,
-    head_motion=None,
-    feature_lines=None,
-    examples=None,
-    mapping=None,
+    landmarks: Landmarks | str | Path | npt.ArrayLike | None = None,
+    rig: BlendshapeRig | str | Path | None = None,
+    head_motion: str | Path | npt.ArrayLike | None = None,
+    feature_lines: str | Path | Mapping[str, npt.ArrayLike] | None = None,
+    examples: ExamplesSpec = None,
+    mapping: dict[str, Any] | str | Path | None = None,
     preset: str = "auto",
-    **options,
-):
+    **options: Any,
+) -> Source:
     """A :class:`~faceretarget.model.Source` from user files.
 
     ``path``: a markers file (C3D/TRC/CSV), a mesh sequence (folder, npy, npz, PC2, MDD,
@@ -317,7 +347,8 @@ def load_source(
         obj = (
             MeshSequence(obj.vertices, obj.triangles, fps=obj.fps)
             if obj.triangles is not None
-            else WeightSequence(obj.weights, obj.weight_names, fps=obj.fps)
+            # weights None (vertices without triangles): WeightSequence rejects it with its own error
+            else WeightSequence(obj.weights, obj.weight_names, fps=obj.fps)  # type: ignore[arg-type]
         )
     if not isinstance(obj, (MarkerSequence, MeshSequence, WeightSequence)):
         raise FileFormatError(
@@ -351,8 +382,14 @@ def load_source(
 
 
 def load_target(
-    path, landmarks=None, *, feature_lines=None, examples=None, kind: str | None = None, **options
-):
+    path: PathLike,
+    landmarks: Landmarks | str | Path | npt.ArrayLike | None = None,
+    *,
+    feature_lines: str | Path | Mapping[str, npt.ArrayLike] | None = None,
+    examples: ExamplesSpec = None,
+    kind: str | None = None,
+    **options: Any,
+) -> TargetRig:
     """A :class:`~faceretarget.model.TargetRig` from a rig or mesh file (or a bundle).
 
     ``path``: a blendshape rig (folder, glTF with morph targets, npz) or a plain mesh;
@@ -371,7 +408,7 @@ def load_target(
     if isinstance(obj, TargetRig):
         if lm is None and lines is None and ex is None:
             return obj
-        changes = {"landmarks": lm or obj.landmarks}
+        changes: dict[str, Any] = {"landmarks": lm or obj.landmarks}
         if lines is not None:
             changes["feature_lines"] = lines
         if ex is not None:

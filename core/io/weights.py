@@ -34,11 +34,13 @@ from __future__ import annotations
 import csv
 import io
 import re
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .._types import PathLike
 from ..errors import InputError
 from ..model import WeightSequence
 from ._atomic import write_bytes
@@ -65,7 +67,7 @@ _LIVE_LINK_FPS = 60.0
 _DEFAULT_FPS = 30.0
 
 
-def parse_timecode(text: str, path, row: int) -> tuple[int, float]:
+def parse_timecode(text: str, path: PathLike, row: int) -> tuple[int, float]:
     """(whole seconds, frame field with its sub-frame fraction) of ``HH:MM:SS:FF[.sub]``."""
     m = _TIMECODE.match(text.strip())
     if not m:
@@ -138,12 +140,12 @@ def _fps_from_timecodes(codes: list[tuple[int, float]]) -> float:
 
 
 @guarded_reader
-def read_weights_csv(path: Path, *, fps=None, **options) -> WeightSequence:
+def read_weights_csv(path: Path, *, fps: float | None = None, **options: Any) -> WeightSequence:
     """Weight curves from a CSV (Live Link Face or ``frame, time, name...`` layouts)."""
     meta = {"timecode", "blendshapecount", "frame", "frame#", "time", "timestamp"}
     layout: dict[str, Any] = {}
 
-    def pick(header):
+    def pick(header: list[str]) -> list[int]:
         lower = [h.lower() for h in header]
         weight_cols = [i for i, h in enumerate(lower) if h not in meta]
         if not weight_cols:
@@ -163,7 +165,7 @@ def read_weights_csv(path: Path, *, fps=None, **options) -> WeightSequence:
         extra = [c for c in (count_col, time_col) if c is not None]
         return weight_cols + extra
 
-    def text_cols(header):
+    def text_cols(header: list[str]) -> tuple[int, ...]:
         lower = [h.lower() for h in header]
         return (lower.index("timecode"),) if "timecode" in lower else ()
 
@@ -237,7 +239,12 @@ def read_weights_csv(path: Path, *, fps=None, **options) -> WeightSequence:
 
 
 def write_weights_csv(
-    weights: WeightSequence, path, *, force: bool = False, inputs=(), **options
+    weights: WeightSequence,
+    path: PathLike,
+    *,
+    force: bool = False,
+    inputs: Iterable = (),
+    **options: Any,
 ) -> None:
     """Write weight curves in the Live Link Face CSV layout (atomic)."""
     if not isinstance(weights, WeightSequence):

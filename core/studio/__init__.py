@@ -25,7 +25,7 @@ from __future__ import annotations
 __all__ = ["Session", "StudioServer"]
 
 
-def __getattr__(name: str):  # the web server is imported only when it is used
+def __getattr__(name: str) -> type:  # the web server is imported only when it is used
     if name == "Session":
         from .session import Session
 

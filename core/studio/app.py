@@ -38,11 +38,13 @@ import base64
 import json
 import os
 import secrets
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import (
     CapabilityError,
@@ -53,7 +55,13 @@ from ..errors import (
     PluginError,
     UnknownNameError,
 )
-from .session import Session
+from .session import Result, Session
+
+if TYPE_CHECKING:
+    from starlette.responses import JSONResponse
+    from starlette.types import ASGIApp, Receive, Scope, Send
+
+    from ..model import Animation, Source
 
 STATIC = Path(__file__).parent / "static"
 TOKEN_HEADER = "x-studio-token"
@@ -64,12 +72,12 @@ MAX_BINARY = 64 * 2**20
 class Guard:
     """ASGI middleware: the address, origin and token checks in front of every request."""
 
-    def __init__(self, app, *, token: str, port: int):
+    def __init__(self, app: ASGIApp, *, token: str, port: int) -> None:
         self.app, self.token, self.port = app, token, port
         self.hosts = {f"127.0.0.1:{port}", f"localhost:{port}"}
         self.origins = {f"http://{h}" for h in self.hosts}
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] == "lifespan":
             return await self.app(scope, receive, send)
         if scope["type"] != "http":  # no websockets
@@ -113,7 +121,7 @@ class Guard:
         return await self.app(scope, receive, send)
 
 
-async def _refuse(scope, send, status: int, message: str) -> None:
+async def _refuse(scope: Scope, send: Send, status: int, message: str) -> None:
     body = json.dumps(
         {"error": "forbidden" if status == 403 else "unauthorized", "message": message}
     )
@@ -130,12 +138,18 @@ async def _refuse(scope, send, status: int, message: str) -> None:
     await send({"type": "http.response.body", "body": body.encode()})
 
 
-def b64(array) -> str:
+def b64(array: npt.ArrayLike) -> str:
     """Little-endian float32 bytes of ``array``, base64 (the page's Float32Array)."""
     return base64.b64encode(np.ascontiguousarray(array, dtype="<f4").tobytes()).decode("ascii")
 
 
-def summary(session: Session, result, *, cached: bool = False, changed=None) -> dict[str, Any]:
+def summary(
+    session: Session,
+    result: Result,
+    *,
+    cached: bool = False,
+    changed: Sequence[int] | None = None,
+) -> dict[str, Any]:
     """What the page needs of a result: curves (base64 float32), head motion, the rig's key,
     the edits offered, the history and timings."""
     anim = result.animation
@@ -148,9 +162,7 @@ def summary(session: Session, result, *, cached: bool = False, changed=None) -> 
         "cached": cached,
         "n_frames": anim.n_frames,
         "fps": anim.fps,
-        "n_vertices": int(
-            anim.rig.neutral.n_vertices if anim.is_blendshape_based else anim.vertices.shape[1]
-        ),
+        "n_vertices": summary_vertices(anim),
         "outputs": "weights" if anim.is_blendshape_based else "vertices",
         "weight_names": list(anim.weight_names),
         "weights": None if anim.weights is None else b64(anim.weights),
@@ -166,7 +178,7 @@ def summary(session: Session, result, *, cached: bool = False, changed=None) -> 
     }
 
 
-def create_app(session: Session, *, token: str, port: int):
+def create_app(session: Session, *, token: str, port: int) -> Guard:
     """The ASGI app for ``session``, answering only at ``127.0.0.1:port`` with ``token``."""
     from starlette.applications import Starlette
     from starlette.concurrency import run_in_threadpool
@@ -175,7 +187,7 @@ def create_app(session: Session, *, token: str, port: int):
     from starlette.routing import Mount, Route
     from starlette.staticfiles import StaticFiles
 
-    def binary(array) -> Response:
+    def binary(array: npt.ArrayLike) -> Response:
         arr = np.ascontiguousarray(array, dtype="<f4")
         return Response(
             arr.tobytes(),
@@ -396,11 +408,12 @@ class _BadRequest(FaceRetargetError, ValueError):
     """A request the API cannot read (answered 400; never leaves the app)."""
 
 
-def summary_vertices(anim) -> int:
-    return int(anim.rig.neutral.n_vertices if anim.is_blendshape_based else anim.vertices.shape[1])
+def summary_vertices(anim: Animation) -> int:
+    rig = anim.rig if anim.is_blendshape_based else None
+    return int(rig.neutral.n_vertices if rig is not None else anim.vertices.shape[1])
 
 
-def _triangles(source) -> str | None:
+def _triangles(source: Source) -> str | None:
     perf = source.performance
     tri = getattr(perf, "triangles", None)
     if tri is None and source.kind == "weights" and source.rig is not None:
@@ -418,13 +431,13 @@ def _files(session: Session) -> list[dict[str, Any]]:
     ]
 
 
-def _error(status: int, kind: str, message: str):
+def _error(status: int, kind: str, message: str) -> JSONResponse:
     from starlette.responses import JSONResponse
 
     return JSONResponse({"error": kind, "message": message}, status_code=status)
 
 
-def _error_for(exc: Exception):
+def _error_for(exc: Exception) -> JSONResponse:
     """The JSON answer for an exception raised while serving a request."""
     text = " ".join((str(exc).strip() or type(exc).__name__).split())
     if isinstance(exc, _BadRequest):

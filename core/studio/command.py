@@ -9,8 +9,12 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..errors import InputError
+
+if TYPE_CHECKING:
+    from ..model import Animation, Source, TargetRig
 
 __all__ = ["add_studio_arguments", "run_studio"]
 
@@ -65,7 +69,9 @@ def add_studio_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPa
     return parser
 
 
-def load_inputs(args: argparse.Namespace):
+def load_inputs(
+    args: argparse.Namespace,
+) -> tuple[Source, TargetRig, Animation | None, str, list[str]]:
     """``(source, target, truth, name, files)`` from CASE or --source/--target."""
     from ..cli import _run_inputs, load_run_source, load_run_target
 

@@ -35,13 +35,17 @@ import struct
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 
 from ..errors import CapabilityError, InputError
+
+if TYPE_CHECKING:
+    from ..model import Source, TargetRig
 
 __all__ = ["PACKET_VERSION", "N_VALUES", "Packet", "decode", "encode", "send", "LiveLink"]
 
@@ -123,7 +127,7 @@ def decode(data: bytes) -> Packet:
 
 
 def encode(
-    values,
+    values: npt.ArrayLike,
     *,
     frame: int = 0,
     subframe: float = 0.0,
@@ -146,7 +150,9 @@ def encode(
     )
 
 
-def send(port: int, frames, *, fps: float = 60.0, host: str = "127.0.0.1") -> int:
+def send(
+    port: int, frames: Iterable[npt.ArrayLike], *, fps: float = 60.0, host: str = "127.0.0.1"
+) -> int:
     """Send ``frames`` ((F, <=61) values) as Live Link Face packets to ``host:port`` at
     ``fps`` (a simulated iPhone); returns the number sent."""
     sent = 0
@@ -172,7 +178,8 @@ def _rotation(yaw: float, pitch: float, roll: float) -> np.ndarray:
 class Actor:
     """Live Link Face values -> one frame of the source: its own rig driven by the weights."""
 
-    def __init__(self, source):
+    def __init__(self, source: Source) -> None:
+        from ..model import MeshSequence
         from ..naming import LIVE_LINK_NAMES, map_names
 
         rig, perf = source.rig, source.performance
@@ -181,7 +188,11 @@ class Actor:
                 "live: the source has no blendshape rig of its own to play the Live Link Face weights on; "
                 "give --source-rig (or use an evaluation case)"
             )
-        if source.kind != "mesh" or rig.neutral.n_vertices != perf.n_vertices:
+        if (
+            source.kind != "mesh"
+            or not isinstance(perf, MeshSequence)  # as kind says (for the type checker)
+            or rig.neutral.n_vertices != perf.n_vertices
+        ):
             raise CapabilityError(
                 "live: the stream is played on the source's rig, which must have the vertices of the "
                 "source mesh sequence (a mesh source and its own rig, e.g. an evaluation case)"
@@ -201,7 +212,7 @@ class Actor:
         return (local - self.centre) @ rot.T + self.centre
 
 
-def streaming_method(source, target, name: str | None = None) -> str:
+def streaming_method(source: Source, target: TargetRig, name: str | None = None) -> str:
     """The streaming method to use: ``name`` (checked), else the first that applies."""
     from ..registry import registry
 
@@ -236,14 +247,14 @@ class LiveLink:
 
     def __init__(
         self,
-        source,
-        target,
+        source: Source,
+        target: TargetRig,
         port: int,
         *,
         method: str | None = None,
         params: dict | None = None,
         log: Callable[[str], None] | None = None,
-    ):
+    ) -> None:
         self.source, self.target = source, target
         self.method = streaming_method(source, target, method)
         self.params = dict(params or {})

@@ -11,10 +11,13 @@ import secrets
 import socket
 import threading
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import FaceRetargetError, InputError
 from .session import Session
+
+if TYPE_CHECKING:
+    import uvicorn
 
 __all__ = ["StudioServer"]
 
@@ -23,7 +26,7 @@ class StudioServer:
     """The studio's HTTP server for ``session``; nothing listens until :meth:`serve` or
     :meth:`start`, but the port is bound at once (so :attr:`url` is known)."""
 
-    def __init__(self, session: Session, *, port: int = 0, token: str | None = None):
+    def __init__(self, session: Session, *, port: int = 0, token: str | None = None) -> None:
         from .app import create_app
 
         self.session = session
@@ -52,7 +55,7 @@ class StudioServer:
     def url(self) -> str:
         return f"{self.origin}/?token={self.token}"
 
-    def _uvicorn(self):
+    def _uvicorn(self) -> uvicorn.Server:
         import uvicorn
 
         config = uvicorn.Config(

@@ -24,6 +24,7 @@ import json
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,7 +39,7 @@ from ..errors import (
     OutputError,
     UnknownNameError,
 )
-from ..model import Animation, Source, TargetRig, apply_head_motion
+from ..model import Animation, BlendshapeRig, Source, TargetRig, apply_head_motion
 from ..validation import Interval, Options, check_value, describe
 
 __all__ = ["Session", "Result", "EDIT_KINDS", "EXPORT_FORMATS", "edit_kinds"]
@@ -124,10 +125,10 @@ class Session:
         *,
         truth: Animation | None = None,
         name: str = "studio",
-        files: tuple[Path | str, ...] | list[Path | str] = (),
+        files: Iterable[Path | str] = (),
         out_dir: Path | str = ".",
         face_height: float | None = None,
-    ):
+    ) -> None:
         if not isinstance(source, Source) or not isinstance(target, TargetRig):
             raise InputError("studio: give a faceretarget.Source and a faceretarget.TargetRig")
         if truth is not None and (
@@ -341,7 +342,9 @@ class Session:
         xyz = tuple(check_value(c, [Interval(float)], "position", "studio edit") for c in position)
         return vertex, xyz
 
-    def _detail(self, animation: Animation, frame: int, request: dict, window) -> dict:
+    def _detail(
+        self, animation: Animation, frame: int, request: dict, window: tuple[int, int] | None
+    ) -> dict:
         vertices = np.asarray(self.frames(animation, frame, frame + 1)[0], dtype=np.float64)
         vertex = check_value(
             request.get("vertex"), [Interval(int, 0, len(vertices) - 1)], "vertex", "studio edit"
@@ -406,7 +409,7 @@ class Session:
                 self._rigs[id(rig)] = (f"rig{len(self._rigs)}", rig)
             return self._rigs[id(rig)][0]
 
-    def rig(self, key: Any):
+    def rig(self, key: Any) -> BlendshapeRig:
         for name, rig in self._rigs.values():
             if name == key:
                 return rig

@@ -50,7 +50,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from faceretarget.geometry.procrustes import apply as apply_transform
 from faceretarget.geometry.procrustes import fit_rigid, to_matrix
+from faceretarget.geometry.procrustes import remove as remove_transform
 
 __all__ = [
     "ALIGN_POINTS",
@@ -81,26 +83,16 @@ def frame_chunks(n_frames: int, chunk: int):
         yield slice(start, min(n_frames, start + step))
 
 
-def _rigid(motion, points, inverse):
-    from ._kernels import rigid
-
-    p = np.asarray(points)
-    if p.dtype not in (np.float32, np.float64):
-        p = p.astype(np.float64)
-    p = np.ascontiguousarray(p)
-    out = np.empty(p.shape, dtype=np.float64)
-    rigid(p, np.ascontiguousarray(motion, dtype=np.float64), out, inverse)
-    return out
-
-
 def to_local(motion: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Undo ``motion (C, 4, 4)`` on world ``points (C, V, 3)``: ``R^T (x - t)`` (float64)."""
-    return _rigid(motion, points, True)
+    """Undo ``motion (C, 4, 4)`` on world ``points (C, V, 3)``: ``R^T (x - t)`` (float64;
+    :func:`faceretarget.geometry.procrustes.remove`)."""
+    return remove_transform(motion, points)
 
 
 def to_world(motion: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply ``motion (C, 4, 4)`` to local ``points (C, V, 3)``: ``R x + t``."""
-    return _rigid(motion, points, False)
+    """Apply ``motion (C, 4, 4)`` to local ``points (C, V, 3)``: ``R x + t`` (float64;
+    :func:`faceretarget.geometry.procrustes.apply`)."""
+    return apply_transform(motion, points)
 
 
 class RigidFit:

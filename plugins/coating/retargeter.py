@@ -29,7 +29,7 @@ from faceretarget.geometry.deformation_gradients import (
     reference_inverse,
 )
 from faceretarget.model import Animation, MeshSequence, Source, TargetRig
-from faceretarget.retargeter import Capabilities, Retargeter
+from faceretarget.retargeter import Retargeter
 from faceretarget.validation import Options, check_value, validate_params
 
 from .alignment import Placement, estimate_motion, frame_chunks, stable_vertices, to_world
@@ -176,17 +176,8 @@ class _MeshTransfer(Retargeter):
 class CoatingRetargeter(_MeshTransfer):
     """Controllable high-fidelity facial performance transfer (Xu et al. 2014)."""
 
+    #: Capabilities and summary: registry.toml (Retargeter.packaged_manifest), by this name.
     name: ClassVar[str] = "coating"
-    capabilities: ClassVar[Capabilities] = Capabilities(
-        sources=("mesh",),
-        needs=("feature_lines", "source_feature_lines"),
-        outputs="vertices",
-        edit=True,
-    )
-    summary: ClassVar[str] = (
-        "Multi-scale transfer of dense performances: smooth blendshape bases by feature-preserving deformation "
-        "transfer + Laplacian-coating details; spacetime edits of bases, weights and wrinkles"
-    )
     #: Types, ranges and choices of the parameters, with their meanings: registry.toml.
     parameter_constraints: ClassVar[dict] = manifest.constraints("coating")
 
@@ -531,11 +522,8 @@ class CoatingRetargeter(_MeshTransfer):
 class DeformationTransferRetargeter(_MeshTransfer):
     """Plain per-frame deformation transfer (Sumner & Popovic 2004), the baseline of Xu et al."""
 
+    #: Capabilities and summary: registry.toml (Retargeter.packaged_manifest), by this name.
     name: ClassVar[str] = "deformation_transfer"
-    capabilities: ClassVar[Capabilities] = Capabilities(sources=("mesh",), outputs="vertices")
-    summary: ClassVar[str] = (
-        "Per-frame deformation transfer (Sumner & Popovic 2004): triangle deformation gradients solved on the target"
-    )
     parameter_constraints: ClassVar[dict] = manifest.constraints("deformation_transfer")
 
     def __init__(self, *, stable_fraction: float = 0.5, chunk_frames: int = 32):

@@ -28,7 +28,7 @@ from faceretarget.errors import (
     TopologyMismatchError,
 )
 from faceretarget.model import Animation, Source, TargetRig
-from faceretarget.retargeter import Capabilities, Retargeter
+from faceretarget.retargeter import Retargeter
 from faceretarget.validation import Interval, check_value, validate_params
 
 from . import compose
@@ -116,16 +116,8 @@ def _motion_map(residual, actor_reference, character_neutral):
 class LayersRetargeter(Retargeter):
     """Deconstruct the actor into emotion/speech/blink layers and rebuild the character in parallel."""
 
+    #: Capabilities and summary: registry.toml (Retargeter.packaged_manifest), by this name.
     name = "layers"
-    capabilities = Capabilities(
-        sources=("markers", "mesh"),
-        needs=("layers", "actor_layers", "source_landmarks"),
-        outputs="vertices",
-        stream=True,
-        edit=False,
-        same_topology=False,
-    )
-    summary = "Layered simplicial bases (emotion, speech, blink) with region mask weights, transferred parameter-parallel"
     #: Types, ranges and choices of the parameters, with their meanings: registry.toml.
     parameter_constraints = manifest.constraints("layers")
 

@@ -68,6 +68,7 @@ from faceretarget.errors import (
     ShapeError,
     UnknownNameError,
 )
+from faceretarget.geometry.procrustes import fit_rigid, to_matrix
 
 from .model import ActorModel
 
@@ -328,27 +329,16 @@ def fit_to_frames(
     scale: bool = False,
     min_points: int = 0,
 ) -> np.ndarray:
-    """Rigid (or similarity) Procrustes of a reference onto each frame (``_kernels.kabsch``).
+    """Rigid (or similarity) Procrustes of a reference onto each frame, as ``(F, D + 1, D + 1)``
+    transforms ``[[s R, t], [0, 1]]`` with ``frame ~ s R ref + t``: the shared fit
+    :func:`faceretarget.geometry.procrustes.fit_rigid`.
 
     ``reference (N, D)`` for all frames or ``(F, N, D)`` per frame (the model's
     reconstruction of each frame); ``frames (F, N, D)`` with NaN rows missing; ``weights
-    (N,)`` or None. Returns ``(F, D + 1, D + 1)`` transforms ``[[s R, t], [0, 1]]`` with
-    ``frame ~ s R ref + t`` (the conventions of
-    :func:`faceretarget.geometry.procrustes.fit_rigid`); the identity for frames with fewer
-    than ``min_points`` points.
+    (N,)`` or None. The identity for frames with fewer than ``min_points`` points.
     """
-    from ._kernels import kabsch
-
-    frames = np.ascontiguousarray(frames, dtype=np.float64)
-    n_frames, n_points, dim = frames.shape
-    ref = np.ascontiguousarray(reference, dtype=np.float64)
-    per_frame = ref.ndim == 3
-    if not per_frame:
-        ref = ref[None]
-    w = np.ones(n_points) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
-    out = np.empty((n_frames, dim + 1, dim + 1))
-    kabsch(ref, per_frame, frames, w, bool(scale), int(min_points), out)
-    return out
+    rot, trans, s = fit_rigid(reference, frames, weights, scale=scale, min_points=min_points)
+    return to_matrix(rot, trans, s)
 
 
 def _to_local(points: np.ndarray, transforms: np.ndarray) -> np.ndarray:

@@ -28,25 +28,6 @@ def _cross(P, a, b, c):
     return u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
 
 
-@nb.njit(cache=True, nogil=True)
-def vertex_normals(X, triangles, out):
-    """Area-weighted unit vertex normals of ``X`` over ``triangles`` into ``out (V, 3)``."""
-    out[:] = 0.0
-    for t in range(triangles.shape[0]):
-        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        n0, n1, n2 = _cross(X, a, b, c)
-        for v in (a, b, c):
-            out[v, 0] += n0
-            out[v, 1] += n1
-            out[v, 2] += n2
-    for v in range(out.shape[0]):
-        s = np.sqrt(out[v, 0] ** 2 + out[v, 1] ** 2 + out[v, 2] ** 2)
-        if s > 0.0:
-            out[v, 0] /= s
-            out[v, 1] /= s
-            out[v, 2] /= s
-
-
 @nb.njit(cache=True, inline="always")
 def _frame(X, normals, edges, n_coarse, e):
     """(t1, t2, n) at odd vertex ``n_coarse + e``, each as three floats."""

@@ -196,11 +196,11 @@ def normal_mesh_area(nm: NormalMesh, hierarchy: Hierarchy) -> float:
 # ----------------------------------------------------------------------------------------
 def _predict(step: LoopStep, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unlifted Loop prediction ``(V1, 3)`` and its unit vertex normals."""
-    from . import _kernels as k
+    from faceretarget.geometry._mesh_ops_kernels import vertex_normals
 
     pred = np.ascontiguousarray(step.matrix @ X)
     normals = np.empty_like(pred)
-    k.vertex_normals(pred, step.triangles, normals)
+    vertex_normals(pred, step.triangles, normals)
     return pred, normals
 
 

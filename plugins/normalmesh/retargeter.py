@@ -54,7 +54,7 @@ from faceretarget.errors import (
 from faceretarget.geometry.procrustes import fit_rigid, to_matrix
 from faceretarget.geometry.raycast import RayCaster
 from faceretarget.model import Animation, Landmarks, MeshSequence, Source, TargetRig
-from faceretarget.retargeter import Capabilities, Retargeter
+from faceretarget.retargeter import Retargeter
 from faceretarget.validation import validate_params
 
 from . import base_mesh as bm
@@ -104,18 +104,8 @@ WARP_PAIRS = 1500
 class NormalMeshRetargeter(Retargeter):
     """Na & Jung 2004: example-based base mesh + normal-offset details, level by level."""
 
+    #: Capabilities and summary: registry.toml (Retargeter.packaged_manifest), by this name.
     name: ClassVar[str] = "normalmesh"
-    capabilities: ClassVar[Capabilities] = Capabilities(
-        sources=("mesh",),
-        needs=("landmarks", "source_landmarks", "examples", "source_examples"),
-        outputs="vertices",
-        stream=False,
-        edit=False,
-        same_topology=False,
-    )
-    summary: ClassVar[str] = (
-        "example-based RBF on a base mesh, then normal-mesh offset details level by level"
-    )
     #: Types, ranges and choices of the parameters, with their meanings: registry.toml.
     parameter_constraints: ClassVar[dict] = manifest.constraints("normalmesh")
 
@@ -620,6 +610,8 @@ class NormalMeshRetargeter(Retargeter):
         return out
 
     def _run_chunk(self, perf: MeshSequence, frames: range, level: int | None, out: dict) -> None:
+        from faceretarget.geometry._mesh_ops_kernels import vertex_normals
+
         from . import _kernels as k
 
         lm, tri, hier = self.source_feature_points_, perf.triangles, self.hierarchy_
@@ -662,8 +654,8 @@ class NormalMeshRetargeter(Retargeter):
                     "pk,pkd->pd", self.slide_barycentric_, local[self.slide_corners_]
                 )
                 y_normals, t_normals = np.empty_like(y), np.empty_like(finest)
-                k.vertex_normals(y, finest_tri, y_normals)
-                k.vertex_normals(finest, finest_tri, t_normals)
+                vertex_normals(y, finest_tri, y_normals)
+                vertex_normals(finest, finest_tri, t_normals)
                 slid = np.empty_like(finest)
                 k.slide(
                     y,
@@ -763,11 +755,13 @@ def frame_neighbours(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
 def local_frames(X: np.ndarray, triangles: np.ndarray, neighbour: np.ndarray) -> np.ndarray:
     """(V, 3, 3) rows t1, t2, n at each vertex of ``X``: n the unit vertex normal, t1 the
     direction to ``neighbour`` made perpendicular to n, t2 = n x t1."""
+    from faceretarget.geometry._mesh_ops_kernels import vertex_normals
+
     from . import _kernels as k
 
     X = np.ascontiguousarray(X, dtype=np.float64)
     n = np.empty_like(X)
-    k.vertex_normals(X, triangles, n)
+    vertex_normals(X, triangles, n)
     out = np.empty((len(X), 3, 3))
     k.local_frames(X, n, neighbour, out)
     return out

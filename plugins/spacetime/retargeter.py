@@ -14,7 +14,6 @@ four are plain subclasses that change only defaults (their ``mode``, the paper's
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from typing import ClassVar
 
@@ -34,7 +33,7 @@ from faceretarget.errors import (
     UnknownNameError,
 )
 from faceretarget.model import Animation, Source, TargetRig
-from faceretarget.retargeter import Capabilities, Retargeter
+from faceretarget.retargeter import Retargeter
 from faceretarget.validation import Interval, check_value, validate_params
 
 from . import calibration
@@ -108,17 +107,6 @@ class SpacetimeRetargeter(Retargeter):
     """
 
     name: ClassVar[str] = "spacetime"
-    summary: ClassVar[str] = (
-        "match marker velocities with blendshape weights over the whole shot (Poisson in time) under a PCA prior; spacetime editing"
-    )
-    capabilities: ClassVar[Capabilities] = Capabilities(
-        sources=("markers", "mesh"),
-        needs=("blendshapes", "landmarks", "source_landmarks"),
-        outputs="weights",
-        stream=False,
-        edit=True,
-        same_topology=False,
-    )
     #: Types, ranges and choices of the parameters, with their meanings: registry.toml.
     parameter_constraints: ClassVar[dict] = manifest.constraints("spacetime")
 
@@ -889,7 +877,6 @@ def _float_array(value, name: str, valid: str) -> np.ndarray:
     raise ShapeError(f"spacetime: {name}: expected {valid}, got {short_repr(value)}")
 
 
-_PER_FRAME_CAPABILITIES = dataclasses.replace(SpacetimeRetargeter.capabilities, edit=False)
 #: The paper's own choices, where the default differs (see docs/methods/spacetime.md for why and
 #: the measured effect of each): no weight bounds in the whole-sequence solve, no position
 #: or L1 term, boundary values from per-frame solves, scale-proportion matching by the RBF
@@ -915,11 +902,6 @@ class SpacetimePaper(SpacetimeRetargeter):
     """Seol et al. 2012 as published: :class:`SpacetimeRetargeter` with the defaults :data:`PAPER`."""
 
     name: ClassVar[str] = "spacetime_paper"
-    summary: ClassVar[str] = (
-        "Seol et al. 2012 as published: movement matching with the PCA prior, no weight bounds, RBF "
-        "scale-proportion matching on the landmarks (prior centred at the neutral; "
-        "prior_center='mean' for Eq. 3 as printed)"
-    )
 
     def __init__(
         self,
@@ -953,10 +935,6 @@ class SpacetimeNoconst(SpacetimeRetargeter):
     """The paper's baseline "No Const": ``mode="noconst"`` with the defaults :data:`PAPER`."""
 
     name: ClassVar[str] = "spacetime_noconst"
-    summary: ClassVar[str] = (
-        "Seol et al. 2012 baseline 'No Const': per-frame unconstrained least-squares blendshape weights"
-    )
-    capabilities: ClassVar[Capabilities] = _PER_FRAME_CAPABILITIES
 
     def __init__(
         self,
@@ -990,11 +968,6 @@ class SpacetimeRangepf(SpacetimeRetargeter):
     """The paper's baseline "Range PF": ``mode="rangepf"`` with the defaults :data:`PAPER`."""
 
     name: ClassVar[str] = "spacetime_rangepf"
-    summary: ClassVar[str] = (
-        "Seol et al. 2012 baseline 'Range PF': per-frame bounded least squares "
-        "(weights in [lower, upper], own active-set solver)"
-    )
-    capabilities: ClassVar[Capabilities] = _PER_FRAME_CAPABILITIES
 
     def __init__(
         self,
@@ -1028,10 +1001,6 @@ class SpacetimePriorpf(SpacetimeRetargeter):
     """The paper's baseline "Prior PF": ``mode="priorpf"``, ``alpha=0.5`` and the defaults :data:`PAPER`."""
 
     name: ClassVar[str] = "spacetime_priorpf"
-    summary: ClassVar[str] = (
-        "Seol et al. 2012 baseline 'Prior PF': per-frame least squares with the PCA prior"
-    )
-    capabilities: ClassVar[Capabilities] = _PER_FRAME_CAPABILITIES
 
     def __init__(
         self,

@@ -27,12 +27,6 @@ ALLOWED = {
     # the Laplacian coating of Sorkine et al. 2004, a geometry operation (the method is named after it)
     ("geometry/local_frames.py", "coating"),
     ("geometry/_laplacian_kernels.py", "coating"),
-    # TODO(issue 18 item 3, core/io is being reworked by its owner): `cases export` lists the
-    # methods in EXPORT_METHODS; it should list those of the manifest whose needs the case meets
-    *(
-        ("io/commands.py", name)
-        for name in ("spacetime", "normalmesh", "coating", "deformation_transfer")
-    ),
 }
 
 

@@ -1,12 +1,16 @@
 """Manifest first: `list`, `info` and available() read manifests without importing plugin code,
 and the registry checks that every class agrees with its manifest."""
 
+import ast
+import dataclasses
 import importlib
+import importlib.util
 import json
 import re
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -63,6 +67,80 @@ def test_builtin_classes_take_their_constraints_from_registry_toml():
         assert set(declared) == set(m.parameters), (
             f"{name}: parameter_constraints and registry.toml name different parameters"
         )
+
+
+def test_builtin_classes_have_the_capabilities_and_summary_of_registry_toml():
+    reg = fr.registry.registry()
+    for name, m in manifest.builtin().items():
+        cls = reg.resolve(name).cls
+        assert cls.capabilities == m.capabilities, name
+        assert cls.summary == m.summary, name
+        assert cls.packaged_manifest() == m, name
+
+
+#: (class name, attribute) a built-in class still states itself (derived from another
+#: class's, or a literal equal to the manifest's; the registry checks that they agree).
+#: None left; a new entry needs a reason.
+STILL_STATED: set[tuple[str, str]] = set()
+
+
+@pytest.mark.parametrize("name", sorted(manifest.builtin()))
+def test_a_builtin_class_takes_what_its_manifest_entry_says(monkeypatch, name):
+    """The built-in classes restate neither capabilities nor summary: a fresh copy of the
+    class's module, made while the packaged manifest says something else about it, follows."""
+    packaged = manifest.builtin()
+    m = packaged[name]
+    edited = dict(packaged)
+    edited[name] = dataclasses.replace(
+        m,
+        capabilities=dataclasses.replace(m.capabilities, stream=not m.capabilities.stream),
+        summary=f"edited: {m.summary}",
+    )
+    monkeypatch.setattr(manifest, "builtin", lambda: edited)
+    module_name = fr.registry.registry().resolve(name).cls.__module__
+    copy_name = f"{module_name}_manifest_probe"
+    spec = importlib.util.spec_from_file_location(
+        copy_name, importlib.import_module(module_name).__file__
+    )
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, copy_name, module)
+    spec.loader.exec_module(module)
+    (cls,) = [
+        c
+        for c in vars(module).values()
+        if isinstance(c, type) and c.__module__ == copy_name and vars(c).get("name") == name
+    ]
+    for attribute in ("capabilities", "summary"):
+        value = getattr(cls, attribute)
+        if (name, attribute) in STILL_STATED:
+            assert value == getattr(m, attribute), (name, attribute)
+        else:
+            assert value == getattr(edited[name], attribute), (name, attribute)
+
+
+def test_no_builtin_class_writes_its_capabilities():
+    plugins = Path(importlib.import_module("faceretarget.plugins").__file__).parent
+    calls = [
+        f"{path.relative_to(plugins)}:{node.lineno}"
+        for path in sorted(plugins.rglob("*.py"))
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+        if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "Capabilities"
+    ]
+    assert not calls, f"built-in capabilities come from registry.toml: {calls}"
+
+
+def test_a_class_outside_the_builtin_package_keeps_what_it_states():
+    class Layers(fr.Retargeter):  # a third-party class may reuse a built-in's name
+        name = "layers"
+        capabilities = fr.Capabilities(sources=("mesh",))
+        summary = "mine"
+
+    class Unstated(fr.Retargeter):
+        name = "normalmesh"
+
+    assert Layers.packaged_manifest() is None and Unstated.packaged_manifest() is None
+    assert Layers.capabilities == fr.Capabilities(sources=("mesh",)) and Layers.summary == "mine"
+    assert Unstated.capabilities == fr.Capabilities() and Unstated.summary == ""
 
 
 def _edited_catalogue(monkeypatch, old: str, new: str):

@@ -28,3 +28,37 @@ def test_normals_of_triangles_whose_area_underflows_are_zero():
 def test_unit_rows_keeps_zero_rows_and_directions():
     rows = np.array([[0.0, 0.0, 0.0], [3.0, 4.0, 0.0], [-2e-320, 0.0, 0.0]])
     np.testing.assert_allclose(unit_rows(rows), [[0, 0, 0], [0.6, 0.8, 0], [-1, 0, 0]])
+
+
+def _vertex_normals_numpy(vertices, triangles):
+    """The plain numpy formulation: cross products summed per vertex, then unit rows."""
+    cross = np.cross(
+        vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
+        vertices[triangles[:, 2]] - vertices[triangles[:, 0]],
+    )
+    acc = np.zeros((len(vertices), 3))
+    for k in range(3):
+        np.add.at(acc, triangles[:, k], cross)
+    return unit_rows(acc)
+
+
+@pytest.mark.parametrize("scale", [1e-160, 1.0, 1e150])
+def test_vertex_normals_kernel_matches_numpy(scale):
+    """The one vertex-normal kernel (mesh_ops and the per-frame callers) against numpy, at
+    any scale, with an isolated vertex (zero) and a NaN vertex (its triangles' corners zero);
+    ``out`` is filled and returned."""
+    rng = np.random.default_rng(4)
+    vertices = scale * rng.normal(size=(300, 3))
+    triangles = rng.integers(0, 299, size=(900, 3)).astype(np.int32)  # vertex 299 isolated
+    want = _vertex_normals_numpy(vertices, triangles)
+    out = np.full((300, 3), 7.0)
+    got = vertex_normals(vertices, triangles, out=out)
+    assert got is out
+    np.testing.assert_allclose(got, want, atol=1e-13, rtol=0)
+    assert np.all(got[299] == 0)
+    vertices[5] = np.nan
+    got = vertex_normals(vertices, triangles)
+    touched = np.unique(triangles[(triangles == 5).any(axis=1)])
+    assert np.all(got[touched] == 0) and np.isfinite(got).all()
+    with pytest.raises(IndexError):
+        vertex_normals(vertices, np.array([[0, 1, 300]]))
