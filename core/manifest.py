@@ -26,11 +26,14 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from . import validation
+from .capabilities import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS, Capabilities
 from .errors import ConfigError
-from .retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS, Capabilities, Retargeter
+
+if TYPE_CHECKING:
+    from .retargeter import Retargeter
 
 __all__ = [
     "Manifest",

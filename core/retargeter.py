@@ -19,12 +19,12 @@ import copy
 import inspect
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from ._json import jsonable
+from .capabilities import RIG_PARTS, SOURCE_KINDS, Capabilities
 from .errors import CapabilityError, InputError, NotFittedError, PluginOutputError
 from .model import Animation, Source, TargetRig
 
@@ -36,59 +36,6 @@ __all__ = ["Capabilities", "Retargeter", "clone", "SOURCE_KINDS", "RIG_PARTS"]
 #: The package of the built-in plugins: a class defined under it takes its capabilities and
 #: summary from the packaged ``registry.toml`` (:meth:`Retargeter.packaged_manifest`).
 BUILTIN_PACKAGE = "faceretarget.plugins"
-#: Kinds of performance a retargeter can consume.
-SOURCE_KINDS = ("markers", "mesh", "weights")
-#: Rig parts (see :attr:`TargetRig.PARTS`) and source extras a retargeter can need.
-RIG_PARTS = ("blendshapes", "layers", "landmarks", "feature_lines", "examples")
-SOURCE_EXTRAS = (
-    "source_landmarks",
-    "source_examples",
-    "source_feature_lines",
-    "actor_layers",
-    "source_rig",
-)
-
-
-@dataclass(frozen=True)
-class Capabilities:
-    """What a retargeter consumes, needs and offers.
-
-    sources : source kinds accepted (any of ``SOURCE_KINDS``)
-    needs : rig parts the target must have (``RIG_PARTS``) and source extras
-        (``SOURCE_EXTRAS``); a tuple of alternatives ``("a", "b")`` inside means "a or b"
-    outputs : "weights" (blendshape-based result) or "vertices"
-    stream : offers ``stream(frames)``
-    edit : offers ``edit(animation, ...)``
-    same_topology : needs source and target meshes of one topology
-    """
-
-    sources: tuple[str, ...] = ("markers",)
-    needs: tuple[str | tuple[str, ...], ...] = ()
-    outputs: str = "vertices"
-    stream: bool = False
-    edit: bool = False
-    same_topology: bool = False
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "sources": list(self.sources),
-            "needs": [list(n) if isinstance(n, tuple) else n for n in self.needs],
-            "outputs": self.outputs,
-            "stream": self.stream,
-            "edit": self.edit,
-            "same_topology": self.same_topology,
-        }
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> Capabilities:
-        return cls(
-            sources=tuple(data.get("sources", ("markers",))),
-            needs=tuple(tuple(n) if isinstance(n, list) else n for n in data.get("needs", ())),
-            outputs=data.get("outputs", "vertices"),
-            stream=bool(data.get("stream", False)),
-            edit=bool(data.get("edit", False)),
-            same_topology=bool(data.get("same_topology", False)),
-        )
 
 
 def _has(source: Source, target: TargetRig, need: str) -> bool:

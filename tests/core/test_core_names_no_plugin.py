@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 import faceretarget
+from faceretarget.capabilities import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS
 from faceretarget.manifest import builtin
 from faceretarget.registry import registry
-from faceretarget.retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS
 
 CORE = Path(faceretarget.__file__).parent
 

@@ -16,8 +16,8 @@ from reliability.fuzzkit import failed, fuzz, toml_document, toml_values, typed
 
 import faceretarget as fr
 from faceretarget import errors
+from faceretarget.capabilities import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS
 from faceretarget.registry import read_catalogue
-from faceretarget.retargeter import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS
 
 AREA = "registry.toml"
 ROOT = Path(__file__).resolve().parents[2]
