@@ -26,14 +26,11 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from . import validation
 from .capabilities import RIG_PARTS, SOURCE_EXTRAS, SOURCE_KINDS, Capabilities
 from .errors import ConfigError
-
-if TYPE_CHECKING:
-    from .retargeter import Retargeter
 
 __all__ = [
     "Manifest",
@@ -239,8 +236,9 @@ def find_package_manifest(module: str) -> Path | None:
     return None
 
 
-def from_class(cls: type[Retargeter], entry_point: str = "") -> Manifest:
-    """The manifest a class declares on itself: ``name``, ``summary`` (else its docstring's
+def from_class(cls: Any, entry_point: str = "") -> Manifest:
+    """The manifest a class (a :class:`~faceretarget.retargeter.Retargeter` subclass, typed
+    ``Any`` so that this module stays below the retargeter's) declares on itself: ``name``, ``summary`` (else its docstring's
     first line), ``paper``, ``aliases``, ``baseline_of``, ``capabilities``, ``parameter_docs``,
     ``parameter_constraints`` and its ``__init__`` defaults."""
     declared = validation.constraints_of(cls)
@@ -263,7 +261,7 @@ def from_class(cls: type[Retargeter], entry_point: str = "") -> Manifest:
     )
 
 
-def disagreements(cls: type[Retargeter], manifest: Manifest) -> list[str]:
+def disagreements(cls: Any, manifest: Manifest) -> list[str]:
     """Where ``cls`` and its ``manifest`` differ: capabilities, parameter names, defaults and
     (when the class declares them) constraints. Empty when they agree."""
     out = []

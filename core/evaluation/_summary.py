@@ -17,9 +17,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from .._validate import did_you_mean
-from ..errors import ConfigError, UnknownNameError
-from .harness import OK, ComparisonResult
+from ._format import format_number
+from .harness import DEFAULT_RANKING_METRIC, OK, ComparisonResult, ranking_metric
 
 if TYPE_CHECKING:
     from ..registry import Registry
@@ -32,9 +31,6 @@ __all__ = [
     "DEFAULT_RANKING_METRIC",
     "CaseSummary",
 ]
-
-#: The metric the report ranks by unless told otherwise: distance to the ground truth.
-DEFAULT_RANKING_METRIC = "vertex_error_rms"
 
 PAPER, BASELINE, OTHER = "paper method", "baseline", "other"
 
@@ -122,27 +118,6 @@ def _registry_infos(registry: Registry | None) -> Mapping[str, Any]:
     return getattr(registry, "retargeters", {}) or {}
 
 
-def ranking_metric(result: ComparisonResult, name: str | None = None) -> str | None:
-    """The metric to rank by: ``name`` (checked), else :data:`DEFAULT_RANKING_METRIC` when it was
-    computed, else the first computed metric of ``RANKED_METRICS``; None when none was computed."""
-    from .metrics import RANKED_METRICS
-
-    if name is not None:
-        if name not in result.metrics:
-            raise UnknownNameError(
-                f"cannot rank by {name!r}{did_you_mean(name, result.metrics)}: not among the computed metrics {', '.join(result.metrics)}"
-            )
-        if result.better(name) not in ("lower", "higher"):
-            raise ConfigError(
-                f"cannot rank by {name!r}: it is descriptive (neither lower nor higher is better)"
-            )
-        return name
-    for candidate in (DEFAULT_RANKING_METRIC, *RANKED_METRICS):
-        if candidate in result.metrics:
-            return candidate
-    return None
-
-
 # ---------------------------------------------------------------------------------------
 # Per case
 # ---------------------------------------------------------------------------------------
@@ -179,8 +154,6 @@ def _order(values: Mapping[str, float], better: str) -> list[str]:
 
 
 def _num(v: float) -> str:
-    from .report import format_number
-
     return format_number(v)
 
 

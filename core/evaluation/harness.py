@@ -69,6 +69,8 @@ __all__ = [
     "COLUMNS",
 ]
 
+#: The metric the report ranks by unless told otherwise: distance to the ground truth.
+DEFAULT_RANKING_METRIC = "vertex_error_rms"
 OK = "ok"
 NOT_APPLICABLE = "not applicable"
 ERROR = "error"
@@ -281,7 +283,7 @@ class ComparisonResult:
         """Methods ordered by their mean rank over cases and metrics.
 
         For each case and each metric (default: the report's one ranking metric,
-        :func:`faceretarget.evaluation._summary.ranking_metric`, RMS vertex error when computed,
+        :func:`ranking_metric`, RMS vertex error when computed,
         so the console, ``results.json`` and the report agree) with a value for at least two methods, methods get ranks
         1..n (ties share the mean rank; "higher is better" metrics are ranked
         descending). A method's score is the mean of its ranks; methods with no rank
@@ -289,8 +291,6 @@ class ComparisonResult:
         mean_rank, ranked_cases, not_applicable, failed`` and the mean over cases of
         ``vertex_error_rms`` and ``time_total``.
         """
-        from ._summary import ranking_metric
-
         if metrics is None:
             default = ranking_metric(self)
             metrics = [] if default is None else [default]
@@ -818,3 +818,24 @@ def compare(
     runs = [done[key][0] for key in order]
     rows = [row for key in order for row in done[key][1]]
     return ComparisonResult(rows, runs, resolved, all_metrics)
+
+
+def ranking_metric(result: ComparisonResult, name: str | None = None) -> str | None:
+    """The metric to rank by: ``name`` (checked), else :data:`DEFAULT_RANKING_METRIC` when it was
+    computed, else the first computed metric of ``RANKED_METRICS``; None when none was computed."""
+    from .metrics import RANKED_METRICS
+
+    if name is not None:
+        if name not in result.metrics:
+            raise UnknownNameError(
+                f"cannot rank by {name!r}{did_you_mean(name, result.metrics)}: not among the computed metrics {', '.join(result.metrics)}"
+            )
+        if result.better(name) not in ("lower", "higher"):
+            raise ConfigError(
+                f"cannot rank by {name!r}: it is descriptive (neither lower nor higher is better)"
+            )
+        return name
+    for candidate in (DEFAULT_RANKING_METRIC, *RANKED_METRICS):
+        if candidate in result.metrics:
+            return candidate
+    return None

@@ -42,6 +42,7 @@ import numpy as np
 
 from ..errors import OutputError
 from ..model import MarkerSequence, MeshSequence
+from ._format import format_number
 from .harness import ERROR, NOT_APPLICABLE, OK, ComparisonResult, Run, atomic_write_text
 from .metrics import landmark_velocity_curve, per_vertex_error, to_head_frame
 
@@ -155,27 +156,6 @@ def _fmt(v: SupportsFloat | None) -> str:
     if abs(v) >= 1e4 or abs(v) < 1e-3:
         return f"{v:.3g}"
     return f"{v:.4g}"
-
-
-_SUPERSCRIPT = str.maketrans(
-    "-0123456789", "\u207b\u2070\u00b9\u00b2\u00b3\u2074\u2075\u2076\u2077\u2078\u2079"
-)
-
-
-def format_number(v: SupportsFloat | None) -> str:
-    """A number for people: ``12,934``, ``0.5468``, ``2.99×10⁻⁵`` (never ``1.29e+04``); "" for None / NaN."""
-    if v is None or not np.isfinite(float(v)):
-        return ""
-    v = float(v)
-    if v == 0:
-        return "0"
-    if abs(v) >= 1000:
-        return f"{v:,.0f}"
-    if abs(v) >= 1e-3:
-        return f"{v:.4g}"
-    mantissa, exponent = f"{v:.2e}".split("e")
-    mantissa = mantissa.rstrip("0").rstrip(".")
-    return f"{mantissa}\u00d710{str(int(exponent)).translate(_SUPERSCRIPT)}"
 
 
 #: Font sizes of the plot's text (``report.css``: ``.tick``/``.legend`` 10.5 px, ``.ptitle`` 13 px bold)
