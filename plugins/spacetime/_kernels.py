@@ -149,28 +149,61 @@ def thomas_apply(r, lam, known, yk, inv, y):
 
 
 @nb.njit(cache=True)
-def _thomas_shifted(y, r0, lam, known, yk, inv, sweep, carry):
-    """:func:`thomas_apply` of ``y + r0``, the result written back to ``y`` (which may be
-    float32): the forward pass reads both right-hand sides, the backward pass carries the
-    last row in float64 (``carry``, (m,)) and writes ``y`` once. ``sweep`` (F, m) float64."""
+def steady_pivots(lam, known, inv, limit, steady):
+    """The interior pivots of :func:`thomas_factor` converge geometrically to the fixed point of
+    ``x = 1 / (2 g + lam - g^2 x)`` (``g = 1 - lam``), ``limit[j] = 2 / (b + sqrt(b^2 - 4 g^2))``
+    with ``b = 2 g + lam``; ``steady[t]`` is True where every pivot of row t is within
+    ``1e-10 lam_j`` (relative) of it, so that the ADMM sweeps read ``limit`` (m values) in place of
+    row t of ``inv``. The mode's matrix has condition number about ``4 / lam_j``, so the solution
+    moves by at most ~4e-10 relative: far below the float32 w-step's 1e-6."""
+    n_frames, m = inv.shape
+    for j in range(m):
+        g = 1.0 - lam[j]
+        b = 2.0 * g + lam[j]
+        limit[j] = 2.0 / (b + np.sqrt(max(b * b - 4.0 * g * g, 0.0)))
+    for t in range(n_frames):
+        ok = (not known[t]) and 0 < t < n_frames - 1
+        if ok:
+            for j in range(m):
+                if abs(inv[t, j] - limit[j]) > 1e-10 * lam[j] * limit[j]:
+                    ok = False
+                    break
+        steady[t] = ok
+
+
+@nb.njit(cache=True)
+def _thomas_steady(y, lam, known, yk, inv, limit, steady, sweep, carry):
+    """:func:`thomas_apply` of ``y`` in place (``y`` may be float32): rows flagged ``steady``
+    (:func:`steady_pivots`) take their pivots from ``limit``; the recurrences run in float64
+    (``carry``, (m,)), ``sweep`` (F, m) float64 keeps the forward pass."""
     n_frames, m = y.shape
     for t in range(n_frames):
         if known[t]:
             for j in range(m):
-                sweep[t, j] = yk[t, j]
-        elif t > 0:
+                carry[j] = yk[t, j]
+                sweep[t, j] = carry[j]
+        elif t == 0:
             for j in range(m):
-                sweep[t, j] = (y[t, j] + r0[t, j] + (1.0 - lam[j]) * sweep[t - 1, j]) * inv[t, j]
+                carry[j] = y[t, j] * inv[t, j]
+                sweep[t, j] = carry[j]
+        elif steady[t]:
+            for j in range(m):
+                carry[j] = (y[t, j] + (1.0 - lam[j]) * carry[j]) * limit[j]
+                sweep[t, j] = carry[j]
         else:
             for j in range(m):
-                sweep[t, j] = (y[t, j] + r0[t, j]) * inv[t, j]
+                carry[j] = (y[t, j] + (1.0 - lam[j]) * carry[j]) * inv[t, j]
+                sweep[t, j] = carry[j]
     for j in range(m):
-        carry[j] = sweep[n_frames - 1, j]
         y[n_frames - 1, j] = carry[j]
     for t in range(n_frames - 2, -1, -1):
         if known[t]:
             for j in range(m):
                 carry[j] = sweep[t, j]
+                y[t, j] = carry[j]
+        elif steady[t]:
+            for j in range(m):
+                carry[j] = sweep[t, j] + (1.0 - lam[j]) * limit[j] * carry[j]
                 y[t, j] = carry[j]
         else:
             for j in range(m):
@@ -191,10 +224,13 @@ def tridiagonal_modes(r, lam, known, yk, y, scratch):
 
 @nb.njit(cache=True)
 def admm_box(
-    r0,
+    r_w,
     lam,
     known,
     yk,
+    inv,
+    limit,
+    steady,
     phi,
     phi_t,
     rho,
@@ -209,11 +245,9 @@ def admm_box(
     eps_abs,
     eps_rel,
     dual_unit,
-    w,
     ex,
     y,
     sweep,
-    inv,
 ):
     """ADMM for movement matching with box bounds and an L1 term on the weights.
 
@@ -222,25 +256,30 @@ def admm_box(
     ``w = z`` with the penalty ``rho/2 ||D^1/2 (w - z + u)||^2`` (``D = diag(scale)``): the w-step
     solves ``(H + rho I kron D) w = r + rho D (z - u)``, which keeps the Kronecker structure
     (``phi``/``lam`` are the generalized eigenpairs of ``(K + rho D, G + K + rho D)``), so it is one
-    tridiagonal sweep per mode, factored once (:func:`thomas_factor`); the z-step is the prox of
-    the box + L1 term, ``clip(soft(v, l1_j / (rho d_j)), lo_j, hi_j)``, element by element (Boyd
-    et al. 2011, sec. 5-6, with over-relaxation ``relax``).
+    tridiagonal sweep per mode, factored once per step size (``inv``, ``limit``, ``steady``:
+    :func:`thomas_factor`, :func:`steady_pivots`); the z-step is the prox of the box + L1 term,
+    ``clip(soft(v, l1_j / (rho d_j)), lo_j, hi_j)``, element by element (Boyd et al. 2011,
+    sec. 5-6, with over-relaxation ``relax``).
 
-    The two changes of basis of the w-step, ``(F, m) x (m, m)`` products and most of an
-    iteration's time, run in the dtype of ``phi`` (float32 by default, ``solver.ADMM_SINGLE``: twice
-    the float64 speed): an inexact w-step whose relative error, about 1e-6, is far below the
-    stopping tolerance. The sweep, the prox, the iterates ``z``, ``u`` and the residuals are float64.
+    The w-step's right-hand side ``r + rho D (z - u)`` is formed in ``ex`` by the z-step and taken
+    to modal coordinates by one product, ``(F, m) x (m, m)``; that product and the one back,
+    most of an iteration's time, run in the dtype of ``phi`` (float32 by default,
+    ``solver.ADMM_SINGLE``: twice the float64 speed): an inexact w-step whose relative error,
+    about 1e-6, is far below the stopping tolerance. The sweep, the prox, the iterates ``z``,
+    ``u`` and the residuals are float64. ``ex`` holds the w-step's result and is overwritten
+    by the next right-hand side row by row, so that the iteration touches as little memory as
+    possible (it is memory-bound apart from the products).
 
     scale, l1, lo, hi : (m,) the penalty's diagonal ``D``, per-shape L1 weights and bounds.
-    r0 : (F, m) modal right-hand side ``Phi^T r`` of the unknown frames; known frames keep
-    ``yk`` (modal) and their ``z`` rows. ``z``, ``u`` (scaled dual) are updated in place;
-    ``w``, ``ex``, ``y`` (the dtype of ``phi``) and ``sweep``, ``inv`` (float64) are (F, m) work arrays. The
+    r_w : (F, m) right-hand side ``r`` of the unknown frames (dtype of ``phi``); known frames
+    keep ``yk`` (modal) and their ``z`` rows. ``z``, ``u`` (scaled dual) are updated in place;
+    ``ex``, ``y`` (the dtype of ``phi``) and ``sweep`` (float64) are (F, m) work arrays. The
     dual residual has the units of the system's matrices: its absolute tolerance is
     ``eps_abs * dual_unit`` (a typical diagonal entry), so the iterations do not depend on the
     length unit of the data. Returns ``(iterations, primal, dual, eps_primal, eps_dual)`` of the
     last iteration; iterations is negative if the tolerance was not reached within ``max_iter``.
     """
-    n_frames, m = r0.shape
+    n_frames, m = z.shape
     n_free = 0
     for t in range(n_frames):
         if not known[t]:
@@ -250,22 +289,23 @@ def admm_box(
     thresh = l1 / penalty  # soft threshold of the prox, per shape
     scale2 = scale * scale
     acc = np.zeros((5, m))  # per-shape sums (vectorized): primal, dual, |w|, |z|, |D u| squared
-    thomas_factor(lam, known, inv)
     carry = np.empty(m)
     for t in range(n_frames):
         for j in range(m):
-            ex[t, j] = 0.0 if known[t] else penalty[j] * (z[t, j] - u[t, j])
+            ex[t, j] = 0.0 if known[t] else penalty[j] * (z[t, j] - u[t, j]) + r_w[t, j]
     primal = dual = eps_p = eps_d = 0.0
     for it in range(max_iter):
         np.dot(ex, phi, y)  # BLAS (sgemm)
-        _thomas_shifted(y, r0, lam, known, yk, inv, sweep, carry)
-        np.dot(y, phi_t, w)
+        _thomas_steady(y, lam, known, yk, inv, limit, steady, sweep, carry)
+        np.dot(y, phi_t, ex)  # ex = w
         acc[:] = 0.0
         for t in range(n_frames):
             if known[t]:
+                for j in range(m):
+                    ex[t, j] = 0.0
                 continue
             for j in range(m):
-                wt = np.float64(w[t, j])
+                wt = np.float64(ex[t, j])
                 wr = relax * wt + (1.0 - relax) * z[t, j]
                 v = wr + u[t, j]
                 v -= min(max(v, -thresh[j]), thresh[j])  # soft threshold, branch-free
@@ -280,7 +320,7 @@ def admm_box(
                 acc[4, j] += scale2[j] * ut * ut
                 u[t, j] = ut
                 z[t, j] = zn_
-                ex[t, j] = penalty[j] * (zn_ - ut)
+                ex[t, j] = penalty[j] * (zn_ - ut) + r_w[t, j]
         primal = np.sqrt(acc[0].sum())
         dual = rho * np.sqrt(acc[1].sum())
         eps_p = eps_abs * root + eps_rel * np.sqrt(max(acc[2].sum(), acc[3].sum()))

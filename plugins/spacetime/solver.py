@@ -291,9 +291,10 @@ def solve_movement_bounded(
     known = np.ascontiguousarray(known, dtype=np.bool_)
     wk = np.ascontiguousarray(known_weights, dtype=np.float64)
     m = system.n_shapes
-    lo = np.ascontiguousarray(np.broadcast_to(np.asarray(lower, dtype=np.float64), (m,)))
-    hi = np.ascontiguousarray(np.broadcast_to(np.asarray(upper, dtype=np.float64), (m,)))
-    l1 = np.ascontiguousarray(np.broadcast_to(np.asarray(l1, dtype=np.float64), (m,)))
+    # writable copies: one compiled specialization of the kernels, whatever the caller passes
+    lo = np.array(np.broadcast_to(np.asarray(lower, dtype=np.float64), (m,)))
+    hi = np.array(np.broadcast_to(np.asarray(upper, dtype=np.float64), (m,)))
+    l1 = np.array(np.broadcast_to(np.asarray(l1, dtype=np.float64), (m,)))
     stats = BoundedStats() if stats is None else stats
     missing = np.isnan(s[:, 0::3])
     structured = not missing.any() and frame_weights is None
@@ -303,12 +304,11 @@ def solve_movement_bounded(
     else:
         start = _solve_general(system, s, missing, known, wk, frame_weights)
     start[known] = wk[known]
-    free = ~known
-    inside = np.all((start[free] >= lo) & (start[free] <= hi))
-    if inside and not l1.any():
+    z = np.clip(start, lo, hi)
+    z[known] = wk[known]
+    if not l1.any() and np.array_equal(z, start):  # the bounds hold already
         stats.iterations, stats.converged = 0, True
         return start
-    z = np.where(free[:, None], np.clip(start, lo, hi), wk)
     u = np.zeros_like(z)
     if structured:
         _admm_structured(system, r_w, known, wk, lo, hi, l1, z, u, stats)
@@ -387,29 +387,37 @@ def _modal_solve(
 
 
 def _admm_structured(system, r_w, known, wk, lo, hi, l1, z, u, stats) -> None:
-    from ._kernels import admm_box
+    from ._kernels import admm_box, steady_pivots, thomas_factor
 
     n_frames, m = z.shape
     unit = _unit(system)
     rho = ADMM_RHO_SCALE * unit
     scale = system.admm_scale
     basis_dtype = np.float32 if ADMM_SINGLE else np.float64
-    single = np.empty((3, n_frames, m), dtype=basis_dtype)  # w, ex, y of admm_box
-    double = np.empty((2, n_frames, m))  # its sweep and factor
+    r_single = r_w.astype(basis_dtype)
+    ex = np.empty((n_frames, m), dtype=basis_dtype)
+    y = np.empty((n_frames, m), dtype=basis_dtype)
+    sweep = np.empty((n_frames, m))
+    inv = np.empty((n_frames, m))
+    limit, steady = np.empty(m), np.empty(n_frames, dtype=np.bool_)
     done, modal_rho = 0, None
     while True:
-        if rho != modal_rho:  # the modal data change with the step size only
+        if rho != modal_rho:  # the modal data and the factor change with the step size only
             phi, phi_t, lam, mass_phi = system.shifted_modal(rho)
-            r0 = r_w @ phi
             yk = _known_modal(wk, known, mass_phi)
             phi_w, phi_t_w = phi.astype(basis_dtype), phi_t.astype(basis_dtype)
+            thomas_factor(lam, known, inv)
+            steady_pivots(lam, known, inv, limit, steady)
             modal_rho = rho
         chunk = min(ADMM_CHUNK, ADMM_MAX_ITER - done)
         it, primal, dual, eps_p, eps_d = admm_box(
-            r0,
+            r_single,
             lam,
             known,
             yk,
+            inv,
+            limit,
+            steady,
             phi_w,
             phi_t_w,
             rho,
@@ -424,11 +432,9 @@ def _admm_structured(system, r_w, known, wk, lo, hi, l1, z, u, stats) -> None:
             ADMM_EPS_ABS,
             ADMM_EPS_REL,
             unit,
-            single[0],
-            single[1],
-            single[2],
-            double[0],
-            double[1],
+            ex,
+            y,
+            sweep,
         )
         done += abs(it)
         stats.iterations, stats.rho, stats.primal, stats.dual = done, rho, primal, dual

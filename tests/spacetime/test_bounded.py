@@ -272,3 +272,38 @@ def test_units_of_the_source_do_not_change_the_weights(synthetic_case):
         )
         < 1e-9
     )
+
+
+def test_admm_sweep_with_steady_pivots_matches_the_thomas_solve():
+    """The ADMM sweep reads the converged interior pivot in place of most rows of the factor:
+    same solution as the plain Thomas solve (float64), with known frames cutting the chain."""
+    from faceretarget.plugins.spacetime import _kernels as k
+
+    rng = np.random.default_rng(3)
+    n_frames, m = 400, 6
+    lam = np.array([0.01, 0.03, 0.1, 0.5, 0.9, 1.0])
+    known = np.zeros(n_frames, bool)
+    known[[0, 150, 151, 399]] = True
+    yk = rng.normal(size=(n_frames, m))
+    r = rng.normal(size=(n_frames, m))
+    inv, limit, steady = np.empty((n_frames, m)), np.empty(m), np.empty(n_frames, bool)
+    k.thomas_factor(lam, known, inv)
+    k.steady_pivots(lam, known, inv, limit, steady)
+    assert 0.3 < steady.mean() < 0.95  # the fast path runs, and not on every row
+    assert not steady[known].any() and not steady[[1, 152]].any()
+    g = 1 - lam
+    np.testing.assert_allclose(limit, 1 / (2 * g + lam - g * g * limit), rtol=1e-13)
+    want = np.empty_like(r)
+    k.thomas_apply(r, lam, known, yk, inv, want)
+    got, sweep, carry = r.copy(), np.empty_like(r), np.empty(m)
+    k._thomas_steady(got, lam, known, yk, inv, limit, steady, sweep, carry)
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
+    # a mode whose pivots converge too slowly keeps every row on the factor
+    slow = np.array([1e-4, 0.1, 0.1, 0.1, 0.1, 0.1])
+    k.thomas_factor(slow, known, inv)
+    k.steady_pivots(slow, known, inv, np.empty(m), flags := np.empty(n_frames, bool))
+    assert not flags.any()
+    k.thomas_factor(lam, known, inv)
+    # a wrong limit on the steady rows is seen
+    k._thomas_steady(got := r.copy(), lam, known, yk, inv, limit * 1.001, steady, sweep, carry)
+    assert np.abs(got - want).max() > 1e-6 * np.abs(want).max()
