@@ -432,8 +432,9 @@ def _knot_change(
 def _nnls_sparse(hessian, rhs, start, max_iter: int = 100) -> np.ndarray:
     """``argmin 1/2 x^T H x - rhs . x`` s.t. ``x >= 0`` for a sparse SPD ``H`` (here block-tridiagonal
     over the knots): a primal-dual active-set method (Hintermueller, Ito & Kunisch 2002), each
-    step one sparse solve on the free variables. Falls back to the dense active-set NNLS if the
-    active set does not settle."""
+    step one sparse solve on the free variables. The method is exact and fast when its active
+    set settles, but it may cycle when ``H`` is not an M-matrix (a weight metric couples the
+    bases); then :func:`_nnls_admm` finishes the job."""
     from scipy.sparse.linalg import splu
 
     n = rhs.size
@@ -442,6 +443,7 @@ def _nnls_sparse(hessian, rhs, start, max_iter: int = 100) -> np.ndarray:
     c = float(np.mean(hessian.diagonal())) or 1.0
     active = (grad - c * x > 0) & (x <= 0)
     seen = set()
+    tol = 1e-12 * max(float(np.abs(rhs).max()), 1e-300)
     for _ in range(max_iter):
         free = np.flatnonzero(~active)
         x = np.zeros(n)
@@ -450,7 +452,6 @@ def _nnls_sparse(hessian, rhs, start, max_iter: int = 100) -> np.ndarray:
         grad = hessian @ x - rhs
         grad[free] = 0.0
         new_active = grad - c * x > 0
-        tol = 1e-12 * max(float(np.abs(rhs).max()), 1e-300)
         if np.array_equal(new_active, active) and (x >= -tol).all() and (grad >= -tol).all():
             return np.maximum(x, 0.0)
         key = new_active.tobytes()
@@ -458,7 +459,65 @@ def _nnls_sparse(hessian, rhs, start, max_iter: int = 100) -> np.ndarray:
             break
         seen.add(key)
         active = new_active
-    return nnls_rows(hessian.toarray(), rhs[None])[0]
+    x, exact = _nnls_admm(hessian, rhs, np.maximum(start, 0.0))
+    if exact or n > NNLS_DENSE_LIMIT:
+        return x
+    return nnls_rows(hessian.toarray(), rhs[None])[0]  # small and ill-conditioned: dense, exact
+
+
+#: ADMM of :func:`_nnls_admm`: iterations in all, and between two attempts at the exact answer;
+#: problems up to ``NNLS_DENSE_LIMIT`` variables that ADMM does not settle go to the dense
+#: active-set method (exact; minutes at ~3,000 variables, hence not beyond).
+NNLS_ADMM_MAX_ITER = 5000
+NNLS_ADMM_POLISH_EVERY = 10
+NNLS_DENSE_LIMIT = 1000
+
+
+def _nnls_admm(hessian, rhs, start) -> tuple[np.ndarray, bool]:
+    """The bounded QP of :func:`_nnls_sparse` by ADMM (Boyd et al. 2011, sec. 5.2; splitting
+    ``x = z``, ``z >= 0``; over-relaxed) with one sparse factorization of ``H + rho I``, and
+    *polished* (OSQP's idea): every few iterations the support of ``z`` is taken as the free
+    set and solved exactly; the answer is returned as soon as it satisfies the KKT conditions
+    (``x_free >= 0``, gradient >= 0 on the rest), so it is the exact optimum, not an ADMM
+    iterate. Each iteration costs one sparse triangular solve (a 3,108-variable,
+    107-knot problem: ~0.2 ms), where the dense active-set method took minutes. Returns
+    ``(x, exact)``: ``exact`` False if no polish passed within ``NNLS_ADMM_MAX_ITER``; then ``x``
+    is the last iterate, feasible, and close in energy: on a 3,136-variable knot problem of
+    an 80K-vertex edit (condition number ~1e13) its objective was 6e-7 (relative) above the
+    exact optimum's (scipy's NNLS on the Cholesky factor, 24 s), the difference's energy
+    ``d^T H d`` 6e-7 of the solution's; the weights differ only along directions the metric
+    barely sees (the face does not change)."""
+    from scipy.sparse import identity
+    from scipy.sparse.linalg import splu
+
+    n = rhs.size
+    rho = float(np.mean(hessian.diagonal())) or 1.0
+    factor = splu((hessian + rho * identity(n, format="csc")).tocsc())
+    z = np.maximum(np.asarray(start, dtype=np.float64), 0.0)
+    u = np.zeros(n)
+    tol = 1e-10 * max(float(np.abs(rhs).max()), 1e-300)  # KKT, to rounding
+    tried: set[bytes] = set()
+    for it in range(NNLS_ADMM_MAX_ITER):
+        x = factor.solve(rhs + rho * (z - u))
+        xr = 1.6 * x - 0.6 * z  # over-relaxation, alpha = 1.6
+        z = np.maximum(xr + u, 0.0)
+        u += xr - z
+        if (it + 1) % NNLS_ADMM_POLISH_EVERY:
+            continue
+        support = z > 0
+        key = support.tobytes()
+        if key in tried:
+            continue
+        tried.add(key)
+        free = np.flatnonzero(support)
+        exact = np.zeros(n)
+        if free.size:
+            exact[free] = splu(hessian[free][:, free].tocsc()).solve(rhs[free])
+        grad = hessian @ exact - rhs
+        grad[free] = 0.0
+        if (exact >= -tol).all() and (grad >= -tol).all():
+            return np.maximum(exact, 0.0), True
+    return z, False
 
 
 def _constraint_energy(bases, center, weights, constraints, mu):
