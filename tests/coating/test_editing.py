@@ -610,17 +610,20 @@ def test_sparse_nnls_admm_gives_the_exact_bounded_optimum():
     np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
 
 
-def test_sparse_nnls_when_the_active_set_method_cycles(monkeypatch):
+@pytest.mark.parametrize("dense_limit", [1000, 0])
+def test_sparse_nnls_when_the_active_set_method_cycles(monkeypatch, dense_limit):
     """Seed 179 makes the primal-dual active-set method cycle (it used to fall back to the dense
-    active-set method at any size: minutes for a 107-knot edit); the answer stays exact."""
+    active-set method at any size: minutes for a 107-knot edit). Small problems go to the dense
+    method, large ones to ADMM (forced here with a limit of 0): the answer stays exact."""
     from faceretarget.plugins.coating import editing
     from faceretarget.plugins.coating.bases import nnls_rows
 
     calls = []
     admm = editing._nnls_admm
     monkeypatch.setattr(editing, "_nnls_admm", lambda *a: calls.append(1) or admm(*a))
+    monkeypatch.setattr(editing, "NNLS_DENSE_LIMIT", dense_limit)
     hessian, rhs = _knot_problem(seed=179, n=10, k=6, decades=2)
     got = editing._nnls_sparse(hessian, rhs, np.zeros(rhs.size))
     want = nnls_rows(hessian.toarray(), rhs[None])[0]
-    assert calls  # the fallback ran
+    assert bool(calls) == (dense_limit == 0)
     np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
