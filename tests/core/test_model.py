@@ -200,7 +200,8 @@ def test_animation_lazy_vertices_with_head_motion_and_provenance():
     anim = fr.Animation(
         weights=[[0.0], [1.0]], rig=rig, head_motion=motion, provenance={"method": "x"}
     )
-    assert anim.is_blendshape_based and anim._vertices is None
+    assert anim.is_blendshape_based and not anim.is_computed
+    assert anim.compute() is anim and anim.is_computed
     np.testing.assert_allclose(anim.vertices[1], v + 1 + [10, 0, 0])
     np.testing.assert_allclose(anim.local_vertices[1], v + 1)
     assert anim.weight_names == ("lift",) and anim.provenance["method"] == "x"
