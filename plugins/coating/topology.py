@@ -10,6 +10,9 @@ back to the target's own vertices.
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -57,8 +60,32 @@ def _identity(frames: np.ndarray) -> np.ndarray:
     return frames
 
 
+#: Resampled targets kept per process (by content): each costs a non-rigid ICP (seconds at 20K
+#: vertices), and fitting several methods, or one method several times, on the same pair
+#: repeats it (the demo's detail-transfer reproductions spent 38% of their time there).
+_CACHE_SIZE = 4
+_cache: OrderedDict[bytes, CommonTopology] = OrderedDict()
+_cache_lock = threading.Lock()
+
+
+def _content_key(source: Source, target: TargetRig) -> bytes:
+    """A digest of everything :func:`common_topology` reads of its inputs."""
+    digest = hashlib.blake2b(digest_size=20)
+    for mesh in (source.performance.reference, target.neutral):
+        digest.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+        digest.update(np.ascontiguousarray(mesh.triangles, dtype=np.int64).tobytes())
+    for marks in (source.landmarks, target.landmarks):
+        for part in (marks.vertex_ids, marks.triangle_ids, marks.barycentric):
+            digest.update(b"-" if part is None else np.ascontiguousarray(part).tobytes())
+        digest.update(repr(tuple(marks.names)).encode())
+    for name, chain in sorted(target.feature_lines.items()):
+        digest.update(name.encode() + np.ascontiguousarray(chain, dtype=np.int64).tobytes())
+    return digest.digest()
+
+
 def common_topology(source: Source, target: TargetRig, *, what: str) -> CommonTopology:
-    """Bring ``target`` into the topology of the source's mesh sequence."""
+    """Bring ``target`` into the topology of the source's mesh sequence (resamplings are
+    cached by content: the arrays of the result are read-only and shared)."""
     src_mesh = source.performance.reference
     tgt_mesh = target.neutral
     if same_topology(src_mesh, tgt_mesh):
@@ -75,8 +102,32 @@ def common_topology(source: Source, target: TargetRig, *, what: str) -> CommonTo
             f"({src_mesh.n_vertices} vertices); resampling it needs landmarks on both: pass Source(..., landmarks=...) "
             "and TargetRig(..., landmarks=...) (corresponding points, same order)"
         )
+    key = _content_key(source, target)
+    with _cache_lock:
+        hit = _cache.get(key)
+        if hit is not None:
+            _cache.move_to_end(key)
+    if hit is None:
+        hit = _resample(source, target)
+        with _cache_lock:
+            _cache[key] = hit
+            while len(_cache) > _CACHE_SIZE:
+                _cache.popitem(last=False)
+    return CommonTopology(
+        False,
+        hit.target_reference,
+        dict(hit.target_lines),
+        hit.back,
+        hit.target_vertex,
+        dict(hit.report),
+    )
+
+
+def _resample(source: Source, target: TargetRig) -> CommonTopology:
     from faceretarget.correspond import closest_point_transfer, resample_to_topology
 
+    src_mesh = source.performance.reference
+    tgt_mesh = target.neutral
     resampled, report = resample_to_topology(src_mesh, source.landmarks, tgt_mesh, target.landmarks)
     verts = np.asarray(resampled.vertices, dtype=np.float64)
     from scipy.spatial import cKDTree
@@ -95,6 +146,8 @@ def common_topology(source: Source, target: TargetRig, *, what: str) -> CommonTo
         closest_point_transfer(tgt_mesh, resampled),
     )
     info = report.as_dict() if hasattr(report, "as_dict") else dict(report)
+    for array in (verts, target_vertex, back.rest, back.resampled, *lines.values()):
+        array.flags.writeable = False  # shared by every fit on this pair
     return CommonTopology(False, verts, lines, back, target_vertex, info)
 
 
