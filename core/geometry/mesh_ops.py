@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from .._validate import readonly
 from ..errors import ShapeError
 
 
@@ -68,7 +69,7 @@ def vertex_normals(
         raise ShapeError(
             f"vertex_normals: out must be a C-contiguous float64 ({n}, 3) array, got {out.dtype} {out.shape}"
         )
-    kernel(v, t, out)
+    kernel(readonly(v), readonly(t), out)  # read-only: one compiled specialization
     return out
 
 

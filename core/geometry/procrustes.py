@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from .._validate import readonly
 from ..errors import DegenerateGeometryError, ShapeError
 
 
@@ -80,10 +81,10 @@ def fit_rigid(
     rot = np.empty((n_frames, dim, dim))
     trans = np.empty((n_frames, dim))
     s = np.empty(n_frames)
-    skipped = kabsch(
-        np.ascontiguousarray(ref if per_frame else ref[None]),
-        np.ascontiguousarray(frm),
-        np.ascontiguousarray(w),
+    skipped = kabsch(  # read-only inputs: one compiled specialization
+        readonly(np.ascontiguousarray(ref if per_frame else ref[None])),
+        readonly(np.ascontiguousarray(frm)),
+        readonly(np.ascontiguousarray(w)),
         bool(scale),
         dim if min_points is None else int(min_points),
         rot,
@@ -129,7 +130,9 @@ def apply(transforms: np.ndarray, points: np.ndarray) -> np.ndarray:
         if frames.shape[0] == m.shape[0]:
             frames = np.ascontiguousarray(frames)
             out = np.empty(frames.shape)
-            transform_points(np.ascontiguousarray(m), frames, _NO_REFERENCE, False, out)
+            transform_points(
+                readonly(np.ascontiguousarray(m)), readonly(frames), _NO_REFERENCE, False, out
+            )
             return out
     lin = m[:, :dim, :dim]
     return (
@@ -160,7 +163,13 @@ def remove(
         if ref.shape not in ((0, 3), p.shape[1:]):
             raise ShapeError(f"remove: reference must be {p.shape[1:]}, got {ref.shape}")
         out = np.empty(p.shape)
-        bad = transform_points(np.ascontiguousarray(m), np.ascontiguousarray(p), ref, True, out)
+        bad = transform_points(
+            readonly(np.ascontiguousarray(m)),
+            readonly(np.ascontiguousarray(p)),
+            readonly(ref),
+            True,
+            out,
+        )
         if bad >= 0:
             raise DegenerateGeometryError(
                 f"remove: the transform of frame {bad} is singular (or NaN); give invertible head motion"
@@ -176,7 +185,7 @@ def remove(
 
 
 #: ``transform_points``' reference when there is none (no rows: nothing subtracted).
-_NO_REFERENCE = np.zeros((0, 3))
+_NO_REFERENCE = readonly(np.zeros((0, 3)))
 
 
 def _points(points: npt.ArrayLike) -> np.ndarray:

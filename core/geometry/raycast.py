@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .._validate import check_finite
+from .._validate import check_finite, readonly
 from ..errors import ShapeError
 
 __all__ = [
@@ -109,6 +109,12 @@ class BVH:
     count: np.ndarray
     order: np.ndarray
 
+    def __post_init__(self) -> None:
+        # read-only views: the kernels then see one array type whatever the caller passed
+        # (a writable and a read-only argument are two numba specializations, compiled apart)
+        for name in self.__dataclass_fields__:
+            object.__setattr__(self, name, readonly(getattr(self, name)))
+
     def refit(self, vertices: np.ndarray) -> BVH:
         """The same tree with boxes recomputed for new ``vertices : (V, 3)`` (same topology)."""
         from . import _raycast_kernels as k
@@ -121,7 +127,15 @@ class BVH:
         lo = np.empty_like(self.node_lo)
         hi = np.empty_like(self.node_hi)
         k.refit_bounds(
-            self.left, self.right, self.start, self.count, self.order, v, self.triangles, lo, hi
+            self.left,
+            self.right,
+            self.start,
+            self.count,
+            self.order,
+            readonly(v),
+            self.triangles,
+            lo,
+            hi,
         )
         return BVH(
             v, self.triangles, lo, hi, self.left, self.right, self.start, self.count, self.order
@@ -185,7 +199,7 @@ def build_bvh(vertices: np.ndarray, triangles: np.ndarray, *, leaf_size: int = L
     left, right, start, count = k.build_topology(codes[order], int(leaf_size))
     lo = np.empty((len(left), 3))
     hi = np.empty((len(left), 3))
-    k.refit_bounds(left, right, start, count, order, v, t, lo, hi)
+    k.refit_bounds(left, right, start, count, order, readonly(v), readonly(t), lo, hi)
     return BVH(v, t, lo, hi, left, right, start, count, order)
 
 
@@ -393,7 +407,7 @@ class RayCaster:
         tri = np.empty(n, np.int64)
         bary = np.empty((n, 3))
         d2 = np.empty(n)
-        k.closest_points(*self.bvh.arrays, p, limit * limit, tri, bary, d2)
+        k.closest_points(*self.bvh.arrays, readonly(p), limit * limit, tri, bary, d2)
         hits = _hits(self.vertices, self.triangles, tri, bary, np.sqrt(d2))
         found = tri >= 0
         a = self.vertices[self.triangles[tri[found], 0]]

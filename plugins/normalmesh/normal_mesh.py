@@ -40,6 +40,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from faceretarget._validate import readonly
 from faceretarget.geometry.mesh_ops import directed_edges, face_areas
 from faceretarget.geometry.raycast import BVH, RayCaster, build_bvh, triangle_neighbors
 from faceretarget.geometry.subdivision import LoopStep, edge_table, loop_hierarchy
@@ -528,7 +529,7 @@ class FrameDecomposer:
             found = np.empty(step.n_odd, dtype=np.int64)
             start = self._start[level]
             k.trace_level(
-                v,
+                readonly(v),  # one compiled specialization, whatever the caller passed
                 surf.triangles,
                 surf.neighbors,
                 X,

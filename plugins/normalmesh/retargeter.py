@@ -44,7 +44,7 @@ from typing import ClassVar
 import numpy as np
 
 from faceretarget import manifest
-from faceretarget._validate import as_array
+from faceretarget._validate import as_array, readonly
 from faceretarget.errors import (
     DegenerateGeometryError,
     InputError,
@@ -654,8 +654,9 @@ class NormalMeshRetargeter(Retargeter):
                     "pk,pkd->pd", self.slide_barycentric_, local[self.slide_corners_]
                 )
                 y_normals, t_normals = np.empty_like(y), np.empty_like(finest)
-                vertex_normals(y, finest_tri, y_normals)
-                vertex_normals(finest, finest_tri, t_normals)
+                # read-only inputs, as geometry.mesh_ops passes them: one compiled kernel
+                vertex_normals(readonly(y), readonly(finest_tri), y_normals)
+                vertex_normals(readonly(finest), readonly(finest_tri), t_normals)
                 slid = np.empty_like(finest)
                 k.slide(
                     y,
