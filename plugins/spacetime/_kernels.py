@@ -267,8 +267,7 @@ def admm_box(
     ``solver.ADMM_SINGLE``: twice the float64 speed): an inexact w-step whose relative error,
     about 1e-6, is far below the stopping tolerance. The sweep, the prox, the iterates ``z``,
     ``u`` and the residuals are float64. ``ex`` holds the w-step's result and is overwritten
-    by the next right-hand side row by row, so that the iteration touches as little memory as
-    possible (it is memory-bound apart from the products).
+    by the next right-hand side row by row (one work array fewer).
 
     scale, l1, lo, hi : (m,) the penalty's diagonal ``D``, per-shape L1 weights and bounds.
     r_w : (F, m) right-hand side ``r`` of the unknown frames (dtype of ``phi``); known frames
