@@ -142,7 +142,7 @@ def active_set_qp(
     tol_abs = tol * scale
     entered = -1
     for it in range(max_iter):
-        nf = 0
+        nf = np.int64(0)  # not a literal 0: the calls below would compile a second specialization
         for i in range(n):
             if status[i] == FREE:
                 free[nf] = i

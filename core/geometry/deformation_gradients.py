@@ -36,6 +36,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from .. import config
+from .._validate import readonly
 from ..errors import DegenerateGeometryError, ShapeError, TopologyMismatchError
 from .factorized import SPDFactor
 from .mesh_ops import face_areas, vertex_adjacency
@@ -137,7 +138,8 @@ def gradient_columns(
     t = np.ascontiguousarray(triangles, dtype=np.int64)
     out = np.empty((3 * t.shape[0], 3 * p.shape[0]))
     bad = np.zeros((p.shape[0], t.shape[0]), dtype=np.bool_)
-    kernel(p, t, np.ascontiguousarray(inverse, dtype=np.float64), out, bad)
+    inv = np.ascontiguousarray(inverse, dtype=np.float64)
+    kernel(readonly(p), readonly(t), readonly(inv), out, bad)  # read-only: one specialization
     if bad.any():
         f = int(np.flatnonzero(bad.any(axis=1))[0])
         ids = np.flatnonzero(bad[f])

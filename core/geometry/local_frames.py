@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
+from .._validate import readonly
 from ..errors import DegenerateGeometryError, ShapeError
 from .mesh_ops import unique_edges, vertex_normals
 
@@ -90,8 +91,9 @@ class VertexFrames:
         self.vt_ptr = np.concatenate(
             [[0], np.cumsum(np.bincount(corner_vertex, minlength=n_vertices))]
         ).astype(np.int64)
-        self.triangles = t
-        self.neighbors = nb_
+        # read-only whatever the caller passed: one compiled specialization of the kernels
+        self.triangles = readonly(t)
+        self.neighbors = readonly(nb_)
         self.n_vertices = n_vertices
 
     def _points(self, points: npt.ArrayLike, what: str) -> tuple[np.ndarray, bool]:

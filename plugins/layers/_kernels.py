@@ -530,7 +530,8 @@ def solve_frames(
                             r = K + l * J + j
                             y[r] = W[l, j]
                             cm[r] = c[r] + mu * W[l, j]
-                    active_set_qp(Gm, cm, lo, hi, group, sums, y, _QP_MAX_ITER, _QP_TOL)
+                    # np.int64: a literal argument is a specialization of its own
+                    active_set_qp(Gm, cm, lo, hi, group, sums, y, np.int64(_QP_MAX_ITER), _QP_TOL)
                     _unpack(y, K, alpha_y, W_y)
                     lin, quad = _evaluate(Hf, used, alpha_y, W_y, gt, layer_of, beta_y, h_y)
                     if nr > 0:

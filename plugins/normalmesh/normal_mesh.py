@@ -201,7 +201,7 @@ def _predict(step: LoopStep, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     pred = np.ascontiguousarray(step.matrix @ X)
     normals = np.empty_like(pred)
-    vertex_normals(pred, step.triangles, normals)
+    vertex_normals(readonly(pred), readonly(step.triangles), normals)  # one kernel (read-only)
     return pred, normals
 
 
@@ -528,14 +528,14 @@ class FrameDecomposer:
             status = np.empty(step.n_odd, dtype=np.int8)
             found = np.empty(step.n_odd, dtype=np.int64)
             start = self._start[level]
-            k.trace_level(
-                readonly(v),  # one compiled specialization, whatever the caller passed
-                surf.triangles,
-                surf.neighbors,
-                X,
-                pred,
-                normals,
-                step.edges,
+            k.trace_level(  # read-only inputs: one compiled specialization, whatever the caller passed
+                readonly(v),
+                readonly(surf.triangles),
+                readonly(surf.neighbors),
+                readonly(X),
+                readonly(pred),
+                readonly(normals),
+                readonly(step.edges),
                 n0,
                 self._skip[level],
                 start,

@@ -762,7 +762,7 @@ def local_frames(X: np.ndarray, triangles: np.ndarray, neighbour: np.ndarray) ->
 
     X = np.ascontiguousarray(X, dtype=np.float64)
     n = np.empty_like(X)
-    vertex_normals(X, triangles, n)
+    vertex_normals(readonly(X), readonly(triangles), n)  # read-only, as everywhere: one kernel
     out = np.empty((len(X), 3, 3))
     k.local_frames(X, n, neighbour, out)
     return out

@@ -3,6 +3,7 @@
 import numpy as np
 from naive.normalmesh import vertex_normals_naive
 
+from faceretarget._validate import readonly
 from faceretarget.geometry.mesh_ops import vertex_normals
 from faceretarget.geometry.raycast import RayCaster, triangle_neighbors
 from faceretarget.plugins.normalmesh import _kernels as k
@@ -118,9 +119,10 @@ def test_trace_level_matches_a_global_query(face):
     Y, status = pred.copy(), np.empty(step.n_odd, np.int8)
     skip = np.zeros(step.n_odd, bool)
     found = np.empty(step.n_odd, np.int64)
-    k.trace_level(
-        v, f, nb, X, pred, normals, step.edges, n0, skip, start, 1.0, 64, Y, status, found
-    )
+    ro = [
+        readonly(a) for a in (v, f, nb, X, pred, normals, step.edges)
+    ]  # as the library passes them
+    k.trace_level(*ro, n0, skip, start, 1.0, 64, Y, status, found)
     hit = status == k.TRACE_HIT
     assert (found[hit] == glob.triangle[hit]).all()
     assert hit.mean() > 0.9
