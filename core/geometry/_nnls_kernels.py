@@ -35,7 +35,9 @@ _RIDGE_START = 1e-13  # relative ridge tried first when a free block is singular
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def cholesky(a: np.ndarray, n: int, ridge: float, pivot_min: float, out: np.ndarray) -> bool:
+def cholesky(
+    a: np.ndarray, n: int | np.integer, ridge: float, pivot_min: float, out: np.ndarray
+) -> bool:
     """Lower Cholesky factor of ``a[:n, :n] + ridge * I`` into ``out[:n, :n]`` (upper part
     untouched). False, with ``out`` partly written, if a pivot is not above ``pivot_min``
     (0: not positive definite; ``rtol * max(diag)``: numerically singular) or is NaN."""
@@ -58,7 +60,7 @@ def cholesky(a: np.ndarray, n: int, ridge: float, pivot_min: float, out: np.ndar
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def forward(fac: np.ndarray, n: int, rhs: np.ndarray) -> None:
+def forward(fac: np.ndarray, n: int | np.integer, rhs: np.ndarray) -> None:
     """``rhs <- L^-1 rhs`` for the lower factor ``L = fac[:n, :n]`` (in place)."""
     for i in range(n):
         fi = fac[i]
@@ -69,7 +71,7 @@ def forward(fac: np.ndarray, n: int, rhs: np.ndarray) -> None:
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def backward(fac: np.ndarray, n: int, rhs: np.ndarray) -> None:
+def backward(fac: np.ndarray, n: int | np.integer, rhs: np.ndarray) -> None:
     """``rhs <- L^-T rhs`` (in place), reading L by rows."""
     for i in range(n - 1, -1, -1):
         fi = fac[i]
@@ -80,14 +82,14 @@ def backward(fac: np.ndarray, n: int, rhs: np.ndarray) -> None:
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def chol_solve(fac: np.ndarray, n: int, rhs: np.ndarray) -> None:
+def chol_solve(fac: np.ndarray, n: int | np.integer, rhs: np.ndarray) -> None:
     """Solve ``fac fac^T y = rhs`` in place (first ``n`` entries)."""
     forward(fac, n, rhs)
     backward(fac, n, rhs)
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
-def factor(a: np.ndarray, n: int, scale: float, out: np.ndarray) -> None:
+def factor(a: np.ndarray, n: int | np.integer, scale: float, out: np.ndarray) -> None:
     """Cholesky with an escalating ridge (relative to ``scale``) for singular blocks."""
     ridge = 0.0
     for _ in range(40):

@@ -199,8 +199,18 @@ def build_bvh(vertices: np.ndarray, triangles: np.ndarray, *, leaf_size: int = L
     left, right, start, count = k.build_topology(codes[order], int(leaf_size))
     lo = np.empty((len(left), 3))
     hi = np.empty((len(left), 3))
-    topology = [readonly(a) for a in (left, right, start, count, order)]  # as BVH.refit passes them
-    k.refit_bounds(*topology, readonly(v), readonly(t), lo, hi)
+    # read-only, as BVH.refit passes them: one specialization
+    k.refit_bounds(
+        readonly(left),
+        readonly(right),
+        readonly(start),
+        readonly(count),
+        readonly(order),
+        readonly(v),
+        readonly(t),
+        lo,
+        hi,
+    )
     return BVH(v, t, lo, hi, left, right, start, count, order)
 
 
