@@ -36,7 +36,7 @@ import threading
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable, Hashable, Iterable, Sequence
+from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from multiprocessing import spawn
 from multiprocessing.connection import Connection, wait
@@ -204,8 +204,9 @@ class _Worker:
     process id cannot have been reused by then.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, env: Mapping[str, str] | None = None) -> None:
         self.group: deque[Task] | None = None
+        self._env = None if env is None else dict(env)
         self._start()
 
     def _start(self) -> None:
@@ -231,7 +232,7 @@ class _Worker:
             str(fd),
         ]
         try:
-            self.popen = subprocess.Popen(argv, pass_fds=(fd,))
+            self.popen = subprocess.Popen(argv, pass_fds=(fd,), env=self._env)
         finally:
             theirs.close()
         self.pid = self.popen.pid
@@ -356,14 +357,34 @@ def _check(workers: int, tasks: list[deque[Task]]) -> None:
         raise ConfigError(f"run_supervised: workers must be an integer >= 1, got {workers!r}")
 
 
+#: Thread counts pinned to 1 in the processes of a pool, so n processes do not each start
+#: a thread per core (BLAS and numba threads that spin on 2 cores waste most of the CPU).
+THREAD_VARIABLES = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMBA_NUM_THREADS",
+)
+
+
+def single_threaded_environ() -> dict[str, str]:
+    """This process's environment with the :data:`THREAD_VARIABLES` the user did not set
+    pinned to 1: for child processes. This process's own environment stays as it is (numba
+    re-reads ``NUMBA_*`` variables at every compilation and raises if the thread count
+    changes once its threads run)."""
+    return {**{k: "1" for k in THREAD_VARIABLES}, **os.environ}
+
+
 def run_supervised(
     groups: Iterable[Sequence[Task]],
     *,
     workers: int,
     on_outcome: Callable[[Outcome], None],
+    env: Mapping[str, str] | None = None,
 ) -> None:
     """Run every task of ``groups`` in at most ``workers`` processes; call ``on_outcome``
-    (in this process, in completion order) once per task.
+    (in this process, in completion order) once per task. ``env``: the workers'
+    environment (default this process's; e.g. :func:`single_threaded_environ`).
 
     The tasks of a group run in order in one worker (a replacement after a kill); a
     worker takes groups of one ``owner`` only (else it is replaced first). A task's clock
@@ -411,7 +432,7 @@ def run_supervised(
             return
 
     def add_worker() -> None:
-        worker = _Worker()
+        worker = _Worker(env)
         pool.append(worker)
         next_task(worker)
 

@@ -42,7 +42,7 @@ import secrets
 import sys
 import time
 import tomllib
-from collections.abc import Callable, Hashable, Iterable
+from collections.abc import Callable, Hashable, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -496,7 +496,11 @@ def _failed_run(job: Job, outcome: Outcome) -> JobResult:
 
 
 def _supervised(
-    jobs: list[Job], workers: int, timeout: float | None, on_result: Callable[[JobResult], None]
+    jobs: list[Job],
+    workers: int,
+    timeout: float | None,
+    on_result: Callable[[JobResult], None],
+    env: Mapping[str, str] | None = None,
 ) -> None:
     """Jobs in supervised worker processes, each killed when it overruns its time limit."""
     from ._workers import DONE, Task, run_supervised
@@ -519,7 +523,7 @@ def _supervised(
         ]
         for job in jobs
     )
-    run_supervised(groups, workers=workers, on_outcome=on_outcome)
+    run_supervised(groups, workers=workers, on_outcome=on_outcome, env=env)
 
 
 def run_job_supervised(job: Job, timeout: float | None) -> JobResult:
@@ -531,7 +535,7 @@ def run_job_supervised(job: Job, timeout: float | None) -> JobResult:
 
 
 def _run_local(jobs: list[Job], workers: int, timeout: float | None, bar: tqdm) -> list[JobResult]:
-    from .harness import single_threaded_children
+    from ._workers import single_threaded_environ
 
     results = []
 
@@ -540,8 +544,7 @@ def _run_local(jobs: list[Job], workers: int, timeout: float | None, bar: tqdm) 
         bar.update()
         bar.set_postfix_str(f"{result.name}: {result.status}")
 
-    with single_threaded_children():
-        _supervised(jobs, workers, timeout, on_result)
+    _supervised(jobs, workers, timeout, on_result, env=single_threaded_environ())
     return results
 
 

@@ -442,18 +442,64 @@ def _failed(run: Run, exc: BaseException, method: _Method, stage: str) -> Run:
     return run
 
 
+class _CompileSpans:
+    """The outermost spans of numba's compiler lock inside a run (compiling kernels and
+    loading them from the disk cache): their seconds, and ``tracemalloc`` paused across them
+    when ``pause`` (compiling under tracing runs about twice as slow, and the compiler's own
+    allocations are not the method's memory)."""
+
+    def __init__(self, pause: bool) -> None:
+        self.pause, self.seconds, self._depth, self._began = pause, 0.0, 0, 0.0
+        self._paused, self._frames = False, 1
+        self._carried = 0  # bytes traced before the pauses, counted as still held
+        self._peak = 0  # the highest traced total before the last pause
+
+    def enter(self) -> None:
+        if self._depth == 0:
+            self._began = time.perf_counter()
+            if self.pause and tracemalloc.is_tracing():
+                current, peak = tracemalloc.get_traced_memory()
+                self._peak = max(self._peak, self._carried + peak)
+                self._carried += current
+                self._frames = tracemalloc.get_traceback_limit()
+                tracemalloc.stop()
+                self._paused = True
+        self._depth += 1
+
+    def leave(self) -> None:
+        self._depth -= 1
+        if self._depth == 0:
+            self.seconds += time.perf_counter() - self._began
+            if self._paused:
+                tracemalloc.start(self._frames)
+                self._paused = False
+
+    def traced_peak(self) -> int:
+        """Peak traced bytes since tracing started; across a pause the bytes traced before it
+        count as held (frees of them are not seen after it): an upper bound."""
+        peak = tracemalloc.get_traced_memory()[1] if tracemalloc.is_tracing() else 0
+        return max(self._peak, self._carried + peak)
+
+
 @contextmanager
-def _compile_clock() -> Iterator[Callable[[], float]]:
-    """Yields a function giving the seconds spent in numba's compiler inside the block
-    (outermost compiler-lock spans: compiling kernels and loading them from the disk cache)."""
+def _compile_spans(pause_tracing: bool) -> Iterator[_CompileSpans]:
+    """Yields a :class:`_CompileSpans` that follows numba's compiler lock inside the block."""
+    spans = _CompileSpans(pause_tracing)
     try:
         from numba.core import event
     except ImportError:  # no numba: nothing is compiled
-        yield lambda: 0.0
+        yield spans
         return
-    timer = event.TimingListener()
-    with event.install_listener("numba:compiler_lock", timer):
-        yield lambda: timer.duration if timer.done else 0.0
+
+    class Listener(event.Listener):
+        def on_start(self, ev: object) -> None:
+            spans.enter()
+
+        def on_end(self, ev: object) -> None:
+            spans.leave()
+
+    with event.install_listener("numba:compiler_lock", Listener()):
+        yield spans
 
 
 def _run_one(case: Case, cname: str, method: _Method, params: dict) -> Run:
@@ -481,7 +527,9 @@ def _run_one(case: Case, cname: str, method: _Method, params: dict) -> Run:
     try:
         retargeter = method.cls(**params)
         run.parameters = retargeter.get_params()
-        with _compile_clock() as compiling:
+        # tracing paused while numba compiles, only if this run started it (stopping
+        # would drop a caller's own traces)
+        with _compile_spans(pause_tracing=started_tracing) as compiling:
             stage = "fit"
             t0 = time.perf_counter()
             retargeter.fit(case.source, case.target)
@@ -489,8 +537,8 @@ def _run_one(case: Case, cname: str, method: _Method, params: dict) -> Run:
             stage = "retarget"
             animation = retargeter.retarget(case.source)
             t2 = time.perf_counter()
-        run.fit_s, run.retarget_s, run.compile_s = t1 - t0, t2 - t1, compiling()
-        run.peak_memory_mib = max(0, tracemalloc.get_traced_memory()[1] - base) / 2**20
+        run.fit_s, run.retarget_s, run.compile_s = t1 - t0, t2 - t1, compiling.seconds
+        run.peak_memory_mib = max(0, compiling.traced_peak() - base) / 2**20
         run.animation = animation  # checked by Retargeter.check_output
     except CapabilityError as exc:
         run.status, run.reason = NOT_APPLICABLE, " ".join(str(exc).split())
@@ -629,22 +677,16 @@ def _run_item(method: _Method, params: dict, cname: str, case: Case) -> Run:
     return run
 
 
-#: Thread counts pinned to 1 in worker processes, so n processes do not each start
-#: a thread per core (BLAS and numba threads that spin on 2 cores waste most of the CPU).
-_THREAD_VARIABLES = (
-    "OMP_NUM_THREADS",
-    "OPENBLAS_NUM_THREADS",
-    "MKL_NUM_THREADS",
-    "NUMBA_NUM_THREADS",
-)
-
-
 @contextmanager
 def single_threaded_children() -> Iterator[None]:
     """Within this block, spawned child processes use one BLAS / OpenMP / numba thread
-    each (variables the user set are kept)."""
-    saved = {k: os.environ.get(k) for k in _THREAD_VARIABLES}
-    for k in _THREAD_VARIABLES:
+    each (variables the user set are kept). It changes this process's environment: nothing
+    in this process may compile a numba kernel inside it (see
+    :func:`._workers.single_threaded_environ`, which our own workers get instead)."""
+    from ._workers import THREAD_VARIABLES
+
+    saved = {k: os.environ.get(k) for k in THREAD_VARIABLES}
+    for k in THREAD_VARIABLES:
         os.environ.setdefault(k, "1")
     try:
         yield
@@ -670,7 +712,7 @@ def _isolated(
     compiles them once; a run that overruns or kills its worker is recorded as an error
     naming the plugin and its distribution, and the group goes on in a fresh worker.
     """
-    from ._workers import DONE, Task, run_supervised
+    from ._workers import DONE, Task, run_supervised, single_threaded_environ
 
     by_name = {m.name: m for m in chosen}
     groups: dict[str, list[Task]] = {}
@@ -703,8 +745,11 @@ def _isolated(
             run.error["traceback"] = outcome.value
         on_run(run)
 
-    with single_threaded_children():
-        run_supervised(groups.values(), workers=n_jobs, on_outcome=on_outcome)
+    # the metrics of finished runs are computed here meanwhile: this process's environment
+    # must not change (numba would see a new thread count)
+    run_supervised(
+        groups.values(), workers=n_jobs, on_outcome=on_outcome, env=single_threaded_environ()
+    )
 
 
 def compare(

@@ -2,6 +2,7 @@
 crashing workers are replaced and their groups go on."""
 
 import multiprocessing as mp
+import os
 import signal
 import subprocess
 import sys
@@ -295,3 +296,65 @@ def test_workers_die_with_their_supervisor(tmp_path):
     finally:
         if supervisor.poll() is None:
             supervisor.kill()
+
+
+def test_pool_workers_are_single_threaded_and_this_process_environment_is_untouched(monkeypatch):
+    """The workers get one thread each through their own environment; this process's stays
+    as it is while they run (numba re-reads NUMBA_NUM_THREADS at every compilation here and
+    raises once its threads run with another count), and a count the user set is kept."""
+    from faceretarget.evaluation._workers import THREAD_VARIABLES, single_threaded_environ
+
+    for name in THREAD_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    seen_here = []
+
+    def on_outcome(outcome):
+        seen_here.append({k: os.environ.get(k) for k in THREAD_VARIABLES})
+        got.append(outcome)
+
+    got = []
+    run_supervised(
+        [[Task("env", t.environ, (THREAD_VARIABLES,))]],
+        workers=1,
+        on_outcome=on_outcome,
+        env=single_threaded_environ(),
+    )
+    assert got[0].value == {
+        "OMP_NUM_THREADS": "3",
+        "OPENBLAS_NUM_THREADS": "1",
+        "MKL_NUM_THREADS": "1",
+        "NUMBA_NUM_THREADS": "1",
+    }
+    assert seen_here == [
+        {
+            "OMP_NUM_THREADS": "3",
+            "OPENBLAS_NUM_THREADS": None,
+            "MKL_NUM_THREADS": None,
+            "NUMBA_NUM_THREADS": None,
+        }
+    ]
+
+
+def test_compare_in_workers_leaves_this_process_environment_alone(monkeypatch):
+    """compare(n_jobs=2) computes metrics here while the workers run: the thread variables
+    must not be set in this process meanwhile (the regression: a metric compiling a kernel
+    here raised numba's 'Cannot set NUMBA_NUM_THREADS ...')."""
+    from faceretarget.evaluation import harness
+
+    monkeypatch.delenv("NUMBA_NUM_THREADS", raising=False)
+    seen = []
+    real = harness._metric_rows
+
+    def spy(run, case, metrics):
+        seen.append(os.environ.get("NUMBA_NUM_THREADS"))
+        return real(run, case, metrics)
+
+    monkeypatch.setattr(harness, "_metric_rows", spy)
+    result = harness.compare(
+        ["synthetic?resolution=300&n_frames=4"],
+        methods=["spacetime_noconst", "deformation_transfer"],
+        n_jobs=2,
+        metrics=["vertex_error_rms"],
+    )
+    assert len(result.runs) == 2 and seen == [None, None]

@@ -82,3 +82,7 @@ def worker_pid_then_spin(pid_file):
     with open(pid_file, "w") as f:
         f.write(str(os.getpid()))
     spin()
+
+
+def environ(names):
+    return {k: os.environ.get(k) for k in names}
