@@ -93,9 +93,12 @@ def unique_edges(triangles: np.ndarray) -> np.ndarray:
 def boundary_edges(triangles: np.ndarray) -> np.ndarray:
     """(B, 2) directed boundary edges (used by exactly one triangle), in that triangle's order."""
     d = directed_edges(triangles)
-    key = np.sort(d, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return d[counts[inverse.ravel()] == 1]
+    if len(d) == 0:
+        return d.reshape(0, 2)
+    e = np.sort(d, axis=1).astype(np.int64)
+    key = e[:, 0] * (int(e.max()) + 1) + e[:, 1]  # 1D keys, as in unique_edges
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    return d[counts[inverse] == 1]
 
 
 def vertex_adjacency(triangles: np.ndarray, n_vertices: int) -> sp.csr_matrix:

@@ -62,3 +62,37 @@ def test_vertex_normals_kernel_matches_numpy(scale):
     assert np.all(got[touched] == 0) and np.isfinite(got).all()
     with pytest.raises(IndexError):
         vertex_normals(vertices, np.array([[0, 1, 300]]))
+
+
+def test_boundary_edges_match_a_count_of_each_undirected_edge():
+    """Against a dictionary count over (smaller, larger) pairs: open grid, a closed
+    tetrahedron (no boundary), a strip with repeated and high vertex indices."""
+    import collections
+
+    from faceretarget.geometry.mesh_ops import boundary_edges
+
+    def naive(tris):
+        count = collections.Counter(
+            tuple(sorted(e)) for t in tris for e in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))
+        )
+        return [
+            (t[a], t[b])
+            for t in tris
+            for a, b in ((0, 1), (1, 2), (2, 0))
+            if count[tuple(sorted((t[a], t[b])))] == 1
+        ]
+
+    n = 5
+    grid = [[i * n + j, i * n + j + 1, (i + 1) * n + j] for i in range(n - 1) for j in range(n - 1)]
+    grid += [
+        [i * n + j + 1, (i + 1) * n + j + 1, (i + 1) * n + j]
+        for i in range(n - 1)
+        for j in range(n - 1)
+    ]
+    tetra = [[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]]
+    strip = [[10**6, 7, 3], [7, 10**6, 10**6 + 1], [3, 7, 2]]
+    for tris in (grid, tetra, strip):
+        got = boundary_edges(np.array(tris))
+        want = naive(tris)
+        assert sorted(tuple(e) for e in got.tolist()) == sorted(want)  # directions kept
+    assert boundary_edges(np.zeros((0, 3), dtype=np.int64)).shape == (0, 2)
