@@ -59,6 +59,7 @@ Conventions shared by the definitions:
 from __future__ import annotations
 
 import re
+import weakref
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any, TypeAlias
 
@@ -171,6 +172,29 @@ class _Views:
         return self.get(
             "distances", lambda: 100.0 * np.linalg.norm(self.X - self.Y, axis=-1) / self.height
         )
+
+
+class _TruthCache:
+    """Arrays derived from a ground-truth animation alone, shared by every run scored
+    against it (compare scores each method on the same truth; a preset scores several).
+    Keyed by the animation's identity and dropped with it (animations are not modified)."""
+
+    def __init__(self) -> None:
+        self._items: dict[int, tuple[weakref.ref, dict[str, Any]]] = {}
+
+    def get(self, truth: Animation, key: str, make: Callable[[], Any]) -> Any:
+        entry = self._items.get(id(truth))
+        if entry is None or entry[0]() is not truth:
+            ident = id(truth)
+            entry = (weakref.ref(truth, lambda _: self._items.pop(ident, None)), {})
+            self._items[ident] = entry
+        values = entry[1]
+        if key not in values:
+            values[key] = make()
+        return values[key]
+
+
+_TRUTH = _TruthCache()
 
 
 def _views(animation: Animation, case: Case, context: Context) -> _Views:
@@ -636,15 +660,19 @@ def fdd_abs(v: _Views) -> float:
 
 
 def _normal_details(v: _Views) -> tuple[np.ndarray, np.ndarray]:
-    """(hn(X - N), hn(Y - N)), each (F, V), in the head frame (cached per run)."""
+    """(hn(X - N), hn(Y - N)), each (F, V), in the head frame: the first cached per run, the
+    second per truth and target mesh (the same for every run scored against them)."""
+    import hashlib
 
-    def make() -> tuple[np.ndarray, np.ndarray]:
-        neutral = np.asarray(v.target.neutral.vertices, dtype=np.float64)
-        both = np.concatenate([v.X_local - neutral, v.Y_local - neutral])
-        details = normal_detail(both, np.asarray(v.target.neutral.triangles), neutral)
-        return details[: v.X.shape[0]], details[v.X.shape[0] :]
+    neutral = np.ascontiguousarray(v.target.neutral.vertices, dtype=np.float64)
+    triangles = np.ascontiguousarray(v.target.neutral.triangles)
 
-    return v.get("normal_details", make)
+    def of(local: Callable[[], np.ndarray]) -> Callable[[], np.ndarray]:
+        return lambda: normal_detail(local() - neutral, triangles, neutral)
+
+    mesh = hashlib.blake2b(neutral.tobytes() + triangles.tobytes(), digest_size=16).hexdigest()
+    truth = _TRUTH.get(v.truth, f"normal_detail {mesh}", of(lambda: v.Y_local))
+    return v.get("normal_details", of(lambda: v.X_local)), truth
 
 
 def detail_error(v: _Views) -> float:

@@ -229,18 +229,8 @@ def detail_transfer(
             to_head_frame(np.asarray(_truth(c).vertices, dtype=np.float64), _truth(c).head_motion)
             for c in (case, twin)
         ]
-        wrinkle = (
-            100.0
-            * float(
-                np.sqrt(
-                    np.mean(
-                        normal_detail(local[0] - local[1], case.target.neutral.triangles, neutral)
-                        ** 2
-                    )
-                )
-            )
-            / height
-        )
+        truth_wrinkle = normal_detail(local[0] - local[1], case.target.neutral.triangles, neutral)
+        wrinkle = 100.0 * float(np.sqrt(np.mean(truth_wrinkle**2))) / height
         if not wrinkle > DETAIL_MIN_WRINKLE:
             skipped.append(
                 f"{label}: no wrinkle is active in the performance (fine-scale wrinkle motion {num(wrinkle)}% of H)"
@@ -252,7 +242,6 @@ def detail_transfer(
             "baseline": (baseline, {}),
         }
         got = {}
-        truth_wrinkle = normal_detail(local[0] - local[1], case.target.neutral.triangles, neutral)
         for key, (name, kw) in settings.items():
             anim, plain = run_method(name, case, **kw), run_method(name, twin, **kw)
             got[key] = _measure(anim, case)

@@ -202,6 +202,36 @@ def test_detail_correlation():
     )
 
 
+def test_the_truths_fine_scale_detail_is_computed_once_per_truth_and_mesh(monkeypatch):
+    """Every run scored against one truth shares its hn(Y - N) (compare scores each method
+    against it): one computation for two runs, the same values as a fresh one, another for
+    another target mesh, and the entry goes with the truth."""
+    import gc
+
+    from fake_retargeters import grid
+
+    verts, tris = grid(7)
+    rng = np.random.default_rng(0)
+    truth = Animation(vertices=verts + 0.01 * rng.normal(size=(3, *verts.shape)), triangles=tris)
+    case = SimpleNamespace(target=TargetRig(Mesh(verts, tris)), truth=truth, source=None)
+    moved = SimpleNamespace(target=TargetRig(Mesh(1.5 * verts, tris)), truth=truth, source=None)
+    runs = [Animation(vertices=verts + 0.01 * rng.normal(size=(3, *verts.shape))) for _ in range(2)]
+    fresh = [value("detail_error", a, case) for a in runs]
+    monkeypatch.setattr(M, "_TRUTH", M._TruthCache())  # as a new process: nothing cached yet
+    calls = []
+    real = M.normal_detail
+    monkeypatch.setattr(
+        M, "normal_detail", lambda d, *a, **k: calls.append(d.shape) or real(d, *a, **k)
+    )
+    assert [value("detail_error", a, case) for a in runs] == fresh
+    assert len(calls) == 3  # two runs and the truth once
+    value("detail_error", runs[0], moved)
+    assert len(calls) == 5  # another mesh: the truth's detail there too
+    del case, moved, truth
+    gc.collect()
+    assert not M._TRUTH._items
+
+
 # ---------------------------------------------------------------------------------------
 # Fine-scale detail on the synthetic case, whose rigs carry wrinkle fields (60 frames: the
 # wrinkle shapes are active), against the same performance built without wrinkles
