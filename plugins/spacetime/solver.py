@@ -66,6 +66,7 @@ class System:
     _modal: tuple | None = field(default=None, init=False, repr=False)
     _marker_grams: np.ndarray | None = field(default=None, init=False, repr=False)
     _shifted: dict = field(default_factory=dict, init=False, repr=False)
+    _factors: dict = field(default_factory=dict, init=False, repr=False)
     _sobolev: np.ndarray | None = field(default=None, init=False, repr=False)
     l1: float | np.ndarray = field(
         default=0.0, init=False
@@ -330,6 +331,10 @@ ADMM_MAX_ITER = 2000
 #: Initial ADMM step size relative to the mean diagonal of ``G + K``.
 ADMM_RHO_SCALE = 0.1
 
+#: Thomas factors of the bounded solve's w-step kept per system (by step size and known
+#: frames; each is (F, M) float64).
+ADMM_FACTORS_KEPT = 4
+
 #: The w-step's two changes of basis in float32 (twice as fast; relative error ~1e-6, far
 #: below ``ADMM_EPS_REL``). False gives the float64 kernel, for tolerances below ~1e-5.
 ADMM_SINGLE = True
@@ -398,16 +403,27 @@ def _admm_structured(system, r_w, known, wk, lo, hi, l1, z, u, stats) -> None:
     ex = np.empty((n_frames, m), dtype=basis_dtype)
     y = np.empty((n_frames, m), dtype=basis_dtype)
     sweep = np.empty((n_frames, m))
-    inv = np.empty((n_frames, m))
-    limit, steady = np.empty(m), np.empty(n_frames, dtype=np.bool_)
+    known_key = known.tobytes()
     done, modal_rho = 0, None
     while True:
         if rho != modal_rho:  # the modal data and the factor change with the step size only
             phi, phi_t, lam, mass_phi = system.shifted_modal(rho)
             yk = _known_modal(wk, known, mass_phi)
-            phi_w, phi_t_w = phi.astype(basis_dtype), phi_t.astype(basis_dtype)
-            thomas_factor(lam, known, inv)
-            steady_pivots(lam, known, inv, limit, steady)
+            # the factor depends on the step size and the known frames only: kept for the
+            # next solve of the same length (the first step size is always the same)
+            key = (rho, basis_dtype, known_key)
+            if key not in system._factors:
+                inv = np.empty((n_frames, m))
+                limit, steady = np.empty(m), np.empty(n_frames, dtype=np.bool_)
+                thomas_factor(lam, known, inv)
+                steady_pivots(lam, known, inv, limit, steady)
+                if len(system._factors) >= ADMM_FACTORS_KEPT:
+                    system._factors.clear()
+                kept = (phi.astype(basis_dtype), phi_t.astype(basis_dtype), inv, limit, steady)
+                for a in kept:
+                    a.flags.writeable = False
+                system._factors[key] = kept
+            phi_w, phi_t_w, inv, limit, steady = system._factors[key]
             modal_rho = rho
         chunk = min(ADMM_CHUNK, ADMM_MAX_ITER - done)
         it, primal, dual, eps_p, eps_d = admm_box(
