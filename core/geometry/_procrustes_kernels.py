@@ -91,7 +91,9 @@ def _missing(x: np.ndarray, p: int, dim: int) -> bool:
 
 @nb.njit(cache=True, inline="always")
 def _det(m: np.ndarray, dim: int) -> float:
-    """Determinant of a small square matrix (explicit for 2 x 2 and 3 x 3: no allocation)."""
+    """Determinant of a small square matrix (explicit for 2 x 2 and 3 x 3: no allocation;
+    larger by Gaussian elimination with partial pivoting, not ``np.linalg.det``, whose
+    LAPACK wrapper would be compiled into every caller)."""
     if dim == 2:
         return m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
     if dim == 3:
@@ -100,7 +102,25 @@ def _det(m: np.ndarray, dim: int) -> float:
             - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
             + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])
         )
-    return np.linalg.det(m)
+    a = m.copy()
+    det = 1.0
+    for k in range(dim):
+        p = k
+        for i in range(k + 1, dim):
+            if abs(a[i, k]) > abs(a[p, k]):
+                p = i
+        if a[p, k] == 0.0:
+            return 0.0
+        if p != k:
+            det = -det
+            for j in range(dim):
+                a[k, j], a[p, j] = a[p, j], a[k, j]
+        det *= a[k, k]
+        for i in range(k + 1, dim):
+            f = a[i, k] / a[k, k]
+            for j in range(k + 1, dim):
+                a[i, j] -= f * a[k, j]
+    return det
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)

@@ -132,3 +132,24 @@ def test_no_plugin_kernel_repeats_a_shared_one():
     }
     assert not repeated, f"use the kernels of faceretarget.geometry instead: {repeated}"
     assert {"vertex_normals", "kabsch", "transform_points"} <= set(shared)
+
+
+def test_small_determinant_matches_numpy_in_every_dimension():
+    """``_det``: closed forms for 2 and 3, elimination with pivoting beyond (no LAPACK
+    wrapper compiled into kabsch); singular and permutation-needing matrices included."""
+    import numba as nb
+
+    from faceretarget.geometry._procrustes_kernels import _det
+
+    @nb.njit
+    def det(m, dim):
+        return _det(m, dim)
+
+    rng = np.random.default_rng(0)
+    for dim in (2, 3, 4, 5, 7):
+        for m in [rng.normal(size=(dim, dim)) for _ in range(20)] + [
+            np.ones((dim, dim)),  # singular
+            np.eye(dim)[::-1].copy(),  # a zero pivot at every step without row exchanges
+        ]:
+            want = np.linalg.det(m)
+            assert abs(det(m, dim) - want) <= 1e-10 * max(1.0, abs(want)), (dim, m)
