@@ -353,10 +353,13 @@ def active_set_qp_frames(
         if not any_dropped:
             iterations[t] = active_set_qp(G, C[t], lo, hi, no_group, no_sums, x, max_iter, tol)
             continue
-        H[:, :] = G
-        for b in range(n_blocks):
-            if dropped[t, b]:
-                H -= block_grams[b]
+        for i in range(n):  # H = G - the dropped blocks (loops: an array slice assignment
+            for j in range(n):  # compiles numba's shape-message machinery)
+                s = G[i, j]
+                for b in range(n_blocks):
+                    if dropped[t, b]:
+                        s -= block_grams[b, i, j]
+                H[i, j] = s
         top = 0.0
         for i in range(n):
             top = max(top, H[i, i])

@@ -44,11 +44,21 @@ _QP_TOL = 1e-13
 _QP_MAX_ITER = 400
 
 
+@nb.njit(cache=True)
+def _copy(dst, src):
+    """``dst[...] = src`` for C-contiguous arrays of one size, as a loop: numba's slice
+    assignment compiles a broadcasting implementation (with its error-message string
+    machinery) per pair of array types, seconds of a cold start each."""
+    d, s = dst.reshape(dst.size), src.reshape(src.size)
+    for i in range(s.size):
+        d[i] = s[i]
+
+
 @nb.njit(cache=True, fastmath=FASTMATH)
 def _downdate(H, Bt, Mc, miss, Ht):
     """``Ht = H`` minus the contribution of the missing coordinates ``miss (C,) bool``."""
     m, K = H.shape[0], H.shape[2]
-    Ht[:] = H
+    _copy(Ht, H)
     for c in range(Bt.shape[0]):
         if not miss[c]:
             continue
@@ -220,8 +230,8 @@ def _rigid_frame(miss, any_miss, Jr, JtJ, Uraw, qraw, Bt, Mc, Lf, Uf, Lt, JtJ_t,
     nr = Jr.shape[1]
     m, K = Uraw.shape[1], Uraw.shape[2]
     if any_miss:
-        JtJ_t[:] = JtJ
-        Ut[:] = Uraw
+        _copy(JtJ_t, JtJ)
+        _copy(Ut, Uraw)
         for c in range(Jr.shape[0]):
             if not miss[c]:
                 continue
@@ -428,8 +438,8 @@ def solve_frames(
     best_a = np.empty_like(alpha)
     for t in range(n_frames):
         if use_start:
-            W[:] = start_w[t]
-            alpha[:] = start_a[t]
+            _copy(W, start_w[t])
+            _copy(alpha, start_a[t])
         if additive:
             # A layer whose weight is 0 in every region has coefficients the data cannot see:
             # from there the bilinear steps cannot bring it back (its weights and coefficients
@@ -471,8 +481,8 @@ def solve_frames(
                 # must change together). Try again with the mouth's speech weight on.
                 if not (additive and cb > 0.0 and W[mouth, speech] <= 1e-6):
                     break
-                best_w[:] = W
-                best_a[:] = alpha
+                _copy(best_w, W)
+                _copy(best_a, alpha)
                 best_e = energy
                 W[mouth, speech] = 1.0
             lin, quad = _evaluate(Hf, used, alpha, W, gt, layer_of, beta, h)
@@ -559,8 +569,8 @@ def solve_frames(
                     break
                 decrease = energy - e_y
                 energy = e_y
-                alpha[:] = alpha_y
-                W[:] = W_y
+                _copy(alpha, alpha_y)
+                _copy(W, W_y)
                 beta, beta_y = beta_y, beta
                 h, h_y = h_y, h
                 mu = mu / 3.0 if mu > 1e-9 * scale else 0.0
@@ -570,14 +580,14 @@ def solve_frames(
             it_total += it
         if energy > best_e:
             energy = best_e
-            W[:] = best_w
-            alpha[:] = best_a
-        out_w[t] = W
-        out_a[t] = alpha
+            _copy(W, best_w)
+            _copy(alpha, best_a)
+        _copy(out_w[t], W)
+        _copy(out_a[t], alpha)
         out_obj[t] = max(energy, 0.0)
         out_iter[t] = it_total
-        w_prev[:] = W
-        a_prev[:] = alpha
+        _copy(w_prev, W)
+        _copy(a_prev, alpha)
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)

@@ -598,7 +598,7 @@ def extract(
             True,
         )
     solve_frames(
-        actor.gram,
+        np.ascontiguousarray(actor.gram),  # C order: the kernel copies it flat (_copy)
         actor.pair_used,
         actor.basis_t,
         actor.coord_masks,
@@ -622,8 +622,8 @@ def extract(
         start_a,
         use_start,
         jac,
-        jtj,
-        uraw,
+        np.ascontiguousarray(jtj),
+        np.ascontiguousarray(uraw),
         qraw,
         int(max_iter),
         float(tol),
