@@ -134,7 +134,7 @@ def kernel_stamp() -> tuple:
 #: and once for all the processes of one run (``faceretarget demo``'s workers compile in
 #: parallel) through a time-stamped marker file.
 COMPILE_NOTICE = (
-    "faceretarget: compiling numerical kernels for this machine, once (a few minutes of CPU in all, more on a busy "
+    "faceretarget: compiling numerical kernels for this machine, once (about a minute of CPU in all, more on a busy "
     "machine; later runs load them from the cache). `faceretarget warmup` does it ahead."
 )
 #: Another process's notice younger than this (seconds) silences this one.
