@@ -445,7 +445,7 @@ def _failed(run: Run, exc: BaseException, method: _Method, stage: str) -> Run:
 class _CompileSpans:
     """The outermost spans of numba's compiler lock inside a run (compiling kernels and
     loading them from the disk cache): their seconds, and ``tracemalloc`` paused across them
-    when ``pause`` (compiling under tracing runs about twice as slow, and the compiler's own
+    when ``pause`` (compiling under tracing runs over twice as slow, and the compiler's own
     allocations are not the method's memory)."""
 
     def __init__(self, pause: bool) -> None:
