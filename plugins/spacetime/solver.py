@@ -332,8 +332,9 @@ ADMM_MAX_ITER = 2000
 ADMM_RHO_SCALE = 0.1
 
 #: Thomas factors of the bounded solve's w-step kept per system (by step size and known
-#: frames; each is (F, M) float64).
-ADMM_FACTORS_KEPT = 4
+#: frames; each is (F, M) float64, held until a solve needs a third): the first step size's
+#: and one adapted.
+ADMM_FACTORS_KEPT = 2
 
 #: The w-step's two changes of basis in float32 (twice as fast; relative error ~1e-6, far
 #: below ``ADMM_EPS_REL``). False gives the float64 kernel, for tolerances below ~1e-5.
