@@ -30,6 +30,7 @@ __all__ = [
     "bounded_lsq",
     "bounded_lsq_gram",
     "bounded_lsq_frames",
+    "balanced_rho",
     "DEFAULT_TOL",
 ]
 
@@ -231,6 +232,16 @@ def bounded_lsq_frames(
             "iterations; the Gram matrix is probably near singular: drop duplicate columns or scale them"
         )
     return out
+
+
+def balanced_rho(rho: float, ratio: float) -> float:
+    """The next ADMM step size by residual balancing (Boyd et al. 2011, sec. 3.4.1; OSQP's
+    rule), one rule for every ADMM solver of a bounded problem: ``ratio`` is
+    ``sqrt(primal / dual)`` of the caller's scaled residuals; outside ``(0.2, 5)`` the step
+    size is multiplied by it (clipped to ``[1e-3, 1e3]``), inside it is kept."""
+    if 0.2 < ratio < 5.0:
+        return rho
+    return float(rho * np.clip(ratio, 1e-3, 1e3))
 
 
 def _max_iter(n: int) -> int:

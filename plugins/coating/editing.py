@@ -55,6 +55,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from faceretarget.errors import ConfigError, IndexRangeError, InputError, NonFiniteError, ShapeError
+from faceretarget.geometry.nnls import balanced_rho
 
 from .alignment import to_local
 from .bases import nnls_rows
@@ -516,9 +517,8 @@ def _nnls_admm(hessian, rhs, start) -> tuple[np.ndarray, bool]:
         # ill-conditioned knot problems stall 60% above the optimum after 5,000 iterations
         primal = np.linalg.norm(x - z) / max(np.linalg.norm(x), np.linalg.norm(z), 1e-300)
         dual = np.linalg.norm(z - previous) / max(np.linalg.norm(u), 1e-300)
-        ratio = np.sqrt(primal / max(dual, 1e-300))
-        if not 0.2 < ratio < 5.0:
-            new = rho * float(np.clip(ratio, 1e-3, 1e3))
+        new = balanced_rho(rho, float(np.sqrt(primal / max(dual, 1e-300))))
+        if new != rho:
             u *= rho / new
             rho = new
             factor = splu((hessian + rho * eye).tocsc())

@@ -40,6 +40,7 @@ import scipy.linalg
 from faceretarget import config
 from faceretarget._threads import blas_single_threaded
 from faceretarget.errors import DegenerateGeometryError, NumericalError
+from faceretarget.geometry.nnls import balanced_rho
 
 
 @dataclass
@@ -350,9 +351,7 @@ def _unit(system: System) -> float:
 def _rho_update(rho: float, primal: float, dual: float, eps_p: float, eps_d: float) -> float:
     """Residual balancing (Boyd et al. 2011, sec. 3.4.1; OSQP's ratio of scaled residuals)."""
     ratio = np.sqrt(max(primal / max(eps_p, 1e-300), 1e-12) / max(dual / max(eps_d, 1e-300), 1e-12))
-    if 0.2 < ratio < 5.0:
-        return rho
-    return float(rho * np.clip(ratio, 1e-3, 1e3))
+    return balanced_rho(rho, float(ratio))
 
 
 def _normal_rhs(system: System, s: np.ndarray, known: np.ndarray) -> np.ndarray:
