@@ -26,7 +26,8 @@ by alternating (as in the paper) (ii) the weights with the bases fixed: with vel
 matching the optimal change is piecewise linear in time between the edited frames and
 the window's anchors, so only the weights of the edited frames are unknown (NNLS); where
 the interpolated weights would cross zero, the frame of the deepest crossing becomes a
-knot too, until every frame's weights are non-negative (:func:`solve_weights`); and (i)
+knot too, until every frame's weights are non-negative (:func:`solve_weights`; the knots'
+bounded problem by an interior point method over its band); and (i)
 the bases with the weights fixed: a linear solve, done exactly with the factorized
 deformation-transfer normal matrix ``N`` and the Woodbury identity (one solve per
 constrained vertex, whatever the number of frames or bases). The loop stops when the
@@ -55,7 +56,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from faceretarget.errors import ConfigError, IndexRangeError, InputError, NonFiniteError, ShapeError
-from faceretarget.geometry.nnls import balanced_rho
+from faceretarget.geometry.banded_qp import nonneg_qp_banded
 
 from .alignment import to_local
 from .bases import nnls_rows
@@ -436,106 +437,16 @@ def _knot_change(
     return y - weights[knots]
 
 
-def _nnls_sparse(hessian, rhs, start, max_iter: int = 100) -> np.ndarray:
-    """``argmin 1/2 x^T H x - rhs . x`` s.t. ``x >= 0`` for a sparse SPD ``H`` (here block-tridiagonal
-    over the knots): a primal-dual active-set method (Hintermueller, Ito & Kunisch 2002), each
-    step one sparse solve on the free variables. The method is exact and fast when its active
-    set settles, but it may cycle when ``H`` is not an M-matrix (a weight metric couples the
-    bases); then the dense active-set method finishes small problems and :func:`_nnls_admm`
-    large ones."""
-    from scipy.sparse.linalg import splu
-
-    n = rhs.size
-    x = np.asarray(start, dtype=np.float64).copy()
-    grad = hessian @ x - rhs
-    c = float(np.mean(hessian.diagonal())) or 1.0
-    active = (grad - c * x > 0) & (x <= 0)
-    seen = set()
-    tol = 1e-12 * max(float(np.abs(rhs).max()), 1e-300)
-    for _ in range(max_iter):
-        free = np.flatnonzero(~active)
-        x = np.zeros(n)
-        if free.size:
-            x[free] = splu(hessian[free][:, free].tocsc()).solve(rhs[free])
-        grad = hessian @ x - rhs
-        grad[free] = 0.0
-        new_active = grad - c * x > 0
-        if np.array_equal(new_active, active) and (x >= -tol).all() and (grad >= -tol).all():
-            return np.maximum(x, 0.0)
-        key = new_active.tobytes()
-        if key in seen:
-            break
-        seen.add(key)
-        active = new_active
-    if n <= NNLS_DENSE_LIMIT:  # the dense active-set method: exact, 0.05 s at 728 variables
-        return nnls_rows(hessian.toarray(), rhs[None])[0]
-    return _nnls_admm(hessian, rhs, np.maximum(start, 0.0))[0]
-
-
-#: ADMM of :func:`_nnls_admm`: iterations in all, and between two attempts at the exact answer;
-#: problems up to ``NNLS_DENSE_LIMIT`` variables go to the dense active-set method instead
-#: (exact; 0.05 s at 728 variables, minutes at ~3,000).
-NNLS_ADMM_MAX_ITER = 5000
-NNLS_ADMM_POLISH_EVERY = 10
-NNLS_DENSE_LIMIT = 1000
-
-
-def _nnls_admm(hessian, rhs, start) -> tuple[np.ndarray, bool]:
-    """The bounded QP of :func:`_nnls_sparse` by ADMM (Boyd et al. 2011, sec. 5.2; splitting
-    ``x = z``, ``z >= 0``; over-relaxed) with one sparse factorization of ``H + rho I``, and
-    *polished* (OSQP's idea): every few iterations the support of ``z`` is taken as the free
-    set and solved exactly; the answer is returned as soon as it satisfies the KKT conditions
-    (``x_free >= 0``, gradient >= 0 on the rest), so it is the exact optimum, not an ADMM
-    iterate. Each iteration costs one sparse triangular solve, where the dense active-set
-    method took minutes at ~3,000 variables. Returns
-    ``(x, exact)``: ``exact`` False if no polish passed within ``NNLS_ADMM_MAX_ITER``; then ``x``
-    is the last iterate, feasible, and close in energy: on the 3,640-variable full problem of
-    a whole-shot edit (130 frames x 28 bases, condition number ~1e13; 4.0 s) its objective was
-    1.9e-7 (relative) above the exact optimum's (scipy's NNLS on the Cholesky factor, 43 s),
-    the difference's energy ``d^T H d`` 1.9e-7 of the solution's; the weights differ (by up to
-    0.24) only along directions the metric barely sees."""
-    from scipy.sparse import identity
-    from scipy.sparse.linalg import splu
-
-    n = rhs.size
-    eye = identity(n, format="csc")
-    rho = float(np.mean(hessian.diagonal())) or 1.0
-    factor = splu((hessian + rho * eye).tocsc())
-    z = np.maximum(np.asarray(start, dtype=np.float64), 0.0)
-    u = np.zeros(n)
-    tol = 1e-10 * max(float(np.abs(rhs).max()), 1e-300)  # KKT, to rounding
-    tried: set[bytes] = set()
-    for it in range(NNLS_ADMM_MAX_ITER):
-        x = factor.solve(rhs + rho * (z - u))
-        xr = 1.6 * x - 0.6 * z  # over-relaxation, alpha = 1.6
-        previous = z
-        z = np.maximum(xr + u, 0.0)
-        u += xr - z
-        if (it + 1) % NNLS_ADMM_POLISH_EVERY:
-            continue
-        # residual balancing (Boyd et al. sec. 3.4.1, relative residuals as in OSQP): without it
-        # ill-conditioned knot problems stall 60% above the optimum after 5,000 iterations
-        primal = np.linalg.norm(x - z) / max(np.linalg.norm(x), np.linalg.norm(z), 1e-300)
-        dual = np.linalg.norm(z - previous) / max(np.linalg.norm(u), 1e-300)
-        new = balanced_rho(rho, float(np.sqrt(primal / max(dual, 1e-300))))
-        if new != rho:
-            u *= rho / new
-            rho = new
-            factor = splu((hessian + rho * eye).tocsc())
-        support = z > 0
-        key = support.tobytes()
-        if key in tried:
-            continue
-        tried.add(key)
-        free = np.flatnonzero(support)
-        exact = np.zeros(n)
-        if free.size:
-            exact[free] = splu(hessian[free][:, free].tocsc()).solve(rhs[free])
-        grad = hessian @ exact - rhs
-        grad[free] = 0.0
-        if (exact >= -tol).all() and (grad >= -tol).all():
-            return np.maximum(exact, 0.0), True
-    return z, False
+def _nnls_sparse(hessian, rhs, start) -> np.ndarray:
+    """``argmin 1/2 x^T H x - rhs . x`` s.t. ``x >= 0`` for the knots' block-tridiagonal ``H``
+    (blocks ``K x K``): a primal-dual interior point method over its band
+    (:func:`faceretarget.geometry.banded_qp.nonneg_qp_banded`), 15-25 banded Cholesky steps
+    whatever the conditioning. An active-set method cycles here (the metric couples the
+    bases: ``H`` is not an M-matrix) and ADMM stalls (condition number ~1e13): the
+    3,640-variable full problem of a whole-shot edit (130 frames x 28 bases) took 3.1-3.7 s
+    by ADMM, 5,000 iterations without reaching the optimum, and takes 60 ms this way, with
+    a lower objective."""
+    return nonneg_qp_banded(hessian, rhs, np.maximum(start, 0.0))[0]
 
 
 def _constraint_energy(bases, center, weights, constraints, mu):

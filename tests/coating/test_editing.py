@@ -588,42 +588,17 @@ def test_edit_errors(setup):
         r.edit(anim, detail={"frame": 3, "vertices": [v], "operation": "paste"})
 
 
-def _knot_problem(seed, n, k, decades):
-    """A block-tridiagonal QP like the knots' one: ``kron(Laplacian, G)`` with an ill-conditioned
-    metric ``G`` (not an M-matrix: the primal-dual active-set method may cycle on it)."""
-    import scipy.sparse as sp
+def test_knot_problems_are_solved_exactly_where_the_active_set_method_cycles():
+    """Seed 179 made the primal-dual active-set method cycle (it then fell back to dense
+    active-set or ADMM: minutes, or 5,000 iterations short of the optimum); the knots'
+    solver (``_nnls_sparse``, a banded interior point method) is exact on it."""
+    from naive.qp import block_tridiagonal, nonneg_qp_scipy
 
-    rng = np.random.default_rng(seed)
-    b = rng.normal(size=(k, k)) * np.logspace(0, -decades, k)
-    lap = sp.diags([2 * np.ones(n), -np.ones(n - 1), -np.ones(n - 1)], [0, -1, 1])
-    return sp.kron(lap, sp.csr_matrix(b.T @ b)).tocsc(), rng.normal(size=n * k)
-
-
-def test_sparse_nnls_admm_gives_the_exact_bounded_optimum():
     from faceretarget.plugins.coating import editing
-    from faceretarget.plugins.coating.bases import nnls_rows
 
-    hessian, rhs = _knot_problem(seed=1, n=12, k=5, decades=0)
-    got, exact = editing._nnls_admm(hessian, rhs, np.zeros(rhs.size))
-    want = nnls_rows(hessian.toarray(), rhs[None])[0]
-    assert exact and 0 < (want > 0).mean() < 1  # polished to the optimum; bounds bind
-    np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
-
-
-@pytest.mark.parametrize("dense_limit", [1000, 0])
-def test_sparse_nnls_when_the_active_set_method_cycles(monkeypatch, dense_limit):
-    """Seed 179 makes the primal-dual active-set method cycle (it used to fall back to the dense
-    active-set method at any size: minutes for a 107-knot edit). Small problems go to the dense
-    method, large ones to ADMM (forced here with a limit of 0): the answer stays exact."""
-    from faceretarget.plugins.coating import editing
-    from faceretarget.plugins.coating.bases import nnls_rows
-
-    calls = []
-    admm = editing._nnls_admm
-    monkeypatch.setattr(editing, "_nnls_admm", lambda *a: calls.append(1) or admm(*a))
-    monkeypatch.setattr(editing, "NNLS_DENSE_LIMIT", dense_limit)
-    hessian, rhs = _knot_problem(seed=179, n=10, k=6, decades=2)
-    got = editing._nnls_sparse(hessian, rhs, np.zeros(rhs.size))
-    want = nnls_rows(hessian.toarray(), rhs[None])[0]
-    assert bool(calls) == (dense_limit == 0)
-    np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
+    for seed in (1, 179):
+        hessian, rhs = block_tridiagonal(seed, 10, 6, decades=2)
+        got = editing._nnls_sparse(hessian, rhs, np.zeros(rhs.size))
+        want = nonneg_qp_scipy(hessian.toarray(), rhs)
+        assert 0 < (want > 0).mean() < 1  # bounds bind
+        np.testing.assert_allclose(got, want, atol=1e-9 * np.abs(want).max())
