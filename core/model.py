@@ -52,6 +52,7 @@ __all__ = [
     "Source",
     "TargetRig",
     "Animation",
+    "FrameSource",
     "apply_head_motion",
 ]
 
@@ -1059,13 +1060,67 @@ def apply_head_motion(head_motion: np.ndarray | None, points: np.ndarray) -> np.
     return out
 
 
+class FrameSource:
+    """Final target vertices computed on demand, some frames at a time: the lazy form of an
+    :class:`Animation`'s ``vertices`` for results whose frames cost real work (e.g. an edit
+    that re-synthesizes only the frames that are read).
+
+    Parameters
+    ----------
+    frames : callable ``(ids : (n,) int64) -> (n, V, 3) float``
+        The final vertices (head motion included) of frames ``ids``, in that order.
+    n_frames, n_vertices : int
+    chunk : int
+        Frames computed at a time when every frame is read (bounds the temporaries).
+    """
+
+    __slots__ = ("_frames", "n_frames", "n_vertices", "chunk")
+
+    def __init__(self, frames: Any, n_frames: int, n_vertices: int, *, chunk: int = 32) -> None:
+        if not callable(frames):
+            raise InputError(f"FrameSource: frames must be callable, got {type(frames).__name__}")
+        self._frames = frames
+        self.n_frames = int(n_frames)
+        self.n_vertices = int(n_vertices)
+        self.chunk = max(1, int(chunk))
+        if self.n_frames <= 0 or self.n_vertices <= 0:
+            raise ShapeError(
+                f"FrameSource: needs frames and vertices, got {self.n_frames} frames of {self.n_vertices} vertices"
+            )
+
+    def __call__(self, ids: np.ndarray) -> np.ndarray:
+        """(n, V, 3) float vertices of frames ``ids``, checked (shape, finite)."""
+        out = np.asarray(self._frames(ids))
+        if out.shape != (ids.size, self.n_vertices, 3):
+            raise ShapeError(
+                f"FrameSource: {ids.size} frames of {self.n_vertices} vertices asked, got shape {out.shape}"
+            )
+        if out.size and not np.isfinite(out).all():
+            f, v = (int(i) for i in np.argwhere(~np.isfinite(out))[0][:2])
+            raise NonFiniteError(
+                f"FrameSource: NaN or infinite coordinate at frame {int(ids[f])}, vertex {v}"
+            )
+        return out
+
+    def all(self) -> np.ndarray:
+        """(F, V, 3) every frame, ``chunk`` frames at a time."""
+        first = self(np.arange(min(self.chunk, self.n_frames)))
+        out = np.empty((self.n_frames, self.n_vertices, 3), dtype=first.dtype)
+        out[: first.shape[0]] = first
+        for start in range(first.shape[0], self.n_frames, self.chunk):
+            stop = min(start + self.chunk, self.n_frames)
+            out[start:stop] = self(np.arange(start, stop))
+        return out
+
+
 class Animation:
     """The result of a retargeting: target geometry and/or weights, plus provenance.
 
     Parameters
     ----------
-    vertices : (F, V, 3) float, optional
-        Final target vertices (head motion included).
+    vertices : (F, V, 3) float or FrameSource, optional
+        Final target vertices (head motion included); a :class:`FrameSource` computes them
+        when read (:meth:`frames` computes only the frames asked for).
     weights : (F, M) float, optional
         Blendshape weights; with ``rig`` they define the vertices lazily.
     rig : BlendshapeRig, optional
@@ -1104,7 +1159,14 @@ class Animation:
             if value is not None and not isinstance(value, Mapping):
                 raise InputError(f"Animation.{label}: expected a dict, got {type(value).__name__}")
         self._vertices = None
-        if vertices is not None:
+        self._lazy: FrameSource | None = None
+        if isinstance(vertices, FrameSource):
+            if rig is not None and vertices.n_vertices != rig.neutral.n_vertices:
+                raise TopologyMismatchError(
+                    f"Animation: vertices have {vertices.n_vertices} vertices but the rig's neutral has {rig.neutral.n_vertices}"
+                )
+            self._lazy = vertices
+        elif vertices is not None:
             arr = as_array(vertices, "Animation.vertices")
             if arr.ndim != 3 or arr.shape[-1] != 3:
                 raise ShapeError(f"Animation.vertices: expected (F, V, 3), got {tuple(arr.shape)}")
@@ -1129,11 +1191,13 @@ class Animation:
             )
         if self._vertices is not None:
             n_frames = self._vertices.shape[0]
+        elif self._lazy is not None:
+            n_frames = self._lazy.n_frames
         else:
             assert self.weights is not None  # checked above: without vertices, weights and a rig
             n_frames = self.weights.shape[0]
         if (
-            self._vertices is not None
+            (self._vertices is not None or self._lazy is not None)
             and self.weights is not None
             and self.weights.shape[0] != n_frames
         ):
@@ -1145,11 +1209,7 @@ class Animation:
         self.head_motion = _as_head_motion(head_motion, n_frames, "Animation.head_motion")
         if triangles is None and rig is not None:
             triangles = rig.neutral.triangles
-        if self._vertices is not None:
-            n_vertices = self._vertices.shape[1]
-        else:
-            assert rig is not None  # checked above: without vertices, weights and a rig
-            n_vertices = rig.neutral.n_vertices
+        n_vertices = self.n_vertices
         self.triangles = (
             None
             if triangles is None
@@ -1173,30 +1233,65 @@ class Animation:
     def n_frames(self) -> int:
         if self._vertices is not None:
             return int(self._vertices.shape[0])
+        if self._lazy is not None:
+            return self._lazy.n_frames
         assert self.weights is not None  # an Animation without vertices has weights and a rig
         return int(self.weights.shape[0])
 
     @property
+    def n_vertices(self) -> int:
+        if self._vertices is not None:
+            return int(self._vertices.shape[1])
+        if self._lazy is not None:
+            return self._lazy.n_vertices
+        assert self.rig is not None  # an Animation without vertices has weights and a rig
+        return int(self.rig.neutral.n_vertices)
+
+    @property
     def vertices(self) -> np.ndarray:
-        """(F, V, 3) final target vertices (computed from the weights on first use)."""
+        """(F, V, 3) final target vertices (computed from the weights, or the frame source,
+        on first use)."""
         if self._vertices is None:
-            # an Animation without vertices has weights and a rig
-            assert self.rig is not None and self.weights is not None
-            local = self.rig.evaluate(self.weights)
-            self._vertices = readonly(apply_head_motion(self.head_motion, local))
+            if self._lazy is not None:
+                self._vertices = readonly(self._lazy.all())
+                self._lazy = None
+            else:
+                # an Animation without vertices has weights and a rig
+                assert self.rig is not None and self.weights is not None
+                local = self.rig.evaluate(self.weights)
+                self._vertices = readonly(apply_head_motion(self.head_motion, local))
         return self._vertices
+
+    def frames(self, ids: int | slice | npt.ArrayLike) -> np.ndarray:
+        """Final vertices of some frames, ``(n, V, 3)`` (``(V, 3)`` for one ``int``), computing
+        only those while the vertices are lazy (blendshape results, a :class:`FrameSource`);
+        :attr:`vertices` computes every frame."""
+        key: Any = ids if isinstance(ids, (int, np.integer, slice)) else np.asarray(ids)
+        if self._vertices is not None:
+            return self._vertices[key]
+        one = isinstance(ids, (int, np.integer))
+        idx = np.atleast_1d(np.arange(self.n_frames)[key]).astype(np.int64, copy=False)
+        if self._lazy is not None:
+            out = self._lazy(idx)
+        else:
+            assert self.rig is not None and self.weights is not None
+            motion = None if self.head_motion is None else self.head_motion[idx]
+            out = apply_head_motion(motion, self.rig.evaluate(self.weights[idx]))
+        return out[0] if one else out
 
     @property
     def is_computed(self) -> bool:
-        """True once the vertices exist as an array (always for mesh results; for blendshape
-        results after the first read of :attr:`vertices` or :meth:`compute`)."""
+        """True once the vertices exist as an array (always for mesh results given as arrays;
+        for blendshape results and a :class:`FrameSource` after the first read of
+        :attr:`vertices` or :meth:`compute`)."""
         return self._vertices is not None
 
     def compute(self) -> Animation:
         """Evaluate the vertices now if they are lazy (blendshape results: ``neutral + weights @
         deltas`` and the head motion, one BLAS product; ~17 ms for 300 frames x 9,409 vertices,
-        ``benchmarks/bench_cross_rig.py``); returns ``self``. Reading :attr:`vertices` does the
-        same on first use: call this to choose when the time and memory are spent."""
+        ``benchmarks/bench_cross_rig.py``; a :class:`FrameSource`: every frame, a chunk at a
+        time); returns ``self``. Reading :attr:`vertices` does the same on first use: call
+        this to choose when the time and memory are spent."""
         _ = self.vertices
         return self
 
@@ -1219,13 +1314,15 @@ class Animation:
         if self.triangles is None:
             raise InputError("Animation.mesh: this animation has no triangles")
         return Mesh(
-            np.asarray(self.vertices[frame], dtype=np.float64), self.triangles, _trusted=True
+            np.asarray(self.frames(int(frame)), dtype=np.float64), self.triangles, _trusted=True
         )
 
     def replace(self, **changes: Any) -> Animation:
         """A copy with some constructor arguments changed (e.g. ``weights=...``)."""
         args: dict[str, Any] = dict(
-            vertices=self._vertices if not self.is_blendshape_based else None,
+            vertices=None
+            if self.is_blendshape_based
+            else (self._vertices if self._vertices is not None else self._lazy),
             weights=self.weights,
             rig=self.rig,
             head_motion=self.head_motion,
@@ -1242,9 +1339,7 @@ class Animation:
         what = []
         if self.weights is not None:
             what.append(f"{self.weights.shape[1]} weights")
-        if self._vertices is not None:
-            what.append(f"{self._vertices.shape[1]} vertices")
-        elif self.rig is not None:
-            what.append(f"{self.rig.neutral.n_vertices} vertices")
+        if self._vertices is not None or self._lazy is not None or self.rig is not None:
+            what.append(f"{self.n_vertices} vertices")
         method = self.provenance.get("method")
         return f"Animation({self.n_frames} frames, {', '.join(what)}{', by ' + method if method else ''})"

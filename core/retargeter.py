@@ -26,7 +26,7 @@ import numpy as np
 
 from ._json import jsonable
 from .capabilities import RIG_PARTS, SOURCE_KINDS, Capabilities
-from .errors import CapabilityError, InputError, NotFittedError, PluginOutputError
+from .errors import CapabilityError, InputError, NonFiniteError, NotFittedError, PluginOutputError
 from .model import Animation, Source, TargetRig
 
 if TYPE_CHECKING:
@@ -284,11 +284,7 @@ class Retargeter:
                 f"{who}: returned {animation.n_frames} frames for a source of {source.n_frames}; expected one per source frame"
             )
         target = getattr(self, "target_", None)
-        if animation._vertices is not None:
-            n_vertices = animation._vertices.shape[1]
-        else:
-            assert animation.rig is not None  # an Animation without vertices has a rig
-            n_vertices = animation.rig.neutral.n_vertices
+        n_vertices = animation.n_vertices
         if isinstance(target, TargetRig) and n_vertices != target.neutral.n_vertices:
             raise PluginOutputError(
                 f"{who}: returned {n_vertices} vertices per frame but the target has {target.neutral.n_vertices}; "
@@ -357,6 +353,13 @@ def _finite_vertices(animation: Animation, chunk: int = 64) -> bool:
         return all(
             np.isfinite(stored[i : i + chunk]).all() for i in range(0, stored.shape[0], chunk)
         )
+    if animation._lazy is not None:  # a frame source checks what it computes
+        try:
+            for i in range(0, animation.n_frames, chunk):
+                animation.frames(slice(i, i + chunk))
+        except NonFiniteError:
+            return False
+        return True
     rig, weights, motion = (
         animation.rig,
         np.asarray(animation.weights, dtype=np.float64),

@@ -79,10 +79,12 @@ _MAX_OUTER = 3
 _OUTER_TOL = 0.01
 #: Rounds of adding knots where the interpolated weights would cross zero (:func:`solve_weights`).
 MAX_KNOT_ROUNDS = 64
-#: Beyond this fraction of the window's frames as knots, the next round takes every frame (the
-#: full problem, solved once) instead of growing the knots round by round: a whole-shot edit
-#: of 130 frames went through 14 rounds of 200-3,100 variables; now 4 solves, the last the full one.
+#: Beyond this fraction of the window's frames as knots, or after this many rounds, the next
+#: round takes every frame (the full problem, solved once) instead of growing the knots round
+#: by round: a whole-shot edit of 1,300 frames went through 64 rounds of 200-9,000 variables a
+#: weight step (knots grow by about three per offending segment a round).
 KNOTS_FULL_FRACTION = 0.25
+KNOT_ROUNDS_BEFORE_FULL = 4
 
 
 @dataclass(frozen=True)
@@ -361,7 +363,7 @@ def solve_weights(bases, center, weights, constraints, window, mu, lambda_w, met
     frames = np.arange(w0, w1 + 1)
     knots = list(edited)
     scale = max(float(np.abs(w[w0 : w1 + 1]).max()), 1.0)
-    for _ in range(MAX_KNOT_ROUNDS):
+    for round_ in range(MAX_KNOT_ROUNDS):
         delta_knots = _knot_change(bases, center, w, constraints, knots, (w0, w1), mu, lambda_w, g)
         xs_a = np.asarray([w0 - 1] + knots + [w1 + 1], dtype=np.float64)
         ys_a = np.concatenate([np.zeros((1, k)), delta_knots, np.zeros((1, k))])
@@ -378,7 +380,9 @@ def solve_weights(bases, center, weights, constraints, window, mu, lambda_w, met
                 int(frames[i]) for i in (inside[0], inside[-1], inside[np.argmin(low[inside])])
             )
         knots = sorted(set(knots) | extra)
-        if len(knots) > KNOTS_FULL_FRACTION * len(frames):  # many crossings: the full problem
+        if (
+            len(knots) > KNOTS_FULL_FRACTION * len(frames) or round_ + 1 >= KNOT_ROUNDS_BEFORE_FULL
+        ):  # many crossings: the full problem
             knots = [int(f) for f in frames]
     new = w[w0 : w1 + 1] + delta
     if (
@@ -410,12 +414,11 @@ def _knot_change(
     lap = sp.diags(
         [gap[:-1] + gap[1:], -gap[1:-1], -gap[1:-1]], [0, -1, 1], shape=(n, n), format="csr"
     )
-    gram = (lambda_w * sp.kron(lap, sp.csr_matrix(metric))).tolil() if n > 1 else None
-    dense = lambda_w * np.kron(lap.toarray(), metric) if gram is None else None
+    velocity = lambda_w * sp.kron(lap, sp.csr_matrix(metric), format="csr")
     target = weights[knots].ravel()
-    rhs = (lambda_w * sp.kron(lap, sp.csr_matrix(metric))) @ target
+    rhs = velocity @ target
     index = {t: j for j, t in enumerate(knots)}
-    blocks = {}
+    blocks: dict[int, np.ndarray] = {}
     for c in constraints:
         if c.frame not in index:
             continue
@@ -424,14 +427,20 @@ def _knot_change(
         const = center * c.coeffs.sum()
         blocks[j] = blocks.get(j, 0.0) + mu * a @ a.T
         rhs[j * k : (j + 1) * k] += mu * a @ (c.value - const)
-    if gram is None:
-        for j, blk in blocks.items():
-            dense[j * k : (j + 1) * k, j * k : (j + 1) * k] += blk
+    if n == 1:
+        dense = velocity.toarray()
+        for blk in blocks.values():
+            dense += blk
         y = nnls_rows(dense, rhs[None])[0].reshape(n, k)
     else:
-        for j, blk in blocks.items():
-            gram[j * k : (j + 1) * k, j * k : (j + 1) * k] = (
-                gram[j * k : (j + 1) * k, j * k : (j + 1) * k].toarray() + blk
+        gram = velocity
+        if blocks:  # the constraints' (K, K) blocks on the diagonal of their knots
+            j = np.fromiter(blocks, dtype=np.int64)
+            rows = (j[:, None, None] * k + np.arange(k)[None, :, None]).repeat(k, axis=2)
+            cols = rows.transpose(0, 2, 1)
+            data = np.stack([blocks[int(i)] for i in j])
+            gram = gram + sp.csr_matrix(
+                (data.ravel(), (rows.ravel(), cols.ravel())), shape=gram.shape
             )
         y = _nnls_sparse(gram.tocsc(), rhs, np.maximum(target, 0.0)).reshape(n, k)
     return y - weights[knots]

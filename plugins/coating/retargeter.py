@@ -28,7 +28,7 @@ from faceretarget.geometry.deformation_gradients import (
     gradient_columns,
     reference_inverse,
 )
-from faceretarget.model import Animation, MeshSequence, Source, TargetRig
+from faceretarget.model import Animation, FrameSource, MeshSequence, Source, TargetRig
 from faceretarget.retargeter import Retargeter
 from faceretarget.validation import Options, check_value, validate_params
 
@@ -503,11 +503,6 @@ class CoatingRetargeter(_MeshTransfer):
                 mode=mode,
                 lambdas=lambdas,
             )
-        start = time.perf_counter()
-        vertices = np.array(animation.vertices, dtype=np.float64)
-        if changed.size:
-            new_track.world_frames(changed, out=vertices)
-        diagnostics["synthesis_s"] = time.perf_counter() - start
         diagnostics["changed_frames"] = int(changed.size)
         prov = dict(animation.provenance)
         prov["diagnostics"] = dict(prov.get("diagnostics", {}), last_edit=diagnostics)
@@ -516,7 +511,26 @@ class CoatingRetargeter(_MeshTransfer):
         extras = dict(animation.extras)
         extras["coating"] = new_track
         extras["weights"] = new_track.weights
-        return animation.replace(vertices=vertices, provenance=prov, extras=extras)
+        return animation.replace(
+            vertices=_edited_frames(animation, new_track, changed), provenance=prov, extras=extras
+        )
+
+
+def _edited_frames(animation: Animation, track, changed: np.ndarray) -> FrameSource:
+    """The edited result's vertices, lazily: frames in ``changed`` re-synthesized from
+    ``track`` when read (a chunk at a time), the others those of ``animation``; so ``edit()``
+    returns once the edit is solved, and reading a few frames costs only those."""
+    moved = np.zeros(animation.n_frames, dtype=bool)
+    moved[changed] = True
+
+    def frames(ids: np.ndarray) -> np.ndarray:
+        out = np.array(animation.frames(ids), dtype=np.float64)
+        hit = np.flatnonzero(moved[ids])
+        if hit.size:
+            out[hit] = track.world_frames(ids[hit])
+        return out
+
+    return FrameSource(frames, animation.n_frames, animation.n_vertices, chunk=track.chunk)
 
 
 class DeformationTransferRetargeter(_MeshTransfer):

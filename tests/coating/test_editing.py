@@ -563,6 +563,40 @@ def test_the_edit_fixture_edits_active_wrinkles(wrinkled):
     assert size[0] > 5.0 * size[1]
 
 
+def test_edit_resynthesizes_only_the_frames_read(setup, monkeypatch):
+    """edit() returns once the edit is solved (issue 16 item 4): the result's vertices are a
+    frame source; reading a frame re-synthesizes that frame alone if the edit changed it, and
+    reading all gives what an eager re-synthesis of the changed frames gives."""
+    from faceretarget.plugins.coating.track import CoatingTrack
+
+    case, r, anim, v = setup
+    t = _edit_frame(anim)
+    goal = anim.vertices[t, v] + np.array([0.0, 0.01 * case.target.neutral.height, 0.0])
+    made = []
+    world = CoatingTrack.world_frames
+    monkeypatch.setattr(
+        CoatingTrack,
+        "world_frames",
+        lambda self, frames, out=None: made.extend(np.atleast_1d(frames).tolist())
+        or world(self, frames, out),
+    )
+    window = (t - 4, t + 6)
+    out = r.edit(anim, points=[(t, v, goal)], window=window, mode="weights")
+    assert set(made) <= {t} and not out.is_computed  # only the solve's own look at frame t
+    made.clear()
+    np.testing.assert_array_equal(out.frames(0), anim.vertices[0])  # unchanged: no synthesis
+    assert made == []
+    moved = out.frames([t + 2, t])
+    assert sorted(made) == [t, t + 2]
+    track = out.extras["coating"]
+    np.testing.assert_array_equal(moved, track.world_frames([t + 2, t]))
+    changed = np.flatnonzero(np.any(track.weights != anim.extras["weights"], axis=1))
+    eager = np.array(anim.vertices, dtype=np.float64)
+    eager[changed] = track.world_frames(changed)
+    np.testing.assert_array_equal(out.vertices, eager)
+    assert out.provenance["diagnostics"]["last_edit"]["changed_frames"] == changed.size > 0
+
+
 def test_edit_errors(setup):
     case, r, anim, v = setup
     with pytest.raises(ConfigError):

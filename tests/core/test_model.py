@@ -213,6 +213,82 @@ def test_animation_lazy_vertices_with_head_motion_and_provenance():
         fr.Animation(weights=[[1.0, 2.0]], rig=rig)
 
 
+def test_frames_of_a_lazy_blendshape_result_compute_only_those():
+    v, t = quad()
+    rig = fr.BlendshapeRig(fr.Mesh(v, t), np.ones((1, 4, 3)), ["lift"])
+    motion = np.tile(np.eye(4), (3, 1, 1))
+    motion[:, :3, 3] = [[0.0, 0, 0], [10.0, 0, 0], [0, 5.0, 0]]
+    anim = fr.Animation(weights=[[0.0], [1.0], [2.0]], rig=rig, head_motion=motion)
+    np.testing.assert_allclose(anim.frames(1), v + 1 + [10, 0, 0])
+    np.testing.assert_allclose(anim.frames([2, 0]), [v + 2 + [0, 5, 0], v])
+    np.testing.assert_allclose(anim.frames(slice(1, None))[0], v + 1 + [10, 0, 0])
+    assert not anim.is_computed  # frames() kept it lazy
+    np.testing.assert_array_equal(anim.frames([2, 0]), anim.vertices[[2, 0]])
+
+
+def _counting_source(n_frames=7, n_vertices=4, chunk=3, poison=None):
+    calls = []
+
+    def frames(ids):
+        calls.append(ids.tolist())
+        out = np.repeat(ids[:, None, None].astype(float), n_vertices, axis=1).repeat(3, axis=2)
+        if poison is not None:
+            out[ids == poison] = np.nan
+        return out
+
+    return fr.model.FrameSource(frames, n_frames, n_vertices, chunk=chunk), calls
+
+
+def test_frame_source_computes_the_frames_read_and_all_of_them_by_chunks():
+    v, t = quad()
+    source, calls = _counting_source()
+    anim = fr.Animation(vertices=source, triangles=t, provenance={"method": "x"})
+    assert (anim.n_frames, anim.n_vertices) == (7, 4) and not anim.is_computed
+    assert "4 vertices" in repr(anim)
+    np.testing.assert_array_equal(anim.frames(5), np.full((4, 3), 5.0))
+    np.testing.assert_array_equal(anim.mesh(2).vertices, np.full((4, 3), 2.0))
+    assert calls == [[5], [2]]
+    again = anim.replace(provenance={"method": "y"})  # stays lazy, same source
+    assert not again.is_computed and again.frames(1)[0, 0] == 1.0
+    calls.clear()
+    assert anim.compute().is_computed
+    assert calls == [[0, 1, 2], [3, 4, 5], [6]]  # a chunk at a time
+    np.testing.assert_array_equal(anim.vertices[:, 0, 0], np.arange(7.0))
+    assert not anim.vertices.flags.writeable
+    anim.frames([1, 2])
+    assert len(calls) == 3  # computed once
+
+
+def test_frame_source_output_is_checked():
+    bad, _ = _counting_source(poison=4)
+    anim = fr.Animation(vertices=bad)
+    anim.frames([0, 1])
+    with pytest.raises(errors.NonFiniteError, match="frame 4"):
+        anim.frames([3, 4])
+    with pytest.raises(errors.NonFiniteError):
+        _ = anim.vertices
+    wrong = fr.model.FrameSource(lambda ids: np.zeros((ids.size, 5, 3)), 3, 4)
+    with pytest.raises(errors.ShapeError, match="5"):
+        fr.Animation(vertices=wrong).frames([0])
+    with pytest.raises(errors.InputError):
+        fr.model.FrameSource(np.zeros(3), 3, 4)
+    with pytest.raises(errors.ShapeError):
+        fr.model.FrameSource(lambda ids: None, 0, 4)
+    v, t = quad()
+    rig = fr.BlendshapeRig(fr.Mesh(v, t), np.ones((1, 4, 3)), ["lift"])
+    with pytest.raises(errors.TopologyMismatchError):
+        fr.Animation(vertices=fr.model.FrameSource(lambda ids: None, 3, 5), rig=rig)
+
+
+def test_check_output_finds_nan_in_a_frame_source():
+    from faceretarget.retargeter import _finite_vertices
+
+    bad, _ = _counting_source(poison=6)
+    good, _ = _counting_source()
+    assert not _finite_vertices(fr.Animation(vertices=bad), chunk=2)
+    assert _finite_vertices(fr.Animation(vertices=good), chunk=2)
+
+
 def test_head_motion_rotates_each_frame_like_a_point_by_point_loop():
     from scipy.spatial.transform import Rotation
 
