@@ -577,8 +577,9 @@ def test_edit_resynthesizes_only_the_frames_read(setup, monkeypatch):
     monkeypatch.setattr(
         CoatingTrack,
         "world_frames",
-        lambda self, frames, out=None: made.extend(np.atleast_1d(frames).tolist())
-        or world(self, frames, out),
+        lambda self, frames, out=None: (
+            made.extend(np.atleast_1d(frames).tolist()) or world(self, frames, out)
+        ),
     )
     window = (t - 4, t + 6)
     out = r.edit(anim, points=[(t, v, goal)], window=window, mode="weights")
