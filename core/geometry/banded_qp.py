@@ -22,7 +22,7 @@ import scipy.sparse as sp
 
 from .._threads import blas_single_threaded
 
-__all__ = ["nonneg_qp_banded", "to_upper_band"]
+__all__ = ["nonneg_qp_banded", "to_upper_band", "sub_band"]
 
 #: Interior point steps at most; the relative tolerance on the residuals and on the duality
 #: measure ``x . z / n`` at which it stops (times the scale of ``H`` and ``r``).
@@ -35,12 +35,30 @@ STEP_FRACTION = 0.995
 def to_upper_band(matrix: sp.spmatrix) -> tuple[np.ndarray, int]:
     """``(ab, u)``: the upper triangle of symmetric ``matrix (n, n)`` in LAPACK's banded
     storage ``ab[u + i - j, j] = M[i, j]`` for ``i <= j`` (``ab : (u + 1, n)``)."""
-    coo = sp.triu(sp.coo_matrix(matrix)).tocoo()
+    csc = sp.csc_matrix(matrix)
+    csc.sum_duplicates()  # a no-op when canonical; then each (row, col) is set once
+    coo = csc.tocoo()
+    upper = coo.row <= coo.col
+    row, col = coo.row[upper], coo.col[upper]
     n = matrix.shape[0]
-    u = int((coo.col - coo.row).max()) if coo.nnz else 0
+    u = int((col - row).max()) if row.size else 0
     ab = np.zeros((u + 1, n))
-    np.add.at(ab, (u + coo.row - coo.col, coo.col), coo.data)
+    ab[u + row - col, col] = coo.data[upper]
     return ab, u
+
+
+def sub_band(ab: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """The upper band of ``M[keep][:, keep]`` (``keep`` increasing) from the upper band
+    ``ab : (u + 1, n)`` of ``M``: entry ``(i', j')`` is ``M[keep[i'], keep[j']]``, zero
+    where the two are more than ``u`` apart."""
+    u = ab.shape[0] - 1
+    out = np.zeros((u + 1, keep.size))
+    for d in range(min(u, keep.size - 1) + 1):  # d: the offset in the kept indices
+        j = np.arange(d, keep.size)
+        gap = keep[j] - keep[j - d]
+        near = gap <= u
+        out[u - d, j[near]] = ab[u - gap[near], keep[j[near]]]
+    return out
 
 
 def _factor(ab: np.ndarray, d: np.ndarray) -> np.ndarray | None:
@@ -106,7 +124,7 @@ def nonneg_qp_banded(
         alpha = STEP_FRACTION * min(_to_boundary(x, dx), _to_boundary(z, dz))
         x = x + alpha * dx
         z = z + alpha * dz
-    out, exact, kkt = _polish(hessian, r, x, z, r_scale)
+    out, exact, kkt = _polish(hessian, ab, r, x, z, r_scale)
     return out, {"steps": steps, "exact": exact, "kkt": kkt}
 
 
@@ -159,25 +177,33 @@ def _to_boundary(v: np.ndarray, dv: np.ndarray) -> float:
 
 
 def _polish(
-    hessian: sp.csc_matrix, r: np.ndarray, x: np.ndarray, z: np.ndarray, r_scale: float
+    hessian: sp.csc_matrix,
+    ab: np.ndarray,
+    r: np.ndarray,
+    x: np.ndarray,
+    z: np.ndarray,
+    r_scale: float,
 ) -> tuple[np.ndarray, bool, float]:
-    from scipy.sparse.linalg import splu
-
+    """The exact solve on the free set ``x > z`` (banded Cholesky of its sub-band) if it
+    meets the optimality conditions, else the iterate clipped at 0; and the relative
+    violation."""
     n = r.size
     tol = 1e-9 * r_scale
     free = np.flatnonzero(x > z)  # strict complementarity: the larger of the pair is nonzero
     exact = np.zeros(n)
+    solved = True
     if free.size:
         try:
-            exact[free] = splu(hessian[free][:, free].tocsc()).solve(r[free])
-        except RuntimeError:  # singular free block: keep the iterate
-            exact[free] = -1.0
-    grad = hessian @ exact - r
-    grad[free] = 0.0
-    violation = max(float(-exact.min(initial=0.0)), float(-grad.min(initial=0.0))) / r_scale
-    if violation * r_scale <= tol:
-        return np.maximum(exact, 0.0), True, violation
+            factor = sla.cholesky_banded(sub_band(ab, free), lower=False, check_finite=False)
+            exact[free] = sla.cho_solve_banded((factor, False), r[free], check_finite=False)
+        except np.linalg.LinAlgError:  # the free block is singular to rounding: keep the iterate
+            solved = False
+    if solved:
+        grad = hessian @ exact - r
+        grad[free] = 0.0
+        violation = max(float(-exact.min(initial=0.0)), float(-grad.min(initial=0.0))) / r_scale
+        if violation * r_scale <= tol:
+            return np.maximum(exact, 0.0), True, violation
     grad = hessian @ x - r
-    clipped = np.maximum(x, 0.0)
     kkt = float(np.abs(np.where(x > z, grad, np.minimum(grad, 0.0))).max()) / r_scale
-    return clipped, False, kkt
+    return np.maximum(x, 0.0), False, kkt

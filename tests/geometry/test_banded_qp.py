@@ -5,7 +5,7 @@ import pytest
 import scipy.sparse as sp
 from naive.qp import block_tridiagonal, nonneg_qp_enumerate, nonneg_qp_scipy
 
-from faceretarget.geometry.banded_qp import nonneg_qp_banded, to_upper_band
+from faceretarget.geometry.banded_qp import nonneg_qp_banded, sub_band, to_upper_band
 
 
 def _objective(h, r, x):
@@ -20,6 +20,19 @@ def test_upper_band_storage():
     for j in range(12):
         for i in range(max(0, j - u), j + 1):
             assert ab[u + i - j, j] == dense[i, j]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_sub_band_is_the_band_of_the_kept_rows_and_columns(seed):
+    rng = np.random.default_rng(seed)
+    h, _ = block_tridiagonal(seed, 6, 3, 0)
+    h = (h + sp.coo_matrix((np.ones(2), ([0, 0], [0, 0])), shape=h.shape)).tocsc()  # duplicates
+    keep = np.flatnonzero(rng.random(18) < 0.6)
+    ab, u = to_upper_band(h)
+    want, _ = to_upper_band(sp.csc_matrix(h.toarray()[np.ix_(keep, keep)]))
+    got = sub_band(ab, keep)
+    np.testing.assert_array_equal(got[u + 1 - want.shape[0] :], want)
+    assert not got[: u + 1 - want.shape[0]].any()
 
 
 @pytest.mark.parametrize("seed", range(12))
