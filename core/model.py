@@ -1068,7 +1068,9 @@ class FrameSource:
     Parameters
     ----------
     frames : callable ``(ids : (n,) int64) -> (n, V, 3) float``
-        The final vertices (head motion included) of frames ``ids``, in that order.
+        The final vertices (head motion included) of frames ``ids``, in that order. Make it
+        picklable (a module-level function or class instance, not a closure) if results
+        cross processes (``compare``, ``batch``).
     n_frames, n_vertices : int
     chunk : int
         Frames computed at a time when every frame is read (bounds the temporaries).

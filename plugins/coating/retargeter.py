@@ -522,15 +522,26 @@ def _edited_frames(animation: Animation, track, changed: np.ndarray) -> FrameSou
     returns once the edit is solved, and reading a few frames costs only those."""
     moved = np.zeros(animation.n_frames, dtype=bool)
     moved[changed] = True
+    return FrameSource(
+        _EditedFrames(animation, track, moved),
+        animation.n_frames,
+        animation.n_vertices,
+        chunk=track.chunk,
+    )
 
-    def frames(ids: np.ndarray) -> np.ndarray:
-        out = np.array(animation.frames(ids), dtype=np.float64)
-        hit = np.flatnonzero(moved[ids])
+
+class _EditedFrames:
+    """``(ids) -> (n, V, 3)`` of an edited result (a class, not a closure: results pickle)."""
+
+    def __init__(self, animation: Animation, track, moved: np.ndarray):
+        self.animation, self.track, self.moved = animation, track, moved
+
+    def __call__(self, ids: np.ndarray) -> np.ndarray:
+        out = np.array(self.animation.frames(ids), dtype=np.float64)
+        hit = np.flatnonzero(self.moved[ids])
         if hit.size:
-            out[hit] = track.world_frames(ids[hit])
+            out[hit] = self.track.world_frames(ids[hit])
         return out
-
-    return FrameSource(frames, animation.n_frames, animation.n_vertices, chunk=track.chunk)
 
 
 class DeformationTransferRetargeter(_MeshTransfer):
