@@ -44,15 +44,21 @@ EDIT_SHOT = 1300  # frames of the shot the edit is timed on
 SCALING_QUICK = (10_000, 40_000, 160_000)
 
 
-def tiled(path: Path, clip: np.ndarray, n: int) -> np.ndarray:
-    """``clip (c, V, 3)`` repeated to ``n`` frames in a float32 ``.npy`` at ``path``, memory-mapped."""
+def tiled(path: Path, case, n: int) -> fr.Source:
+    """The case's source clip repeated to ``n`` frames, stored as a float32 ``.npy`` at ``path``
+    and memory-mapped."""
+    perf = case.source.performance
+    clip = perf.vertices
     mm = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(n, *clip.shape[1:]))
     for start in range(0, n, clip.shape[0]):
         stop = min(n, start + clip.shape[0])
         mm[start:stop] = clip[: stop - start]
     mm.flush()
     del mm
-    return np.load(path, mmap_mode="r")
+    return fr.Source(
+        fr.MeshSequence(np.load(path, mmap_mode="r"), perf.triangles, reference=perf.reference),
+        feature_lines=case.source.feature_lines,
+    )
 
 
 def stats(values) -> dict:
@@ -151,14 +157,7 @@ def main(argv=None) -> dict:
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_coating_"))
     try:
-        source = fr.Source(
-            fr.MeshSequence(
-                tiled(tmp / "source.npy", perf.vertices, n),
-                perf.triangles,
-                reference=perf.reference,
-            ),
-            feature_lines=case.source.feature_lines,
-        )
+        source = tiled(tmp / "source.npy", case, n)
         print(f"source: {n} frames, float32 memory-mapped")
 
         tiny = fr.cases.synthetic(resolution=300, n_frames=4)  # numba: compile or load the cache
@@ -233,14 +232,7 @@ def main(argv=None) -> dict:
             long_n, long_r, long_anim = n, r, anim
         else:
             long_n = EDIT_SHOT
-            long_source = fr.Source(
-                fr.MeshSequence(
-                    tiled(tmp / "long.npy", perf.vertices, long_n),
-                    perf.triangles,
-                    reference=perf.reference,
-                ),
-                feature_lines=case.source.feature_lines,
-            )
+            long_source = tiled(tmp / "long.npy", case, long_n)
             long_r = CoatingRetargeter(epsilon=1e-9, max_bases=args.bases)
             long_r.fit(long_source, case.target)
             long_anim = long_r.retarget_to(long_source, tmp / "long_out.npy")
