@@ -109,7 +109,7 @@ def nonneg_qp_banded(
         grad = hessian @ x - r
         dual = grad - z  # stationarity residual: H x - r - z = 0
         mu = float(x @ z) / n
-        x_max = float(x.max())
+        x_max = max(float(x.max()), r_scale / h_scale)  # not 0 when every bound binds
         # stop at the rounding floor of H x - r, and a duality measure TOL of the objective's scale
         if np.abs(dual).max() <= TOL * (r_scale + h_scale * x_max) and mu <= TOL * r_scale * x_max:
             break

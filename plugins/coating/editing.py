@@ -142,15 +142,13 @@ def parse_constraints(track, animation, smooth_at, *, points, distances, fixed) 
     smooth mesh for ``p - offset``.
     """
     n_frames = track.n_frames
-    world = animation.vertices
-    n_target = world.shape[1]
+    n_target = animation.n_vertices
     cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def frame_data(t):
-        if t not in cache:
-            local = track.placement.to_model(
-                to_local(track.motion[t : t + 1], np.asarray(world[t : t + 1], dtype=np.float64))[0]
-            )
+        if t not in cache:  # only the edited frames are read (a lazy result stays lazy)
+            world = np.asarray(animation.frames([t]), dtype=np.float64)
+            local = track.placement.to_model(to_local(track.motion[t : t + 1], world)[0])
             cache[t] = (local, smooth_at(t))
         return cache[t]
 

@@ -237,6 +237,67 @@ def test_weights_step_is_the_bounded_problem_with_anchors_and_metric():
     assert active >= 3  # bounds that the plain interpolation would cross were met
 
 
+def test_single_edited_frame_weights_step_equals_the_assembled_problem():
+    """One edited frame (one knot: the dense branch), no bound binding (weights in [2, 3]): the
+    change is the assembled quadratic's minimiser."""
+    rng = np.random.default_rng(5)
+    k = 4
+    bases = rng.normal(size=(k, 6, 3))
+    center = rng.normal(size=3)
+    weights = rng.uniform(2.0, 3.0, size=(12, k))
+    m = rng.normal(size=(k, k))
+    metric = m @ m.T + 0.1 * np.eye(k)
+    cons = [Constraint(5, np.array([2]), np.array([1.0]), rng.normal(size=3))]
+    got, _ = solve_weights(bases, center, weights, cons, (2, 8), 0.7, 1.0, metric)
+    want = naive_weights_edit(bases, center, weights, cons, (2, 8), 0.7, 1.0, metric)
+    np.testing.assert_allclose(got[2:9], want, atol=1e-8)
+    assert np.abs(got[5] - weights[5]).max() > 1e-3  # the constraint moved it
+
+
+def test_knot_rounds_stop_at_the_full_problem(monkeypatch):
+    """After KNOT_ROUNDS_BEFORE_FULL rounds of adding knots the next round is the full problem:
+    a weight step takes at most that many + 1 knot solves, and the answer is unchanged."""
+    from faceretarget.plugins.coating import editing
+
+    rng = np.random.default_rng(36)  # 9 rounds without the cap (2 to 28 knots)
+    n_frames, k = 60, 5
+    bases = rng.normal(size=(k, 6, 3))
+    center = rng.normal(size=3)
+    weights = rng.uniform(0.0, 1.0, size=(n_frames, k)) * (rng.uniform(size=(n_frames, k)) > 0.6)
+    m = rng.normal(size=(k, k))
+    metric = m @ m.T + 0.1 * np.eye(k)
+    cons = [
+        Constraint(30, np.array([1]), np.array([1.0]), 5.0 * rng.normal(size=3)),
+        Constraint(12, np.array([3]), np.array([1.0]), 5.0 * rng.normal(size=3)),
+    ]
+    window = (0, n_frames - 1)
+    want = naive_weights_edit(bases, center, weights, cons, window, 0.7, 1.0, metric)
+    monkeypatch.setattr(editing, "KNOTS_FULL_FRACTION", 1.0)  # only the round cap
+    calls = []
+    knot_change = editing._knot_change
+    monkeypatch.setattr(
+        editing, "_knot_change", lambda *a: calls.append(len(a[4])) or knot_change(*a)
+    )
+    got, _ = editing.solve_weights(bases, center, weights, cons, window, 0.7, 1.0, metric)
+    np.testing.assert_allclose(got, want, atol=1e-8)
+    assert 2 <= len(calls) <= editing.KNOT_ROUNDS_BEFORE_FULL + 1
+    assert calls[-1] == n_frames and calls[0] < n_frames
+
+
+def test_editing_an_edited_result_reads_only_its_edited_frames(setup):
+    """A second edit of a lazy result reads the frames it constrains, not the whole result."""
+    case, r, anim, v = setup
+    t = _edit_frame(anim)
+    step = np.array([0.0, 0.01 * case.target.neutral.height, 0.0])
+    once = r.edit(anim, points=[(t, v, anim.vertices[t, v] + step)], window=(t - 3, t + 3))
+    twice = r.edit(once, points=[(t + 1, v, once.frames(t + 1)[v] + step)], window=(t - 2, t + 4))
+    twice.frames([t, t + 1])
+    assert not once.is_computed and not twice.is_computed
+    np.testing.assert_allclose(
+        twice.frames(t + 1)[v], once.frames(t + 1)[v] + step, atol=1e-3 * step[1]
+    )
+
+
 @pytest.fixture(scope="module")
 def long():
     """Four seconds at 30 fps: an edit at 2 s, frames more than 1 s away are far."""

@@ -231,7 +231,7 @@ def _counting_source(n_frames=7, n_vertices=4, chunk=3, poison=None):
 
     def frames(ids):
         calls.append(ids.tolist())
-        out = np.repeat(ids[:, None, None].astype(float), n_vertices, axis=1).repeat(3, axis=2)
+        out = np.repeat(0.1 * ids[:, None, None], n_vertices, axis=1).repeat(3, axis=2)
         if poison is not None:
             out[ids == poison] = np.nan
         return out
@@ -245,18 +245,42 @@ def test_frame_source_computes_the_frames_read_and_all_of_them_by_chunks():
     anim = fr.Animation(vertices=source, triangles=t, provenance={"method": "x"})
     assert (anim.n_frames, anim.n_vertices) == (7, 4) and not anim.is_computed
     assert "4 vertices" in repr(anim)
-    np.testing.assert_array_equal(anim.frames(5), np.full((4, 3), 5.0))
-    np.testing.assert_array_equal(anim.mesh(2).vertices, np.full((4, 3), 2.0))
-    assert calls == [[5], [2]]
+    np.testing.assert_array_equal(anim.frames(5), np.full((4, 3), 0.5))
+    assert anim.frames(np.int64(5)).shape == (4, 3)  # a numpy integer is one frame too
+    np.testing.assert_array_equal(anim.mesh(2).vertices, np.full((4, 3), 0.2))
+    assert calls == [[5], [5], [2]]
     again = anim.replace(provenance={"method": "y"})  # stays lazy, same source
-    assert not again.is_computed and again.frames(1)[0, 0] == 1.0
+    assert not again.is_computed and again.frames(1)[0, 0] == 0.1
     calls.clear()
     assert anim.compute().is_computed
     assert calls == [[0, 1, 2], [3, 4, 5], [6]]  # a chunk at a time
-    np.testing.assert_array_equal(anim.vertices[:, 0, 0], np.arange(7.0))
+    assert anim.vertices.dtype == np.float64
+    np.testing.assert_array_equal(anim.vertices[:, 0, 0], 0.1 * np.arange(7))
     assert not anim.vertices.flags.writeable
     anim.frames([1, 2])
     assert len(calls) == 3  # computed once
+
+
+def test_frame_source_chunks_and_release():
+    import gc
+    import weakref
+
+    short, _ = _counting_source(n_frames=2, chunk=3)  # fewer frames than a chunk
+    assert fr.Animation(vertices=short).vertices.shape == (2, 4, 3)
+    zero, calls = _counting_source(n_frames=3, chunk=0)
+    assert zero.chunk == 1 and fr.Animation(vertices=zero).vertices.shape == (3, 4, 3)
+    assert calls == [[0], [1], [2]]
+
+    class Frames:
+        def __call__(self, ids):
+            return np.zeros((ids.size, 4, 3))
+
+    frames = Frames()
+    ref = weakref.ref(frames)
+    anim = fr.Animation(vertices=fr.model.FrameSource(frames, 3, 4)).compute()
+    del frames
+    gc.collect()
+    assert ref() is None and anim.is_computed  # a computed result lets its source go
 
 
 def test_frame_source_output_is_checked():
@@ -274,10 +298,16 @@ def test_frame_source_output_is_checked():
         fr.model.FrameSource(np.zeros(3), 3, 4)
     with pytest.raises(errors.ShapeError):
         fr.model.FrameSource(lambda ids: None, 0, 4)
+    with pytest.raises(errors.ShapeError):
+        fr.model.FrameSource(lambda ids: None, 3, 0)
     v, t = quad()
     rig = fr.BlendshapeRig(fr.Mesh(v, t), np.ones((1, 4, 3)), ["lift"])
     with pytest.raises(errors.TopologyMismatchError):
         fr.Animation(vertices=fr.model.FrameSource(lambda ids: None, 3, 5), rig=rig)
+    with pytest.raises(errors.ShapeError, match="weight frames"):
+        fr.Animation(
+            vertices=fr.model.FrameSource(lambda ids: None, 7, 4), weights=np.zeros((3, 1)), rig=rig
+        )
 
 
 def test_check_output_finds_nan_in_a_frame_source():
