@@ -78,10 +78,13 @@ def main() -> None:
             mode=mode,
         )
         d = edited.provenance["diagnostics"]["last_edit"]
+        start = time.perf_counter()
+        edited.compute()  # the edit's frames are re-synthesized when read (here: all of them)
+        synthesis = time.perf_counter() - start
         moved = np.linalg.norm(edited.vertices - anim.vertices, axis=-1).max(axis=1)
         print(
             f"large-scale edit ({mode}): constraint residual {np.linalg.norm(edited.vertices[key, chin] - goal):.3f} cm, "
-            f"{int((moved > 1e-6).sum())} frames changed, solve {1000 * d['solve_s']:.0f} ms, re-synthesis {d['synthesis_s']:.2f} s"
+            f"{int((moved > 1e-6).sum())} frames changed, solve {1000 * d['solve_s']:.0f} ms, re-synthesis {synthesis:.2f} s"
         )
         results[f"edit_{mode}"] = (coating, edited)
 
@@ -96,9 +99,11 @@ def main() -> None:
         anim, detail=DetailEdit(frame=key, vertices=region, operation="scale", factor=2.0)
     )
     d = enhanced.provenance["diagnostics"]["last_edit"]
+    start = time.perf_counter()
+    enhanced.compute()
     print(
         f"fine-scale edit: key frame {key}, active window {d['window']}, {d['edited_vertices']} vertices, "
-        f"solve {1000 * d['solve_s']:.0f} ms, re-synthesis {d['synthesis_s']:.2f} s"
+        f"solve {1000 * d['solve_s']:.0f} ms, re-synthesis {time.perf_counter() - start:.2f} s"
     )
     results["edit_detail"] = (coating, enhanced)
     print(f"weights of {weights.shape[1]} bases; first frame {np.round(weights[0], 3)}")
