@@ -36,8 +36,10 @@ def to_upper_band(matrix: sp.spmatrix) -> tuple[np.ndarray, int]:
     """``(ab, u)``: the upper triangle of symmetric ``matrix (n, n)`` in LAPACK's banded
     storage ``ab[u + i - j, j] = M[i, j]`` for ``i <= j`` (``ab : (u + 1, n)``)."""
     csc = sp.csc_matrix(matrix)
-    csc.sum_duplicates()  # a no-op when canonical; then each (row, col) is set once
-    coo = csc.tocoo()
+    if not csc.has_canonical_format:  # duplicates summed on a copy: the caller's arrays stay
+        csc = csc.copy()
+        csc.sum_duplicates()
+    coo = csc.tocoo()  # each (row, col) once
     upper = coo.row <= coo.col
     row, col = coo.row[upper], coo.col[upper]
     n = matrix.shape[0]
@@ -61,11 +63,13 @@ def sub_band(ab: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return out
 
 
-def _factor(ab: np.ndarray, d: np.ndarray) -> np.ndarray | None:
-    """Banded Cholesky factor of ``H + diag(d)`` (``ab`` the upper band of ``H``); None if
-    it is not positive definite to rounding."""
-    m = ab.copy()
-    m[-1] += d
+def _factor(ab: np.ndarray, d: np.ndarray | None = None) -> np.ndarray | None:
+    """Banded Cholesky factor of ``H + diag(d)`` (``ab`` the upper band of ``H``; ``d``
+    default 0); None if it is not positive definite to rounding."""
+    m = ab
+    if d is not None:
+        m = ab.copy()
+        m[-1] += d
     try:
         return sla.cholesky_banded(m, lower=False, check_finite=False)
     except np.linalg.LinAlgError:
@@ -187,22 +191,16 @@ def _polish(
     """The exact solve on the free set ``x > z`` (banded Cholesky of its sub-band) if it
     meets the optimality conditions, else the iterate clipped at 0; and the relative
     violation."""
-    n = r.size
-    tol = 1e-9 * r_scale
     free = np.flatnonzero(x > z)  # strict complementarity: the larger of the pair is nonzero
-    exact = np.zeros(n)
-    solved = True
-    if free.size:
-        try:
-            factor = sla.cholesky_banded(sub_band(ab, free), lower=False, check_finite=False)
-            exact[free] = sla.cho_solve_banded((factor, False), r[free], check_finite=False)
-        except np.linalg.LinAlgError:  # the free block is singular to rounding: keep the iterate
-            solved = False
-    if solved:
+    exact = np.zeros(r.size)
+    factor = _factor(sub_band(ab, free)) if free.size else None
+    if factor is not None:
+        exact[free] = sla.cho_solve_banded((factor, False), r[free], check_finite=False)
+    if factor is not None or not free.size:  # else the free block is singular: keep the iterate
         grad = hessian @ exact - r
         grad[free] = 0.0
         violation = max(float(-exact.min(initial=0.0)), float(-grad.min(initial=0.0))) / r_scale
-        if violation * r_scale <= tol:
+        if violation <= 1e-9:
             return np.maximum(exact, 0.0), True, violation
     grad = hessian @ x - r
     kkt = float(np.abs(np.where(x > z, grad, np.minimum(grad, 0.0))).max()) / r_scale

@@ -96,11 +96,14 @@ def test_duplicate_entries_are_summed():
         shape=(2, 2),
     )
     assert not h.has_canonical_format
+    arrays = [a.copy() for a in (h.data, h.indices, h.indptr)]
     ab, u = to_upper_band(h)
     np.testing.assert_array_equal(ab, [[0.0, 1.0], [2.0, 2.0]])
     got, info = nonneg_qp_banded(h, np.array([3.0, 3.0]))
     assert info["exact"]
     np.testing.assert_allclose(got, [1.0, 1.0], rtol=1e-12)
+    for before, after in zip(arrays, (h.data, h.indices, h.indptr)):  # the input is not modified
+        np.testing.assert_array_equal(after, before)
 
 
 def test_step_to_the_boundary_is_capped_at_a_full_step():
