@@ -79,15 +79,23 @@ def directed_edges(triangles: np.ndarray) -> np.ndarray:
     return np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
 
 
+def _undirected_keys(directed: np.ndarray) -> tuple[np.ndarray, int]:
+    """1D keys ``a * n + b`` (``a < b`` the edge's ends, ``n`` the largest index + 1) of
+    non-empty ``directed (E, 2)`` edges: sorted like the rows ``(a, b)``, and ~5x faster
+    to ``np.unique`` than the rows (``axis=0``)."""
+    e = np.sort(directed, axis=1).astype(np.int64, copy=False)
+    n = int(e.max()) + 1
+    return e[:, 0] * n + e[:, 1], n
+
+
 def unique_edges(triangles: np.ndarray) -> np.ndarray:
     """(E, 2) unique undirected edges, smaller index first, sorted."""
-    e = np.sort(directed_edges(triangles), axis=1)
-    if len(e) == 0:
-        return e.reshape(0, 2)
-    # unique of 1D keys a * n + b (same order as rows (a, b)): ~5x np.unique(axis=0)
-    n = int(e.max()) + 1
-    keys = np.unique(e[:, 0].astype(np.int64) * n + e[:, 1])
-    return np.stack([keys // n, keys % n], axis=1).astype(e.dtype, copy=False)
+    d = directed_edges(triangles)
+    if len(d) == 0:
+        return d.reshape(0, 2)
+    keys, n = _undirected_keys(d)
+    keys = np.unique(keys)
+    return np.stack([keys // n, keys % n], axis=1).astype(d.dtype, copy=False)
 
 
 def boundary_edges(triangles: np.ndarray) -> np.ndarray:
@@ -95,9 +103,7 @@ def boundary_edges(triangles: np.ndarray) -> np.ndarray:
     d = directed_edges(triangles)
     if len(d) == 0:
         return d.reshape(0, 2)
-    e = np.sort(d, axis=1).astype(np.int64)
-    key = e[:, 0] * (int(e.max()) + 1) + e[:, 1]  # 1D keys, as in unique_edges
-    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(_undirected_keys(d)[0], return_inverse=True, return_counts=True)
     return d[counts[inverse] == 1]
 
 
