@@ -64,6 +64,7 @@ from . import procrustes
 
 __all__ = [
     "estimate_head_motion",
+    "HeadMotionModel",
     "rigidity_weights",
     "HeadMotionInfo",
     "DEFAULT_MAX_ITER",
@@ -100,6 +101,11 @@ class HeadMotionInfo:
     unidentifiable_frames : (K,) int
         Frames where some rigid direction could not be separated from the expressions on
         the visible markers (left at their weighted-Procrustes value).
+    local : (F, N, 3) float or None
+        Only when asked (``HeadMotionModel.estimate(keep_local=True)``): the markers with
+        the returned motion removed, minus the reference (what ``procrustes.remove(motion,
+        markers, reference)`` gives, bit for bit; the gate computes them anyway). None when
+        a sample is missing or a marker has weight 0.
     """
 
     detected: bool
@@ -107,6 +113,7 @@ class HeadMotionInfo:
     marker_weights: np.ndarray
     iterations: int
     unidentifiable_frames: np.ndarray
+    local: np.ndarray | None = None
 
 
 def rigidity_weights(
@@ -136,7 +143,6 @@ def rigidity_weights(
     return w / w.mean()
 
 
-@blas_single_threaded  # many small products per chunk of frames (faceretarget._threads)
 @overload
 def estimate_head_motion(
     reference: npt.ArrayLike,
@@ -180,6 +186,10 @@ def estimate_head_motion(
 ) -> np.ndarray | tuple[np.ndarray, HeadMotionInfo]:
     """Rigid head motion ``(F, 4, 4)`` of ``markers`` relative to ``reference`` (see the module doc).
 
+    One call of ``HeadMotionModel(reference, basis=..., marker_weights=..., ridge=...)
+    .estimate(markers, ...)``; keep a :class:`HeadMotionModel` to estimate many shots of the
+    same neutral and basis without redoing what depends on them alone.
+
     Parameters
     ----------
     reference : (N, 3) float
@@ -212,121 +222,227 @@ def estimate_head_motion(
         the gate finds no significant head motion.
     info : HeadMotionInfo, only with ``return_info``.
     """
-    ref = _reference(reference)
-    n = ref.shape[0]
-    x = np.asarray(markers, dtype=np.float64)
-    if x.ndim != 3 or x.shape[1:] != (n, 3):
-        raise ShapeError(
-            f"estimate_head_motion: markers must be (F, {n}, 3) like the reference, got {x.shape}"
-        )
-    if (
-        isinstance(window, (bool, np.bool_))
-        or not isinstance(window, (int, np.integer))
-        or window < 1
-    ):
-        raise InputError(
-            f"estimate_head_motion: window must be a whole number of frames >= 1, got {window!r}"
-        )
-    b = None if basis is None else _basis(basis, n)
-    if b is not None and b.shape[1] == 0:
-        b = None
-    w = rigidity_weights(ref, b)
-    if marker_weights is not None:
-        extra = np.asarray(marker_weights, dtype=np.float64)
-        if extra.shape != (n,):
-            raise ShapeError(
-                f"estimate_head_motion: marker_weights must be ({n},), got shape {extra.shape}"
-            )
-        if not np.isfinite(extra).all() or (extra < 0).any():
-            raise InputError("estimate_head_motion: marker_weights must be finite and >= 0")
-        w = w * extra
-        if not w.any():
-            raise DegenerateGeometryError("estimate_head_motion: every marker has weight 0")
-        w = w / w[w > 0].mean()
-    n_frames = x.shape[0]
-    if n_frames == 0:
-        out = np.zeros((0, 4, 4))
-        return (
-            (out, HeadMotionInfo(False, 0.0, w, 0, np.zeros(0, dtype=np.intp)))
-            if return_info
-            else out
-        )
-    if np.isfinite(np.sum(x)):  # common case: nothing missing (inf would make the sum inf or NaN)
-        valid = np.broadcast_to(w > 0, (n_frames, n))
-        x0 = x
-    else:
-        if np.isinf(x).any():
-            raise NonFiniteError(
-                "estimate_head_motion: markers contain infinite values; mark missing samples with NaN"
-            )
-        valid = ~np.isnan(x).any(axis=2) & (w > 0)
-        x0 = np.where(valid[..., None], x, 0.0)
-    counts = valid.sum(axis=1)
-    if counts.min() < 3:
-        f = int(np.argmax(counts < 3))
-        raise DegenerateGeometryError(
-            f"estimate_head_motion: frame {f} has {int(counts[f])} usable markers; a rigid fit needs at least 3"
-        )
-    size = _face_size(ref)
-    centre = (w @ ref) / w.sum()
-    # rigid generator at the neutral, rotation scaled by the face size (unknowns theta*size, t)
-    gen = _generator((ref - centre) / size)  # (3N, 6)
-
-    if valid[:1].all() and (n_frames == 1 or valid.all()):
-        patterns, which = valid[:1].copy(), np.zeros(n_frames, dtype=np.intp)
-    else:
-        patterns, which = np.unique(valid, axis=0, return_inverse=True)
-        which = which.reshape(-1)
-    gains, schur, ainv, weak = _gains(patterns, w, gen, b, ridge)
-
-    rot = np.tile(np.eye(3), (n_frames, 1, 1))
-    trans = np.zeros((n_frames, 3))
-    weak_frames = np.flatnonzero(weak[which])
-    if weak_frames.size:  # start where the expressions cannot tell: weighted Procrustes
-        r0, t0, _ = procrustes.fit_rigid(ref, x[weak_frames], weights=w)
-        rot[weak_frames], trans[weak_frames] = r0, t0
-    moments, sums, offsets = _moments(gains, which, x0, ref)
-    warm = np.ones(n_frames, dtype=np.bool_)
-    warm[weak_frames] = False  # those keep their Procrustes start
-    iterations, done = _gauss_newton(
-        moments, sums, offsets, which, centre, size, rot, trans, max_iter, tol, warm
+    model = HeadMotionModel(reference, basis=basis, marker_weights=marker_weights, ridge=ridge)
+    return model.estimate(
+        markers,
+        significance=significance,
+        window=window,
+        max_iter=max_iter,
+        tol=tol,
+        return_info=return_info,
     )
-    if not done.all():  # far from the identity (e.g. > 150 degrees): restart from Procrustes
-        again = np.flatnonzero(~done)
-        sub_rot, sub_trans, _ = procrustes.fit_rigid(ref, x[again], weights=w)
-        more, done_again = _gauss_newton(
-            moments[again],
-            sums,
-            offsets,
-            which[again],
-            centre,
-            size,
-            sub_rot,
-            sub_trans,
-            max_iter,
-            tol,
-        )
-        rot[again], trans[again] = sub_rot, sub_trans
-        iterations += more
-        if not done_again.all():
-            raise NumericalError(
-                f"estimate_head_motion: Gauss-Newton did not converge in frame {int(again[np.argmin(done_again)])}; "
-                "check the reference and the markers (same order, same units)"
-            )
 
-    evidence = _evidence(x0, valid, ref, w, b, rot, trans, centre, size, schur, ainv, which, window)
-    detected = significance is None or evidence > significance
-    out = np.zeros((n_frames, 4, 4))
-    out[:, 3, 3] = 1.0
-    if detected:
-        out[:, :3, :3] = rot
-        out[:, :3, 3] = trans
-    else:
-        out[:, :3, :3] = np.eye(3)
-    if return_info:
-        info = HeadMotionInfo(bool(detected), float(evidence), w, int(iterations), weak_frames)
-        return out, info
-    return out
+
+@dataclass(frozen=True)
+class _Pattern:
+    """What the Gauss-Newton steps and the gate need of one pattern of visible markers
+    (see :func:`_gains`; ``projection`` only for a single shared pattern with a basis)."""
+
+    gains: np.ndarray  # (P, 6, 3N)
+    schur: np.ndarray  # (P, 6, 6)
+    ainv: np.ndarray | None  # (P, M, M)
+    weak: np.ndarray  # (P,) bool
+    sums: np.ndarray  # (P, 6, 3)
+    offsets: np.ndarray  # (P, 6)
+    projection: np.ndarray | None  # (3N, M): W B K with A^-1 = K K^T (see _projection)
+
+
+class HeadMotionModel:
+    """:func:`estimate_head_motion` for one neutral and expression basis, reusable.
+
+    Everything that depends on the reference, the basis and the marker weights alone (the
+    rigidity weights, the Gauss-Newton gains and the gate's expression projection of the
+    complete marker set) is computed once; :meth:`estimate` then costs only what the
+    frames need. The parameters are those of :func:`estimate_head_motion`; the arrays are
+    copied (later changes to the caller's arrays do not reach the model).
+    """
+
+    #: Patterns of visible markers whose gains are kept (the complete set, usually).
+    MAX_PATTERNS_KEPT = 4
+
+    def __init__(
+        self,
+        reference: npt.ArrayLike,
+        *,
+        basis: npt.ArrayLike | None = None,
+        marker_weights: npt.ArrayLike | None = None,
+        ridge: float | None = None,
+    ) -> None:
+        ref = _reference(reference).copy()
+        n = ref.shape[0]
+        b = None if basis is None else _basis(basis, n).copy()
+        if b is not None and b.shape[1] == 0:
+            b = None
+        w = rigidity_weights(ref, b)
+        if marker_weights is not None:
+            extra = np.asarray(marker_weights, dtype=np.float64)
+            if extra.shape != (n,):
+                raise ShapeError(
+                    f"estimate_head_motion: marker_weights must be ({n},), got shape {extra.shape}"
+                )
+            if not np.isfinite(extra).all() or (extra < 0).any():
+                raise InputError("estimate_head_motion: marker_weights must be finite and >= 0")
+            w = w * extra
+            if not w.any():
+                raise DegenerateGeometryError("estimate_head_motion: every marker has weight 0")
+            w = w / w[w > 0].mean()
+        self.reference = ref
+        self.basis = b
+        self.marker_weights = w
+        self.ridge = ridge
+        self.size = _face_size(ref)
+        self.centre = (w @ ref) / w.sum()
+        # rigid generator at the neutral, rotation scaled by the face size (unknowns theta*size, t)
+        self._gen = _generator((ref - self.centre) / self.size)  # (3N, 6)
+        self._patterns: dict[bytes, _Pattern] = {}
+
+    def _pattern(self, patterns: np.ndarray) -> _Pattern:
+        """The gains etc. of ``patterns (P, N)``; a single pattern is kept for later calls."""
+        key = patterns.tobytes() if patterns.shape[0] == 1 else b""
+        if key and key in self._patterns:
+            return self._patterns[key]
+        w, ref = self.marker_weights, self.reference
+        gains, schur, ainv, weak = _gains(patterns, w, self._gen, self.basis, self.ridge)
+        blocks = gains.reshape(gains.shape[0], 6, -1, 3)  # (P, 6, N, 3)
+        projection = None
+        if key and self.basis is not None and ainv is not None:
+            projection = _projection(self.basis, np.repeat(patterns[0] * w, 3), ainv[0])
+        out = _Pattern(
+            gains,
+            schur,
+            ainv,
+            weak,
+            blocks.sum(axis=2),
+            np.einsum("pkia,ia->pk", blocks, ref),
+            projection,
+        )
+        if key:
+            if len(self._patterns) >= self.MAX_PATTERNS_KEPT:
+                self._patterns.clear()
+            self._patterns[key] = out
+        return out
+
+    @blas_single_threaded  # many small products per chunk of frames (faceretarget._threads)
+    def estimate(
+        self,
+        markers: npt.ArrayLike,
+        *,
+        significance: float | None = config.HEAD_MOTION_SIGNIFICANCE,
+        window: int = config.HEAD_MOTION_WINDOW,
+        max_iter: int = DEFAULT_MAX_ITER,
+        tol: float = DEFAULT_TOL,
+        return_info: bool = False,
+        keep_local: bool = False,
+    ) -> np.ndarray | tuple[np.ndarray, HeadMotionInfo]:
+        """Head motion of ``markers (F, N, 3)`` (NaN = missing): see :func:`estimate_head_motion`.
+
+        ``keep_local`` (with ``return_info``): also return the head-frame displacements in
+        ``info.local`` (see :class:`HeadMotionInfo`)."""
+        ref, w = self.reference, self.marker_weights
+        n = ref.shape[0]
+        x = np.asarray(markers, dtype=np.float64)
+        if x.ndim != 3 or x.shape[1:] != (n, 3):
+            raise ShapeError(
+                f"estimate_head_motion: markers must be (F, {n}, 3) like the reference, got {x.shape}"
+            )
+        if (
+            isinstance(window, (bool, np.bool_))
+            or not isinstance(window, (int, np.integer))
+            or window < 1
+        ):
+            raise InputError(
+                f"estimate_head_motion: window must be a whole number of frames >= 1, got {window!r}"
+            )
+        n_frames = x.shape[0]
+        if n_frames == 0:
+            out = np.zeros((0, 4, 4))
+            return (
+                (out, HeadMotionInfo(False, 0.0, w.copy(), 0, np.zeros(0, dtype=np.intp)))
+                if return_info
+                else out
+            )
+        if np.isfinite(
+            np.sum(x)
+        ):  # common case: nothing missing (inf would make the sum inf or NaN)
+            valid = np.broadcast_to(w > 0, (n_frames, n))
+            x0 = x
+        else:
+            if np.isinf(x).any():
+                raise NonFiniteError(
+                    "estimate_head_motion: markers contain infinite values; mark missing samples with NaN"
+                )
+            valid = ~np.isnan(x).any(axis=2) & (w > 0)
+            x0 = np.where(valid[..., None], x, 0.0)
+        counts = valid.sum(axis=1)
+        if counts.min() < 3:
+            f = int(np.argmax(counts < 3))
+            raise DegenerateGeometryError(
+                f"estimate_head_motion: frame {f} has {int(counts[f])} usable markers; a rigid fit needs at least 3"
+            )
+        size, centre = self.size, self.centre
+
+        if valid[:1].all() and (n_frames == 1 or valid.all()):
+            patterns, which = valid[:1].copy(), np.zeros(n_frames, dtype=np.intp)
+        else:
+            patterns, which = np.unique(valid, axis=0, return_inverse=True)
+            which = which.reshape(-1)
+        pat = self._pattern(patterns)
+
+        rot = np.tile(np.eye(3), (n_frames, 1, 1))
+        trans = np.zeros((n_frames, 3))
+        weak_frames = np.flatnonzero(pat.weak[which])
+        if weak_frames.size:  # start where the expressions cannot tell: weighted Procrustes
+            r0, t0, _ = procrustes.fit_rigid(ref, x[weak_frames], weights=w)
+            rot[weak_frames], trans[weak_frames] = r0, t0
+        moments = _moments(pat.gains, which, x0)
+        warm = np.ones(n_frames, dtype=np.bool_)
+        warm[weak_frames] = False  # those keep their Procrustes start
+        iterations, done = _gauss_newton(
+            moments, pat.sums, pat.offsets, which, centre, size, rot, trans, max_iter, tol, warm
+        )
+        if not done.all():  # far from the identity (e.g. > 150 degrees): restart from Procrustes
+            again = np.flatnonzero(~done)
+            sub_rot, sub_trans, _ = procrustes.fit_rigid(ref, x[again], weights=w)
+            more, done_again = _gauss_newton(
+                moments[again],
+                pat.sums,
+                pat.offsets,
+                which[again],
+                centre,
+                size,
+                sub_rot,
+                sub_trans,
+                max_iter,
+                tol,
+            )
+            rot[again], trans[again] = sub_rot, sub_trans
+            iterations += more
+            if not done_again.all():
+                raise NumericalError(
+                    f"estimate_head_motion: Gauss-Newton did not converge in frame {int(again[np.argmin(done_again)])}; "
+                    "check the reference and the markers (same order, same units)"
+                )
+
+        keep = keep_local and bool(valid.all())
+        evidence, local = _evidence(
+            x0, valid, ref, w, self.basis, rot, trans, centre, size, pat, which, window, keep
+        )
+        detected = significance is None or evidence > significance
+        if local is not None and not detected:  # the identity was returned
+            local = x - ref
+        out = np.zeros((n_frames, 4, 4))
+        out[:, 3, 3] = 1.0
+        if detected:
+            out[:, :3, :3] = rot
+            out[:, :3, 3] = trans
+        else:
+            out[:, :3, :3] = np.eye(3)
+        if return_info:
+            info = HeadMotionInfo(
+                bool(detected), float(evidence), w.copy(), int(iterations), weak_frames, local
+            )
+            return out, info
+        return out
 
 
 def _evidence(
@@ -339,24 +455,26 @@ def _evidence(
     trans: np.ndarray,
     centre: np.ndarray,
     size: float,
-    schur: np.ndarray,
-    ainv: np.ndarray | None,
+    pattern: _Pattern,
     which: np.ndarray,
     window: int,
-) -> float:
+    keep: bool = False,
+) -> tuple[float, np.ndarray | None]:
     """The gate's statistic: the largest ``sum_f (c0_f - c1_f) / sum_f (c1_f + floor_f)`` over
-    ``window`` consecutive frames (the whole shot if shorter).
+    ``window`` consecutive frames (the whole shot if shorter), and with ``keep`` (every
+    sample valid) the local residuals ``(F, N, 3)`` it was computed from (else None).
 
     ``c0_f - c1_f`` (what the head motion explains beyond the expressions) is the quadratic
     form of the expression-eliminated rigid normal matrix (Schur complement) at the fitted
     motion; the remaining residual ``c1_f`` is computed exactly.
     """
+    schur, ainv = pattern.schur, pattern.ainv
     n_frames = rot.shape[0]
     z = np.empty((n_frames, 6))
     z[:, :3] = _rotation_vectors(rot) * size
     z[:, 3:] = np.einsum("fij,j->fi", rot, centre) + trans - centre  # x = R (n - c) + c + t'
     if schur.shape[0] == 1:
-        gain = np.einsum("fk,kl,fl->f", z, schur[0], z)
+        gain = np.einsum("fk,fk->f", z @ schur[0], z)
     else:
         gain = np.einsum("fk,fkl,fl->f", z, schur[which], z)
     floor = (config.HEAD_MOTION_NOISE_FLOOR * size) ** 2
@@ -365,14 +483,17 @@ def _evidence(
     if shared:
         wd = np.repeat(valid[0] * w, 3)
         unused = wd == 0
+    kept = _local_residual(x0, rot, trans, ref) if keep else None
     for start in range(0, n_frames, _RESIDUAL_CHUNK):  # scratch bounded by the chunk, not the shot
         sl = slice(start, start + _RESIDUAL_CHUNK)
-        local = _local_residual(x0[sl], rot[sl], trans[sl], ref)
+        local = kept[sl] if kept is not None else _local_residual(x0[sl], rot[sl], trans[sl], ref)
         if shared:
             y = local.reshape(len(local), -1)
             if unused.any():
                 y[:, unused] = 0.0
-            rest[sl] = _unexplained(y, wd, basis, ainv, which[sl]) + floor * wd.sum()
+            rest[sl] = (
+                _unexplained(y, wd, basis, ainv, which[sl], pattern.projection) + floor * wd.sum()
+            )
         else:
             y = np.where(valid[sl, :, None], local, 0.0).reshape(len(local), -1)
             wd_sl = np.repeat(valid[sl] * w, 3, axis=1)
@@ -380,7 +501,8 @@ def _evidence(
     span = min(max(int(window), 1), n_frames)
     gains = np.concatenate([[0.0], np.cumsum(np.maximum(gain, 0.0))])
     rests = np.concatenate([[0.0], np.cumsum(rest)])
-    return float(np.max((gains[span:] - gains[:-span]) / (rests[span:] - rests[:-span])))
+    statistic = float(np.max((gains[span:] - gains[:-span]) / (rests[span:] - rests[:-span])))
+    return statistic, kept
 
 
 # ---------------------------------------------------------------------------------------
@@ -513,36 +635,28 @@ def _local_residual(
     return procrustes.remove(procrustes.to_matrix(rot, trans), x0, ref)
 
 
-def _moments(
-    gains: np.ndarray, which: np.ndarray, x0: np.ndarray, ref: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _moments(gains: np.ndarray, which: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """What the gains need of the markers, once: the gain applied to the local residual
-    ``y = R^T (x - t) - n`` is ``sum_ab P[k, a, b] R[b, a] - s[k] . (R^T t) - g[k]`` with
-    ``P = sum_i K_i^T x_i`` (per frame), ``s = sum_i K_i``, ``g = sum_i K_i n_i`` (per pattern);
-    ``K_i`` is the ``(6, 3)`` block of marker ``i``. Returns ``P (F, 6, 9)`` (flattened a-b),
-    ``s (P, 6, 3)``, ``g (P, 6)``."""
-    n_pat, _, cols = gains.shape
-    blocks = gains.reshape(n_pat, 6, -1, 3)  # (P, 6, N, 3)
-    sums = blocks.sum(axis=2)
-    offsets = np.einsum("pkia,ia->pk", blocks, ref)
-    n_frames = x0.shape[0]
+    ``y = R^T (x - t) - n`` is ``sum_ab P[b, k, a] R[b, a] - s[k] . (R^T t) - g[k]`` with
+    ``P = sum_i x_i K_i^T`` (per frame), ``s = sum_i K_i``, ``g = sum_i K_i n_i`` (per pattern,
+    in :class:`_Pattern`); ``K_i`` is the ``(6, 3)`` block of marker ``i``. Returns
+    ``P (F, 3, 18)`` (b, then k-a flattened)."""
+    n_pat = gains.shape[0]
+    rows = np.ascontiguousarray(gains.reshape(n_pat, 6, -1, 3).transpose(0, 2, 1, 3)).reshape(
+        n_pat, -1, 18
+    )  # (P, N, 6*3)
+    n_frames, n = x0.shape[0], x0.shape[1]
+    moments = np.empty((n_frames, 3, 18))
     if n_pat == 1:
-        moments = np.empty((n_frames, 6, 9))
-        for start in range(
-            0, n_frames, _RESIDUAL_CHUNK
-        ):  # tensordot copies its input: a chunk at a time
+        for start in range(0, n_frames, _RESIDUAL_CHUNK):  # a chunk of transposed markers at a time
             sl = slice(start, start + _RESIDUAL_CHUNK)
-            part = np.tensordot(x0[sl], blocks[0], axes=([1], [1]))  # (f, b, 6, a)
-            moments[sl] = part.transpose(0, 2, 3, 1).reshape(-1, 6, 9)
+            xt = np.ascontiguousarray(x0[sl].transpose(0, 2, 1)).reshape(-1, n)  # (3f, N)
+            np.matmul(xt, rows[0], out=moments[sl].reshape(-1, 18))
     else:
-        rows = np.ascontiguousarray(blocks.transpose(0, 1, 3, 2)).reshape(
-            n_pat, 18, -1
-        )  # (P, 6*3, N)
-        moments = np.empty((n_frames, 6, 9))
         for start in range(0, n_frames, _CHUNK):  # bounded memory for the gathered gains
             sl = slice(start, start + _CHUNK)
-            moments[sl] = np.matmul(rows[which[sl]], x0[sl]).reshape(-1, 6, 9)
-    return moments, sums, offsets
+            moments[sl] = np.matmul(x0[sl].transpose(0, 2, 1), rows[which[sl]])
+    return moments
 
 
 def _rotation_vectors(rot: np.ndarray) -> np.ndarray:
@@ -606,23 +720,30 @@ def _gauss_newton(
     return int(np.where(done, steps, max_iter).max(initial=0)), done
 
 
+def _projection(basis: np.ndarray, wd: np.ndarray, ainv: np.ndarray) -> np.ndarray:
+    """``W B K (3N, M)`` with ``A^-1 = K K^T``: ``u^T A^-1 u = |K^T u|^2`` for ``u = B^T W y``,
+    so a frame's explained energy is ``|y W B K|^2``, one product for all frames."""
+    return (basis * wd[:, None]) @ np.linalg.cholesky(ainv)
+
+
 def _unexplained(
     y: np.ndarray,
     wd: np.ndarray,
     basis: np.ndarray | None,
     ainv: np.ndarray | None,
     which: np.ndarray,
+    projection: np.ndarray | None = None,
 ) -> np.ndarray:
     """Weighted residual energy per frame after the best expression fit: ``y^T W y - u^T A^-1 u``
-    with ``u = B^T W y`` (``wd``: ``(3N,)`` shared or ``(F, 3N)`` per-frame weights)."""
+    with ``u = B^T W y`` (``wd``: ``(3N,)`` shared or ``(F, 3N)`` per-frame weights;
+    ``projection``: :func:`_projection` for shared weights, if already computed)."""
     # ainv (A^-1) is None exactly when basis is (see _gains)
     if basis is not None and ainv is not None and ainv.shape[0] == 1 and wd.ndim == 1:
-        # shared weights: one product
-        root = np.sqrt(wd)
-        ys = y * root
-        # u^T A^-1 u = |K^T u|^2 with A^-1 = K K^T and u = B^T W y = (W^1/2 B)^T (W^1/2 y)
-        proj = ys @ ((basis * root[:, None]) @ np.linalg.cholesky(ainv[0]))
-        return np.maximum(np.einsum("fr,fr->f", ys, ys) - np.einsum("fk,fk->f", proj, proj), 0.0)
+        # shared weights: one product, u^T A^-1 u = |y W B K|^2
+        if projection is None:
+            projection = _projection(basis, wd, ainv[0])
+        proj = y @ projection
+        return np.maximum(np.square(y) @ wd - np.einsum("fk,fk->f", proj, proj), 0.0)
     yw = y * wd
     total = np.einsum("fr,fr->f", yw, y)
     if basis is None:
