@@ -230,6 +230,7 @@ class SpacetimeRetargeter(Retargeter):
         self.rig_ = rig
         self.bounds_ = self.resolved_bounds_
         self.systems_ = {}
+        self.head_models_ = {}
         self.system_ = self._system(source.fps if self.mode == "movement" else None)
         self.alpha_effective_ = self.system_.alpha
 
@@ -507,35 +508,38 @@ class SpacetimeRetargeter(Retargeter):
             )
         known, known_weights = self._known_frames(n_frames)
         params = self.params_
+        local = None  # (F, N, 3) marker deltas, head motion removed, if the estimate gives them
         if source.head_motion is not None:
             motion, how = np.asarray(source.head_motion, dtype=np.float64), "given"
         elif params["remove_head_motion"]:
             # joint fit with the shapes at the markers, weighted to the markers expressions move
             # least, and gated: exactly the identity unless the head motion is significant
-            from faceretarget.geometry.head_motion import estimate_head_motion
-
-            motion, found = estimate_head_motion(
-                reference,
+            motion, found = self._head_model(reference).estimate(
                 markers,
-                basis=self.marker_basis_,
                 window=max(1, round(source.fps)),
                 return_info=True,
+                keep_local=self.dense_ is None,  # the marker deltas, computed by the gate
             )
             how = "estimated" if found.detected else "none detected"
+            local = found.local
         else:
             motion, how = None, "none"
         system = self._system(source.fps if self.mode == "movement" else None)
-        if how == "estimated":
-            fitted = None
+        if how == "estimated" and params["head_motion_refinement"]:
+            fitted, local = None, None
             for _ in range(params["head_motion_refinement"]):
                 motion, fitted = calibration.refine_head_motion(
                     reference, markers, motion, fitted, self.marker_basis_, system.ridge
                 )
-        deltas = self._local_deltas(source, motion, markers, reference)
+        deltas = (
+            local if local is not None else self._local_deltas(source, motion, markers, reference)
+        )
         del markers  # (F, N, 3), not needed past here: the solve's scratch takes its place
         stats = BoundedStats()
-        weights = self._solve(system, deltas, known, known_weights, stats)
-        terms = energy_terms(system, deltas, weights)
+        terms: dict = {}  # filled by the structured solve, else computed below
+        weights = self._solve(system, deltas, known, known_weights, stats, terms)
+        if not terms:
+            terms = energy_terms(system, deltas, weights)
         inside = (weights >= params["lower"]) & (weights <= params["upper"])
         lo, hi = self.bounds_ if self.bounds_ is not None else (-np.inf, np.inf)
         diagnostics = {
@@ -581,6 +585,19 @@ class SpacetimeRetargeter(Retargeter):
             provenance={"diagnostics": diagnostics},
             extras=extras,
         )
+
+    def _head_model(self, reference: np.ndarray):
+        """The head-motion estimator for this source neutral and the marker basis, kept for
+        the next shot of the same neutral (its gains depend on nothing else)."""
+        from faceretarget.geometry.head_motion import HeadMotionModel
+
+        key = reference.tobytes()
+        model = self.head_models_.get(key)
+        if model is None:
+            if len(self.head_models_) >= HEAD_MODELS_KEPT:
+                self.head_models_.clear()
+            model = self.head_models_[key] = HeadMotionModel(reference, basis=self.marker_basis_)
+        return model
 
     def _local_deltas(self, source: Source, motion, markers, reference) -> np.ndarray:
         """(F, P, 3) source displacements from the neutral at the fitted points, head motion removed."""
@@ -671,8 +688,10 @@ class SpacetimeRetargeter(Retargeter):
         known: np.ndarray,
         values: np.ndarray,
         stats: BoundedStats | None = None,
+        terms: dict | None = None,
     ) -> np.ndarray:
-        """Weights (F, M) for local marker deltas (F, N, 3); fills per-frame boundary values."""
+        """Weights (F, M) for local marker deltas (F, N, 3); fills per-frame boundary values
+        (``terms``: see :func:`solver.solve_movement`)."""
         if self.mode == "movement":
             todo = known & np.isnan(values[:, 0])
             if todo.any():
@@ -683,7 +702,9 @@ class SpacetimeRetargeter(Retargeter):
                     values[todo] = solve_bounded(
                         self._system(None), deltas[todo], *self.bounds_, use_prior=True
                     )
-            return self._solve_movement(system, deltas, known, values, self.frame_weights_, stats)
+            return self._solve_movement(
+                system, deltas, known, values, self.frame_weights_, stats, terms
+            )
         if self.mode == "rangepf":
             weights = solve_bounded(system, deltas, self.params_["lower"], self.params_["upper"])
         else:
@@ -692,11 +713,11 @@ class SpacetimeRetargeter(Retargeter):
         return weights
 
     def _solve_movement(
-        self, system, deltas, known, values, frame_weights, stats=None
+        self, system, deltas, known, values, frame_weights, stats=None, terms=None
     ) -> np.ndarray:
         """Movement matching, bounded (ADMM) when the retargeter has bounds or an L1 term."""
         if self.bounds_ is None and not np.any(system.l1):
-            return solve_movement(system, deltas, known, values, frame_weights)
+            return solve_movement(system, deltas, known, values, frame_weights, terms)
         m = system.n_shapes
         lo, hi = (
             self.bounds_ if self.bounds_ is not None else (np.full(m, -np.inf), np.full(m, np.inf))
@@ -876,6 +897,9 @@ def _float_array(value, name: str, valid: str) -> np.ndarray:
             pass
     raise ShapeError(f"spacetime: {name}: expected {valid}, got {short_repr(value)}")
 
+
+#: Head-motion estimators kept per retargeter (one per source neutral seen).
+HEAD_MODELS_KEPT = 4
 
 #: The paper's own choices, where the default differs (see docs/methods/spacetime.md for why and
 #: the measured effect of each): no weight bounds in the whole-sequence solve, no position

@@ -221,6 +221,7 @@ def solve_movement(
     known: np.ndarray,
     known_weights: np.ndarray,
     frame_weights: np.ndarray | None = None,
+    terms: dict | None = None,
 ) -> np.ndarray:
     """Movement matching with the prior and Sobolev terms (Eq. 4 + sec. 7.1).
 
@@ -235,6 +236,9 @@ def solve_movement(
         Their weights (other rows ignored).
     frame_weights : (F, N) float, optional
         Per-frame, per-marker Sobolev weights (replace ``system.marker_weights``).
+    terms : dict, optional
+        Receives :func:`energy_terms` of the solution when the structured solve ran (from
+        its modal quantities, a fraction of the cost); left empty otherwise.
 
     Returns
     -------
@@ -245,7 +249,7 @@ def solve_movement(
     wk = np.ascontiguousarray(known_weights, dtype=np.float64)
     missing = np.isnan(s[:, 0::3])
     if not missing.any() and frame_weights is None:
-        w = _solve_structured(system, s, known, wk)
+        w = _solve_structured(system, s, known, wk, terms)
     else:
         w = _solve_general(system, s, missing, known, wk, frame_weights)
     w[known] = wk[known]
@@ -508,7 +512,7 @@ def _admm_general(system, s, missing, known, wk, frame_weights, lo, hi, l1, z, u
 
 
 def _solve_structured(
-    system: System, s: np.ndarray, known: np.ndarray, wk: np.ndarray
+    system: System, s: np.ndarray, known: np.ndarray, wk: np.ndarray, terms: dict | None = None
 ) -> np.ndarray:
     from ._kernels import modal_sweep
 
@@ -517,7 +521,15 @@ def _solve_structured(
     out, y, scratch = np.empty((n_frames, m)), np.empty((n_frames, m)), np.empty((n_frames, m))
     if known.any():
         scratch[known] = wk[known] @ mass_phi  # modal values of the known frames
-    modal_sweep(s, bphi, pbphi, system.folded_beta, c0, lam, known, phi_t, out, y, scratch)
+    # the projection is needed past the right-hand side only for the energies
+    z = out if terms is None else np.empty((n_frames, m))
+    modal_sweep(s, bphi, pbphi, system.folded_beta, c0, lam, known, phi_t, z, y, scratch, out)
+    if terms is not None:
+        from ._kernels import modal_energies
+
+        velocity, position = np.empty(n_frames), np.empty(n_frames)
+        modal_energies(s, y, z, lam, velocity, position)
+        terms.update(velocity=velocity, position=position)
     return out
 
 

@@ -148,8 +148,11 @@ def test_equal_alpha_velocity_error_order(setting):
     assert mm["velocity"] - base < pf["velocity"] - base
 
 
-def per_frame_instead_of_movement(system, deltas, known, known_weights, frame_weights=None):
-    """The mutant: movement matching replaced by independent per-frame solves with the prior."""
+def per_frame_instead_of_movement(
+    system, deltas, known, known_weights, frame_weights=None, terms=None
+):
+    """The mutant: movement matching replaced by independent per-frame solves with the prior
+    (``terms`` left empty: the retargeter computes the energies of these weights)."""
     w = solver.solve_per_frame(system, deltas, use_prior=True)
     w[known] = np.asarray(known_weights)[known]
     return w

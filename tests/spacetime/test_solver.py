@@ -280,3 +280,33 @@ def test_energy_terms_match_a_frame_by_frame_loop(missing):
     ]
     np.testing.assert_allclose(got["position"], position, rtol=1e-12)
     np.testing.assert_allclose(got["velocity"], velocity, rtol=1e-12)
+
+
+@pytest.mark.parametrize("beta, weighted", [(0.0, False), (0.7, False), (0.7, True)])
+@pytest.mark.parametrize("frames", [[0, 39], [0, 11, 12, 39], []])
+def test_structured_solve_energies_match_energy_terms(beta, weighted, frames):
+    """The energies a structured solve returns (from its modal quantities, no ``B w``) are
+    those of :func:`energy_terms` on its weights: known frames, Sobolev term, non-uniform
+    marker weights (a second projection in the sweep)."""
+    mw = np.linspace(0.5, 2.0, 7) if weighted else None
+    system, deltas, _ = random_problem(n_frames=40, beta=beta, marker_weights=mw)
+    known, values = known_frames(40, frames, system.n_shapes)
+    terms = {}
+    weights = solver.solve_movement(system, deltas, known, values, terms=terms)
+    want = solver.energy_terms(system, deltas, weights)
+    assert set(terms) == {"velocity", "position"}
+    np.testing.assert_allclose(terms["position"], want["position"], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(terms["velocity"], want["velocity"], rtol=1e-9, atol=1e-12)
+    assert terms["velocity"][0] == 0.0
+
+
+def test_solve_energies_are_left_to_the_caller_on_the_general_path():
+    """With a missing marker the block-tridiagonal solve runs: ``terms`` stays empty (the
+    retargeter then computes them from the weights)."""
+    system, deltas, _ = random_problem(n_frames=20)
+    deltas = deltas.copy()
+    deltas[4, 2] = np.nan
+    known, values = known_frames(20, [0, 19], system.n_shapes)
+    terms = {}
+    solver.solve_movement(system, deltas, known, values, terms=terms)
+    assert terms == {}
