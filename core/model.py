@@ -582,6 +582,12 @@ class BlendshapeRig:
         """(3V, M) float64 column matrix of the deltas (x-y-z interleaved per vertex)."""
         return readonly(np.ascontiguousarray(self.deltas.reshape(self.n_shapes, -1).T))
 
+    @cached_property
+    def delta_extent(self) -> np.ndarray:
+        """(M,) float64 largest absolute coordinate of each shape's deltas: with the neutral's,
+        a bound on the coordinates any weights reach (a finiteness check without evaluating)."""
+        return readonly(np.abs(self.deltas).max(axis=(1, 2), initial=0.0))
+
     def evaluate(self, weights: npt.ArrayLike) -> np.ndarray:
         """Vertices for ``weights : (M,) or (F, M)`` -> ``(V, 3)`` or ``(F, V, 3)``."""
         w = as_array(weights, "BlendshapeRig.evaluate: weights")

@@ -368,7 +368,7 @@ def _finite_vertices(animation: Animation, chunk: int = 64) -> bool:
     assert rig is not None  # an Animation without vertices has a rig
     with np.errstate(over="ignore", invalid="ignore"):
         # weights and head motion are finite here: a bound on |vertex| far from overflow proves it
-        largest = np.abs(rig.deltas).max(axis=(1, 2), initial=0.0)
+        largest = rig.delta_extent
         bound = np.abs(rig.neutral.vertices).max(initial=0.0) + (np.abs(weights) @ largest).max(
             initial=0.0
         )

@@ -543,9 +543,9 @@ class SpacetimeRetargeter(Retargeter):
         inside = (weights >= params["lower"]) & (weights <= params["upper"])
         lo, hi = self.bounds_ if self.bounds_ is not None else (-np.inf, np.inf)
         diagnostics = {
-            "fraction_outside_bounds": float(
-                np.mean((weights < lo - 1e-9) | (weights > hi + 1e-9))
-            ),
+            "fraction_outside_bounds": 0.0
+            if self.bounds_ is None
+            else float(np.mean((weights < lo - 1e-9) | (weights > hi + 1e-9))),
             "bounds": None if self.bounds_ is None else [float(np.min(lo)), float(np.max(hi))],
             "admm_iterations": stats.iterations,
             "admm_converged": stats.converged,
