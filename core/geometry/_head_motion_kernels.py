@@ -36,8 +36,8 @@ def _rodrigues(v0: float, v1: float, v2: float, out: np.ndarray) -> None:
     out[2, 1] = s * v0 + c * v1 * v2
 
 
-#: Largest frame-to-frame rotation (radians) and translation (face sizes) through which a
-#: warm start is extrapolated; beyond it (a cut between shots) the previous frame is the start.
+#: Largest frame-to-frame rotation (radians) through which a warm start is extrapolated;
+#: beyond it (a cut between shots) the previous frame is the start.
 EXTRAPOLATE_STEP = 0.2
 
 
@@ -60,10 +60,10 @@ def gauss_newton(
 
     ``iterations[f]`` receives the steps frame ``f`` took, or -1 if it did not converge in
     ``max_iter`` steps. Where ``warm[f]`` is set, frame ``f`` starts from frame ``f - 1``'s
-    result when that converged (head motion is continuous), extrapolated at constant
-    velocity from frames ``f - 2, f - 1`` when both converged and moved less than
-    :data:`EXTRAPOLATE_STEP` apart (7 -> 5 steps a frame on smooth motion); elsewhere it
-    starts from the given ``rot``/``trans``.
+    result when that converged (head motion is continuous), its rotation extrapolated at
+    constant angular velocity from frames ``f - 2, f - 1`` when both converged and turned
+    less than :data:`EXTRAPOLATE_STEP` apart (about one step a frame fewer on smooth
+    motion); elsewhere it starts from the given ``rot``/``trans``.
     """
     n_frames = rot.shape[0]
     step = np.empty(6)
@@ -81,27 +81,26 @@ def gauss_newton(
                 for j in range(3):
                     rot[f, i, j] = a[i, j]
             if f > 1 and iterations[f - 2] >= 0:
-                # D = R_{f-1} R_{f-2}^T; start from D R_{f-1} and 2 t_{f-1} - t_{f-2}, with D
-                # rebuilt from its rotation vector (a product of rounded rotations drifts off
-                # orthogonality, and D R_{f-1} would amplify that from frame to frame)
+                # D = R_{f-1} R_{f-2}^T; start from D R_{f-1}, with D rebuilt from its rotation
+                # vector (a product of rounded rotations drifts off orthogonality, and
+                # D R_{f-1} would amplify that from frame to frame). The translation starts
+                # at t_{f-1}: extrapolating it saved no step.
                 b = rot[f - 2]
                 for i in range(3):
                     for j in range(3):
                         new_rot[i, j] = a[i, 0] * b[j, 0] + a[i, 1] * b[j, 1] + a[i, 2] * b[j, 2]
-                v0 = 0.5 * (new_rot[2, 1] - new_rot[1, 2])
-                v1 = 0.5 * (new_rot[0, 2] - new_rot[2, 0])
-                v2 = 0.5 * (new_rot[1, 0] - new_rot[0, 1])
-                move = 0.0
-                for i in range(3):
-                    move = max(move, abs(trans[f - 1, i] - trans[f - 2, i]))
-                sin2 = v0 * v0 + v1 * v1 + v2 * v2
-                if sin2 <= math.sin(EXTRAPOLATE_STEP) ** 2 and move <= EXTRAPOLATE_STEP * size:
+                if new_rot[0, 0] + new_rot[1, 1] + new_rot[2, 2] >= 1.0 + 2.0 * math.cos(
+                    EXTRAPOLATE_STEP
+                ):  # trace = 1 + 2 cos(angle): a small turn, not a cut
+                    v0 = 0.5 * (new_rot[2, 1] - new_rot[1, 2])
+                    v1 = 0.5 * (new_rot[0, 2] - new_rot[2, 0])
+                    v2 = 0.5 * (new_rot[1, 0] - new_rot[0, 1])
+                    sin2 = v0 * v0 + v1 * v1 + v2 * v2
                     if sin2 > 0.0:  # the skew part has length sin(angle): back to the angle
-                        scale = math.asin(math.sqrt(sin2)) / math.sqrt(sin2)
+                        scale = math.asin(min(math.sqrt(sin2), 1.0)) / math.sqrt(sin2)
                         v0, v1, v2 = v0 * scale, v1 * scale, v2 * scale
                     _rodrigues(v0, v1, v2, d_rot)
                     for i in range(3):
-                        trans[f, i] = 2.0 * trans[f - 1, i] - trans[f - 2, i]
                         for j in range(3):
                             rot[f, i, j] = (
                                 d_rot[i, 0] * a[0, j]

@@ -489,7 +489,7 @@ def _evidence(
         local = kept[sl] if kept is not None else _local_residual(x0[sl], rot[sl], trans[sl], ref)
         if shared:
             y = local.reshape(len(local), -1)
-            if unused.any():
+            if unused.any():  # never with keep (every sample valid): y is a view of kept
                 y[:, unused] = 0.0
             rest[sl] = (
                 _unexplained(y, wd, basis, ainv, which[sl], pattern.projection) + floor * wd.sum()

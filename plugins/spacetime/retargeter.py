@@ -591,12 +591,13 @@ class SpacetimeRetargeter(Retargeter):
         the next shot of the same neutral (its gains depend on nothing else)."""
         from faceretarget.geometry.head_motion import HeadMotionModel
 
+        models = self.__dict__.setdefault("head_models_", {})  # absent from older pickles
         key = reference.tobytes()
-        model = self.head_models_.get(key)
+        model = models.get(key)
         if model is None:
-            if len(self.head_models_) >= HEAD_MODELS_KEPT:
-                self.head_models_.clear()
-            model = self.head_models_[key] = HeadMotionModel(reference, basis=self.marker_basis_)
+            if len(models) >= HEAD_MODELS_KEPT:
+                models.clear()
+            model = models[key] = HeadMotionModel(reference, basis=self.marker_basis_)
         return model
 
     def _local_deltas(self, source: Source, motion, markers, reference) -> np.ndarray:

@@ -319,6 +319,20 @@ def test_check_output_finds_nan_in_a_frame_source():
     assert _finite_vertices(fr.Animation(vertices=good), chunk=2)
 
 
+def test_delta_extent_bounds_negative_deltas_too():
+    """The finiteness check of a rig result bounds the vertices by ``delta_extent`` (the
+    largest |delta| of each shape): negative deltas that overflow are caught as well."""
+    from faceretarget.retargeter import _finite_vertices
+
+    mesh = fr.Mesh(np.random.default_rng(0).normal(size=(10, 3)), np.array([[0, 1, 2]]))
+    deltas = np.full((2, 10, 3), -10.0)
+    deltas[1, 3, 2] = 4.0
+    rig = fr.BlendshapeRig(mesh, deltas, ["a", "b"])
+    np.testing.assert_array_equal(rig.delta_extent, [10.0, 10.0])
+    assert not _finite_vertices(fr.Animation(weights=np.full((4, 2), 1e308), rig=rig))
+    assert _finite_vertices(fr.Animation(weights=np.full((4, 2), 1e300), rig=rig))
+
+
 def test_head_motion_rotates_each_frame_like_a_point_by_point_loop():
     from scipy.spatial.transform import Rotation
 

@@ -342,6 +342,65 @@ def test_model_reuses_its_gains_and_matches_the_function(monkeypatch):
     assert np.array_equal(model.estimate(x), first[0])
 
 
+def test_a_shot_missing_one_marker_throughout_gets_its_own_gains():
+    """One pattern of visible markers (not the complete set) is kept under its own key: the
+    answer after the complete shot equals the function's."""
+    ref, x, basis, _ = face(n_frames=30, degrees=6.0, mismatch=0.3)
+    hole = x.copy()
+    hole[:, 7] = np.nan
+    model = HeadMotionModel(ref, basis=basis)
+    model.estimate(x)
+    got, info = model.estimate(hole, return_info=True)
+    want, want_info = estimate_head_motion(ref, hole, basis=basis, return_info=True)
+    assert np.array_equal(got, want) and info.evidence == want_info.evidence
+
+
+def test_model_owns_its_arrays():
+    """The model copies the basis (a pattern it has not seen yet is computed from the copy)
+    and hands out copies of its rigidity weights."""
+    ref, x, basis, _ = face(n_frames=30, degrees=6.0, mismatch=0.3)
+    holes = x.copy()
+    holes[3, 5] = np.nan
+    model = HeadMotionModel(ref, basis=basis)
+    want, info = model.estimate(holes, return_info=True)
+    basis[:] = 0.0
+    info.marker_weights[:] = 0.0
+    again, info = model.estimate(holes, return_info=True)
+    assert np.array_equal(again, want) and info.marker_weights.sum() > 0
+
+
+def test_weak_frames_do_not_depend_on_their_neighbours():
+    """A frame where a rigid direction is an expression (here an x translation) keeps its
+    weighted-Procrustes start instead of the neighbours' result: the shot gives what each
+    frame gives alone."""
+    ref, x, basis, _ = face(n_frames=40, degrees=6.0, mismatch=0.3)
+    shifted = np.column_stack([basis, np.tile([1.0, 0.0, 0.0], len(ref))])
+    shot, info = estimate_head_motion(ref, x, basis=shifted, significance=None, return_info=True)
+    assert len(info.unidentifiable_frames) == len(x)
+    single = np.concatenate(
+        [
+            estimate_head_motion(ref, x[f : f + 1], basis=shifted, significance=None)
+            for f in range(len(x))
+        ]
+    )
+    np.testing.assert_allclose(shot, single, atol=1e-12)
+
+
+def test_extrapolated_start_mean_steps(monkeypatch):
+    """The slow head turn: 4.02 Gauss-Newton steps a frame on average (4.83 from the previous
+    frame's result; 4.14 with the velocity composed on the wrong side, ``R_{f-1} D``)."""
+    from faceretarget.geometry import _head_motion_kernels as kernels
+
+    seen = []
+    original = kernels.gauss_newton
+    monkeypatch.setattr(
+        kernels, "gauss_newton", lambda *a: (original(*a), seen.append(a[10].copy()))[0]
+    )
+    ref, moved, basis, _ = slow_head_turn()
+    estimate_head_motion(ref, moved, basis=basis)
+    assert seen[0].min() >= 0 and seen[0].mean() < 4.08
+
+
 @pytest.mark.parametrize("degrees", [0.0, 6.0])
 def test_kept_local_displacements_are_remove_bit_for_bit(degrees):
     """``keep_local``: the displacements the gate computed are what removing the returned

@@ -9,6 +9,7 @@ from spacetime.test_solver import known_frames, random_problem
 
 import faceretarget as fr
 from faceretarget.plugins.spacetime import solver
+from faceretarget.plugins.spacetime.retargeter import SpacetimeRetargeter
 
 
 def energy(system, deltas, weights, l1=0.0):
@@ -327,3 +328,17 @@ def test_admm_sweep_with_steady_pivots_matches_the_thomas_solve():
     # a wrong limit on the steady rows is seen
     k._thomas_steady(got := r.copy(), lam, known, yk, inv, limit * 1.001, steady, sweep, carry)
     assert np.abs(got - want).max() > 1e-6 * np.abs(want).max()
+
+
+def test_fraction_outside_bounds_counts_a_constraint_outside_them(make_toy):
+    """A user constraint outside the bounds is kept (the user's explicit choice) and counted
+    by the diagnostic; without bounds the diagnostic is 0."""
+    toy = make_toy()
+    r = SpacetimeRetargeter(bounds=(0.0, 1.0), constraints={5: {"shape0": 1.8}})
+    anim = r.fit(toy.source, toy.target).retarget(toy.source)
+    assert anim.weights[5, 0] == 1.8
+    assert anim.provenance["diagnostics"]["fraction_outside_bounds"] == pytest.approx(
+        1 / anim.weights.size
+    )
+    free = SpacetimeRetargeter(bounds=None).fit(toy.source, toy.target).retarget(toy.source)
+    assert free.provenance["diagnostics"]["fraction_outside_bounds"] == 0.0

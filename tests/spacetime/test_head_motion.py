@@ -202,3 +202,81 @@ def test_refinement_is_opt_in_and_only_refines_detected_motion(still_cases, fitt
     assert degrees(refined.head_motion, ict_case.meta["head_motion"]).max() < 0.5
     assert not np.allclose(refined.head_motion, plain.head_motion)  # the steps ran
     assert degrees(plain.head_motion, ict_case.meta["head_motion"]).max() < 0.3
+
+
+# ---------------------------------------------------------------------------------------
+# the retargeter's head-motion estimators (one per source neutral, kept between shots)
+# ---------------------------------------------------------------------------------------
+def _other_neutral(toy):
+    """The toy's markers seen from another neutral pose: rotated, scaled and moved."""
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.from_rotvec([0.1, 0.3, -0.2]).as_matrix()
+    names = [f"m{i}" for i in range(toy.world.shape[1])]
+    return fr.Source(
+        fr.MarkerSequence(
+            toy.world @ rot.T * 1.1 + 2.0,
+            names=names,
+            reference=toy.src_neutral @ rot.T * 1.1 + 2.0,
+            fps=30.0,
+        )
+    )
+
+
+def test_a_second_source_neutral_gets_its_own_head_model(make_toy):
+    """A shot with another neutral after the first gives what a fresh retargeter gives (the
+    estimator kept for the first neutral is not reused for it)."""
+    toy = make_toy(head_motion=True)
+    other = _other_neutral(toy)
+    r = SpacetimeRetargeter().fit(toy.source, toy.target)
+    r.retarget(toy.source)
+    got = r.retarget(other)
+    want = SpacetimeRetargeter().fit(toy.source, toy.target).retarget(other)
+    assert len(r.head_models_) == 2
+    assert np.array_equal(got.weights, want.weights)
+    assert np.array_equal(got.head_motion, want.head_motion)
+
+
+def test_refit_on_another_target_drops_the_head_models(make_toy):
+    """Same source neutral, another target (another marker basis): a refit starts afresh."""
+    toy, toy1 = make_toy(head_motion=True), make_toy(seed=1, head_motion=True)
+    r = SpacetimeRetargeter().fit(toy.source, toy.target)
+    r.retarget(toy.source)
+    got = r.fit(toy.source, toy1.target).retarget(toy.source)
+    want = SpacetimeRetargeter().fit(toy.source, toy1.target).retarget(toy.source)
+    assert np.array_equal(got.weights, want.weights)
+
+
+def test_a_pickled_retargeter_keeps_its_answers(make_toy):
+    """Pickled with its estimators, or without them (as before they existed): same result."""
+    import pickle
+
+    toy = make_toy(head_motion=True)
+    r = SpacetimeRetargeter().fit(toy.source, toy.target)
+    want = r.retarget(toy.source)
+    again = pickle.loads(pickle.dumps(r))
+    assert np.array_equal(again.retarget(toy.source).weights, want.weights)
+    del again.__dict__["head_models_"]
+    assert np.array_equal(again.retarget(toy.source).weights, want.weights)
+
+
+def test_refinement_on_a_marker_source_solves_with_the_refined_motion(make_toy, monkeypatch):
+    """With refinement the deltas follow the refined motion, not the gate's displacements
+    (the marker path takes those from the estimate otherwise)."""
+    from faceretarget.plugins.spacetime import calibration
+
+    toy = make_toy(head_motion=True, noise=0.01)
+    r = SpacetimeRetargeter(head_motion_refinement=2).fit(toy.source, toy.target)
+    seen = {}
+    original = calibration.refine_head_motion
+
+    def spy(*args):
+        out = original(*args)
+        seen["motion"] = out[0]
+        return out
+
+    monkeypatch.setattr(calibration, "refine_head_motion", spy)
+    anim = r.retarget(toy.source)
+    markers, reference = r._source_markers(toy.source)
+    want = calibration.to_local(seen["motion"], markers, reference)
+    assert np.array_equal(anim.extras["spacetime"]["deltas"], want)

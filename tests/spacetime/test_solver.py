@@ -310,3 +310,17 @@ def test_solve_energies_are_left_to_the_caller_on_the_general_path():
     terms = {}
     solver.solve_movement(system, deltas, known, values, terms=terms)
     assert terms == {}
+
+
+def test_structured_energies_are_never_negative_on_an_exact_fit():
+    """An exact fit (no prior, data in the basis' span): ``||s||^2 - ...`` cancels to
+    rounding, which must not come out negative."""
+    system, _, _ = random_problem(n_frames=40, alpha=0.0)
+    weights = np.random.default_rng(2).normal(size=(40, system.n_shapes))
+    deltas = (weights @ system.basis.T).reshape(40, -1, 3)
+    known, values = known_frames(40, [0, 39], system.n_shapes)
+    values[[0, 39]] = weights[[0, 39]]
+    terms = {}
+    solver.solve_movement(system, deltas, known, values, terms=terms)
+    assert terms["position"].min() >= 0.0 and terms["velocity"].min() >= 0.0
+    assert terms["position"].max() < 1e-12 * np.sum(deltas**2) / 40
