@@ -361,9 +361,8 @@ class HeadMotionModel:
                 if return_info
                 else out
             )
-        if np.isfinite(
-            np.sum(x)
-        ):  # common case: nothing missing (inf would make the sum inf or NaN)
+        # common case: nothing missing (inf would make the sum inf or NaN)
+        if np.isfinite(np.sum(x)):
             valid = np.broadcast_to(w > 0, (n_frames, n))
             x0 = x
         else:
