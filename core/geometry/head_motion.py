@@ -238,7 +238,7 @@ class _Pattern:
     """What the Gauss-Newton steps and the gate need of one pattern of visible markers
     (see :func:`_gains`; ``projection`` only for a single shared pattern with a basis)."""
 
-    gains: np.ndarray  # (P, 6, 3N)
+    rows: np.ndarray  # (P, N, 18): the gains' (6, 3) block of each marker, flattened
     schur: np.ndarray  # (P, 6, 6)
     ainv: np.ndarray | None  # (P, M, M)
     weak: np.ndarray  # (P,) bool
@@ -304,11 +304,12 @@ class HeadMotionModel:
         w, ref = self.marker_weights, self.reference
         gains, schur, ainv, weak = _gains(patterns, w, self._gen, self.basis, self.ridge)
         blocks = gains.reshape(gains.shape[0], 6, -1, 3)  # (P, 6, N, 3)
+        rows = np.ascontiguousarray(blocks.transpose(0, 2, 1, 3)).reshape(gains.shape[0], -1, 18)
         projection = None
         if key and self.basis is not None and ainv is not None:
             projection = _projection(self.basis, np.repeat(patterns[0] * w, 3), ainv[0])
         out = _Pattern(
-            gains,
+            rows,
             schur,
             ainv,
             weak,
@@ -393,7 +394,7 @@ class HeadMotionModel:
         if weak_frames.size:  # start where the expressions cannot tell: weighted Procrustes
             r0, t0, _ = procrustes.fit_rigid(ref, x[weak_frames], weights=w)
             rot[weak_frames], trans[weak_frames] = r0, t0
-        moments = _moments(pat.gains, which, x0)
+        moments = _moments(pat.rows, which, x0)
         warm = np.ones(n_frames, dtype=np.bool_)
         warm[weak_frames] = False  # those keep their Procrustes start
         iterations, done = _gauss_newton(
@@ -634,19 +635,15 @@ def _local_residual(
     return procrustes.remove(procrustes.to_matrix(rot, trans), x0, ref)
 
 
-def _moments(gains: np.ndarray, which: np.ndarray, x0: np.ndarray) -> np.ndarray:
+def _moments(rows: np.ndarray, which: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """What the gains need of the markers, once: the gain applied to the local residual
     ``y = R^T (x - t) - n`` is ``sum_ab P[b, k, a] R[b, a] - s[k] . (R^T t) - g[k]`` with
     ``P = sum_i x_i K_i^T`` (per frame), ``s = sum_i K_i``, ``g = sum_i K_i n_i`` (per pattern,
-    in :class:`_Pattern`); ``K_i`` is the ``(6, 3)`` block of marker ``i``. Returns
-    ``P (F, 3, 18)`` (b, then k-a flattened)."""
-    n_pat = gains.shape[0]
-    rows = np.ascontiguousarray(gains.reshape(n_pat, 6, -1, 3).transpose(0, 2, 1, 3)).reshape(
-        n_pat, -1, 18
-    )  # (P, N, 6*3)
+    in :class:`_Pattern`); ``K_i`` is the ``(6, 3)`` block of marker ``i``, row ``i`` of
+    ``rows (P, N, 18)`` per pattern. Returns ``P (F, 3, 18)`` (b, then k-a flattened)."""
     n_frames, n = x0.shape[0], x0.shape[1]
     moments = np.empty((n_frames, 3, 18))
-    if n_pat == 1:
+    if rows.shape[0] == 1:
         for start in range(0, n_frames, _RESIDUAL_CHUNK):  # a chunk of transposed markers at a time
             sl = slice(start, start + _RESIDUAL_CHUNK)
             xt = np.ascontiguousarray(x0[sl].transpose(0, 2, 1)).reshape(-1, n)  # (3f, N)
@@ -735,12 +732,9 @@ def _unexplained(
 ) -> np.ndarray:
     """Weighted residual energy per frame after the best expression fit: ``y^T W y - u^T A^-1 u``
     with ``u = B^T W y`` (``wd``: ``(3N,)`` shared or ``(F, 3N)`` per-frame weights;
-    ``projection``: :func:`_projection` for shared weights, if already computed)."""
-    # ainv (A^-1) is None exactly when basis is (see _gains)
-    if basis is not None and ainv is not None and ainv.shape[0] == 1 and wd.ndim == 1:
+    ``projection``: the pattern's :func:`_projection`, given with shared weights and a basis)."""
+    if projection is not None and wd.ndim == 1:
         # shared weights: one product, u^T A^-1 u = |y W B K|^2
-        if projection is None:
-            projection = _projection(basis, wd, ainv[0])
         proj = y @ projection
         return np.maximum(np.square(y) @ wd - np.einsum("fk,fk->f", proj, proj), 0.0)
     yw = y * wd
