@@ -226,7 +226,6 @@ def check_outputs(paths: Iterable[PathLike], *, force: bool, inputs: Iterable = 
 
 def run_compare(args: argparse.Namespace) -> int:
     from .harness import compare
-    from .presets import run_presets
     from .report import REPORT_FILES, check_report_folder, write_report
 
     outputs = [p for p in (args.csv, args.json) if p]
@@ -243,9 +242,8 @@ def run_compare(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         n_jobs=_jobs(args.jobs, 1),
         timeout=_timeout(args.timeout),
+        presets=False if args.presets is None else (args.presets or True),
     )
-    if args.presets is not None:
-        run_presets(result, names=args.presets or None)
     _print_ranking(result)
     if args.csv:
         print(f"wrote {result.to_csv(args.csv, force=args.force)}")
@@ -310,7 +308,6 @@ def run_demo(args: argparse.Namespace) -> int:
     from ..registry import registry
     from .batch import write_animation, writer_for
     from .harness import compare
-    from .presets import run_presets
     from .report import write_report
 
     start = time.perf_counter()
@@ -323,9 +320,8 @@ def run_demo(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         n_jobs=_jobs(args.jobs, 2),
         timeout=timeout,
+        presets=not args.no_presets,
     )
-    if not args.no_presets:
-        run_presets(result)
     paths = write_report(result, folder, title="faceretarget demo")
     glb_note = ""
     if not args.no_glb:

@@ -705,8 +705,12 @@ def _isolated(
     n_jobs: int,
     timeout: float | None,
     on_run: Callable[[Run], None],
+    reproductions: Sequence[tuple[Any, str]] = (),
+    on_preset: Callable[[str, Any], None] | None = None,
 ) -> None:
-    """Every run in a supervised worker process (killed after ``timeout`` seconds).
+    """Every run in a supervised worker process (killed after ``timeout`` seconds); with
+    ``reproductions`` (:func:`.presets.chosen_presets`) their presets too, each one task
+    whose result goes to ``on_preset(name, result)``.
 
     The methods of one module (sharing numba kernels) form one group, so each worker
     compiles them once; a run that overruns or kills its worker is recorded as an error
@@ -730,7 +734,15 @@ def _isolated(
                 )
             )
 
+    from .presets import PresetKey, isolated_groups, outcome_result
+
+    preset_groups = isolated_groups(reproductions, refs, timeout)
+
     def on_outcome(outcome: Outcome) -> None:
+        if isinstance(outcome.key, PresetKey):
+            assert on_preset is not None  # preset tasks come with their callback
+            on_preset(*outcome_result(reproductions, outcome))
+            return
         cname, name = cast("tuple[str, str]", outcome.key)  # the keys of the tasks above
         if outcome.status == DONE:
             on_run(outcome.value)
@@ -747,8 +759,12 @@ def _isolated(
 
     # the metrics of finished runs are computed here meanwhile: this process's environment
     # must not change (numba would see a new thread count)
+    # presets first: each is one long task (many fits), and the runs fill the cores around them
     run_supervised(
-        groups.values(), workers=n_jobs, on_outcome=on_outcome, env=single_threaded_environ()
+        [*preset_groups, *groups.values()],
+        workers=n_jobs,
+        on_outcome=on_outcome,
+        env=single_threaded_environ(),
     )
 
 
@@ -763,6 +779,7 @@ def compare(
     progress: bool = False,
     n_jobs: int = 1,
     timeout: float | None = None,
+    presets: bool | Sequence[str] = False,
 ) -> ComparisonResult:
     """Run retargeters on cases and measure them.
 
@@ -787,6 +804,11 @@ def compare(
         worker process (``n_jobs`` of them) that is killed when it overruns, and the run is
         recorded as an error naming the plugin (:class:`~faceretarget.errors.PluginTimeoutError`).
         A worker that crashes is recorded the same way. None or 0: no limit.
+    presets : also run the paper reproductions (True: every registered one; or a list of
+        preset names) on these cases, attached to ``result.presets``; with worker processes
+        each preset is one more task of the same pool (``timeout`` applies to a preset as a
+        whole), so presets and runs share the cores. See
+        :func:`faceretarget.evaluation.presets.run_presets`.
 
     Returns
     -------
@@ -816,6 +838,15 @@ def compare(
     from .. import config
 
     timeout = config.check_timeout(timeout, "compare: timeout")
+    from .presets import chosen_presets
+
+    if not isinstance(presets, bool) and isinstance(presets, str):
+        raise ConfigError(f"presets: True, False or a list of preset names, got {presets!r}")
+    reproductions = (
+        chosen_presets(None if presets is True else presets, registry)
+        if presets is not False
+        else []
+    )
     named_cases = (
         list(cases.items())
         if isinstance(cases, Mapping)
@@ -836,7 +867,7 @@ def compare(
     from tqdm import tqdm
 
     bar = tqdm(
-        total=len(resolved) * len(chosen),
+        total=len(resolved) * len(chosen) + len(reproductions),
         desc="compare",
         unit="run",
         disable=not progress,
@@ -852,17 +883,42 @@ def compare(
         bar.set_postfix_str(f"{run.case}: {run.method}")
         bar.update()
 
-    if timeout is not None or (n_jobs > 1 and len(chosen) > 1):
-        _isolated(refs, chosen, per_method, max(1, min(n_jobs, len(chosen))), timeout, on_run)
+    reproduced: dict[str, Any] = {}
+
+    def on_preset(name: str, res: Any) -> None:
+        reproduced[name] = res
+        bar.set_postfix_str(f"preset {name}")
+        bar.update()
+
+    tasks = len(chosen) + len(reproductions)
+    if timeout is not None or (n_jobs > 1 and tasks > 1):
+        _isolated(
+            refs,
+            chosen,
+            per_method,
+            max(1, min(n_jobs, tasks)),
+            timeout,
+            on_run,
+            reproductions,
+            on_preset,
+        )
     else:
         for cname, case in resolved.items():
             for method in chosen:
                 on_run(_run_one(case, cname, method, per_method[method.name]))
+        if reproductions:
+            from .presets import Cases, run_preset
+
+            pool = Cases(resolved)
+            for preset, _ in reproductions:
+                on_preset(preset.name, run_preset(preset, pool))
     bar.close()
     order = [(c, m.name) for c in resolved for m in chosen]
     runs = [done[key][0] for key in order]
     rows = [row for key in order for row in done[key][1]]
-    return ComparisonResult(rows, runs, resolved, all_metrics)
+    return ComparisonResult(
+        rows, runs, resolved, all_metrics, [reproduced[p.name] for p, _ in reproductions]
+    )
 
 
 def ranking_metric(result: ComparisonResult, name: str | None = None) -> str | None:

@@ -16,21 +16,27 @@ returned with status ``not applicable`` / ``error`` and the reason, and the repo
     result = compare(["synthetic-human"])
     run_presets(result)                      # attaches every preset to result.presets
     write_report(result, "report/")
+
+``compare(..., presets=True)`` runs them with the comparison, in its worker processes
+when it has some (each preset is one task, so two presets run side by side on two cores).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from .._json import jsonable
-from ..errors import CapabilityError, UnknownNameError
+from .._validate import did_you_mean
+from ..errors import CapabilityError, ConfigError, UnknownNameError
 from ..hookspecs import Preset
 from .harness import ERROR, NOT_APPLICABLE, OK, resolve_case
 
 if TYPE_CHECKING:
     from ..cases import Case
+    from ..registry import Registry
+    from ._workers import Outcome, Task
     from .harness import ComparisonResult
 
 __all__ = [
@@ -96,24 +102,59 @@ class PresetResult:
 
 
 class Cases:
-    """Cases by name or case spec: the caller's, else built on first use (a name of
-    :data:`PRESET_CASES` by its spec there, anything else as
-    :func:`faceretarget.evaluation.harness.resolve_case` reads it)."""
+    """Cases by name or case spec: the caller's (a case, or a case spec built on first use),
+    else built on first use (a name of :data:`PRESET_CASES` by its spec there, anything else
+    as :func:`faceretarget.evaluation.harness.resolve_case` reads it).
 
-    def __init__(self, given: Mapping[str, Any] | None = None) -> None:
+    resolve : builds a case from its spec (default ``resolve_case``).
+    """
+
+    def __init__(
+        self, given: Mapping[str, Any] | None = None, resolve: Callable[[str], Case] | None = None
+    ) -> None:
         self.given = dict(given or {})
+        self.resolve = resolve or resolve_case
 
     def __call__(self, name: str) -> Case:
-        if name not in self.given:
-            self.given[name] = resolve_case(PRESET_CASES.get(name, name))
-        return self.given[name]
+        value = self.given.get(name)
+        if value is None or isinstance(value, str):
+            value = self.given[name] = self.resolve(
+                PRESET_CASES.get(name, name) if value is None else value
+            )
+        return value
 
 
-def available_presets() -> dict[str, Preset]:
-    """Every registered preset by name, in plugin load order."""
-    from ..registry import registry
+def available_presets(registry: Registry | None = None) -> dict[str, Preset]:
+    """Every registered preset by name, in plugin load order (of ``registry``, default the
+    process-wide one)."""
+    if registry is None:
+        from ..registry import registry as _registry
 
-    return {name: preset for name, (preset, _) in registry().presets.items()}
+        registry = _registry()
+    return {name: preset for name, (preset, _) in registry.presets.items()}
+
+
+def chosen_presets(
+    names: Iterable[str] | None = None, registry: Registry | None = None
+) -> list[tuple[Preset, str]]:
+    """``(preset, name of the plugin that registered it)`` for ``names`` (default every
+    registered preset), in that order; raises :class:`UnknownNameError` for a name that is
+    not registered."""
+    if registry is None:
+        from ..registry import registry as _registry
+
+        registry = _registry()
+    known = registry.presets
+    wanted = list(known) if names is None else list(names)
+    if isinstance(names, str):
+        raise ConfigError(f"presets: give a list of preset names, got the string {names!r}")
+    missing = [n for n in wanted if n not in known]
+    if missing:
+        named = ", ".join(f"{n!r}{did_you_mean(n, known)}" for n in missing)
+        raise UnknownNameError(
+            f"no preset(s) {named}; valid presets: {', '.join(known) or 'none installed'}"
+        )
+    return [(known[n][0], known[n][1].name) for n in wanted]
 
 
 def run_preset(
@@ -132,7 +173,20 @@ def run_preset(
             )
         preset = known[preset]
     pool = cases if isinstance(cases, Cases) else Cases(cases)
-    res = PresetResult(
+    res = _result(preset)
+    try:
+        preset.run(pool, res)
+    except Exception as exc:  # a missing or failing retargeter is reported in the report
+        _did_not_run(
+            res,
+            NOT_APPLICABLE if isinstance(exc, (UnknownNameError, CapabilityError)) else ERROR,
+            f"{type(exc).__name__}: {' '.join(str(exc).split())}",
+        )
+    return res
+
+
+def _result(preset: Preset) -> PresetResult:
+    return PresetResult(
         preset.name,
         preset.title,
         preset.paper,
@@ -140,14 +194,11 @@ def run_preset(
         claim=preset.claim,
         setting=preset.setting,
     )
-    try:
-        preset.run(pool, res)
-    except Exception as exc:  # a missing or failing retargeter is reported in the report
-        res.status = (
-            NOT_APPLICABLE if isinstance(exc, (UnknownNameError, CapabilityError)) else ERROR
-        )
-        res.reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
-        res.agrees, res.evidence = None, f"not decided: the reproduction did not run ({res.status})"
+
+
+def _did_not_run(res: PresetResult, status: str, reason: str) -> PresetResult:
+    res.status, res.reason = status, reason
+    res.agrees, res.evidence = None, f"not decided: the reproduction did not run ({status})"
     return res
 
 
@@ -155,13 +206,98 @@ def run_presets(
     result: ComparisonResult | None = None,
     names: Iterable[str] | None = None,
     cases: Mapping[str, Any] | None = None,
+    *,
+    n_jobs: int = 1,
+    timeout: float | None = None,
 ) -> list[PresetResult]:
-    """Run presets (default all); with ``result``, reuse its cases and attach to ``result.presets``."""
-    pool = Cases({**(result.cases if result is not None else {}), **(cases or {})})
-    out = [run_preset(n, pool) for n in (names or list(available_presets()))]
+    """Run presets (default all); with ``result``, reuse its cases and attach to ``result.presets``.
+
+    n_jobs : worker processes; > 1 runs the presets side by side (one task each).
+    timeout : seconds one preset may take; given, every preset runs in a worker process
+        that is killed when it overruns (the preset is then reported with status
+        ``error`` and the reason). None or 0: no limit.
+    """
+    from .. import config
+
+    if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs < 1:
+        raise ConfigError(f"n_jobs must be an integer >= 1, got {n_jobs!r}")
+    timeout = config.check_timeout(timeout, "run_presets: timeout")
+    chosen = chosen_presets(names)
+    given = {**(result.cases if result is not None else {}), **(cases or {})}
+    if timeout is None and (n_jobs == 1 or len(chosen) < 2):
+        pool = Cases(given)
+        out = [run_preset(preset, pool) for preset, _ in chosen]
+    else:
+        from ._workers import run_supervised, single_threaded_environ
+
+        done: dict[str, PresetResult] = {}
+        run_supervised(
+            isolated_groups(chosen, given, timeout),
+            workers=min(n_jobs, len(chosen)),
+            on_outcome=lambda outcome: done.update([outcome_result(chosen, outcome)]),
+            env=single_threaded_environ(),
+        )
+        out = [done[preset.name] for preset, _ in chosen]
     if result is not None:
         result.presets.extend(out)
     return out
+
+
+# ---------------------------------------------------------------------------------------
+# In worker processes (faceretarget.evaluation._workers): one task per preset
+# ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PresetKey:
+    """The key of a preset's worker task (:func:`isolated_groups`)."""
+
+    name: str
+
+
+def _run_in_worker(preset: Preset, given: dict[str, Any]) -> PresetResult:
+    """Worker side: ``preset`` on the caller's cases (case specs are built here, once per
+    worker process)."""
+    from .harness import cached_case
+
+    return run_preset(preset, Cases(given, resolve=cached_case))
+
+
+def isolated_groups(
+    chosen: Sequence[tuple[Preset, str]], given: Mapping[str, Any], timeout: float | None
+) -> list[list[Task]]:
+    """The presets of :func:`chosen_presets` as worker tasks (key :class:`PresetKey`),
+    grouped by the plugin that registered them (a worker never mixes plugins' tasks).
+    ``given``: the caller's cases by name, as case objects or case specs."""
+    from ._workers import Task
+
+    groups: dict[str, list[Task]] = {}
+    for preset, plugin in chosen:
+        groups.setdefault(plugin, []).append(
+            Task(
+                PresetKey(preset.name),
+                _run_in_worker,
+                (preset, dict(given)),
+                timeout,
+                owner=("preset", plugin),
+            )
+        )
+    return list(groups.values())
+
+
+def outcome_result(
+    chosen: Sequence[tuple[Preset, str]], outcome: Outcome
+) -> tuple[str, PresetResult]:
+    """``(preset name, result)`` of a task of :func:`isolated_groups`: the worker's result,
+    or an ``error`` result saying why the preset did not finish (timeout, crashed worker,
+    a preset that could not be handed to a worker)."""
+    from ._workers import DONE
+
+    name = cast("PresetKey", outcome.key).name
+    if outcome.status == DONE:
+        return name, outcome.value
+    preset, plugin = next((p, owner) for p, owner in chosen if p.name == name)
+    return name, _did_not_run(
+        _result(preset), ERROR, f"{outcome.message} (preset of plugin {plugin!r})"
+    )
 
 
 def __getattr__(name: str) -> Any:

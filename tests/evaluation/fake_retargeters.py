@@ -310,3 +310,42 @@ def faceretarget_writers():
     from faceretarget.hookspecs import Writer
 
     return [Writer("fake_npz", "animation", (".fnpz",), write_fake_npz, "test writer")]
+
+
+# -- presets (paper reproductions) for the tests of compare(..., presets=...) -------------
+def _frames_preset(cases, res):
+    """Records each of the comparison's cases ("first", "second") and this process's id."""
+    import os
+
+    for name in ("first", "second"):
+        frames = len(cases(name).truth.vertices)
+        res.table.append({"case": name, "frames": frames, "pid": os.getpid()})
+    res.agrees, res.evidence = True, "agrees: the cases arrived"
+
+
+def _sleeper_preset(cases, res):
+    time.sleep(600)
+
+
+def _crash_preset(cases, res):
+    import os
+
+    os._exit(3)
+
+
+def fake_presets():
+    from faceretarget.hookspecs import Preset
+
+    def make(name, run):
+        return Preset(name, name, "no paper", "a test preset", run, claim="c", setting="s")
+
+    return [
+        make("fake_frames", _frames_preset),
+        make("fake_sleeper", _sleeper_preset),
+        make("fake_crash", _crash_preset),
+    ]
+
+
+@hookimpl
+def faceretarget_presets():
+    return fake_presets()

@@ -285,3 +285,52 @@ def test_parallel_compare_matches_sequential(tiny, fake_registry):
     assert par.run("first", "fake_oracle").animation.extras == {}
     with pytest.raises(ConfigError, match="n_jobs"):
         compare([tiny], methods=names, registry=fake_registry, n_jobs=0)
+
+
+def test_compare_runs_presets_with_its_runs(tiny, fake_registry):
+    """presets=: the reproductions get the comparison's cases, in this process without
+    workers and as tasks of the worker pool with them (same results, in the order asked)."""
+    import os
+
+    cases = {"first": tiny, "second": "synthetic?resolution=80&n_frames=3"}
+    kw = dict(methods=["fake_oracle"], registry=fake_registry, metrics=["vertex_error_rms"])
+    seq = compare(cases, presets=["fake_frames"], **kw)
+    par = compare(cases, presets=["fake_frames"], n_jobs=2, **kw)
+    for result, here in ((seq, True), (par, False)):
+        (res,) = result.presets
+        assert res.name == "fake_frames" and res.status == "ok" and res.agrees is True
+        assert [(r["case"], r["frames"]) for r in res.table] == [
+            ("first", len(tiny.truth.vertices)),
+            ("second", 3),
+        ]
+        assert all((r["pid"] == os.getpid()) is here for r in res.table)
+        assert [r.status for r in result.runs] == ["ok", "ok"]
+    assert compare(cases, **kw).presets == []
+
+
+def test_compare_reports_presets_that_overrun_or_crash(tiny, fake_registry):
+    result = compare(
+        {"first": tiny, "second": tiny},
+        methods=["fake_oracle"],
+        registry=fake_registry,
+        metrics=["vertex_error_rms"],
+        timeout=2.0,
+        presets=["fake_sleeper", "fake_crash", "fake_frames"],
+    )
+    sleeper, crash, frames = result.presets
+    assert [p.name for p in result.presets] == ["fake_sleeper", "fake_crash", "fake_frames"]
+    for res, what in ((sleeper, "2 s"), (crash, "exit")):
+        assert res.status == "error" and res.agrees is None, res.reason
+        assert what in res.reason and "preset of plugin 'fakes'" in res.reason, res.reason
+        assert "did not run" in res.evidence
+    assert frames.status == "ok" and [r.status for r in result.runs] == ["ok", "ok"]
+
+
+def test_compare_checks_preset_names_before_running(tiny, fake_registry, monkeypatch):
+    import faceretarget.evaluation.harness as harness
+
+    monkeypatch.setattr(harness, "_run_one", lambda *a: pytest.fail("ran before the check"))
+    with pytest.raises(UnknownNameError, match="'fake_frame'.*did you mean 'fake_frames'"):
+        compare([tiny], methods=["fake_oracle"], registry=fake_registry, presets=["fake_frame"])
+    with pytest.raises(ConfigError, match="list of preset names"):
+        compare([tiny], methods=["fake_oracle"], registry=fake_registry, presets="fake_frames")

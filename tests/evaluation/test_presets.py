@@ -393,3 +393,23 @@ def test_preset_claims_are_in_the_json(small_cases, tmp_path):
         )
         assert entry["agrees"] is res.agrees and entry["verdict"] == res.verdict
     assert all(p.claim and p.setting for p in presets.available_presets().values())
+
+
+def test_run_presets_in_workers_matches_in_process(small_cases):
+    """n_jobs=2: each preset a task of two worker processes, on the caller's cases (sent
+    as they are); the same results as in this process, in the order asked."""
+    names = ["kholgade_fig8", "seol_fig11"]
+    here = presets.run_presets(names=names, cases=small_cases)
+    there = presets.run_presets(names=names, cases=small_cases, n_jobs=2)
+    assert [r.name for r in there] == names
+    for a, b in zip(here, there):
+        assert b.status == "ok" and (a.agrees, a.evidence) == (b.agrees, b.evidence)
+        assert [sorted(row) for row in a.table] == [sorted(row) for row in b.table]
+        for ra, rb in zip(a.table, b.table):
+            for key, value in ra.items():
+                if isinstance(value, float):
+                    assert rb[key] == pytest.approx(value, rel=1e-9, abs=1e-12), key
+                else:
+                    assert rb[key] == value, key
+    with pytest.raises(UnknownNameError, match="valid presets"):
+        presets.run_presets(names=["nope"], n_jobs=2)
