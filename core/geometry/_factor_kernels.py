@@ -1,4 +1,5 @@
-"""numba triangular solves with many right-hand sides (compiled lazily, cached).
+"""numba triangular solves with many right-hand sides, and the extraction of the strict
+triangles they read (compiled lazily, cached).
 
 The factors are CSC matrices from SuperLU; right-hand sides are row-major ``(n, k)``
 blocks so each factor entry updates a contiguous run of ``k`` values. Columns are split
@@ -10,6 +11,33 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+
+
+@nb.njit(cache=True)
+def strict_triangle(indptr, indices, data, lower, index_like):
+    """``(indptr, indices, values)`` of the entries of a CSC matrix strictly below
+    (``lower``) or above its diagonal, in their stored order; indices in the dtype of
+    ``index_like`` (an empty array). Two passes over the entries, no temporaries."""
+    n = indptr.shape[0] - 1
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    for j in range(n):
+        count = 0
+        for p in range(indptr[j], indptr[j + 1]):
+            i = indices[p]
+            if (lower and i > j) or (not lower and i < j):
+                count += 1
+        ptr[j + 1] = ptr[j] + count
+    rows = np.empty(ptr[n], dtype=index_like.dtype)
+    values = np.empty(ptr[n], dtype=np.float64)
+    k = 0
+    for j in range(n):
+        for p in range(indptr[j], indptr[j + 1]):
+            i = indices[p]
+            if (lower and i > j) or (not lower and i < j):
+                rows[k] = i
+                values[k] = data[p]
+                k += 1
+    return ptr, rows, values
 
 
 @nb.njit(parallel=True, cache=True)

@@ -51,3 +51,31 @@ def test_singular_and_bad_inputs():
     bad[0, 0] = np.nan
     with pytest.raises(NumericalError):
         SPDFactor(bad).solve(np.ones(bad.shape[0]))
+
+
+@pytest.mark.parametrize("lower", [True, False])
+def test_strict_triangles_match_a_dense_mask(lower):
+    """The factors the solves read: every entry strictly below (above) the diagonal, in
+    stored order, with its value; none of the diagonal or the other side. A random
+    pattern (unsorted rows, explicit zeros, empty columns) in both index dtypes."""
+    from faceretarget.geometry.factorized import _strict
+
+    rng = np.random.default_rng(3)
+    dense = rng.normal(size=(40, 40)) * (rng.random((40, 40)) < 0.2)
+    dense[:, 7] = 0.0
+    m = sp.csc_matrix(dense)
+    m.data[::5] = 0.0  # explicit zeros are kept
+    order = rng.permutation(m.indptr[1] - m.indptr[0])
+    m.indices[: len(order)] = m.indices[: len(order)][order]  # unsorted first column
+    m.data[: len(order)] = m.data[: len(order)][order]
+    for index in (np.int32, np.int64):
+        m.indices = m.indices.astype(index)
+        ptr, rows, values = _strict(m, lower=lower)
+        cols = np.repeat(np.arange(40), np.diff(m.indptr))
+        keep = m.indices > cols if lower else m.indices < cols
+        assert rows.dtype == np.int32 and values.dtype == np.float64
+        np.testing.assert_array_equal(rows, m.indices[keep])
+        np.testing.assert_array_equal(values, m.data[keep])
+        np.testing.assert_array_equal(
+            ptr, np.r_[0, np.cumsum(np.bincount(cols[keep], minlength=40))]
+        )
