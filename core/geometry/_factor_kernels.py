@@ -14,7 +14,9 @@ import numpy as np
 
 
 @nb.njit(cache=True)
-def strict_triangle(indptr, indices, data, lower, index_like):
+def strict_triangle(
+    indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, lower: bool, index_like: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(indptr, indices, values)`` of the entries of a CSC matrix strictly below
     (``lower``) or above its diagonal, in their stored order; indices in the dtype of
     ``index_like`` (an empty array). Two passes over the entries, no temporaries."""
