@@ -840,8 +840,6 @@ def compare(
     timeout = config.check_timeout(timeout, "compare: timeout")
     from .presets import chosen_presets
 
-    if not isinstance(presets, bool) and isinstance(presets, str):
-        raise ConfigError(f"presets: True, False or a list of preset names, got {presets!r}")
     reproductions = (
         chosen_presets(None if presets is True else presets, registry)
         if presets is not False

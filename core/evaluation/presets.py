@@ -124,14 +124,11 @@ class Cases:
         return value
 
 
-def available_presets(registry: Registry | None = None) -> dict[str, Preset]:
-    """Every registered preset by name, in plugin load order (of ``registry``, default the
-    process-wide one)."""
-    if registry is None:
-        from ..registry import registry as _registry
+def available_presets() -> dict[str, Preset]:
+    """Every registered preset by name, in plugin load order."""
+    from ..registry import registry
 
-        registry = _registry()
-    return {name: preset for name, (preset, _) in registry.presets.items()}
+    return {name: preset for name, (preset, _) in registry().presets.items()}
 
 
 def chosen_presets(
@@ -144,10 +141,10 @@ def chosen_presets(
         from ..registry import registry as _registry
 
         registry = _registry()
-    known = registry.presets
-    wanted = list(known) if names is None else list(names)
     if isinstance(names, str):
         raise ConfigError(f"presets: give a list of preset names, got the string {names!r}")
+    known = registry.presets
+    wanted = list(known) if names is None else list(names)
     missing = [n for n in wanted if n not in known]
     if missing:
         named = ", ".join(f"{n!r}{did_you_mean(n, known)}" for n in missing)
@@ -222,7 +219,7 @@ def run_presets(
     if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs < 1:
         raise ConfigError(f"n_jobs must be an integer >= 1, got {n_jobs!r}")
     timeout = config.check_timeout(timeout, "run_presets: timeout")
-    chosen = chosen_presets(names)
+    chosen = chosen_presets(names or None)  # no names: all of them
     given = {**(result.cases if result is not None else {}), **(cases or {})}
     if timeout is None and (n_jobs == 1 or len(chosen) < 2):
         pool = Cases(given)
