@@ -158,6 +158,15 @@ def check_timeout(value: object, what: str = "timeout") -> float | None:
     return float(value) or None
 
 
+def check_jobs(value: object, what: str = "n_jobs") -> int:
+    """``value`` as a count of worker processes (an integer >= 1); ConfigError otherwise."""
+    from .errors import ConfigError
+
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"{what} must be an integer >= 1, got {value!r}")
+    return value
+
+
 # ---------------------------------------------------------------------------------------
 # Cross-topology correspondence (``correspond.resample_to_topology`` and its QualityReport)
 # ---------------------------------------------------------------------------------------

@@ -44,7 +44,7 @@ from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 from .. import config
-from ..errors import ConfigError, PluginError, PluginTimeoutError
+from ..errors import PluginError, PluginTimeoutError
 
 __all__ = ["Task", "Outcome", "run_supervised", "DONE", "ERROR", "TIMEOUT", "DIED"]
 
@@ -353,8 +353,7 @@ class _Worker:
 
 
 def _check(workers: int, tasks: list[deque[Task]]) -> None:
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ConfigError(f"run_supervised: workers must be an integer >= 1, got {workers!r}")
+    config.check_jobs(workers, "run_supervised: workers")
 
 
 #: Thread counts pinned to 1 in the processes of a pool, so n processes do not each start

@@ -833,9 +833,9 @@ def compare(
             named = ", ".join(f"{m!r}{did_you_mean(m, all_metrics)}" for m in missing)
             raise UnknownNameError(f"no metric(s) {named}; valid: {', '.join(all_metrics)}")
         all_metrics = {m: all_metrics[m] for m in metrics}
-    if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs < 1:
-        raise ConfigError(f"n_jobs must be an integer >= 1, got {n_jobs!r}")
     from .. import config
+
+    config.check_jobs(n_jobs)
 
     timeout = config.check_timeout(timeout, "compare: timeout")
     from .presets import chosen_presets

@@ -163,12 +163,7 @@ def run_preset(
     cases : optional ``{case name: case}`` to reuse (e.g. ``result.cases``); missing ones are built.
     """
     if not isinstance(preset, Preset):
-        known = available_presets()
-        if preset not in known:
-            raise UnknownNameError(
-                f"no preset named {preset!r}; valid presets: {', '.join(known) or 'none installed'}"
-            )
-        preset = known[preset]
+        ((preset, _),) = chosen_presets([preset])
     pool = cases if isinstance(cases, Cases) else Cases(cases)
     res = _result(preset)
     try:
@@ -216,8 +211,7 @@ def run_presets(
     """
     from .. import config
 
-    if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs < 1:
-        raise ConfigError(f"n_jobs must be an integer >= 1, got {n_jobs!r}")
+    config.check_jobs(n_jobs)
     timeout = config.check_timeout(timeout, "run_presets: timeout")
     chosen = chosen_presets(names or None)  # no names: all of them
     given = {**(result.cases if result is not None else {}), **(cases or {})}
@@ -230,7 +224,7 @@ def run_presets(
         done: dict[str, PresetResult] = {}
         run_supervised(
             isolated_groups(chosen, given, timeout),
-            workers=min(n_jobs, len(chosen)),
+            workers=max(1, min(n_jobs, len(chosen))),
             on_outcome=lambda outcome: done.update([outcome_result(chosen, outcome)]),
             env=single_threaded_environ(),
         )
