@@ -612,7 +612,7 @@ def project(xhat, projector_t, g, xx):
             g[f, k] = s
 
 
-@nb.njit(cache=True, fastmath=FASTMATH)
+@nb.njit(cache=True, fastmath=FASTMATH, nogil=True)
 def assemble(
     products, offsets, n_frames, neutral, vertex_ptr, entry_region, entry_col, motion, out
 ):

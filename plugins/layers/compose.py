@@ -15,11 +15,11 @@ dense vertices never need forming.
 
 from __future__ import annotations
 
-from contextlib import nullcontext
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from faceretarget._threads import default_threaded_blas
+from faceretarget._threads import single_threaded_blas, worker_count
 
 from .model import CharacterModel
 
@@ -55,11 +55,11 @@ def world_vertices(
     of the character's residual block (its blendshape deltas), when it has one. Frames go
     in chunks: one BLAS product per region into a scratch buffer, then one numba pass
     (``_kernels.assemble``) that adds each vertex's region products to the neutral and
-    applies the rigid motion, writing the output once. A single frame (streaming) only
-    reads the rows of each block whose coefficient is not zero.
+    applies the rigid motion, writing the output once. With more than one chunk, the chunks
+    run on ``_threads.worker_count`` threads (the kernel releases the GIL), every product on
+    one BLAS thread, so the numbers do not depend on the thread count. A single frame (streaming) only reads the rows of each block
+    whose coefficient is not zero.
     """
-    from ._kernels import assemble
-
     n_frames = beta.shape[0]
     out = np.empty((n_frames, character.n_vertices, 3))
     motion = (
@@ -67,10 +67,33 @@ def world_vertices(
         if head_motion is None
         else np.ascontiguousarray(head_motion, dtype=np.float64)
     )
+    starts = list(range(0, n_frames, CHUNK))
+    workers = worker_count(len(starts))
+    with single_threaded_blas():
+        if workers == 1:
+            _assemble_chunks(character, beta, motion, extra, out, starts)
+            return out
+        # chunks dealt out in turn to the threads, a scratch each
+        with ThreadPoolExecutor(workers) as pool:
+            for done in [
+                pool.submit(
+                    _assemble_chunks, character, beta, motion, extra, out, starts[i::workers]
+                )
+                for i in range(workers)
+            ]:
+                done.result()
+    return out
+
+
+def _assemble_chunks(character, beta, motion, extra, out, starts) -> None:
+    """Frames ``start : start + CHUNK`` of :func:`world_vertices` for each of ``starts``."""
+    from ._kernels import assemble
+
+    n_frames = beta.shape[0]
     offsets = character.offsets
     n_layer = beta.shape[1]
     scratch = np.empty(min(CHUNK, n_frames) * int(offsets[-1]))
-    for start in range(0, n_frames, CHUNK):
+    for start in starts:
         stop = min(start + CHUNK, n_frames)
         n = stop - start
         for l, (ids, block) in enumerate(character.regions):
@@ -89,10 +112,7 @@ def world_vertices(
                 if nz.size < 0.7 * coef.shape[1]:
                     np.matmul(coef[:, nz], block[nz], out=dest)
                     continue
-            with (
-                default_threaded_blas() if n > 1 else nullcontext()
-            ):  # (CHUNK, K) x (K, 3V): worth the BLAS threads
-                np.matmul(np.ascontiguousarray(coef), block, out=dest)
+            np.matmul(np.ascontiguousarray(coef), block, out=dest)
         assemble(
             scratch,
             offsets,
@@ -104,7 +124,6 @@ def world_vertices(
             motion[start:stop],
             out[start:stop],
         )
-    return out
 
 
 class ProjectionModel:

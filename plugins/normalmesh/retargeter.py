@@ -571,11 +571,12 @@ class NormalMeshRetargeter(Retargeter):
         and ``motion (F, 4, 4)`` (the head motion in the target's units).
 
         Frames go in chunks of ``CHUNK_FRAMES``, each walked from the neutral's hits (so the
-        result does not depend on how many threads run the chunks), on up to
-        ``os.cpu_count()`` threads (the kernels release the GIL).
+        result does not depend on how many threads run the chunks), on
+        ``_threads.worker_count`` threads (the kernels release the GIL).
         """
-        import os
         from concurrent.futures import ThreadPoolExecutor
+
+        from faceretarget._threads import worker_count
 
         perf = self._check_source(source)
         motion = self._head_motion(
@@ -597,7 +598,7 @@ class NormalMeshRetargeter(Retargeter):
         chunks = [
             range(a, min(a + CHUNK_FRAMES, n_frames)) for a in range(0, n_frames, CHUNK_FRAMES)
         ]
-        workers = max(1, min(len(chunks), os.cpu_count() or 1))
+        workers = worker_count(len(chunks))
         if workers == 1:
             for chunk in chunks:
                 self._run_chunk(perf, chunk, level, out)

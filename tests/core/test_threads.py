@@ -5,7 +5,8 @@ import pytest
 from threadpoolctl import threadpool_info
 
 import faceretarget as fr
-from faceretarget._threads import default_threaded_blas, single_threaded_blas
+from faceretarget import _threads
+from faceretarget._threads import single_threaded_blas, worker_count
 from faceretarget.plugins.spacetime import solver
 
 
@@ -20,12 +21,22 @@ def test_single_threaded_blas_limits_and_restores():
     assert blas_threads() == before
 
 
-def test_a_large_product_inside_takes_the_threads_back():
-    before = blas_threads()
-    with single_threaded_blas():
-        with default_threaded_blas():
-            assert blas_threads() == before
-        assert set(blas_threads().values()) == {1}
+def test_worker_count_uses_the_cpus_unless_blas_was_limited_to_one_thread(monkeypatch):
+    from threadpoolctl import threadpool_limits
+
+    monkeypatch.setattr(_threads.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
+    monkeypatch.setattr(_threads, "_default_threads", _threads._default_threads)
+    monkeypatch.setattr(_threads, "_controller", None)
+    with threadpool_limits(3, user_api="blas"):
+        assert worker_count(10) == 3
+        assert worker_count(2) == 2
+    monkeypatch.setattr(_threads, "_controller", None)
+    with threadpool_limits(1, user_api="blas"):  # OMP_NUM_THREADS=1: one core asked for
+        assert worker_count(10) == 1
+    monkeypatch.setattr(_threads, "_controller", None)
+    monkeypatch.setattr(_threads.os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    assert worker_count(10) == 1
+    assert worker_count(0) == 1
 
 
 def test_spacetime_admm_and_layers_frames_run_on_one_blas_thread(monkeypatch):

@@ -1,6 +1,7 @@
 """The character side (Eq. 5) and the projection onto blendshapes, against plain numpy/scipy."""
 
 import numpy as np
+import pytest
 import scipy.optimize
 from naive.layers import make_problem
 
@@ -10,8 +11,12 @@ from faceretarget.plugins.layers.model import build_character
 from faceretarget.plugins.layers.retargeter import LayersRetargeter
 
 
-def test_world_vertices_match_the_dense_formula():
-    problem = make_problem(14, n_frames=70, soft=True)  # 70 frames: more than one chunk
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_world_vertices_match_the_dense_formula(workers, monkeypatch):
+    # 70 frames, chunks of 16: five chunks, dealt out to 1, 2 or 3 threads
+    monkeypatch.setattr(compose, "CHUNK", 16)
+    monkeypatch.setattr(compose, "worker_count", lambda n: min(n, workers))
+    problem = make_problem(14, n_frames=70, soft=True)
     target = problem["target"]
     character = build_character(
         target.layers, target.neutral.vertices, problem["source"].actor_layers
@@ -33,6 +38,10 @@ def test_world_vertices_match_the_dense_formula():
     np.testing.assert_allclose(got, want, atol=1e-12 * np.abs(want).max())
     np.testing.assert_allclose(
         compose.world_vertices(character, beta), local, atol=1e-12 * np.abs(local).max()
+    )
+    monkeypatch.setattr(compose, "worker_count", lambda n: 1)
+    np.testing.assert_array_equal(
+        compose.world_vertices(character, beta, problem["head_motion"]), got
     )
 
 
