@@ -13,7 +13,7 @@ import numba as nb
 import numpy as np
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def strict_triangle(
     indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, lower: bool, index_like: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

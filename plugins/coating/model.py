@@ -35,7 +35,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from faceretarget.geometry.deformation_gradients import DeformationTransfer
-from faceretarget.geometry.factorized import SPDFactor
+from faceretarget.geometry.factorized import SPDFactor, factorize
 from faceretarget.geometry.local_frames import frame_neighbors
 from faceretarget.geometry.mesh_ops import face_areas, unique_edges, vertex_adjacency
 
@@ -250,8 +250,7 @@ class CoatingModel:
         self.target_center = self.target.smooth_reference.mean(axis=0)
         self.basis_frames: list[int] = []
         self.selection_rms: list[float] = []
-        for factor in (self.target.factor, self.transfer.factor):  # factorize now (one-time setup)
-            factor.solve(np.zeros(factor.n))
+        factorize((self.target.factor, self.transfer.factor))  # now: one-time setup
         self.adjacency  # noqa: B018 - build the edit-time topology now (one-time setup)
 
     @property

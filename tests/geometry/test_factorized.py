@@ -8,7 +8,8 @@ import scipy.sparse as sp
 from naive.coating import grid_mesh
 
 from faceretarget.errors import NumericalError, ShapeError
-from faceretarget.geometry.factorized import SPDFactor
+from faceretarget.geometry import factorized
+from faceretarget.geometry.factorized import SPDFactor, factorize
 from faceretarget.geometry.laplacian import uniform_laplacian
 
 
@@ -39,6 +40,23 @@ def test_pickle_refactorizes():
     rhs = np.random.default_rng(2).normal(size=(fac.n, 9))
     again = pickle.loads(pickle.dumps(fac))
     np.testing.assert_array_equal(again.solve(rhs), fac.solve(rhs))
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_factorize_several_at_once(workers, monkeypatch):
+    """Side by side on threads: the same factors as one by one; an error is raised, not lost."""
+    monkeypatch.setattr(factorized, "worker_count", lambda n: min(n, workers))
+    systems = [_system(10), _system(13), _system(7)]
+    rhs = [np.random.default_rng(3).normal(size=(m.shape[0], 9)) for m in systems]
+    factors = [SPDFactor(m) for m in systems]
+    factorize(factors)
+    assert all(f._lu is not None for f in factors)
+    for f, m, b in zip(factors, systems, rhs, strict=True):
+        np.testing.assert_array_equal(f.solve(b), SPDFactor(m).solve(b))
+    v, t = grid_mesh(6)
+    singular = SPDFactor(uniform_laplacian(t, len(v)), what="the singular one")
+    with pytest.raises(NumericalError, match="the singular one"):
+        factorize([SPDFactor(_system(9)), singular])
 
 
 def test_singular_and_bad_inputs():
