@@ -239,6 +239,9 @@ class _Worker:
         self.conn = Connection(ours.detach())
         preparation = spawn.get_preparation_data("faceretarget-worker")
         preparation.pop("authkey", None)  # not needed: the socket pair is private
+        main = preparation.get("init_main_from_path")
+        if main is not None and not os.path.isfile(main):  # `python -` ('<stdin>'): no file to run
+            del preparation["init_main_from_path"]
         self.conn.send(preparation)
         self.sentinel: int | None
         try:  # readable once the process has exited, even if a helper holds its pipes (Linux 5.3+)

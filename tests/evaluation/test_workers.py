@@ -269,6 +269,23 @@ def test_a_worker_that_dies_behind_a_helper_process_is_seen_and_its_helpers_are_
     )
 
 
+def test_a_supervisor_run_from_standard_input():
+    """``python - < script.py`` (its main module is '<stdin>', no file): the workers start
+    without it (they used to fail while loading the main module)."""
+    script = textwrap.dedent(f"""
+        import sys
+        sys.path[:0] = {[str(Path(t.__file__).parent)]!r}
+        import worker_tasks as t
+        from faceretarget.evaluation._workers import Task, run_supervised
+        run_supervised([[Task("sum", t.add, (2, 3))]], workers=1, on_outcome=lambda o: print(o.status, o.value))
+    """)
+    done = subprocess.run(
+        [sys.executable, "-"], input=script, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [DONE, "5"], done.stderr
+
+
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from /proc")
 def test_workers_die_with_their_supervisor(tmp_path):
     """A supervisor killed outright (SIGKILL, OOM killer, a cancelled cluster job) leaves no worker spinning."""
