@@ -16,7 +16,7 @@ import contextlib
 import functools
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, ParamSpec, TypeVar
 
 __all__ = ["single_threaded_blas", "worker_count"]
@@ -26,11 +26,15 @@ _R = TypeVar("_R")
 
 _lock = threading.Lock()
 _controller = None
-_default_threads = 1
+#: Threads inside :func:`single_threaded_blas` now, the limit they share, and the BLAS
+#: thread count when the first of them entered (the user's setting, for :func:`worker_count`).
+_depth = 0
+_limiter: Any = None
+_user_threads: int | None = None
 
 
 def _get_controller() -> Any:
-    global _controller, _default_threads
+    global _controller
     with _lock:
         if _controller is None:
             try:
@@ -39,20 +43,60 @@ def _get_controller() -> Any:
                 _controller = False
             else:
                 _controller = ThreadpoolController()
-                blas = [
-                    lib.num_threads for lib in _controller.lib_controllers if lib.user_api == "blas"
-                ]
-                _default_threads = max(blas, default=1)
     return _controller
 
 
-def single_threaded_blas() -> contextlib.AbstractContextManager[Any]:
-    """Context manager: every loaded BLAS library runs on one thread inside it (about 10 us
-    to enter). The limit is process-wide (threadpoolctl), restored on exit."""
+def _blas_threads(controller: Any) -> int | None:
+    """The largest thread count of the loaded BLAS libraries, None if none is seen."""
+    counts = [lib.num_threads for lib in controller.lib_controllers if lib.user_api == "blas"]
+    return max(counts) if counts else None
+
+
+@contextlib.contextmanager
+def single_threaded_blas() -> Iterator[None]:
+    """Context manager: every loaded BLAS library runs on one thread inside it (a few
+    microseconds to enter). The limit is process-wide (threadpoolctl): threads that enter
+    at the same time share it, and the last one out restores what the first one found."""
+    global _depth, _limiter, _user_threads
     controller = _get_controller()
     if not controller:
-        return contextlib.nullcontext()
-    return controller.limit(limits=1, user_api="blas")
+        yield
+        return
+    with _lock:
+        if _depth == 0:
+            _user_threads = _blas_threads(controller)
+            _limiter = _released(lambda: controller.limit(limits=1, user_api="blas"))
+        _depth += 1
+    try:
+        yield
+    finally:
+        with _lock:
+            _depth -= 1
+            if _depth == 0:
+                _released(_limiter.restore_original_limits)
+                _limiter = None
+
+
+def _released(change: Callable[[], _R]) -> _R:
+    """``change()`` of the BLAS limits from whichever thread comes first or leaves last.
+    threadpoolctl (3.6+) lets only one thread change a process-wide OpenBLAS pool and
+    silently ignores the others; that thread stays in control until it clears it. So
+    control is cleared before and after the change."""
+    clear = _clear_control()
+    clear()
+    try:
+        return change()
+    finally:
+        clear()
+
+
+def _clear_control() -> Callable[[], None]:
+    try:
+        from threadpoolctl import OpenBLASController
+    except ImportError:  # older threadpoolctl: any thread may change the limits
+        return lambda: None
+    clear = getattr(OpenBLASController, "clear_controlling_thread", None)
+    return (lambda: clear(force=True)) if clear is not None else (lambda: None)
 
 
 def blas_single_threaded(func: Callable[_P, _R]) -> Callable[_P, _R]:
@@ -68,12 +112,17 @@ def blas_single_threaded(func: Callable[_P, _R]) -> Callable[_P, _R]:
 
 def worker_count(n_tasks: int) -> int:
     """Threads for ``n_tasks`` independent pieces of numba / single-threaded BLAS work (the
-    kernels release the GIL): the CPUs this process may run on, at most ``n_tasks``, and 1
-    when BLAS was limited to one thread before the library first asked (``OMP_NUM_THREADS=1``,
-    ``threadpoolctl.threadpool_limits(1)``: the user's way of asking for one core)."""
+    kernels release the GIL): the CPUs this process may run on, at most ``n_tasks`` and at
+    most the user's BLAS thread count (``OMP_NUM_THREADS=1`` or
+    ``threadpoolctl.threadpool_limits(1)`` around the call: the user's way of asking for one
+    core; the library's own :func:`single_threaded_blas` limit is not the user's)."""
     try:
         cpus = len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not on Linux
         cpus = os.cpu_count() or 1
-    limit = _default_threads if _get_controller() else cpus
-    return max(1, min(n_tasks, cpus, limit))
+    controller = _get_controller()
+    limit = None
+    if controller:
+        with _lock:
+            limit = _user_threads if _depth > 0 else _blas_threads(controller)
+    return max(1, min(n_tasks, cpus, limit or cpus))

@@ -23,7 +23,8 @@ from faceretarget._threads import single_threaded_blas, worker_count
 
 from .model import CharacterModel
 
-#: Frames per chunk: few BLAS calls, and a scratch of CHUNK x 3V floats (15 MB at 10K vertices).
+#: Frames per chunk: few BLAS calls, and a scratch of CHUNK x 3V floats per thread (15 MB at
+#: 10K vertices).
 CHUNK = 64
 
 __all__ = [

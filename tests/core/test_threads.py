@@ -1,8 +1,10 @@
 """The threading policy: per-frame and iterative paths run BLAS on one thread, the rest keep theirs."""
 
+import threading
+
 import numpy as np
 import pytest
-from threadpoolctl import threadpool_info
+from threadpoolctl import threadpool_info, threadpool_limits
 
 import faceretarget as fr
 from faceretarget import _threads
@@ -21,22 +23,73 @@ def test_single_threaded_blas_limits_and_restores():
     assert blas_threads() == before
 
 
-def test_worker_count_uses_the_cpus_unless_blas_was_limited_to_one_thread(monkeypatch):
-    from threadpoolctl import threadpool_limits
-
+@pytest.fixture
+def four_cpus(monkeypatch):
     monkeypatch.setattr(_threads.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
-    monkeypatch.setattr(_threads, "_default_threads", _threads._default_threads)
-    monkeypatch.setattr(_threads, "_controller", None)
+
+
+def test_worker_count_uses_the_cpus_up_to_the_users_blas_threads(four_cpus, monkeypatch):
     with threadpool_limits(3, user_api="blas"):
         assert worker_count(10) == 3
         assert worker_count(2) == 2
-    monkeypatch.setattr(_threads, "_controller", None)
+        with single_threaded_blas():  # the library's own limit is not the user's
+            assert worker_count(10) == 3
     with threadpool_limits(1, user_api="blas"):  # OMP_NUM_THREADS=1: one core asked for
         assert worker_count(10) == 1
-    monkeypatch.setattr(_threads, "_controller", None)
+        with single_threaded_blas():
+            assert worker_count(10) == 1
+    with threadpool_limits(4, user_api="blas"):  # a limit around an earlier call does not stick
+        assert worker_count(10) == 4
     monkeypatch.setattr(_threads.os, "sched_getaffinity", lambda pid: {0}, raising=False)
     assert worker_count(10) == 1
     assert worker_count(0) == 1
+
+
+def test_worker_count_without_a_blas_in_sight_uses_the_cpus(four_cpus, monkeypatch):
+    class Openmp:  # threadpoolctl sees an OpenMP runtime but no BLAS (Accelerate, an unknown build)
+        user_api, internal_api, num_threads = "openmp", "openmp", 4
+
+    class Controller:
+        lib_controllers = [Openmp()]
+
+    monkeypatch.setattr(_threads, "_controller", Controller())
+    assert worker_count(10) == 4
+
+
+def test_concurrent_limits_restore_the_blas_threads():
+    """Two threads in single_threaded_blas at once, leaving in the order they came in: the
+    BLAS threads are those from before (each saving and restoring alone left 1 for good, and
+    so did a restore from another thread than the one that set the limit)."""
+    before = blas_threads()
+    a_in, b_in, a_out, b_out = (threading.Event() for _ in range(4))
+    inside = []
+
+    def a():
+        with single_threaded_blas():
+            a_in.set()
+            b_in.wait(10)
+            inside.append(set(blas_threads().values()))
+        a_out.set()
+        b_out.wait(10)  # alive while b restores (threadpoolctl lets the thread that set decide)
+
+    def b():
+        a_in.wait(10)
+        with single_threaded_blas():
+            b_in.set()
+            a_out.wait(10)
+            inside.append(set(blas_threads().values()))  # a has left: the limit still holds
+        b_out.set()
+
+    threads = [threading.Thread(target=f) for f in (a, b)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    try:
+        assert inside == [{1}, {1}]
+        assert blas_threads() == before
+    finally:
+        threadpool_limits(max(before.values()), user_api="blas")  # repaired for the other tests
 
 
 def test_spacetime_admm_and_layers_frames_run_on_one_blas_thread(monkeypatch):

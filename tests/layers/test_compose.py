@@ -1,5 +1,7 @@
 """The character side (Eq. 5) and the projection onto blendshapes, against plain numpy/scipy."""
 
+import threading
+
 import numpy as np
 import pytest
 import scipy.optimize
@@ -43,6 +45,62 @@ def test_world_vertices_match_the_dense_formula(workers, monkeypatch):
     np.testing.assert_array_equal(
         compose.world_vertices(character, beta, problem["head_motion"]), got
     )
+
+
+@pytest.fixture(scope="module")
+def with_residual():
+    problem = make_problem(14, n_frames=65, soft=True)  # 65 = 4 x 16 + 1: a last chunk of one frame
+    target = problem["target"]
+    deltas = np.random.default_rng(5).normal(size=(7, *np.asarray(target.neutral.vertices).shape))
+    deltas[:, ::3] = 0.0  # the residual moves some vertices only
+    character = build_character(
+        target.layers, target.neutral.vertices, problem["source"].actor_layers, extra=deltas
+    )
+    beta = compose.region_coefficients(
+        problem["weights"], problem["coefficients"], problem["layer_of"]
+    )
+    return character, beta, problem["head_motion"]
+
+
+def test_world_vertices_chunks_run_on_threads_with_one_blas_thread(with_residual, monkeypatch):
+    from threadpoolctl import threadpool_info
+
+    from faceretarget.plugins.layers import _kernels
+
+    character, beta, motion = with_residual
+    monkeypatch.setattr(compose, "CHUNK", 16)
+    monkeypatch.setattr(compose, "worker_count", lambda n: min(n, 3))
+    seen, real = [], _kernels.assemble
+
+    def spy(*args):
+        blas = {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+        seen.append((threading.get_ident(), frozenset(blas)))
+        return real(*args)
+
+    monkeypatch.setattr(_kernels, "assemble", spy)
+    compose.world_vertices(character, beta, motion)  # called directly: no retargeter's limit
+    assert len({t for t, _ in seen}) >= 2, "the chunks never left one thread"
+    assert all(b == {1} for _, b in seen), seen
+
+
+def test_world_vertices_with_a_residual_block_do_not_depend_on_the_threads(
+    with_residual, monkeypatch
+):
+    character, beta, motion = with_residual
+    assert len(character.regions) > beta.shape[1], "a residual block"
+    monkeypatch.setattr(compose, "CHUNK", 16)
+    m = character.regions[-1][1].shape[0]
+    extra = np.random.default_rng(2).normal(size=(beta.shape[0], m))
+    extra[-1, : m // 2 + 1] = 0.0  # the one-frame chunk takes the sparse path
+    got = {}
+    for w in (1, 2, 3):
+        monkeypatch.setattr(compose, "worker_count", lambda n, w=w: min(n, w))
+        got[w] = compose.world_vertices(character, beta, motion, extra=extra)
+    for w in (2, 3):
+        np.testing.assert_array_equal(got[w], got[1])
+    monkeypatch.setattr(compose, "CHUNK", 13)  # 65 = 5 x 13: no one-frame chunk
+    dense = compose.world_vertices(character, beta, motion, extra=extra)
+    np.testing.assert_allclose(got[1], dense, rtol=0, atol=1e-12 * np.abs(dense).max())
 
 
 def test_blendshape_projection_is_the_nnls_solution():
