@@ -7,7 +7,9 @@ about 4 ms a column instead of 6-12 ms through SuperLU's own solve. Never use
 ``scipy.sparse.linalg.spsolve`` on big systems (see PERF_NOTES): it refactorizes every
 call and can exhaust memory without raising.
 
-A factor pickles as its matrix and is refactorized on first use after unpickling.
+A factor pickles as its matrix and is refactorized on first use after unpickling. Only
+the factors' arrays are kept (not SuperLU's object), in the strict-triangle CSC form the
+solves read.
 """
 
 from __future__ import annotations
@@ -26,8 +28,8 @@ from ..errors import NumericalError, ShapeError
 
 __all__ = ["SPDFactor", "factorize"]
 
-#: Below this many right-hand-side columns SuperLU's own solve is used.
-_NUMBA_MIN_COLUMNS = 8
+#: Right-hand-side columns per thread of a solve, at least (fewer columns: fewer threads).
+_MIN_BLOCK_COLUMNS = 4
 #: Relative residual above which a factorization is reported as numerically singular.
 _RESIDUAL_TOL = 1e-6
 
@@ -43,20 +45,26 @@ class SPDFactor:
     """
 
     def __init__(self, matrix: sp.spmatrix | npt.ArrayLike, *, what: str = "matrix") -> None:
-        m = sp.csc_matrix(matrix, dtype=np.float64)
+        # a canonical copy: SuperLU sorts and sums in place, and the caller's matrix stays as given
+        m = sp.csc_matrix(matrix, dtype=np.float64, copy=True)
         if m.shape[0] != m.shape[1]:
             raise ShapeError(f"{what}: expected a square matrix, got {m.shape}")
+        m.sum_duplicates()
+        m.sort_indices()
         self.matrix = m
         self.what = what
-        self._lu = None
+        self._ready = False
 
     @property
     def n(self) -> int:
         return int(self.matrix.shape[0])
 
-    def _factor(self) -> Any:
-        if self._lu is not None:
-            return self._lu
+    def _factor(self) -> None:
+        """Factorize (once). Only the factors' arrays are kept, not SuperLU's object: scipy
+        frees that object's memory only on the thread that created it (scipy issue 15921),
+        and :func:`factorize` creates it on a worker thread."""
+        if self._ready:
+            return
         m = self.matrix
         if not np.isfinite(m.data).all():
             raise NumericalError(
@@ -73,8 +81,12 @@ class SPDFactor:
             raise NumericalError(
                 f"{self.what}: factorization failed ({exc}); the system is singular (a mesh part without anchor?)"
             ) from None
-        low = lu.L.tocsc()
-        up = lu.U.tocsc()
+        try:
+            low = lu.L.tocsc()
+            up = lu.U.tocsc()
+            perm_r, perm_c = lu.perm_r.astype(np.int64), lu.perm_c.astype(np.int64)
+        finally:
+            del lu  # freed here, on the thread that made it
         diag = up.diagonal()
         if not np.all(np.isfinite(diag)) or np.any(diag == 0):
             raise NumericalError(
@@ -83,46 +95,45 @@ class SPDFactor:
         self._l = _strict(low, lower=True)
         self._u = _strict(up, lower=False)
         self._u_diag = diag.astype(np.float64)
-        self._perm_r = lu.perm_r.astype(np.int64)
-        self._perm_c = lu.perm_c.astype(np.int64)
+        self._perm_r = perm_r
+        self._perm_c = perm_c
         # symmetric pivoting (the normal case here): pivot i is original index order[i]
         self._order = (
             np.argsort(self._perm_r).astype(np.int64)
             if np.array_equal(self._perm_r, self._perm_c)
             else None
         )
-        self._lu = lu
+        self._ready = True
         probe = np.cos(np.arange(self.n, dtype=np.float64))
         res = m @ self.solve(probe) - probe
         if not np.isfinite(res).all() or np.linalg.norm(res) > _RESIDUAL_TOL * np.linalg.norm(
             probe
         ):
-            self._lu = None
+            self._ready = False
             raise NumericalError(
                 f"{self.what}: the factorization is numerically singular (residual {np.linalg.norm(res):.2e})"
             )
-        return lu
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Solve ``A x = rhs`` for ``rhs : (n,)`` or ``(n, k)`` (float64 result)."""
-        lu = self._factor()
+        self._factor()
         b = np.asarray(rhs, dtype=np.float64)
         if b.shape[0] != self.n or b.ndim not in (1, 2):
             raise ShapeError(
                 f"{self.what}: right-hand side must be ({self.n},) or ({self.n}, k), got {b.shape}"
             )
-        if b.ndim == 1 or b.shape[1] < _NUMBA_MIN_COLUMNS:
-            return lu.solve(np.ascontiguousarray(b))
         from numba import get_num_threads
 
         from ._factor_kernels import lu_solve
 
-        blocks = max(1, min(get_num_threads(), b.shape[1] // 4))
+        cols = b.reshape(self.n, -1)
+        blocks = max(1, min(get_num_threads(), cols.shape[1] // _MIN_BLOCK_COLUMNS))
         l, u = self._l, self._u
-        y = np.empty((self.n, b.shape[1]), dtype=np.float64)
-        y[self._perm_r] = b
+        y = np.empty((self.n, cols.shape[1]), dtype=np.float64)
+        y[self._perm_r] = cols
         lu_solve(l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, y, blocks)
-        return y[self._perm_c]
+        x = y[self._perm_c]
+        return x[:, 0] if b.ndim == 1 else x
 
     def solve_frames(self, rhs: np.ndarray, add: np.ndarray | None = None) -> np.ndarray:
         """Solve for per-frame right-hand sides ``rhs : (C, n, 3)``; returns ``add + x``
@@ -178,7 +189,7 @@ def factorize(factors: Iterable[SPDFactor]) -> None:
     """Factorize several matrices now, side by side on ``_threads.worker_count`` threads
     (SuperLU and the factor extraction release the GIL: two factorizations of 80K unknowns
     take about the time of one on two cores). The first error is raised."""
-    todo = [f for f in factors if f._lu is None]
+    todo = list({id(f): f for f in factors if not f._ready}.values())  # each once
     workers = worker_count(len(todo))
     if workers == 1:
         for f in todo:

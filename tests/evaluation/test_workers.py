@@ -286,6 +286,25 @@ def test_a_supervisor_run_from_standard_input():
     assert done.stdout.split() == [DONE, "5"], done.stderr
 
 
+def test_a_task_defined_in_the_supervisors_own_script(tmp_path):
+    """The workers load the main script (spawn's init_main_from_path) when it is a file."""
+    script = tmp_path / "supervisor.py"
+    script.write_text(
+        textwrap.dedent("""
+        from faceretarget.evaluation._workers import Task, run_supervised
+        def add(a, b):
+            return a + b
+        if __name__ == "__main__":
+            run_supervised([[Task("sum", add, (2, 3))]], workers=1, on_outcome=lambda o: print(o.status, o.value))
+    """)
+    )
+    done = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [DONE, "5"], (done.stdout, done.stderr)
+
+
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from /proc")
 def test_workers_die_with_their_supervisor(tmp_path):
     """A supervisor killed outright (SIGKILL, OOM killer, a cancelled cluster job) leaves no worker spinning."""
