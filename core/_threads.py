@@ -16,10 +16,11 @@ import contextlib
 import functools
 import os
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, ParamSpec, TypeVar
 
-__all__ = ["single_threaded_blas", "worker_count"]
+__all__ = ["single_threaded_blas", "worker_count", "in_threads"]
 
 _P = ParamSpec("_P")
 _R = TypeVar("_R")
@@ -126,3 +127,14 @@ def worker_count(n_tasks: int) -> int:
         with _lock:
             limit = _user_threads if _depth > 0 else _blas_threads(controller)
     return max(1, min(n_tasks, cpus, limit or cpus))
+
+
+def in_threads(tasks: Sequence[Callable[[], _R]], workers: int) -> list[_R]:
+    """Run ``tasks`` (work that releases the GIL: numba ``nogil`` kernels, one-thread BLAS,
+    SuperLU) on ``workers`` threads, in order on the calling thread when ``workers <= 1``.
+    Returns their results in order; the first error is raised once all have ended."""
+    if workers <= 1 or len(tasks) <= 1:
+        return [task() for task in tasks]
+    with ThreadPoolExecutor(min(workers, len(tasks))) as pool:
+        futures = [pool.submit(task) for task in tasks]
+        return [future.result() for future in futures]

@@ -15,7 +15,6 @@ solves read.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -23,7 +22,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from .._threads import worker_count
+from .._threads import in_threads, worker_count
 from ..errors import NumericalError, ShapeError
 
 __all__ = ["SPDFactor", "factorize"]
@@ -190,11 +189,4 @@ def factorize(factors: Iterable[SPDFactor]) -> None:
     (SuperLU and the factor extraction release the GIL: two factorizations of 80K unknowns
     take about the time of one on two cores). The first error is raised."""
     todo = list({id(f): f for f in factors if not f._ready}.values())  # each once
-    workers = worker_count(len(todo))
-    if workers == 1:
-        for f in todo:
-            f._factor()
-        return
-    with ThreadPoolExecutor(workers) as pool:
-        for done in [pool.submit(f._factor) for f in todo]:
-            done.result()
+    in_threads([f._factor for f in todo], worker_count(len(todo)))

@@ -15,11 +15,11 @@ dense vertices never need forming.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 import numpy as np
 
-from faceretarget._threads import single_threaded_blas, worker_count
+from faceretarget._threads import in_threads, single_threaded_blas, worker_count
 
 from .model import CharacterModel
 
@@ -56,10 +56,10 @@ def world_vertices(
     of the character's residual block (its blendshape deltas), when it has one. Frames go
     in chunks: one BLAS product per region into a scratch buffer, then one numba pass
     (``_kernels.assemble``) that adds each vertex's region products to the neutral and
-    applies the rigid motion, writing the output once. With more than one chunk, the chunks
-    run on ``_threads.worker_count`` threads (the kernel releases the GIL), every product on
-    one BLAS thread, so the numbers do not depend on the thread count. A single frame (streaming) only reads the rows of each block
-    whose coefficient is not zero.
+    applies the rigid motion, writing the output once. The chunks are dealt out in turn to
+    ``_threads.worker_count`` threads (the kernel releases the GIL), every product on one
+    BLAS thread, so the numbers do not depend on the thread count. A single frame
+    (streaming) only reads the rows of each block whose coefficient is not zero.
     """
     n_frames = beta.shape[0]
     out = np.empty((n_frames, character.n_vertices, 3))
@@ -70,19 +70,12 @@ def world_vertices(
     )
     starts = list(range(0, n_frames, CHUNK))
     workers = worker_count(len(starts))
+    runs = [
+        partial(_assemble_chunks, character, beta, motion, extra, out, starts[i::workers])
+        for i in range(workers)
+    ]
     with single_threaded_blas():
-        if workers == 1:
-            _assemble_chunks(character, beta, motion, extra, out, starts)
-            return out
-        # chunks dealt out in turn to the threads, a scratch each
-        with ThreadPoolExecutor(workers) as pool:
-            for done in [
-                pool.submit(
-                    _assemble_chunks, character, beta, motion, extra, out, starts[i::workers]
-                )
-                for i in range(workers)
-            ]:
-                done.result()
+        in_threads(runs, workers)
     return out
 
 

@@ -39,6 +39,7 @@ retarget(source), per frame
 
 from __future__ import annotations
 
+from functools import partial
 from typing import ClassVar
 
 import numpy as np
@@ -574,9 +575,7 @@ class NormalMeshRetargeter(Retargeter):
         result does not depend on how many threads run the chunks), on
         ``_threads.worker_count`` threads (the kernels release the GIL).
         """
-        from concurrent.futures import ThreadPoolExecutor
-
-        from faceretarget._threads import worker_count
+        from faceretarget._threads import in_threads, worker_count
 
         perf = self._check_source(source)
         motion = self._head_motion(
@@ -598,16 +597,10 @@ class NormalMeshRetargeter(Retargeter):
         chunks = [
             range(a, min(a + CHUNK_FRAMES, n_frames)) for a in range(0, n_frames, CHUNK_FRAMES)
         ]
-        workers = worker_count(len(chunks))
-        if workers == 1:
-            for chunk in chunks:
-                self._run_chunk(perf, chunk, level, out)
-        else:
-            with ThreadPoolExecutor(workers) as pool:
-                for done in [
-                    pool.submit(self._run_chunk, perf, chunk, level, out) for chunk in chunks
-                ]:
-                    done.result()
+        in_threads(
+            [partial(self._run_chunk, perf, chunk, level, out) for chunk in chunks],
+            worker_count(len(chunks)),
+        )
         return out
 
     def _run_chunk(self, perf: MeshSequence, frames: range, level: int | None, out: dict) -> None:

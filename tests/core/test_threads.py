@@ -1,6 +1,7 @@
 """The threading policy: per-frame and iterative paths run BLAS on one thread, the rest keep theirs."""
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -8,7 +9,7 @@ from threadpoolctl import threadpool_info, threadpool_limits
 
 import faceretarget as fr
 from faceretarget import _threads
-from faceretarget._threads import single_threaded_blas, worker_count
+from faceretarget._threads import in_threads, single_threaded_blas, worker_count
 from faceretarget.plugins.spacetime import solver
 
 
@@ -54,6 +55,36 @@ def test_worker_count_without_a_blas_in_sight_uses_the_cpus(four_cpus, monkeypat
 
     monkeypatch.setattr(_threads, "_controller", Controller())
     assert worker_count(10) == 4
+
+
+def test_in_threads_returns_in_order_and_raises_after_all_ended():
+    here = threading.get_ident()
+    barrier = threading.Barrier(2, timeout=10)  # one after the other would break it
+    ended = []
+
+    def task(i):
+        barrier.wait() if i < 2 else None
+        ended.append(i)
+        return i, threading.get_ident()
+
+    got = in_threads([lambda i=i: task(i) for i in range(4)], 2)
+    assert [i for i, _ in got] == [0, 1, 2, 3]
+    assert len({t for _, t in got}) == 2 and here not in {t for _, t in got}
+    assert [
+        t for _, t in in_threads([lambda i=i: (i, threading.get_ident()) for i in range(3)], 1)
+    ] == [here] * 3
+
+    def boom():
+        raise ValueError("first")
+
+    def slow():
+        time.sleep(0.2)
+        ended.append("slow")
+
+    ended.clear()
+    with pytest.raises(ValueError, match="first"):
+        in_threads([boom, slow], 2)
+    assert ended == ["slow"], "the error waits for the other tasks"
 
 
 def test_concurrent_limits_restore_the_blas_threads():
