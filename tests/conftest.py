@@ -2,7 +2,8 @@
 
 - Hypothesis keeps its example database and caches in a temporary folder (not ``.hypothesis/``
   in the checkout), removed at the end of the session (``FACERETARGET_HYPOTHESIS_DIR`` keeps
-  them somewhere else on purpose).
+  them somewhere else on purpose); so does dask's scratch space (``dask-scratch-space`` in
+  the user's temporary folder otherwise).
 - Plugins are installed by the tests with ``pip install --target`` into temporary folders
   (fixture :func:`pip_target`), never into the environment running the tests; builds happen
   on copies of the sources in temporary folders (:func:`source_copy`), so no ``build/`` or
@@ -35,11 +36,15 @@ except ImportError:  # pragma: no cover - hypothesis is a test dependency
 else:
     set_hypothesis_home_dir(_HYPOTHESIS_HOME)
 os.environ.setdefault("HYPOTHESIS_STORAGE_DIRECTORY", str(_HYPOTHESIS_HOME))  # subprocesses too
+# read by dask.config when dask is first imported (the batch tests' LocalCluster), subprocesses too
+_DASK_SCRATCH = Path(tempfile.mkdtemp(prefix="faceretarget-dask-"))
+os.environ.setdefault("DASK_TEMPORARY_DIRECTORY", str(_DASK_SCRATCH))
 
 
 def pytest_sessionfinish(session, exitstatus):
     if _HYPOTHESIS_TEMPORARY:
         shutil.rmtree(_HYPOTHESIS_HOME, ignore_errors=True)
+    shutil.rmtree(_DASK_SCRATCH, ignore_errors=True)
 
 
 @pytest.fixture

@@ -4,6 +4,9 @@ The tests that install a plugin or build a wheel (``PLUGIN_TESTS``) run here in 
 subprocess; before and after, the installed distributions (``pip list``), the listing of
 every site-packages folder and ``git status --porcelain --ignored`` of the checkout (new
 untracked or ignored files such as ``build/``, ``*.egg-info``, ``.hypothesis/``) must be equal.
+The tests that write temporary files outside pytest's ``tmp_path`` or kill writers half-way
+(``SCRATCH_TESTS``) run in a subprocess with a temporary folder of their own, which must hold
+nothing but pytest's ``pytest-of-*`` afterwards.
 """
 
 from __future__ import annotations
@@ -22,6 +25,11 @@ ROOT = Path(__file__).resolve().parents[1]
 PLUGIN_TESTS = [
     "tests/core/test_third_party.py",
     "tests/core/test_registry.py::test_wheel_ships_registry_toml_and_reads_it_from_there",
+]
+SCRATCH_TESTS = [
+    "tests/reliability/test_no_data_loss.py",  # SIGKILLed writers (meshio's scratch folders)
+    "tests/reliability/test_resource_limits.py",  # seeds written by every writer
+    "tests/reliability/test_plugin_isolation.py::test_dask_batch_stops_a_slow_job",  # dask
 ]
 
 
@@ -80,3 +88,20 @@ def test_hypothesis_keeps_its_files_outside_the_checkout():
 
     folder = storage_directory("examples", intent_to_write=False).path.resolve()
     assert not folder.is_relative_to(ROOT), f"hypothesis would write into the checkout: {folder}"
+
+
+def test_temporary_files_are_removed(tmp_path):
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1", TMPDIR=str(scratch), TEMP=str(scratch))
+    env.pop("DASK_TEMPORARY_DIRECTORY", None)  # the child's conftest chooses its own
+    out = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *SCRATCH_TESTS],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
+    left = sorted(p.name for p in scratch.iterdir() if not p.name.startswith("pytest-of-"))
+    assert not left, f"the tests left {left} in the temporary folder"

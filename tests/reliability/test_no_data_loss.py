@@ -69,8 +69,16 @@ def write_old(writer, path: Path):
     return snapshot(path)
 
 
-def child_env():
-    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(HERE.parent)] + sys.path))
+def child_env(scratch: Path):
+    """The child's environment; its temporary files (a SIGKILLed writer cannot remove its
+    scratch folders) go to ``scratch``, a folder of the test session, not the user's /tmp."""
+    return dict(
+        os.environ,
+        PYTHONPATH=os.pathsep.join([str(HERE.parent)] + sys.path),
+        TMPDIR=str(scratch),
+        TEMP=str(scratch),
+        TMP=str(scratch),
+    )
 
 
 def kill_when_stopped(procs, timeout: float = 180.0):
@@ -107,6 +115,7 @@ def killed(tmp_path_factory):
         (WRITERS[0][0], WRITERS[0][1], "first", tmp_path_factory.mktemp("kill_first"), None, None)
     )
     results = {}
+    scratch = tmp_path_factory.mktemp("kill_scratch")
     for start in range(0, len(jobs), CONCURRENCY):
         batch = jobs[start : start + CONCURRENCY]
         procs = []
@@ -125,7 +134,7 @@ def killed(tmp_path_factory):
                     stdout=subprocess.PIPE,
                     stderr=subprocess.PIPE,
                     text=True,
-                    env=child_env(),
+                    env=child_env(scratch),
                 )
             )
         for (writer, _info, mode, folder, out, old), (line, err) in zip(
@@ -208,7 +217,7 @@ def disk_full(tmp_path_factory):
         capture_output=True,
         text=True,
         timeout=300,
-        env=child_env(),
+        env=child_env(tmp_path_factory.mktemp("fsize_scratch")),
     )
     verdicts = dict(json.loads(line) for line in run.stdout.splitlines() if line.startswith("["))
     return {

@@ -61,24 +61,19 @@ def gltf_text(count_: int) -> str:
     )
 
 
-def c3d_bytes() -> bytes:
+def c3d_bytes(seed_of) -> bytes:
     """A valid C3D file of a few frames whose header then declares 65535 frames."""
     data = bytearray(seed_of("c3d")[0].read_bytes())
     data[8:10] = struct.pack("<H", 65535)  # header word 5: last frame
     return bytes(data)
 
 
-_SEEDS = {}
-
-
-def seed_of(name: str, n: int = 3):
-    """(path, options) of a file the registered writers made for reader ``name`` (samples.seed)."""
-    import tempfile
-
-    key = (name, n)
-    if key not in _SEEDS:
-        _SEEDS[key] = samples.seed(name, tempfile.mkdtemp(prefix="budget_seeds_"), n)
-    return _SEEDS[key]
+@pytest.fixture(scope="module")
+def seed_of(tmp_path_factory):
+    """``seed_of(name, n=3)``: (path, options) of a file the registered writers made for
+    reader ``name`` (samples.seed), in a folder of the test session."""
+    folder = tmp_path_factory.mktemp("budget_seeds")
+    return lambda name, n=3: samples.seed(name, str(folder / f"n{n}"), n)
 
 
 CRAFTED = {
@@ -89,7 +84,7 @@ CRAFTED = {
     "mdd": (".mdd", lambda: struct.pack(">ii", HUGE, HUGE) + b"\0" * 24),
     "npy": (".npy", lambda: npy_bytes((10**6, 10**6, 3))),
     "npz-sequence": (".npz", None),  # built in the test (a zip)
-    "c3d": (".c3d", c3d_bytes),
+    "c3d": (".c3d", "seed"),  # c3d_bytes(seed_of), built in the test
     "ply": (
         ".ply",
         lambda: (
@@ -130,13 +125,15 @@ def read_measured(path: Path, reader_name: str):
 
 
 @pytest.mark.parametrize("reader_name", sorted(CRAFTED))
-def test_crafted_header_declaring_huge_sizes(reader_name, tmp_path, monkeypatch):
+def test_crafted_header_declaring_huge_sizes(reader_name, tmp_path, monkeypatch, seed_of):
     ext, make = CRAFTED[reader_name]
     if reader_name == "c3d":
         monkeypatch.setenv("FACERETARGET_MEMORY_BUDGET", "1M")  # 65535 frames x 5 markers ~ 7.5 MiB
     path = tmp_path / f"huge{ext}"
     if make is None:
         npz_declaring_huge(path)
+    elif make == "seed":
+        path.write_bytes(c3d_bytes(seed_of))
     else:
         path.write_bytes(make())
     result, peak = read_measured(path, reader_name)
@@ -189,7 +186,7 @@ READERS = samples.readers()
 
 
 @pytest.mark.parametrize("reader, info", READERS, ids=[r.name for r, _ in READERS])
-def test_small_budget_refuses_or_maps(reader, info, monkeypatch):
+def test_small_budget_refuses_or_maps(reader, info, monkeypatch, seed_of):
     found = seed_of(reader.name, n=12)
     if found is None:
         pytest.skip(f"no registered writer produces a file {reader.name} reads")
