@@ -58,3 +58,38 @@ def test_weights_of_raw_frames_through_the_adjoint_filter():
     bases = smooth(raw[:3])
     space = BasisSpace(bases, bases[0].mean(axis=0), adjoint=adjoint)
     np.testing.assert_allclose(space.weights_of_raw(raw), space.weights(smooth(raw)), atol=1e-9)
+
+
+def _fitted(monkeypatch, cache_bytes):
+    """A coating fit on a small synthetic case; returns (retargeter, frames of each smoothing call)."""
+    import faceretarget as fr
+    from faceretarget.geometry.smoothing import TaubinSmoother
+    from faceretarget.plugins.coating import model
+    from faceretarget.plugins.coating.retargeter import CoatingRetargeter
+
+    case = fr.cases.synthetic(seed=3, resolution=800, n_frames=40)
+    monkeypatch.setattr(model, "CANDIDATE_CACHE_BYTES", cache_bytes)
+    calls = []
+    smooth = TaubinSmoother.__call__
+
+    def counted(self, points):
+        calls.append(np.shape(points)[0] if np.ndim(points) == 3 else 1)
+        return smooth(self, points)
+
+    monkeypatch.setattr(TaubinSmoother, "__call__", counted)
+    r = CoatingRetargeter(epsilon=1e-9, max_bases=6, chunk_frames=16)
+    r.fit(case.source, case.target)
+    return r, list(calls)  # a copy: a later _fitted wraps this counter again
+
+
+def test_bases_come_from_the_kept_candidate_smoothings(monkeypatch):
+    """The chosen bases are the smoothed candidates kept during selection (no second
+    smoothing of the basis frames), equal bit for bit to smoothing them again."""
+    kept, calls_kept = _fitted(monkeypatch, 2**30)
+    again, calls_again = _fitted(monkeypatch, 0)
+    assert kept.basis_frames_ == again.basis_frames_ and len(kept.basis_frames_) == 5
+    np.testing.assert_array_equal(kept.model_.source_bases, again.model_.source_bases)
+    np.testing.assert_array_equal(kept.model_.target_bases, again.model_.target_bases)
+    # 40 candidates in chunks of 16; without the kept ones, the 5 basis frames once more
+    assert calls_kept[2:5] == [16, 16, 8], calls_kept
+    assert calls_again == calls_kept[:5] + [5] + calls_kept[5:], (calls_kept, calls_again)
