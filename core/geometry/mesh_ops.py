@@ -12,6 +12,22 @@ from .._validate import readonly
 from ..errors import ShapeError
 
 
+def translated(points: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``points + offset`` for ``points : (..., V, 3)`` or ``(3,)`` and ``offset : (3,)`` -> float64, same shape.
+
+    The same numbers as numpy's broadcast, in one pass over rows of ``3 V`` (the offset tiled
+    once): broadcasting a ``(3,)`` vector runs an inner loop of three elements, ~3x slower
+    on a chunk of 32 frames at 80K vertices.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.shape[-1:] != (3,):
+        raise ShapeError(f"translated: points must be (..., V, 3) or (3,), got {p.shape}")
+    if p.ndim == 1:
+        return p + offset
+    rows = p.reshape(-1, p.shape[-2] * 3)
+    return (rows + np.tile(np.asarray(offset, dtype=np.float64), p.shape[-2])).reshape(p.shape)
+
+
 def triangle_cross(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(T, 3) cross products (v1 - v0) x (v2 - v0); length = twice the area."""
     v = np.asarray(vertices, dtype=np.float64)

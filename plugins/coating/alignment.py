@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from faceretarget.geometry.mesh_ops import translated
 from faceretarget.geometry.procrustes import apply as apply_transform
 from faceretarget.geometry.procrustes import fit_rigid, to_matrix
 from faceretarget.geometry.procrustes import remove as remove_transform
@@ -251,11 +252,11 @@ class Placement:
 
     def to_model(self, points: np.ndarray) -> np.ndarray:
         """Target points (head motion removed) -> the transfer's coordinates."""
-        return np.asarray(points, dtype=np.float64) - self.target_center
+        return translated(points, -self.target_center)
 
     def to_target(self, points: np.ndarray) -> np.ndarray:
         """The transfer's coordinates -> target points (head motion removed)."""
-        return np.asarray(points, dtype=np.float64) + self.target_center
+        return translated(points, self.target_center)
 
     def model_transform(self, transform: np.ndarray) -> np.ndarray:
         """A 4x4 transform of target points (head motion removed) as one of the transfer's coordinates."""

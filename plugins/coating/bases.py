@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from faceretarget.geometry.mesh_ops import translated
+
 __all__ = [
     "SELECTION_VERTICES",
     "selection_vertices",
@@ -114,17 +116,21 @@ class BasisSpace:
 
     def weights(self, smooth: np.ndarray) -> np.ndarray:
         """(C, K) weights of ``smooth : (C, V, 3)`` (eq. 6)."""
-        s = (np.asarray(smooth, dtype=np.float64) - self.center).reshape(smooth.shape[0], -1)
-        return nnls_rows(self.gram, s @ self.matrix)
+        return nnls_rows(self.gram, self._centred(smooth) @ self.matrix)
 
     def weights_of_raw(self, frames: np.ndarray) -> np.ndarray:
         """(C, K) weights of the smoothed ``G frames`` computed from the raw ``frames : (C, V, 3)``."""
-        s = (np.asarray(frames, dtype=np.float64) - self.center).reshape(frames.shape[0], -1)
-        return nnls_rows(self.gram, s @ self.adjoint_matrix)
+        return nnls_rows(self.gram, self._centred(frames) @ self.adjoint_matrix)
+
+    def _centred(self, meshes: np.ndarray) -> np.ndarray:
+        """``(C, 3V)`` rows of ``meshes - center``."""
+        return translated(meshes, -self.center).reshape(np.shape(meshes)[0], -1)
 
 
 def blend(bases: np.ndarray, center: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """``center + sum_i w_ti (b_i - center)`` -> ``(C, V, 3)`` (eq. 8)."""
     b = np.asarray(bases, dtype=np.float64)
     flat = (b - center).reshape(b.shape[0], -1)
-    return (np.asarray(weights, dtype=np.float64) @ flat).reshape((-1,) + b.shape[1:]) + center
+    return translated(
+        (np.asarray(weights, dtype=np.float64) @ flat).reshape((-1,) + b.shape[1:]), center
+    )

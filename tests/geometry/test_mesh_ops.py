@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from faceretarget.geometry.mesh_ops import face_normals, unit_rows, vertex_normals
+from faceretarget.errors import ShapeError
+from faceretarget.geometry.mesh_ops import face_normals, translated, unit_rows, vertex_normals
 
 
 @pytest.mark.parametrize("scale", [1e-160, 1e-161, 1.0, 1e150])
@@ -96,3 +97,19 @@ def test_boundary_edges_match_a_count_of_each_undirected_edge():
         want = naive(tris)
         assert sorted(tuple(e) for e in got.tolist()) == sorted(want)  # directions kept
     assert boundary_edges(np.zeros((0, 3), dtype=np.int64)).shape == (0, 2)
+
+
+@pytest.mark.parametrize("shape", [(4, 50, 3), (50, 3), (3,), (2, 3, 7, 3)])
+def test_translated_is_the_broadcast_sum_bit_for_bit(shape):
+    rng = np.random.default_rng(5)
+    points = rng.normal(size=shape).astype(np.float32)
+    offset = rng.normal(size=3) * 1e3
+    out = translated(points, offset)
+    assert out.dtype == np.float64 and out.shape == shape
+    np.testing.assert_array_equal(out, points.astype(np.float64) + offset)
+    np.testing.assert_array_equal(translated(out, -offset), out - offset)
+
+
+def test_translated_refuses_points_that_are_not_3d():
+    with pytest.raises(ShapeError, match=r"\(\.\.\., V, 3\)"):
+        translated(np.zeros((5, 2)), np.zeros(3))
