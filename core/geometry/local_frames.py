@@ -85,12 +85,6 @@ class VertexFrames:
         if nb_.ndim != 2 or nb_.shape[1] != 2:
             raise ShapeError(f"VertexFrames: neighbors must be (V, 2), got {nb_.shape}")
         n_vertices = nb_.shape[0]
-        corner_vertex = t.ravel()
-        order = np.argsort(corner_vertex, kind="stable")
-        self.vt_tri = (order // 3).astype(np.int64)
-        self.vt_ptr = np.concatenate(
-            [[0], np.cumsum(np.bincount(corner_vertex, minlength=n_vertices))]
-        ).astype(np.int64)
         # read-only whatever the caller passed: one compiled specialization of the kernels
         self.triangles = readonly(t)
         self.neighbors = readonly(nb_)
@@ -127,7 +121,7 @@ class VertexFrames:
 
         p, single = self._points(points, "points")
         out = np.empty(p.shape[:2] + (3, 3), dtype=np.float64)
-        self._check(kernel(p, self.triangles, self.vt_ptr, self.vt_tri, self.neighbors, out))
+        self._check(kernel(p, self.triangles, self.neighbors, out))
         return out[0] if single else out
 
     def apply(self, points: np.ndarray, vectors: np.ndarray, *, inverse: bool) -> np.ndarray:
@@ -145,8 +139,6 @@ class VertexFrames:
             frame_apply(
                 p,
                 self.triangles,
-                self.vt_ptr,
-                self.vt_tri,
                 self.neighbors,
                 vec,
                 out,
@@ -177,8 +169,6 @@ class VertexFrames:
             frame_apply(
                 s,
                 self.triangles,
-                self.vt_ptr,
-                self.vt_tri,
                 self.neighbors,
                 p,
                 out,
