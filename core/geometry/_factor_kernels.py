@@ -95,7 +95,8 @@ def lu_solve_frames(
 ) -> None:
     """Solve ``A x = rhs`` for per-frame right-hand sides ``rhs : (C, n, 3)`` and write
     ``out = add + x`` (``(C, n, 3)``) for a symmetric pivoting (``order[i]``: the original
-    index of pivot ``i``). Each thread gathers its block of the ``3C`` columns into a
+    index of pivot ``i``), in the precision of ``l_val`` (float32 or float64; ``u_val`` and
+    ``u_diag`` alike). Each thread gathers its block of the ``3C`` columns into a
     contiguous array in pivot order (so the factors are walked with good locality),
     solves and scatters back to the original order."""
     n_frames, n = rhs.shape[0], rhs.shape[1]
@@ -107,7 +108,7 @@ def lu_solve_frames(
         if c1 <= c0:
             continue
         w = c1 - c0
-        x = np.empty((n, w))
+        x = np.empty((n, w), dtype=l_val.dtype)  # the factor's precision
         for i in range(n):
             o = order[i]
             for c in range(c0, c1):

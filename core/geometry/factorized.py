@@ -23,7 +23,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
 from .._threads import in_threads, worker_count
-from ..errors import NumericalError, ShapeError
+from ..errors import ConfigError, NumericalError, ShapeError
 
 __all__ = ["SPDFactor", "factorize"]
 
@@ -41,9 +41,20 @@ class SPDFactor:
     matrix : (n, n) scipy sparse, symmetric positive definite
     what : str
         Name used in error messages ("the Poisson system of the target mesh").
+    frames_dtype : float64 (default) or float32
+        Precision of :meth:`solve_frames` (:meth:`solve` is always float64). float32 halves
+        the factor's memory traffic (~1.3x faster at 80K unknowns) at a relative error of
+        about ``cond(A) * 6e-8``: only for well-conditioned systems, such as a screened
+        Laplacian (condition number ~20).
     """
 
-    def __init__(self, matrix: sp.spmatrix | npt.ArrayLike, *, what: str = "matrix") -> None:
+    def __init__(
+        self,
+        matrix: sp.spmatrix | npt.ArrayLike,
+        *,
+        what: str = "matrix",
+        frames_dtype: npt.DTypeLike = np.float64,
+    ) -> None:
         # a canonical copy: SuperLU sorts and sums in place, and the caller's matrix stays as given
         m = sp.csc_matrix(matrix, dtype=np.float64, copy=True)
         if m.shape[0] != m.shape[1]:
@@ -52,6 +63,11 @@ class SPDFactor:
         m.sort_indices()
         self.matrix = m
         self.what = what
+        self.frames_dtype = np.dtype(frames_dtype)
+        if self.frames_dtype not in (np.float32, np.float64):
+            raise ConfigError(
+                f"{what}: frames_dtype must be float32 or float64, got {frames_dtype!r}"
+            )
         self._ready = False
 
     @property
@@ -94,6 +110,10 @@ class SPDFactor:
         self._l = _strict(low, lower=True)
         self._u = _strict(up, lower=False)
         self._u_diag = diag.astype(np.float64)
+        # the values solve_frames reads, in its precision (the same arrays for float64)
+        self._frame_values = tuple(
+            a.astype(self.frames_dtype, copy=False) for a in (self._l[2], self._u[2], self._u_diag)
+        )
         self._perm_r = perm_r
         self._perm_c = perm_c
         # symmetric pivoting (the normal case here): pivot i is original index order[i]
@@ -155,16 +175,19 @@ class SPDFactor:
         out = np.empty_like(r)
         blocks = max(1, min(get_num_threads(), r.shape[0] * r.shape[2]))
         l, u = self._l, self._u
+        l_val, u_val, u_diag = self._frame_values
         lu_solve_frames(
-            self._order, l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, r, a, out, blocks
+            self._order, l[0], l[1], l_val, u[0], u[1], u_val, u_diag, r, a, out, blocks
         )
         return out
 
     def __getstate__(self) -> dict[str, Any]:
-        return {"matrix": self.matrix, "what": self.what}
+        return {"matrix": self.matrix, "what": self.what, "frames_dtype": self.frames_dtype.str}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["matrix"], what=state["what"])  # type: ignore[misc]
+        self.__init__(  # type: ignore[misc]
+            state["matrix"], what=state["what"], frames_dtype=state.get("frames_dtype", "<f8")
+        )
 
 
 def _strict(

@@ -13,7 +13,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg
 from naive.coating import grid_mesh
 
-from faceretarget.errors import NumericalError, ShapeError
+from faceretarget.errors import ConfigError, NumericalError, ShapeError
 from faceretarget.geometry import factorized
 from faceretarget.geometry.factorized import SPDFactor, factorize
 from faceretarget.geometry.laplacian import uniform_laplacian
@@ -33,6 +33,25 @@ def test_multi_column_solve_matches_dense():
     np.testing.assert_allclose(
         fac.solve(rhs[:, 0]), np.linalg.solve(m.toarray(), rhs[:, 0]), atol=1e-10
     )
+
+
+@pytest.mark.parametrize("dtype, tol", [(np.float64, 1e-12), (np.float32, 2e-6)])
+def test_solve_frames_adds_the_solution_in_the_chosen_precision(dtype, tol):
+    m = _system()
+    fac = SPDFactor(m, frames_dtype=dtype)
+    rng = np.random.default_rng(4)
+    rhs, add = rng.normal(size=(5, fac.n, 3)), rng.normal(size=(5, fac.n, 3))
+    dense = np.linalg.solve(m.toarray(), rhs.transpose(1, 0, 2).reshape(fac.n, -1))
+    want = add + dense.reshape(fac.n, 5, 3).transpose(1, 0, 2)
+    got = fac.solve_frames(rhs, add)
+    assert got.dtype == np.float64
+    assert np.abs(got - want).max() <= tol * np.abs(dense).max()
+    np.testing.assert_allclose(fac.solve(rhs[0]), dense[:, :3], atol=1e-12)  # solve: float64
+    again = pickle.loads(pickle.dumps(fac))
+    assert again.frames_dtype == dtype
+    np.testing.assert_array_equal(again.solve_frames(rhs, add), got)
+    with pytest.raises(ConfigError, match="frames_dtype"):
+        SPDFactor(m, frames_dtype=np.int32)
 
 
 def test_columns_do_not_depend_on_the_block():
