@@ -86,8 +86,12 @@ HEAD_VERTICES = 2000
 #: An estimated head motion is kept (``head_motion="auto"``) only if, over the shot, it
 #: removes more than this share of the weighted squared motion of the stable vertices.
 HEAD_SIGNIFICANCE = 0.5
-#: Frames per chunk of the retargeting loop (each chunk starts its walks from the neutral).
+#: Frames per chunk of the retargeting loop (each chunk starts its walks from the neutral), at
+#: most; a shot is cut into at least ``MIN_CHUNKS`` chunks, so that a short one keeps two
+#: cores busy (16 frames at 69K vertices: 80 -> 53 ms a frame). The chunks depend on the
+#: number of frames only, never on the number of threads.
 CHUNK_FRAMES = 32
+MIN_CHUNKS = 2
 #: Width of the band over which the output passes from the normal mesh to the dense
 #: fallback, in median edges of the target's finest normal-mesh level or of the target mesh,
 #: whichever are longer.
@@ -571,9 +575,9 @@ class NormalMeshRetargeter(Retargeter):
         ``base (F, N, 3)``, ``normal_mesh (F, V_level, 3)`` (``level`` given), ``pierced (F,)``
         and ``motion (F, 4, 4)`` (the head motion in the target's units).
 
-        Frames go in chunks of ``CHUNK_FRAMES``, each walked from the neutral's hits (so the
-        result does not depend on how many threads run the chunks), on
-        ``_threads.worker_count`` threads (the kernels release the GIL).
+        Frames go in chunks of at most ``CHUNK_FRAMES`` (at least ``MIN_CHUNKS`` of them), each
+        walked from the neutral's hits (so the result does not depend on how many threads run
+        the chunks), on ``_threads.worker_count`` threads (the kernels release the GIL).
         """
         from faceretarget._threads import in_threads, worker_count
 
@@ -594,9 +598,8 @@ class NormalMeshRetargeter(Retargeter):
             "source_motion": motion,
             "motion": target_motion,
         }
-        chunks = [
-            range(a, min(a + CHUNK_FRAMES, n_frames)) for a in range(0, n_frames, CHUNK_FRAMES)
-        ]
+        size = min(CHUNK_FRAMES, max(1, -(-n_frames // MIN_CHUNKS)))
+        chunks = [range(a, min(a + size, n_frames)) for a in range(0, n_frames, size)]
         in_threads(
             [partial(self._run_chunk, perf, chunk, level, out) for chunk in chunks],
             worker_count(len(chunks)),

@@ -252,3 +252,27 @@ def test_no_head_motion_is_invented():
         .retarget(case.source)
     )
     assert np.abs(forced.head_motion - np.eye(4)).max() > 1e-6
+
+
+def test_a_short_shot_is_split_for_the_threads_with_the_same_result(
+    human_case, fitted, monkeypatch
+):
+    """A shot shorter than CHUNK_FRAMES still goes in MIN_CHUNKS chunks (two cores busy); the
+    chunks depend on the number of frames only, and any chunking gives the same frames."""
+    from faceretarget.plugins.normalmesh import retargeter as nm
+
+    seen = []
+    run_chunk = nm.NormalMeshRetargeter._run_chunk
+
+    def counted(self, perf, frames, level, out):
+        seen.append(frames)
+        return run_chunk(self, perf, frames, level, out)
+
+    monkeypatch.setattr(nm.NormalMeshRetargeter, "_run_chunk", counted)
+    anim = fitted.retarget(human_case.source)
+    assert seen == [range(0, 5), range(5, 10)]  # 10 frames, MIN_CHUNKS = 2
+    monkeypatch.setattr(nm, "CHUNK_FRAMES", 1)
+    seen.clear()
+    one_by_one = fitted.retarget(human_case.source)
+    assert len(seen) == 10
+    np.testing.assert_array_equal(one_by_one.vertices, anim.vertices)
