@@ -85,6 +85,12 @@ class VertexFrames:
         if nb_.ndim != 2 or nb_.shape[1] != 2:
             raise ShapeError(f"VertexFrames: neighbors must be (V, 2), got {nb_.shape}")
         n_vertices = nb_.shape[0]
+        if t.ndim != 2 or t.shape[1] != 3:
+            raise ShapeError(f"VertexFrames: triangles must be (T, 3), got {t.shape}")
+        if t.size and (t.min() < 0 or t.max() >= n_vertices):  # the kernels index unchecked
+            raise ShapeError(
+                f"VertexFrames: triangle indices must be in 0..{n_vertices - 1}, got {t.min()}..{t.max()}"
+            )
         # read-only whatever the caller passed: one compiled specialization of the kernels
         self.triangles = readonly(t)
         self.neighbors = readonly(nb_)

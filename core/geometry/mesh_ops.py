@@ -20,12 +20,15 @@ def translated(points: np.ndarray, offset: np.ndarray) -> np.ndarray:
     on a chunk of 32 frames at 80K vertices.
     """
     p = np.asarray(points, dtype=np.float64)
-    if p.shape[-1:] != (3,):
-        raise ShapeError(f"translated: points must be (..., V, 3) or (3,), got {p.shape}")
-    if p.ndim == 1:
-        return p + offset
+    o = np.asarray(offset, dtype=np.float64)
+    if p.shape[-1:] != (3,) or o.shape != (3,):
+        raise ShapeError(
+            f"translated: points must be (..., V, 3) or (3,) and offset (3,), got {p.shape} and {o.shape}"
+        )
+    if p.ndim == 1 or p.size == 0:
+        return p + o
     rows = p.reshape(-1, p.shape[-2] * 3)
-    return (rows + np.tile(np.asarray(offset, dtype=np.float64), p.shape[-2])).reshape(p.shape)
+    return (rows + np.tile(o, p.shape[-2])).reshape(p.shape)
 
 
 def triangle_cross(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:

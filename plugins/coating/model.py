@@ -177,7 +177,7 @@ def _blend_flat(weights: np.ndarray, flat: np.ndarray, center: np.ndarray) -> np
     in place over rows of ``3V`` (numpy's broadcast of a (3,) vector is ~3x slower)."""
     out = np.asarray(weights, dtype=np.float64) @ flat
     out += np.tile(center, flat.shape[1] // 3)
-    return out.reshape(out.shape[0], -1, 3)
+    return out.reshape(out.shape[0], flat.shape[1] // 3, 3)
 
 
 class CoatingModel:

@@ -30,7 +30,11 @@ from faceretarget.geometry.laplacian import cotangent_laplacian, uniform_laplaci
 from faceretarget.geometry.local_frames import VertexFrames, frame_neighbors, to_local, to_world
 from faceretarget.geometry.smoothing import TaubinSmoother
 
-__all__ = ["MultiScale"]
+__all__ = ["MultiScale", "FLOAT32_CONDITION"]
+
+#: Largest bound on the Poisson system's condition number at which ``solve_dtype="auto"``
+#: solves in float32 (relative error ~cond x 6e-8 of the detail offsets: at most ~6e-6).
+FLOAT32_CONDITION = 100.0
 
 
 class MultiScale:
@@ -52,12 +56,15 @@ class MultiScale:
         tangents correspond); default: chosen on the smooth reference.
     smooth_dtype : float32 or float64
         Precision of the batched smoothing kernel.
-    solve_dtype : float32 or float64
+    solve_dtype : "auto", float32 or float64
         Precision of the per-frame Poisson solves of :meth:`reconstruct`
-        (:class:`~faceretarget.geometry.factorized.SPDFactor` ``frames_dtype``). The screened
-        system is well conditioned (uniform Laplacian: ~20), so float32 (~1.3x faster)
-        reconstructs to ~3e-8 of the mesh size, below the float32 detail cache's rounding;
-        float64 reconstructs a decomposition exactly (to ~1e-12).
+        (:class:`~faceretarget.geometry.factorized.SPDFactor` ``frames_dtype``). "auto":
+        float32 (~1.3x faster) when the Gershgorin bound on the screened system's condition
+        number, ``max_i sum_j |M_ij| / a`` (:attr:`condition_bound`), is at most
+        :data:`FLOAT32_CONDITION` (uniform Laplacian at the default screening: ~21; outputs
+        within ~3e-8 of the mesh size of float64 solves), else float64 (a cotangent Laplacian
+        with sliver triangles, a small screening). float64 reconstructs a decomposition
+        exactly (to ~1e-12).
     """
 
     def __init__(
@@ -70,7 +77,7 @@ class MultiScale:
         screening: float,
         neighbors=None,
         smooth_dtype=np.float32,
-        solve_dtype=np.float32,
+        solve_dtype="auto",
     ):
         ref = np.asarray(reference, dtype=np.float64)
         tri = np.asarray(triangles, dtype=np.int64)
@@ -92,6 +99,10 @@ class MultiScale:
         shift = float(screening) * float(np.mean(lap.diagonal()))
         self.poisson = (lap + shift * sp.identity(n, format="csr")).tocsr()
         self.poisson.sort_indices()
+        #: Gershgorin bound on the condition number of ``M = L + a I`` (``L`` PSD: eigenvalues >= a).
+        self.condition_bound = float(abs(self.poisson).sum(axis=1).max()) / shift
+        if isinstance(solve_dtype, str) and solve_dtype == "auto":
+            solve_dtype = np.float32 if self.condition_bound <= FLOAT32_CONDITION else np.float64
         self.factor = SPDFactor(
             self.poisson,
             what="the Poisson system of the Laplacian coating",

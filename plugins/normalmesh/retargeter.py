@@ -575,9 +575,10 @@ class NormalMeshRetargeter(Retargeter):
         ``base (F, N, 3)``, ``normal_mesh (F, V_level, 3)`` (``level`` given), ``pierced (F,)``
         and ``motion (F, 4, 4)`` (the head motion in the target's units).
 
-        Frames go in chunks of at most ``CHUNK_FRAMES`` (at least ``MIN_CHUNKS`` of them), each
-        walked from the neutral's hits (so the result does not depend on how many threads run
-        the chunks), on ``_threads.worker_count`` threads (the kernels release the GIL).
+        Frames go in chunks of at most ``CHUNK_FRAMES`` (at least ``MIN_CHUNKS`` of them when
+        there are that many frames), each walked from the neutral's hits (so the result does
+        not depend on how many threads run the chunks), on ``_threads.worker_count`` threads
+        (the kernels release the GIL).
         """
         from faceretarget._threads import in_threads, worker_count
 

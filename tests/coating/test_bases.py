@@ -90,6 +90,8 @@ def test_bases_come_from_the_kept_candidate_smoothings(monkeypatch):
     assert kept.basis_frames_ == again.basis_frames_ and len(kept.basis_frames_) == 5
     np.testing.assert_array_equal(kept.model_.source_bases, again.model_.source_bases)
     np.testing.assert_array_equal(kept.model_.target_bases, again.model_.target_bases)
+    none = kept.model_.smooth_target(np.zeros((0, 6)))  # no frames: an empty chunk
+    assert none.shape == (0, kept.model_.n_vertices, 3)
     # 40 candidates in chunks of 16; without the kept ones, the 5 basis frames once more
     assert calls_kept[2:5] == [16, 16, 8], calls_kept
     assert calls_again == calls_kept[:5] + [5] + calls_kept[5:], (calls_kept, calls_again)

@@ -5,7 +5,7 @@ import pytest
 from naive.coating import coating as naive_coating
 from naive.coating import grid_mesh, vertex_frame
 
-from faceretarget.errors import ConfigError, DegenerateGeometryError
+from faceretarget.errors import ConfigError, DegenerateGeometryError, ShapeError
 from faceretarget.geometry.local_frames import VertexFrames, frame_neighbors, to_local, to_world
 from faceretarget.plugins.coating.multiscale import MultiScale
 
@@ -45,6 +45,23 @@ def test_decomposition_reconstructs_exactly(laplacian, solve_dtype, tol):
     )
 
 
+def test_auto_solve_precision_follows_the_condition_bound():
+    """float32 Poisson solves only where the screened system is well conditioned."""
+    from faceretarget.plugins.coating.multiscale import FLOAT32_CONDITION
+
+    v, t = _mesh()
+    for laplacian, screening, dtype in [
+        ("uniform", 0.1, np.float32),
+        ("cotangent", 0.1, np.float32),
+        ("uniform", 0.005, np.float64),
+    ]:
+        ms = MultiScale(v, t, iterations=5, laplacian=laplacian, screening=screening)
+        dense = np.linalg.eigvalsh(ms.poisson.toarray())
+        assert dense[-1] / dense[0] <= ms.condition_bound * (1 + 1e-9)  # a true bound
+        assert (ms.condition_bound <= FLOAT32_CONDITION) == (dtype == np.float32)
+        assert ms.factor.frames_dtype == dtype, (laplacian, screening, ms.condition_bound)
+
+
 def test_coating_is_invariant_to_rigid_motion():
     v, t = _mesh(seed=1)
     r = _rotation()
@@ -78,12 +95,27 @@ def test_frames_kernel_matches_naive_and_fused_apply():
     nb = frame_neighbors(v, t)
     vf = VertexFrames(t, nb)
     frames = vf(v)
+    # the normals are the incident faces' cross products summed in triangle order, bit for bit
+    cross = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    normals = np.zeros_like(v)
+    np.add.at(normals, t.ravel(), np.repeat(cross, 3, axis=0))
+    np.testing.assert_array_equal(
+        frames[:, :, 2], normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    )
     for i in range(len(v)):
         np.testing.assert_allclose(frames[i], vertex_frame(v, t, i, nb[i, 0]), atol=1e-12)
     vec = np.random.default_rng(5).normal(size=v.shape)
     np.testing.assert_allclose(vf.apply(v, vec, inverse=True), to_local(frames, vec), atol=1e-13)
     np.testing.assert_allclose(vf.apply(v, vec, inverse=False), to_world(frames, vec), atol=1e-13)
     np.testing.assert_allclose(to_world(frames, to_local(frames, vec)), vec, atol=1e-13)
+
+
+def test_frames_refuse_triangle_indices_out_of_range():
+    v, t = _mesh(5, seed=6)
+    nb = frame_neighbors(v, t)
+    for bad in (t - t.min() - 1, t + (len(v) - t.max())):  # one below 0, one past the end
+        with pytest.raises(ShapeError, match="triangle indices"):
+            VertexFrames(bad, nb)
 
 
 def test_frames_degenerate_vertex_is_reported():

@@ -45,11 +45,13 @@ def test_solve_frames_adds_the_solution_in_the_chosen_precision(dtype, tol):
     want = add + dense.reshape(fac.n, 5, 3).transpose(1, 0, 2)
     got = fac.solve_frames(rhs, add)
     assert got.dtype == np.float64
+    assert all(a.dtype == dtype for a in fac._frame_values)  # the solves really run in it
     assert np.abs(got - want).max() <= tol * np.abs(dense).max()
     np.testing.assert_allclose(fac.solve(rhs[0]), dense[:, :3], atol=1e-12)  # solve: float64
     again = pickle.loads(pickle.dumps(fac))
     assert again.frames_dtype == dtype
     np.testing.assert_array_equal(again.solve_frames(rhs, add), got)
+    assert all(a.dtype == dtype for a in again._frame_values)
     with pytest.raises(ConfigError, match="frames_dtype"):
         SPDFactor(m, frames_dtype=np.int32)
 

@@ -99,7 +99,7 @@ def test_boundary_edges_match_a_count_of_each_undirected_edge():
     assert boundary_edges(np.zeros((0, 3), dtype=np.int64)).shape == (0, 2)
 
 
-@pytest.mark.parametrize("shape", [(4, 50, 3), (50, 3), (3,), (2, 3, 7, 3)])
+@pytest.mark.parametrize("shape", [(4, 50, 3), (50, 3), (3,), (2, 3, 7, 3), (0, 5, 3), (2, 0, 3)])
 def test_translated_is_the_broadcast_sum_bit_for_bit(shape):
     rng = np.random.default_rng(5)
     points = rng.normal(size=shape).astype(np.float32)
@@ -113,3 +113,5 @@ def test_translated_is_the_broadcast_sum_bit_for_bit(shape):
 def test_translated_refuses_points_that_are_not_3d():
     with pytest.raises(ShapeError, match=r"\(\.\.\., V, 3\)"):
         translated(np.zeros((5, 2)), np.zeros(3))
+    with pytest.raises(ShapeError, match=r"offset \(3,\)"):
+        translated(np.zeros((5, 3)), np.zeros((5, 3)))
