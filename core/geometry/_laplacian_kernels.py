@@ -10,6 +10,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from ._mesh_ops_kernels import vertex_normal_sums
+
 
 @nb.njit(cache=True)
 def fill_cotangent(
@@ -111,32 +113,6 @@ def taubin_frames(
                 out[k // 3, i, k % 3] = a[i, k - c0]
 
 
-@nb.njit(cache=True)
-def _vertex_normals(points: np.ndarray, f: int, triangles: np.ndarray, normals: np.ndarray) -> None:
-    """Area-weighted (unnormalised) vertex normals of mesh ``f`` into ``normals (V, 3)``: each
-    triangle's edge cross product added to its three corners, triangles in order (one pass
-    over the triangles; ~1.6x faster at 80K vertices than gathering the incident faces'
-    normals per vertex, the same sums in the same order)."""
-    normals[:] = 0.0
-    for t in range(triangles.shape[0]):
-        a = triangles[t, 0]
-        b = triangles[t, 1]
-        c = triangles[t, 2]
-        ux = points[f, b, 0] - points[f, a, 0]
-        uy = points[f, b, 1] - points[f, a, 1]
-        uz = points[f, b, 2] - points[f, a, 2]
-        wx = points[f, c, 0] - points[f, a, 0]
-        wy = points[f, c, 1] - points[f, a, 1]
-        wz = points[f, c, 2] - points[f, a, 2]
-        cx = uy * wz - uz * wy
-        cy = uz * wx - ux * wz
-        cz = ux * wy - uy * wx
-        for v in (a, b, c):
-            normals[v, 0] += cx
-            normals[v, 1] += cy
-            normals[v, 2] += cz
-
-
 @nb.njit(cache=True, inline="always")
 def _vertex_frame(
     points: np.ndarray,
@@ -145,7 +121,8 @@ def _vertex_frame(
     normals: np.ndarray,
     neighbors: np.ndarray,
 ) -> tuple[float, float, float, float, float, float, float, float, float, bool]:
-    """Frame of vertex ``v`` in mesh ``f`` (``normals`` from :func:`_vertex_normals`):
+    """Frame of vertex ``v`` in mesh ``f`` (``normals``: the area-weighted sums of
+    :func:`._mesh_ops_kernels.vertex_normal_sums`):
     (tangent, bitangent, normal) as 9 numbers + ok."""
     nx = normals[v, 0]
     ny = normals[v, 1]
@@ -228,7 +205,7 @@ def vertex_frames(
     bad = np.zeros(n_frames, dtype=np.int64)
     for f in nb.prange(n_frames):
         normals = np.empty((n_vertices, 3))
-        _vertex_normals(points, f, triangles, normals)
+        vertex_normal_sums(points[f], triangles, normals)
         count = 0
         for v in range(n_vertices):
             tx, ty, tz, bx, by, bz, nx, ny, nz, ok = _vertex_frame(points, f, v, normals, neighbors)
@@ -273,7 +250,7 @@ def frame_apply(
     bad = np.zeros(n_frames, dtype=np.int64)
     for f in nb.prange(n_frames):
         normals = np.empty((n_vertices, 3))
-        _vertex_normals(points, f, triangles, normals)
+        vertex_normal_sums(points[f], triangles, normals)
         count = 0
         for v in range(n_vertices):
             tx, ty, tz, bx, by, bz, nx, ny, nz, ok = _vertex_frame(points, f, v, normals, neighbors)

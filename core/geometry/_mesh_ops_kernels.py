@@ -1,7 +1,9 @@
 """numba kernel of :mod:`faceretarget.geometry.mesh_ops` (compiled lazily, cached).
 
-The one vertex-normal kernel: :func:`faceretarget.geometry.mesh_ops.vertex_normals` runs it,
-and per-frame callers (or other kernels) may call it directly on preallocated arrays.
+The vertex-normal kernels: :func:`vertex_normal_sums` (the area-weighted sums, also used by
+the local-frame kernels) and :func:`vertex_normals` (made unit length), which
+:func:`faceretarget.geometry.mesh_ops.vertex_normals` runs; per-frame callers (or other
+kernels) may call them directly on preallocated arrays.
 Serial and ``nogil``: a frame takes a fraction of a millisecond, less than waking numba's
 thread pool costs, and callers run chunks of frames in Python threads instead.
 """
@@ -16,16 +18,10 @@ _TINY = 2.2250738585072014e-308
 
 
 @nb.njit(cache=True, nogil=True)
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray, out: np.ndarray) -> None:
-    """Area-weighted unit vertex normals of ``vertices (V, 3)`` over ``triangles (T, 3)``
-    into ``out (V, 3)``: each vertex's sum of its triangles' cross products ``(b - a) x
-    (c - a)`` (in triangle order), made unit length; zero for isolated vertices and for sums
-    with a NaN or infinite component.
-
-    A sum whose squared norm under- or overflows (subnormal or huge coordinates) is first
-    divided by its largest component, as :func:`faceretarget.geometry.mesh_ops.unit_rows`
-    does, so it still comes out unit length; any other is divided by its norm directly.
-    """
+def vertex_normal_sums(vertices: np.ndarray, triangles: np.ndarray, out: np.ndarray) -> None:
+    """Each vertex's sum of its triangles' cross products ``(b - a) x (c - a)``, in triangle
+    order, into ``out (V, 3)`` (area-weighted, not normalised; zero for isolated vertices):
+    one pass over the triangles, each added to its three corners."""
     out[:] = 0.0
     for t in range(triangles.shape[0]):
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
@@ -42,6 +38,20 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray, out: np.ndarray)
             out[v, 0] += n0
             out[v, 1] += n1
             out[v, 2] += n2
+
+
+@nb.njit(cache=True, nogil=True)
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray, out: np.ndarray) -> None:
+    """Area-weighted unit vertex normals of ``vertices (V, 3)`` over ``triangles (T, 3)``
+    into ``out (V, 3)``: each vertex's sum of its triangles' cross products ``(b - a) x
+    (c - a)`` (in triangle order), made unit length; zero for isolated vertices and for sums
+    with a NaN or infinite component.
+
+    A sum whose squared norm under- or overflows (subnormal or huge coordinates) is first
+    divided by its largest component, as :func:`faceretarget.geometry.mesh_ops.unit_rows`
+    does, so it still comes out unit length; any other is divided by its norm directly.
+    """
+    vertex_normal_sums(vertices, triangles, out)
     for v in range(out.shape[0]):
         x, y, z = out[v, 0], out[v, 1], out[v, 2]
         squared = x * x + y * y + z * z
