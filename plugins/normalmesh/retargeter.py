@@ -88,8 +88,8 @@ HEAD_VERTICES = 2000
 HEAD_SIGNIFICANCE = 0.5
 #: Frames per chunk of the retargeting loop (each chunk starts its walks from the neutral), at
 #: most; a shot is cut into at least ``MIN_CHUNKS`` chunks, so that a short one keeps two
-#: cores busy (16 frames at 69K vertices: 80 -> 53 ms a frame). The chunks depend on the
-#: number of frames only, never on the number of threads.
+#: cores busy (bench_normalmesh --quick, 16 frames: 27 -> 14.4 ms a frame). The chunks depend
+#: on the number of frames only, never on the number of threads.
 CHUNK_FRAMES = 32
 MIN_CHUNKS = 2
 #: Width of the band over which the output passes from the normal mesh to the dense
