@@ -61,7 +61,7 @@ class MultiScale:
         (:class:`~faceretarget.geometry.factorized.SPDFactor` ``frames_dtype``). "auto":
         float32 (~1.3x faster) when the Gershgorin bound on the screened system's condition
         number, ``max_i sum_j |M_ij| / a`` (:attr:`condition_bound`), is at most
-        :data:`FLOAT32_CONDITION` (uniform Laplacian at the default screening: ~21; outputs
+        :data:`FLOAT32_CONDITION` (uniform Laplacian at the default screening: ~20-25; outputs
         within ~3e-8 of the mesh size of float64 solves), else float64 (a cotangent Laplacian
         with sliver triangles, a small screening). float64 reconstructs a decomposition
         exactly (to ~1e-12).
