@@ -40,7 +40,7 @@ from faceretarget.geometry.local_frames import frame_neighbors
 from faceretarget.geometry.mesh_ops import face_areas, unique_edges, vertex_adjacency
 
 from .alignment import frame_chunks
-from .bases import BasisSpace, blend, select_bases, selection_vertices
+from .bases import BasisSpace, blend, blend_flat, select_bases, selection_vertices
 from .multiscale import MultiScale
 
 __all__ = [
@@ -170,14 +170,6 @@ def canonical_axes(points: np.ndarray) -> np.ndarray:
     axes = [vecs[:, i] * (1.0 if skew[i] >= 0 else -1.0) for i in rest]
     lead = np.cross(axes[0], axes[1])
     return np.stack([lead, axes[0], axes[1]], axis=1)
-
-
-def _blend_flat(weights: np.ndarray, flat: np.ndarray, center: np.ndarray) -> np.ndarray:
-    """``center + weights @ flat`` -> ``(C, V, 3)`` for ``flat : (K, 3V)``, the center added
-    in place over rows of ``3V`` (numpy's broadcast of a (3,) vector is ~3x slower)."""
-    out = np.asarray(weights, dtype=np.float64) @ flat
-    out += np.tile(center, flat.shape[1] // 3)
-    return out.reshape(out.shape[0], flat.shape[1] // 3, 3)
 
 
 class CoatingModel:
@@ -367,7 +359,7 @@ class CoatingModel:
 
     def source_smooth(self, weights: np.ndarray) -> np.ndarray:
         """The source frames' smooth meshes as the bases see them, ``B_t`` -> ``(C, V, 3)``."""
-        return _blend_flat(weights, self._source_flat, self.source_center)
+        return blend_flat(weights, self._source_flat, self.source_center)
 
     def wrinkles(self, local: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """The fine layer ``D_t = F(B_t)^T M (S_t - G S_t) - c_0`` of source frames ``local (C, V, 3)``
@@ -383,7 +375,7 @@ class CoatingModel:
     def smooth_target(self, weights: np.ndarray, bases: np.ndarray | None = None) -> np.ndarray:
         """Target smooth frames ``T~_t`` (eq. 8) -> ``(C, V, 3)``."""
         if bases is None or bases is self.target_bases:
-            return _blend_flat(weights, self._target_flat, self.target_center)
+            return blend_flat(weights, self._target_flat, self.target_center)
         return blend(bases, self.target_center, weights)
 
     def synthesize(
