@@ -129,9 +129,16 @@ class BasisSpace:
 
 
 def blend(bases: np.ndarray, center: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """``center + sum_i w_ti (b_i - center)`` -> ``(C, V, 3)`` (eq. 8)."""
+    """``center + sum_i w_ti (b_i - center)`` -> ``(C, V, 3)`` (eq. 8), formed as
+    ``sum_i w_ti b_i + (1 - sum_i w_ti) center``: no ``(K, V, 3)`` copy of the centred bases
+    (54 MB and 0.1 s at 80K vertices and 28 bases, for each frame or chunk of an edited result)."""
     b = np.asarray(bases, dtype=np.float64)
-    return blend_flat(weights, (b - center).reshape(b.shape[0], -1), center)
+    w = np.asarray(weights, dtype=np.float64)
+    out = w @ b.reshape(b.shape[0], -1)
+    tiled = np.tile(np.asarray(center, dtype=np.float64), b.shape[1])
+    for row, rest in zip(out, 1.0 - w.sum(axis=1)):
+        row += rest * tiled
+    return out.reshape(out.shape[0], b.shape[1], 3)
 
 
 def blend_flat(weights: np.ndarray, flat: np.ndarray, center: np.ndarray) -> np.ndarray:

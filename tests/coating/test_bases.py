@@ -95,3 +95,19 @@ def test_bases_come_from_the_kept_candidate_smoothings(monkeypatch):
     # 40 candidates in chunks of 16; without the kept ones, the 5 basis frames once more
     assert calls_kept[2:5] == [16, 16, 8], calls_kept
     assert calls_again == calls_kept[:5] + [5] + calls_kept[5:], (calls_kept, calls_again)
+
+
+def test_blend_is_the_centred_sum_without_centring_the_bases():
+    """eq. 8 as written (centre + sum of weighted centred bases) against blend, which adds
+    the weighted bases and the leftover weight of the centre; weights not summing to 1."""
+    rng = np.random.default_rng(5)
+    bases = rng.normal(size=(4, 7, 3)) + [3.0, -2.0, 10.0]
+    center = np.array([3.1, -1.9, 9.8])
+    weights = rng.uniform(0.0, 0.8, size=(5, 4))
+    want = center + np.einsum("tk,kvd->tvd", weights, bases - center)
+    got = blend(bases, center, weights)
+    assert got.shape == (5, 7, 3)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
+    np.testing.assert_array_equal(
+        blend(bases, center, np.zeros((1, 4)))[0], np.tile(center, (7, 1))
+    )
