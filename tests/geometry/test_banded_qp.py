@@ -5,7 +5,17 @@ import pytest
 import scipy.sparse as sp
 from naive.qp import block_tridiagonal, nonneg_qp_enumerate, nonneg_qp_scipy
 
-from faceretarget.geometry.banded_qp import _to_boundary, nonneg_qp_banded, sub_band, to_upper_band
+from faceretarget.errors import ShapeError
+from faceretarget.geometry.banded_qp import (
+    POLISH_TOL,
+    _free_set_solve,
+    _to_boundary,
+    block_tridiagonal_band,
+    nonneg_qp_band,
+    nonneg_qp_banded,
+    sub_band,
+    to_upper_band,
+)
 
 
 def _objective(h, r, x):
@@ -110,3 +120,44 @@ def test_step_to_the_boundary_is_capped_at_a_full_step():
     assert _to_boundary(np.ones(2), np.array([-0.1, 1.0])) == 1.0
     assert _to_boundary(np.ones(2), np.array([-2.0, 1.0])) == 0.5
     assert _to_boundary(np.ones(2), np.array([0.5, 1.0])) == 1.0
+
+
+@pytest.mark.parametrize(("n", "k"), [(1, 3), (2, 1), (5, 4)])
+def test_block_tridiagonal_band_is_the_band_of_the_blocks(n, k):
+    h, _ = block_tridiagonal(n + k, n, k, decades=1)
+    blocks = h.toarray().reshape(n, k, n, k).transpose(0, 2, 1, 3)
+    got = block_tridiagonal_band(
+        blocks[np.arange(n), np.arange(n)], blocks[np.arange(n - 1), np.arange(1, n)]
+    )
+    want, u = to_upper_band(h)
+    assert got.shape == (2 * k, n * k)
+    np.testing.assert_array_equal(got[got.shape[0] - u - 1 :], want)
+    assert not got[: got.shape[0] - u - 1].any()  # the rows above the sparse matrix's band
+    with pytest.raises(ShapeError):
+        block_tridiagonal_band(np.zeros((n, k)), np.zeros((n - 1, k, k)))
+    with pytest.raises(ShapeError):
+        block_tridiagonal_band(np.zeros((n, k, k)), np.zeros((n, k, k)))
+
+
+def test_the_polish_measures_each_row_against_its_own_terms():
+    """A row 1e7 times the others (a constraint row of the coating edit) must not set the
+    tolerance of the others: leaving out variable 1, whose gradient is then -1e-3 (1e-10 of
+    the big row), is not optimal; the measure of r's scale took it (a 36,400-variable edit
+    stopped 1.2 above the optimum of an objective of 1)."""
+    ab = np.array([[1e7, 1.0, 1.0]])  # H = diag(1e7, 1, 1): u = 0
+    r = np.array([1e7, 1e-3, 1.0])
+    x, _, violation = _free_set_solve(np.asfortranarray(ab), r, np.array([True, False, True]))
+    np.testing.assert_allclose(x, [1.0, 0.0, 1.0])
+    assert violation > 1e6 * POLISH_TOL
+    x, _, violation = _free_set_solve(np.asfortranarray(ab), r, np.ones(3, bool))
+    assert violation == 0.0
+    got, info = nonneg_qp_band(ab, r)
+    assert info["exact"]
+    np.testing.assert_allclose(got, [1.0, 1e-3, 1.0], rtol=1e-12)
+
+
+def test_the_band_must_match_the_right_hand_side():
+    with pytest.raises(ShapeError):
+        nonneg_qp_band(np.ones((2, 4)), np.ones(3))
+    with pytest.raises(ShapeError):
+        nonneg_qp_band(np.ones(3), np.ones(3))
