@@ -188,3 +188,29 @@ def test_components_get_their_own_gauge():
     moved[len(v) :] += [0.0, 1.0, 0.0]
     out = dt.transfer(verts, moved)
     np.testing.assert_allclose(out, moved, atol=1e-10)
+
+
+def test_transfer_forms_the_gradient_columns_a_few_meshes_at_a_time(monkeypatch):
+    """Blocks of one mesh give the one-block answer bit for bit (lines included), and a
+    degenerate mesh is named by its place in the whole sequence, not in its block."""
+    from faceretarget.geometry import deformation_gradients as dg
+
+    v, t = grid_mesh(7, seed=11)
+    chain = np.arange(7 * 3, 7 * 3 + 7)
+    dt = DeformationTransfer(_target(v), t, feature_lines={"mouth": chain}, sigma=10.0)
+    rng = np.random.default_rng(11)
+    meshes = v + 0.05 * rng.normal(size=(5,) + v.shape)
+    whole = dt.transfer(v, meshes, source_feature_lines={"mouth": chain})
+    calls = []
+    columns = dg.gradient_columns
+    monkeypatch.setattr(
+        dg, "gradient_columns", lambda *a, **k: calls.append(a[1].shape[0]) or columns(*a, **k)
+    )
+    monkeypatch.setattr(dg, "_GRADIENT_BLOCK_BYTES", 72 * t.shape[0])  # one mesh a block
+    blocks = dt.transfer(v, meshes, source_feature_lines={"mouth": chain})
+    assert calls == [1] * 5
+    np.testing.assert_array_equal(blocks, whole)
+    a, b, c = t[4]
+    meshes[3, c] = 0.5 * (meshes[3, a] + meshes[3, b])
+    with pytest.raises(DegenerateGeometryError, match=r"in mesh 3 \(ids \[4\]"):
+        dt.transfer(v, meshes, source_feature_lines={"mouth": chain})
