@@ -115,3 +115,28 @@ def test_translated_refuses_points_that_are_not_3d():
         translated(np.zeros((5, 2)), np.zeros(3))
     with pytest.raises(ShapeError, match=r"offset \(3,\)"):
         translated(np.zeros((5, 3)), np.zeros((5, 3)))
+
+
+def test_unique_edges_are_kept_by_content_and_read_only():
+    from naive.coating import grid_mesh
+
+    from faceretarget.geometry import mesh_ops
+
+    _, t = grid_mesh(6, seed=3)
+    first = mesh_ops.unique_edges(t)
+    want = np.unique(
+        np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1), axis=0
+    )
+    np.testing.assert_array_equal(first, want)
+    assert not first.flags.writeable
+    assert mesh_ops.unique_edges(t.copy()) is first  # same indices, another array: kept
+    other = t.copy()
+    other[0] = other[0, [0, 2, 1]]  # the same edges in another order: a new entry, same edges
+    np.testing.assert_array_equal(mesh_ops.unique_edges(other), want)
+    cut = t[1:]  # a triangle less: other edges
+    assert len(mesh_ops.unique_edges(cut)) < len(want)
+    assert mesh_ops.unique_edges(t.astype(np.int32)).dtype == np.int32
+    for k in range(mesh_ops._EDGE_MEMO_SIZE + 1):  # old entries are dropped
+        mesh_ops.unique_edges(t[: 5 + k])
+    assert len(mesh_ops._edge_memo) == mesh_ops._EDGE_MEMO_SIZE
+    assert mesh_ops.unique_edges(t) is not first
