@@ -156,18 +156,24 @@ def gradient_columns(
     return out
 
 
-def gradient_operator(reference: np.ndarray, triangles: np.ndarray) -> sp.csr_matrix:
+def gradient_operator(
+    reference: np.ndarray, triangles: np.ndarray, *, inverse: np.ndarray | None = None
+) -> sp.csr_matrix:
     """The deformation-gradient operator ``A : (3T, V + T)`` of a reference mesh.
 
     For unknowns ``X : (V + T, 3)`` (vertex positions, then one fourth vertex per
     triangle), ``(A X)[3j + c, d] = T_j(X)[d, c]``: row ``3j + c`` holds column ``c``
-    of triangle ``j``'s gradient relative to ``reference``.
+    of triangle ``j``'s gradient relative to ``reference``. ``inverse``: the reference's
+    :func:`reference_inverse`, if the caller has it (it is then not checked again).
     """
     v = np.asarray(reference, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
-    check_triangles(v, t, "gradient_operator")
+    if inverse is None:
+        inverse = reference_inverse(v, t, "gradient_operator")
     n_vertices, n_tri = v.shape[0], t.shape[0]
-    w = np.linalg.inv(triangle_frames(v, t))  # (T, 3, 3): rows k multiply edge k
+    w = np.asarray(inverse, dtype=np.float64)  # (T, 3, 3): rows k multiply edge k
+    if w.shape != (n_tri, 3, 3):
+        raise ShapeError(f"gradient_operator: inverse must be ({n_tri}, 3, 3), got {w.shape}")
     rows = np.repeat(np.arange(3 * n_tri), 4)
     cols = np.empty((n_tri, 3, 4), dtype=np.int64)
     vals = np.empty((n_tri, 3, 4))
@@ -295,15 +301,14 @@ class DeformationTransfer:
             raise ShapeError(
                 f"DeformationTransfer: target_reference must be (V, 3), got {ref.shape}"
             )
-        check_triangles(ref, t, "deformation transfer (target reference)")
+        self._inv_frames = reference_inverse(ref, t, "deformation transfer (target reference)")
         self.reference = ref
         self.triangles = t
         self.n_vertices = ref.shape[0]
         self.sigma = float(sigma)
         self.chains = _as_chains(feature_lines)
         self.segments = _segments(list(self.chains.values()))
-        self._inv_frames = np.linalg.inv(triangle_frames(ref, t))
-        a = gradient_operator(ref, t)
+        a = gradient_operator(ref, t, inverse=self._inv_frames)
         n_tri = t.shape[0]
         a_v = a[:, : self.n_vertices].tocsr()
         # Pi = I - a4 a4^T / |a4|^2 per triangle, a4 = the fourth-vertex column (rows 3j..3j+2)

@@ -5,7 +5,7 @@ import pytest
 from naive.coating import deformation_transfer as naive_transfer
 from naive.coating import grid_mesh
 
-from faceretarget.errors import DegenerateGeometryError, TopologyMismatchError
+from faceretarget.errors import DegenerateGeometryError, ShapeError, TopologyMismatchError
 from faceretarget.geometry.deformation_gradients import (
     DeformationTransfer,
     deformation_gradients,
@@ -72,6 +72,10 @@ def test_gradient_operator_reproduces_gradients():
     x = np.concatenate([moved, fourth_vertex(moved, t)])
     got = (a @ x).reshape(len(t), 3, 3).transpose(0, 2, 1)  # [j, d, c]
     np.testing.assert_allclose(got, deformation_gradients(v, moved, t), atol=1e-11)
+    given = gradient_operator(v, t, inverse=reference_inverse(v, t))
+    assert (given != a).nnz == 0
+    with pytest.raises(ShapeError):
+        gradient_operator(v, t, inverse=reference_inverse(v, t)[1:])
 
 
 def test_identity_transfers_to_identity():
