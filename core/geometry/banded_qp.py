@@ -41,8 +41,10 @@ TOL = 1e-13
 #: Fraction of the step to the boundary taken (keeps the iterates interior).
 STEP_FRACTION = 0.995
 #: Largest relative violation of the optimality conditions (``_free_set_solve``) an exact
-#: free-set solve may show to be returned as the optimum.
+#: free-set solve may show to be returned as the optimum, and the least scale of a row's
+#: gradient there (a fraction of ``max |r|``: rows below the interior point's accuracy).
 POLISH_TOL = 1e-9
+ROW_FLOOR = 1e-8
 
 
 def to_upper_band(matrix: sp.spmatrix) -> tuple[np.ndarray, int]:
@@ -129,7 +131,8 @@ def nonneg_qp_banded(
     info : dict
         ``steps`` (interior point steps), ``exact`` (True if the polished free-set solve
         passed the optimality conditions; else ``x`` is the last iterate, clipped at 0),
-        ``kkt`` (the largest violation of the optimality conditions, relative).
+        ``kkt`` (the largest violation of the optimality conditions, relative: row by row
+        if exact, :func:`_free_set_solve`; else to ``max |r|``).
     """
     hessian = sp.csc_matrix(hessian, dtype=np.float64)
     return nonneg_qp_band(to_upper_band(hessian)[0], rhs, start)
@@ -234,9 +237,11 @@ def _free_set_solve(
     """``(x, gradient, violation)``: ``x`` solves ``H x = r`` on the ``free`` variables (bool)
     and is 0 on the others (None if that block is singular); the gradient ``H x - r`` is 0
     on the free variables; ``violation`` the larger of ``-x`` relative to ``max |x|`` and
-    of ``-gradient`` relative, row by row, to the terms it sums (``|H| |x| + |r|``): a
-    scale of ``r`` for all rows let a 36,400-variable problem whose few constraint rows are
-    1e7 times the others stop 1.2 above the optimum of an objective of 1."""
+    of ``-gradient`` relative, row by row, to the terms it sums (``|H| |x| + |r|``, at
+    least ``ROW_FLOOR`` of ``max |r|``): a scale of ``r`` for all rows let a 36,400-variable
+    problem whose few constraint rows are 1e7 times the others stop 1.2 above the optimum
+    of an objective of 1; without the floor, a row whose terms are all below the interior
+    point's accuracy (1e-15 against 1e7) rejected an exact answer."""
     keep = np.flatnonzero(free)
     x = np.zeros(r.size)
     if keep.size:
@@ -247,7 +252,8 @@ def _free_set_solve(
     grad = _matvec(ab, x) - r
     grad[keep] = 0.0
     tiny = np.finfo(float).tiny
-    magnitude = _matvec(np.abs(ab), np.abs(x)) + np.abs(r) + tiny
+    floor = ROW_FLOOR * max(float(np.abs(r).max(initial=0.0)), tiny)
+    magnitude = _matvec(np.abs(ab), np.abs(x)) + np.abs(r) + floor
     violation = max(
         float(-x.min(initial=0.0)) / max(float(np.abs(x).max(initial=0.0)), tiny),
         float(np.max(-grad / magnitude, initial=0.0)),

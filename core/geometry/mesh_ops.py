@@ -130,7 +130,8 @@ def unique_edges(triangles: np.ndarray) -> np.ndarray:
         if key in _edge_memo:
             _edge_memo.move_to_end(key)
             return _edge_memo[key]
-    edges = readonly(_unique_edges(t))
+    edges = _unique_edges(t)
+    edges.flags.writeable = False  # the array itself: a view's flag could be set back
     with _edge_lock:
         _edge_memo[key] = edges
         while len(_edge_memo) > _EDGE_MEMO_SIZE:

@@ -124,15 +124,29 @@ def test_step_to_the_boundary_is_capped_at_a_full_step():
 
 @pytest.mark.parametrize(("n", "k"), [(1, 3), (2, 1), (5, 4)])
 def test_block_tridiagonal_band_is_the_band_of_the_blocks(n, k):
-    h, _ = block_tridiagonal(n + k, n, k, decades=1)
-    blocks = h.toarray().reshape(n, k, n, k).transpose(0, 2, 1, 3)
-    got = block_tridiagonal_band(
-        blocks[np.arange(n), np.arange(n)], blocks[np.arange(n - 1), np.arange(1, n)]
-    )
-    want, u = to_upper_band(h)
-    assert got.shape == (2 * k, n * k)
-    np.testing.assert_array_equal(got[got.shape[0] - u - 1 :], want)
-    assert not got[: got.shape[0] - u - 1].any()  # the rows above the sparse matrix's band
+    """Distinct blocks, those above the diagonal not symmetric: a transposed or shifted
+    block would show."""
+    rng = np.random.default_rng(n + k)
+    diagonal = rng.normal(size=(n, k, k))
+    diagonal = diagonal + diagonal.transpose(0, 2, 1)
+    upper = rng.normal(size=(n - 1, k, k))
+    dense = np.zeros((n * k, n * k))
+    for t in range(n):
+        dense[t * k : (t + 1) * k, t * k : (t + 1) * k] = diagonal[t]
+    for t in range(n - 1):
+        dense[t * k : (t + 1) * k, (t + 1) * k : (t + 2) * k] = upper[t]
+        dense[(t + 1) * k : (t + 2) * k, t * k : (t + 1) * k] = upper[t].T
+    got = block_tridiagonal_band(diagonal, upper)
+    u = 2 * k - 1
+    assert got.shape == (u + 1, n * k)
+    for j in range(n * k):
+        for i in range(n * k):
+            if i <= j <= i + u:
+                assert got[u + i - j, j] == dense[i, j]
+            else:
+                assert dense[i, j] == 0.0 or i > j
+    want, _ = to_upper_band(sp.csc_matrix(dense))
+    np.testing.assert_array_equal(got[got.shape[0] - want.shape[0] :], want)
     with pytest.raises(ShapeError):
         block_tridiagonal_band(np.zeros((n, k)), np.zeros((n - 1, k, k)))
     with pytest.raises(ShapeError):
@@ -154,6 +168,11 @@ def test_the_polish_measures_each_row_against_its_own_terms():
     got, info = nonneg_qp_band(ab, r)
     assert info["exact"]
     np.testing.assert_allclose(got, [1.0, 1e-3, 1.0], rtol=1e-12)
+    # a row whose terms are all below the interior point's accuracy is measured at the floor
+    # (ROW_FLOOR of max |r|): its exact answer is taken, not the iterate (1.5e-4 and 4.9e-4)
+    got, info = nonneg_qp_band(ab, np.array([1e7, -1e-3, 1e-15]))
+    assert info["exact"]
+    np.testing.assert_allclose(got, [1.0, 0.0, 1e-15], rtol=1e-12, atol=1e-15)
 
 
 def test_the_band_must_match_the_right_hand_side():

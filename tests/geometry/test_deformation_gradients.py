@@ -195,8 +195,8 @@ def test_components_get_their_own_gauge():
 
 
 def test_transfer_forms_the_gradient_columns_a_few_meshes_at_a_time(monkeypatch):
-    """Blocks of one mesh give the one-block answer bit for bit (lines included), and a
-    degenerate mesh is named by its place in the whole sequence, not in its block."""
+    """Blocks of two meshes give the one-block answer bit for bit (lines included), and a
+    degenerate mesh (the second of its block) is named by its place in the whole sequence."""
     from faceretarget.geometry import deformation_gradients as dg
 
     v, t = grid_mesh(7, seed=11)
@@ -210,9 +210,9 @@ def test_transfer_forms_the_gradient_columns_a_few_meshes_at_a_time(monkeypatch)
     monkeypatch.setattr(
         dg, "gradient_columns", lambda *a, **k: calls.append(a[1].shape[0]) or columns(*a, **k)
     )
-    monkeypatch.setattr(dg, "_GRADIENT_BLOCK_BYTES", 72 * t.shape[0])  # one mesh a block
+    monkeypatch.setattr(dg, "_GRADIENT_BLOCK_BYTES", 2 * 72 * t.shape[0])  # two meshes a block
     blocks = dt.transfer(v, meshes, source_feature_lines={"mouth": chain})
-    assert calls == [1] * 5
+    assert calls == [2, 2, 1]
     np.testing.assert_array_equal(blocks, whole)
     a, b, c = t[4]
     meshes[3, c] = 0.5 * (meshes[3, a] + meshes[3, b])
