@@ -121,7 +121,7 @@ def unique_edges(triangles: np.ndarray) -> np.ndarray:
     """(E, 2) unique undirected edges, smaller index first, sorted; read-only.
 
     Kept for the last few distinct triangle arrays, by content (a SHA-1 of the indices,
-    2 ms at 160K triangles against 40 ms to sort the edges): a coating fit asked nine
+    2 ms at 160K triangles against 40 ms to sort the edges): one mesh-sequence fit asked nine
     times for the edges of one mesh, from the operators each builds.
     """
     t = np.ascontiguousarray(triangles)
