@@ -11,9 +11,9 @@ not an M-matrix and first-order methods (ADMM) stall when it is ill-conditioned.
 The answer is then *polished*: the variables the interior point leaves clearly positive
 are taken as the free set and solved exactly; if that satisfies the optimality conditions
 (free variables >= 0, gradient >= 0 on the others, each to rounding) it is returned, so
-the result is the exact optimum up to rounding, not an interior iterate. ``nonneg_qp_band`` takes the upper band itself
-(e.g. from ``block_tridiagonal_band``), so a caller that knows the structure never builds a
-sparse matrix.
+the result is the exact optimum up to rounding, not an interior iterate.
+``nonneg_qp_band`` takes the upper band itself (e.g. from ``block_tridiagonal_band``), so
+a caller that knows the structure never builds a sparse matrix.
 """
 
 from __future__ import annotations
@@ -233,21 +233,21 @@ def _to_boundary(v: np.ndarray, dv: np.ndarray) -> float:
 
 def _free_set_solve(
     ab: np.ndarray, r: np.ndarray, free: np.ndarray
-) -> tuple[np.ndarray | None, np.ndarray, float]:
-    """``(x, gradient, violation)``: ``x`` solves ``H x = r`` on the ``free`` variables (bool)
-    and is 0 on the others (None if that block is singular); the gradient ``H x - r`` is 0
-    on the free variables; ``violation`` the larger of ``-x`` relative to ``max |x|`` and
-    of ``-gradient`` relative, row by row, to the terms it sums (``|H| |x| + |r|``, at
-    least ``ROW_FLOOR`` of ``max |r|``): a scale of ``r`` for all rows let a 36,400-variable
-    problem whose few constraint rows are 1e7 times the others stop 1.2 above the optimum
-    of an objective of 1; without the floor, a row whose terms are all below the interior
-    point's accuracy (1e-15 against 1e7) rejected an exact answer."""
+) -> tuple[np.ndarray | None, float]:
+    """``(x, violation)``: ``x`` solves ``H x = r`` on the ``free`` variables (bool) and is 0
+    on the others (None if that block is singular); ``violation`` the larger of ``-x``
+    relative to ``max |x|`` and of ``-(H x - r)`` on the other variables relative, row by
+    row, to the terms it sums (``|H| |x| + |r|``, at least ``ROW_FLOOR`` of ``max |r|``): a
+    scale of ``r`` for all rows let a 36,400-variable problem whose few constraint rows are
+    1e7 times the others stop 1.2 above the optimum of an objective of 1; without the
+    floor, a row whose terms are all below the interior point's accuracy (1e-15 against
+    1e7) rejected an exact answer."""
     keep = np.flatnonzero(free)
     x = np.zeros(r.size)
     if keep.size:
         factor = _factor(sub_band(ab, keep))
         if factor is None:
-            return None, np.zeros(r.size), np.inf
+            return None, np.inf
         x[keep] = sla.cho_solve_banded((factor, False), r[keep], check_finite=False)
     grad = _matvec(ab, x) - r
     grad[keep] = 0.0
@@ -258,7 +258,7 @@ def _free_set_solve(
         float(-x.min(initial=0.0)) / max(float(np.abs(x).max(initial=0.0)), tiny),
         float(np.max(-grad / magnitude, initial=0.0)),
     )
-    return x, grad, violation
+    return x, violation
 
 
 def _polish(
@@ -267,7 +267,7 @@ def _polish(
     """The exact solve on the free set ``x > z`` (banded Cholesky of its sub-band) if it
     meets the optimality conditions, else the iterate clipped at 0; and the violation
     (relative: :func:`_free_set_solve`; for the iterate, of ``H x - r`` to ``r``'s scale)."""
-    exact, _, violation = _free_set_solve(ab, r, x > z)  # the larger of the pair is nonzero
+    exact, violation = _free_set_solve(ab, r, x > z)  # the larger of the pair is nonzero
     if exact is not None and violation <= POLISH_TOL:
         return np.maximum(exact, 0.0), True, violation
     grad = _matvec(ab, x) - r

@@ -160,10 +160,10 @@ def test_the_polish_measures_each_row_against_its_own_terms():
     stopped 1.2 above the optimum of an objective of 1)."""
     ab = np.array([[1e7, 1.0, 1.0]])  # H = diag(1e7, 1, 1): u = 0
     r = np.array([1e7, 1e-3, 1.0])
-    x, _, violation = _free_set_solve(np.asfortranarray(ab), r, np.array([True, False, True]))
+    x, violation = _free_set_solve(np.asfortranarray(ab), r, np.array([True, False, True]))
     np.testing.assert_allclose(x, [1.0, 0.0, 1.0])
     assert violation > 1e6 * POLISH_TOL
-    x, _, violation = _free_set_solve(np.asfortranarray(ab), r, np.ones(3, bool))
+    x, violation = _free_set_solve(np.asfortranarray(ab), r, np.ones(3, bool))
     assert violation == 0.0
     got, info = nonneg_qp_band(ab, r)
     assert info["exact"]
