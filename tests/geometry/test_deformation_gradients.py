@@ -195,7 +195,8 @@ def test_components_get_their_own_gauge():
 
 
 def test_transfer_forms_the_gradient_columns_a_few_meshes_at_a_time(monkeypatch):
-    """Blocks of two meshes give the one-block answer bit for bit (lines included), and a
+    """The transfer equals its steps done on all meshes at once; blocks of two meshes give
+    the one-block answer bit for bit (lines included), and a
     degenerate mesh (the second of its block) is named by its place in the whole sequence."""
     from faceretarget.geometry import deformation_gradients as dg
 
@@ -205,6 +206,10 @@ def test_transfer_forms_the_gradient_columns_a_few_meshes_at_a_time(monkeypatch)
     rng = np.random.default_rng(11)
     meshes = v + 0.05 * rng.normal(size=(5,) + v.shape)
     whole = dt.transfer(v, meshes, source_feature_lines={"mouth": chain})
+    # the same steps on all meshes at once, outside transfer's loop
+    lines = dt.line_targets(v, meshes, {"mouth": chain})
+    rhs = dt.rhs_columns(gradient_columns(reference_inverse(v, t), meshes, t), lines)
+    np.testing.assert_array_equal(whole, dt.solve_rhs(rhs, dt.component_means(meshes - v)))
     calls = []
     columns = dg.gradient_columns
     monkeypatch.setattr(
