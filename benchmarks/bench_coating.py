@@ -186,7 +186,8 @@ def main(argv=None) -> dict:
         fits, rets, amortized = fits[1:], rets[1:], amortized[1:]
         print(
             f"coating fit {', '.join(f'{x:.2f}' for x in fits)} s; retarget {', '.join(f'{x:.2f}' for x in rets)} s; "
-            f"last setup (factorizations) {r.timings_['setup_s']:.2f} s"
+            f"last setup (factorizations) {r.timings_['setup_s']:.2f} s; candidates smoothed through "
+            f"{r.model_.smoothing_rank} columns of {3 * min(n, r.max_selection_frames)}"
         )
 
         # ---- deformation_transfer baseline ----------------------------------------------------

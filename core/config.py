@@ -24,6 +24,18 @@ RIDGE_EPS = 1e-9
 #: spacetime's frame blocks with unseen shapes, ``geometry.nnls.bounded_lsq_frames``).
 PIVOT_RTOL = 1e-13
 
+#: Smoothing many frames through the column space of their displacements
+#: (``geometry.smoothing.SmoothedDisplacements``): the fewest basis columns whose discarded
+#: energy is at most ``LOW_RANK_TOL^2`` of the displacements' (relative Frobenius error at
+#: most ``LOW_RANK_TOL``). 1e-6 is below what the float32 smoothing kernel already loses on
+#: absolute positions (~6e-8 of the coordinates, 2e-6 to 1e-5 of the displacements of the
+#: synthetic and ICT faces, whose displacements are 3-4% of the coordinates).
+LOW_RANK_TOL = 1e-6
+
+#: The low-rank path is taken only when it smooths at most this share of the ``3C``
+#: coordinate columns (its two passes over the displacements cost ~0.1 of smoothing them all).
+LOW_RANK_MAX_SHARE = 0.8
+
 #: Head-motion estimation (``geometry.head_motion``): rigidity weights ``1 / (eps^2 + m_i^2)``
 #: of the markers, ``m_i`` = RMS displacement of marker i over the expression basis, with
 #: ``eps`` this fraction of the face size (RMS radius of the neutral markers; 0.02 = 1.2 mm

@@ -12,6 +12,10 @@ import numpy as np
 
 from ._mesh_ops_kernels import vertex_normal_sums
 
+#: Columns per thread block of :func:`taubin_frames` are a multiple of this (whole SIMD
+#: vectors: a block of 21 float32 columns ran 1.6x slower per column than one of 24).
+SIMD_COLUMNS = 8
+
 
 @nb.njit(cache=True)
 def fill_cotangent(
@@ -92,6 +96,8 @@ def taubin_frames(
     n_frames, n = points.shape[0], points.shape[1]
     c = 3 * n_frames
     step = (c + n_blocks - 1) // n_blocks
+    if step > SIMD_COLUMNS:  # whole vectors per block (not for a few columns: every thread works)
+        step = (step + SIMD_COLUMNS - 1) // SIMD_COLUMNS * SIMD_COLUMNS
     w = weights.astype(proto.dtype)
     lam_t = proto.dtype.type(lam)
     mu_t = proto.dtype.type(mu)

@@ -150,13 +150,24 @@ class SPDFactor:
 
         from ._factor_kernels import lu_solve
 
-        cols = b.reshape(self.n, -1)
+        cols = np.ascontiguousarray(b.reshape(self.n, -1))
         blocks = max(1, min(get_num_threads(), cols.shape[1] // _MIN_BLOCK_COLUMNS))
         l, u = self._l, self._u
-        y = np.empty((self.n, cols.shape[1]), dtype=np.float64)
-        y[self._perm_r] = cols
-        lu_solve(l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, y, blocks)
-        x = y[self._perm_c]
+        x = np.empty((self.n, cols.shape[1]), dtype=np.float64)
+        lu_solve(
+            self._perm_r,
+            self._perm_c,
+            l[0],
+            l[1],
+            l[2],
+            u[0],
+            u[1],
+            u[2],
+            self._u_diag,
+            cols,
+            x,
+            blocks,
+        )
         return x[:, 0] if b.ndim == 1 else x
 
     def solve_frames(self, rhs: np.ndarray, add: np.ndarray | None = None) -> np.ndarray:
@@ -195,6 +206,19 @@ class SPDFactor:
         )
 
 
+_kernels_loaded = False
+
+
+def _load_kernels() -> None:
+    """Compile or load the factorization's numba kernels on the calling thread, once, by
+    factorizing a 2 x 2 matrix: numba loading kernels on one worker thread while another
+    ran or loaded others crashed the process now and then (SIGSEGV in LLVM)."""
+    global _kernels_loaded
+    if not _kernels_loaded:
+        SPDFactor(sp.identity(2, format="csc") * 2.0, what="warm-up")._factor()
+        _kernels_loaded = True
+
+
 def _strict(
     m: sp.csc_matrix | sp.csc_array, *, lower: bool
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -217,4 +241,6 @@ def factorize(factors: Iterable[SPDFactor]) -> None:
     (SuperLU and the factor extraction release the GIL: two factorizations of 80K unknowns
     take about the time of one on two cores). The first error is raised."""
     todo = list({id(f): f for f in factors if not f._ready}.values())  # each once
+    if len(todo) > 1:
+        _load_kernels()
     in_threads([f._factor for f in todo], worker_count(len(todo)))

@@ -16,10 +16,17 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from .. import config
 from ..errors import ShapeError
 from .laplacian import umbrella_operator
 
-__all__ = ["TaubinSmoother", "taubin_smooth", "TAUBIN_LAMBDA", "TAUBIN_MU"]
+__all__ = [
+    "TaubinSmoother",
+    "SmoothedDisplacements",
+    "taubin_smooth",
+    "TAUBIN_LAMBDA",
+    "TAUBIN_MU",
+]
 
 #: Taubin's classic pass-band parameters (k_PB = 1/lam + 1/mu ~ 0.1).
 TAUBIN_LAMBDA = 0.5
@@ -105,6 +112,131 @@ class TaubinSmoother:
             np.empty(0, dtype=self.dtype),
         )
         return out[0] if single else out
+
+
+class SmoothedDisplacements:
+    """``G D`` for the displacements ``D`` of C meshes from one reference, read at chosen
+    vertices (:meth:`at`) or as whole frames (:meth:`frames`); ``G`` is a
+    :class:`TaubinSmoother`. The filter is linear, so ``G (R + D_c) = G R + G D_c``.
+
+    Written as the ``(3C, V)`` matrix ``A`` (a row per frame and coordinate), the
+    displacements of a face performance have a low numerical rank (tens of independent
+    motions for hundreds of rows). With ``A A^T = Q diag(lam) Q^T`` and ``Q_r`` the
+    eigenvectors of the ``r`` largest eigenvalues, ``A ~ Q_r (Q_r^T A)``, so the smoothed
+    rows are ``Q_r G(Q_r^T A)``: ``r`` coordinate rows are smoothed instead of ``3C``. ``r``
+    is the fewest whose discarded eigenvalues sum to at most ``tol^2`` of the total (the
+    relative Frobenius error of ``A`` is then at most ``tol``, that of the smoothed rows at
+    most ~1.04 ``tol``: Taubin's filter amplifies its pass band by at most
+    ``((1 - lam k)(1 - mu k))^N`` ~ 1.03 at the defaults). When ``r`` exceeds ``max_share``
+    of the rows every frame is smoothed (in chunks of ``chunk`` frames) and :attr:`rank` is
+    None.
+
+    displacements : (C, 3, V) float32 or float64, C-contiguous: each frame coordinate-major
+        (the layout in which ``A A^T`` is a product of contiguous rows). The dense path
+        overwrites it with the smoothed displacements (it is work space then).
+    """
+
+    #: Vertices per block of the two passes over the displacements (float64 copies of
+    #: ``(3C, block)``: 12 MB at 130 frames).
+    BLOCK = 4096
+
+    def __init__(
+        self,
+        smoother: TaubinSmoother,
+        displacements: np.ndarray,
+        *,
+        tol: float = config.LOW_RANK_TOL,
+        max_share: float = config.LOW_RANK_MAX_SHARE,
+        chunk: int = 32,
+    ) -> None:
+        d = displacements
+        n_vertices = smoother.n_vertices
+        if d.ndim != 3 or d.shape[1:] != (3, n_vertices) or not d.flags.c_contiguous:
+            raise ShapeError(
+                f"SmoothedDisplacements: expected C-contiguous (C, 3, {n_vertices}), got {d.shape}"
+            )
+        n_frames = d.shape[0]
+        self.n_frames, self.n_vertices = n_frames, n_vertices
+        rows = d.reshape(3 * n_frames, n_vertices)
+        gram = np.zeros((rows.shape[0], rows.shape[0]))
+        for v0 in range(0, n_vertices, self.BLOCK):
+            blk = rows[:, v0 : v0 + self.BLOCK].astype(np.float64)
+            gram += blk @ blk.T
+        lam, q = np.linalg.eigh(gram)
+        lam, q = np.maximum(lam[::-1], 0.0), q[:, ::-1]
+        tail = np.cumsum(lam[::-1])[::-1]  # tail[k] = sum of lam[k:]
+        total = float(tail[0]) if tail.size else 0.0
+        rank = int(np.count_nonzero(tail > tol * tol * total))
+        self.rank: int | None = rank
+        if rank > max_share * rows.shape[0]:
+            self.rank = None
+            for start in range(0, n_frames, chunk):
+                part = d[start : start + chunk]
+                part[:] = smoother(part.transpose(0, 2, 1)).transpose(0, 2, 1)
+            self._dense = d
+            return
+        self._mix = np.ascontiguousarray(q[:, :rank])  # (3C, r): Q_r
+        padded = 3 * -(-rank // 3)  # whole "frames" of three rows for the kernel
+        reduced = np.zeros((padded, n_vertices))  # Q_r^T A
+        for v0 in range(0, n_vertices, self.BLOCK):
+            blk = rows[:, v0 : v0 + self.BLOCK].astype(np.float64)
+            reduced[:rank, v0 : v0 + blk.shape[1]] = self._mix.T @ blk
+        self._smooth = self._apply(smoother, reduced)[:rank]  # (r, V): G (Q_r^T A)
+
+    @staticmethod
+    def _apply(smoother: TaubinSmoother, rows: np.ndarray) -> np.ndarray:
+        """``smoother`` on coordinate rows ``(3n, V)`` -> ``(3n, V)`` float64."""
+        n_vertices = rows.shape[1]
+        if not rows.shape[0]:
+            return np.zeros((0, n_vertices))
+        frames = rows.reshape(-1, 3, n_vertices).transpose(0, 2, 1)
+        out = smoother(np.ascontiguousarray(frames))
+        return np.ascontiguousarray(out.transpose(0, 2, 1)).reshape(-1, n_vertices)
+
+    def at(self, vertex_ids: npt.ArrayLike) -> np.ndarray:
+        """(C, n, 3) float64: every frame's smoothed displacements at ``vertex_ids`` (n,)."""
+        ids = np.asarray(vertex_ids, dtype=np.int64)
+        if self.rank is None:
+            part = self._dense[:, :, ids].astype(np.float64)
+        else:
+            part = (self._mix @ self._smooth[:, ids]).reshape(self.n_frames, 3, ids.size)
+        return np.ascontiguousarray(part.transpose(0, 2, 1))
+
+    def frames(self, frame_ids: npt.ArrayLike) -> np.ndarray:
+        """(k, V, 3) float64: the smoothed displacements of frames ``frame_ids`` (k,)."""
+        return np.ascontiguousarray(self._rows(frame_ids).transpose(0, 2, 1))
+
+    def _rows(self, frame_ids: npt.ArrayLike) -> np.ndarray:
+        """(k, 3, V) float64: :meth:`frames`, coordinate-major."""
+        ids = np.asarray(frame_ids, dtype=np.int64)
+        if self.rank is None:
+            return self._dense[ids].astype(np.float64)
+        cols = (3 * ids[:, None] + np.arange(3)).ravel()
+        return (self._mix[cols] @ self._smooth).reshape(ids.size, 3, self.n_vertices)
+
+    def filtered(
+        self, smoother: TaubinSmoother, frame_ids: npt.ArrayLike, also: np.ndarray
+    ) -> np.ndarray:
+        """Another linear filter ``H`` (``smoother``, e.g. the adjoint ``G^T``) applied to the
+        meshes ``also : (n, V, 3)`` and to the smoothed displacements ``G D_c`` of
+        ``frame_ids`` (k,), in one call: ``(n + k, V, 3)`` float64. Through the row basis
+        (``Q_r H G (Q_r^T A)``) when that is fewer rows than the ``3k`` of the frames; exact
+        either way (up to rounding), since :meth:`frames` is built from that basis."""
+        ids = np.asarray(frame_ids, dtype=np.int64)
+        extra = np.asarray(also, dtype=np.float64)
+        if self.rank is None or self.rank >= 3 * ids.size:
+            return smoother(np.concatenate([extra, self.frames(ids)]))
+        n_vertices, n, r = self.n_vertices, extra.shape[0], self.rank
+        rows = np.zeros((3 * n + 3 * -(-r // 3), n_vertices))
+        rows[: 3 * n] = extra.transpose(0, 2, 1).reshape(3 * n, n_vertices)
+        rows[3 * n : 3 * n + r] = self._smooth
+        applied = self._apply(smoother, rows)
+        cols = (3 * ids[:, None] + np.arange(3)).ravel()
+        out = np.empty((n + ids.size, n_vertices, 3))
+        out[:n] = applied[: 3 * n].reshape(n, 3, n_vertices).transpose(0, 2, 1)
+        body = self._mix[cols] @ applied[3 * n : 3 * n + r]  # (3k, V)
+        out[n:] = body.reshape(ids.size, 3, n_vertices).transpose(0, 2, 1)
+        return out
 
 
 def taubin_smooth(

@@ -102,18 +102,22 @@ class BasisSpace:
         :meth:`weights_of_raw` gives the weights of the *smoothed* frames ``G S_t`` from
         the raw frames ``S_t`` exactly: ``B^T G (S - c) = (G^T B)^T (S - c)`` (the filter
         is linear and keeps constants), so frames need not be smoothed one by one.
+    adjoint_bases : (K, V, 3), optional
+        ``G^T (bases - center)`` when the caller has it (then ``adjoint`` is not called).
     """
 
-    def __init__(self, bases: np.ndarray, center: np.ndarray, adjoint=None):
+    def __init__(self, bases: np.ndarray, center: np.ndarray, adjoint=None, adjoint_bases=None):
         b = np.asarray(bases, dtype=np.float64) - center
         self.center = np.asarray(center, dtype=np.float64)
-        self.matrix = np.ascontiguousarray(b.reshape(b.shape[0], -1).T)  # (3V, K)
+        # (3V, K) Fortran-ordered views of the (K, 3V) rows: BLAS reads them as they are
+        self.matrix = b.reshape(b.shape[0], -1).T
         self.gram = self.matrix.T @ self.matrix
         self.adjoint_matrix = None
-        if adjoint is not None:
-            self.adjoint_matrix = np.ascontiguousarray(
-                adjoint(b).reshape(b.shape[0], -1).T
-            )  # G^T B, (3V, K)
+        if adjoint_bases is None and adjoint is not None:
+            adjoint_bases = adjoint(b)
+        if adjoint_bases is not None:  # G^T B, (3V, K)
+            lifted = np.ascontiguousarray(adjoint_bases, dtype=np.float64)
+            self.adjoint_matrix = lifted.reshape(b.shape[0], -1).T
 
     def weights(self, smooth: np.ndarray) -> np.ndarray:
         """(C, K) weights of ``smooth : (C, V, 3)`` (eq. 6)."""

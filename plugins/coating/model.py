@@ -38,6 +38,7 @@ from faceretarget.geometry.deformation_gradients import DeformationTransfer
 from faceretarget.geometry.factorized import SPDFactor, factorize
 from faceretarget.geometry.local_frames import frame_neighbors
 from faceretarget.geometry.mesh_ops import face_areas, unique_edges, vertex_adjacency
+from faceretarget.geometry.smoothing import SmoothedDisplacements, TaubinSmoother
 
 from .alignment import frame_chunks
 from .bases import BasisSpace, blend, blend_flat, select_bases, selection_vertices
@@ -61,10 +62,11 @@ __all__ = [
 #: 40-70% larger (the stylized target's eyes and mouth) none, and so does a line of another
 #: shape (a closed eye's slit against an open eye's rim: cases.cross_topology, d = 0.3-1.0).
 LINE_PROPORTION_SCALE = 0.1
-#: The smoothed candidate frames are kept (in the smoothing kernel's precision, float32 by
-#: default, so nothing is lost) when they fit in this many bytes, and the chosen bases are read from
-#: them; above it (e.g. 250 candidates at 160K vertices) the chosen frames are smoothed again.
-#: At 80K vertices and 130 candidates: 126 MB kept, 28 smoothings (~0.3 s) saved.
+#: The candidates' displacements are held (float32, coordinate-major) when they fit in this
+#: many bytes and smoothed through their column space (``SmoothedDisplacements``: rank-many
+#: columns instead of every frame's three); above it (e.g. 250 candidates at 160K vertices)
+#: every candidate is smoothed chunk by chunk and the chosen frames are smoothed again.
+#: At 80K vertices and 130 candidates: 126 MB.
 CANDIDATE_CACHE_BYTES = 256 * 2**20
 
 
@@ -209,6 +211,13 @@ class CoatingModel:
         # the result, do not depend on how either mesh is oriented in space
         canonical = (src - tgt.mean(axis=0)) @ canonical_axes(tgt)
         neighbors = frame_neighbors(canonical, self.triangles)
+        # one topology: one smoothing filter and its adjoint, both references in one call
+        n = src.shape[0]
+        smoother = TaubinSmoother(self.triangles, n, iterations=iterations, dtype=np.float32)
+        adjoint = TaubinSmoother(
+            self.triangles, n, iterations=iterations, dtype=np.float64, adjoint=True
+        )
+        smooth_src, smooth_tgt = smoother(np.stack([src, tgt]))
         self.source = MultiScale(
             src,
             triangles,
@@ -216,6 +225,7 @@ class CoatingModel:
             laplacian=laplacian,
             screening=screening,
             neighbors=neighbors,
+            shared=(smoother, adjoint, smooth_src),
         )
         self.target = MultiScale(
             tgt,
@@ -224,6 +234,7 @@ class CoatingModel:
             laplacian=laplacian,
             screening=screening,
             neighbors=neighbors,
+            shared=(smoother, adjoint, smooth_tgt),
         )
         self.source_lines = {k: np.asarray(v) for k, v in source_lines.items()}
         self.target_lines = {k: np.asarray(v) for k, v in target_lines.items()}
@@ -255,6 +266,7 @@ class CoatingModel:
         self.target_center = self.target.smooth_reference.mean(axis=0)
         self.basis_frames: list[int] = []
         self.selection_rms: list[float] = []
+        self.smoothing_rank: int | None = None
         factorize((self.target.factor, self.transfer.factor))  # now: one-time setup
         self.adjacency  # noqa: B018 - build the edit-time topology now (one-time setup)
 
@@ -281,8 +293,9 @@ class CoatingModel:
         ``local_of(frame_ids, frames) -> (n, V, 3)`` removes the head motion and brings the
         frames into the target's frame. Candidates are at most ``max_frames`` evenly spaced
         frames (all of them for shorter sequences): neighbouring frames of a 30-60 fps
-        capture are near duplicates, and every candidate must be smoothed. Only candidate
-        frames are read. The stopping error is relative to :func:`face_size` of the source.
+        capture are near duplicates. Only candidate frames are read. The stopping error is
+        relative to :func:`face_size` of the source. ``smoothing_rank`` records the columns
+        smoothed through :class:`SmoothedDisplacements` (None: every candidate smoothed).
         """
         height = face_size(self.source.reference, self.triangles)
         ids = selection_vertices(self.n_vertices)
@@ -290,21 +303,26 @@ class CoatingModel:
         candidates = np.unique(
             np.linspace(0, n_frames - 1, min(n_frames, int(max_frames))).round().astype(np.int64)
         )
-        samples = np.empty((candidates.size, 3 * ids.size))
-        exact = self.source.smoother.dtype  # the kernel's precision: kept without loss
-        kept = (
-            np.empty((candidates.size, self.n_vertices, 3), dtype=exact)
-            if candidates.size * self.n_vertices * 3 * exact.itemsize <= CANDIDATE_CACHE_BYTES
-            else None
-        )
-        for sl in frame_chunks(candidates.size, chunk):
-            picked = candidates[sl]
-            frames = np.asarray(vertices[picked])
-            smooth = self.source.smooth(local_of(picked, frames))
-            samples[sl] = (smooth[:, ids] - self.source_center).reshape(smooth.shape[0], -1)
-            if kept is not None:
-                kept[sl] = smooth
-            del smooth
+        if candidates.size * self.n_vertices * 3 * 4 <= CANDIDATE_CACHE_BYTES:
+            # displacements from the reference, smoothed through their column space
+            ref = self.source.reference
+            moved = np.empty((candidates.size, 3, self.n_vertices), dtype=np.float32)
+            for sl in frame_chunks(candidates.size, chunk):
+                picked = candidates[sl]
+                moved[sl] = (local_of(picked, np.asarray(vertices[picked])) - ref).transpose(
+                    0, 2, 1
+                )
+            smoothed = SmoothedDisplacements(self.source.smoother, moved, chunk=chunk)
+            offset = self.source.smooth_reference - self.source_center
+            samples = (smoothed.at(ids) + offset[ids]).reshape(candidates.size, -1)
+        else:
+            smoothed = None
+            samples = np.empty((candidates.size, 3 * ids.size))
+            for sl in frame_chunks(candidates.size, chunk):
+                picked = candidates[sl]
+                smooth = self.source.smooth(local_of(picked, np.asarray(vertices[picked])))
+                samples[sl] = (smooth[:, ids] - self.source_center).reshape(smooth.shape[0], -1)
+                del smooth
         reference = (self.source.smooth_reference[ids] - self.source_center).ravel()
         chosen, history = select_bases(
             samples, reference, epsilon=epsilon, max_bases=max_bases, height=height
@@ -312,23 +330,34 @@ class CoatingModel:
         frames = [int(candidates[i]) for i in chosen]
         self.basis_frames = frames
         self.selection_rms = history
+        self.smoothing_rank = None if smoothed is None else smoothed.rank
         bases = [self.source.smooth_reference[None]]
-        if frames and kept is not None:
-            bases.append(kept[np.asarray(chosen, dtype=np.int64)].astype(np.float64))
+        adjoint_bases = None
+        if frames and smoothed is not None:
+            bases.append(self.source.smooth_reference + smoothed.frames(chosen))
+            # G^T (b - c) of every basis from G^T of (reference - c) and of the displacements'
+            # smoothed column basis (fewer columns than the bases; linear, so exact)
+            lifted = smoothed.filtered(self.source.adjoint, chosen, offset[None])
+            lifted[1:] += lifted[0]
+            adjoint_bases = lifted
         elif frames:
             picked = np.asarray(frames)
             raw = np.asarray(vertices[np.sort(picked)])[np.argsort(np.argsort(picked))]
             bases.append(self.source.smooth(local_of(picked, raw)))
-        del kept
-        self.set_source_bases(np.concatenate(bases))
+        del smoothed
+        self.set_source_bases(np.concatenate(bases), adjoint_bases=adjoint_bases)
 
-    def set_source_bases(self, bases: np.ndarray) -> None:
-        """Use ``bases (K, V, 3)`` (smooth source meshes, the reference first) and transfer them."""
+    def set_source_bases(self, bases: np.ndarray, adjoint_bases: np.ndarray | None = None) -> None:
+        """Use ``bases (K, V, 3)`` (smooth source meshes, the reference first) and transfer them;
+        ``adjoint_bases``: ``G^T (bases - center)`` when known (else computed here)."""
         self.source_bases = np.asarray(bases, dtype=np.float64)
-        self.space = BasisSpace(self.source_bases, self.source_center, adjoint=self.source.adjoint)
-        self._source_flat = (self.source_bases - self.source_center).reshape(
-            self.source_bases.shape[0], -1
+        self.space = BasisSpace(
+            self.source_bases,
+            self.source_center,
+            adjoint=self.source.adjoint,
+            adjoint_bases=adjoint_bases,
         )
+        self._source_flat = self.space.matrix.T  # (K, 3V) rows of bases - center
         self.target_bases = self.transfer_bases(self.source_bases)
         self._target_flat = (self.target_bases - self.target_center).reshape(
             self.target_bases.shape[0], -1

@@ -56,6 +56,10 @@ class MultiScale:
         tangents correspond); default: chosen on the smooth reference.
     smooth_dtype : float32 or float64
         Precision of the batched smoothing kernel.
+    shared : (smoother, adjoint, smooth_reference), optional
+        The two :class:`~faceretarget.geometry.smoothing.TaubinSmoother` of this topology
+        (``G`` and ``G^T``) and ``G reference``, when a caller builds them for two meshes of
+        one topology at once (``iterations`` and ``smooth_dtype`` are then theirs).
     solve_dtype : "auto", float32 or float64
         Precision of the per-frame Poisson solves of :meth:`reconstruct`
         (:class:`~faceretarget.geometry.factorized.SPDFactor` ``frames_dtype``). "auto":
@@ -78,14 +82,20 @@ class MultiScale:
         neighbors=None,
         smooth_dtype=np.float32,
         solve_dtype="auto",
+        shared=None,
     ):
         ref = np.asarray(reference, dtype=np.float64)
         tri = np.asarray(triangles, dtype=np.int64)
         n = ref.shape[0]
         self.n_vertices = n
         self.triangles = tri
-        self.smoother = TaubinSmoother(tri, n, iterations=iterations, dtype=smooth_dtype)
-        self.adjoint = TaubinSmoother(tri, n, iterations=iterations, dtype=np.float64, adjoint=True)
+        if shared is None:
+            smoother = TaubinSmoother(tri, n, iterations=iterations, dtype=smooth_dtype)
+            adjoint = TaubinSmoother(tri, n, iterations=iterations, dtype=np.float64, adjoint=True)
+            smooth_reference = smoother(ref)
+        else:
+            smoother, adjoint, smooth_reference = shared
+        self.smoother, self.adjoint = smoother, adjoint
         if laplacian == "uniform":
             lap = uniform_laplacian(tri, n)
         elif laplacian == "cotangent":
@@ -108,7 +118,7 @@ class MultiScale:
             what="the Poisson system of the Laplacian coating",
             frames_dtype=solve_dtype,
         )
-        self.smooth_reference = self.smooth(ref[None])[0]
+        self.smooth_reference = np.asarray(smooth_reference, dtype=np.float64)
         if neighbors is None:
             neighbors = frame_neighbors(self.smooth_reference, tri)
         self.neighbors = np.asarray(neighbors, dtype=np.int64)

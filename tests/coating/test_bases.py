@@ -82,19 +82,46 @@ def _fitted(monkeypatch, cache_bytes):
     return r, list(calls)  # a copy: a later _fitted wraps this counter again
 
 
-def test_bases_come_from_the_kept_candidate_smoothings(monkeypatch):
-    """The chosen bases are the smoothed candidates kept during selection (no second
-    smoothing of the basis frames), equal bit for bit to smoothing them again."""
-    kept, calls_kept = _fitted(monkeypatch, 2**30)
-    again, calls_again = _fitted(monkeypatch, 0)
-    assert kept.basis_frames_ == again.basis_frames_ and len(kept.basis_frames_) == 5
-    np.testing.assert_array_equal(kept.model_.source_bases, again.model_.source_bases)
-    np.testing.assert_array_equal(kept.model_.target_bases, again.model_.target_bases)
-    none = kept.model_.smooth_target(np.zeros((0, 6)))  # no frames: an empty chunk
-    assert none.shape == (0, kept.model_.n_vertices, 3)
-    # 40 candidates in chunks of 16; without the kept ones, the 5 basis frames once more
-    assert calls_kept[2:5] == [16, 16, 8], calls_kept
-    assert calls_again == calls_kept[:5] + [5] + calls_kept[5:], (calls_kept, calls_again)
+def test_bases_from_the_low_rank_smoothing_of_the_candidates(monkeypatch):
+    """With the candidates in memory, their displacements are smoothed through their column
+    space (``SmoothedDisplacements``: rank-many columns instead of 3 x 40) and the chosen
+    bases are read from it: the same basis frames as smoothing every candidate (cache 0),
+    bases closer to a float64 smoothing than that path's float32 positions, and the
+    weights' adjoint matrix equal to ``G^T (bases - center)`` computed directly."""
+    import faceretarget as fr
+    from faceretarget.geometry.smoothing import TaubinSmoother
+
+    low, calls_low = _fitted(monkeypatch, 2**30)
+    direct, calls_direct = _fitted(monkeypatch, 0)
+    assert low.basis_frames_ == direct.basis_frames_ and len(low.basis_frames_) == 5
+    m = low.model_
+    assert 0 < m.smoothing_rank < 60 and direct.model_.smoothing_rank is None
+    # both references in one call; the rank's columns (whole frames); the adjoint of the
+    # reference + 5 bases (fewer columns than the rank's); the direct path: 40 candidates
+    # in chunks of 16, the 5 basis frames once more, the adjoint
+    assert calls_low == [2, -(-m.smoothing_rank // 3), 6], calls_low
+    assert calls_direct == [2, 16, 16, 8, 5, 6], calls_direct
+    # against float64 smoothing of the same local frames
+    case = fr.cases.synthetic(seed=3, resolution=800, n_frames=40)
+    motion, _ = low._source_motion(case.source)
+    frames = np.asarray(low.basis_frames_)
+    local = low.placement_.local(
+        motion[frames], np.asarray(case.source.performance.vertices)[frames]
+    )
+    exact = TaubinSmoother(m.triangles, m.n_vertices, iterations=m.source.smoother.iterations)
+    want = exact(local) - exact(m.source.reference)  # the bases' smoothed displacements
+    scale = np.abs(want).max()
+
+    def error(model):
+        return np.abs(model.source_bases[1:] - model.source_bases[0] - want).max() / scale
+
+    # the float32 kernel on positions (the direct path) loses ~1e-5 of the displacements
+    assert error(m) < 0.2 * error(direct.model_) < 1e-5, (error(m), error(direct.model_))
+    b = m.source_bases - m.source_center
+    lifted = m.source.adjoint(b).reshape(len(b), -1).T
+    np.testing.assert_allclose(m.space.adjoint_matrix, lifted, atol=1e-12 * np.abs(lifted).max())
+    none = m.smooth_target(np.zeros((0, 6)))  # no frames: an empty chunk
+    assert none.shape == (0, m.n_vertices, 3)
 
 
 def test_blend_is_the_centred_sum_without_centring_the_bases():

@@ -1,5 +1,6 @@
 """SPDFactor: SuperLU factorization with numba multi-column triangular solves."""
 
+import os
 import pickle
 import subprocess
 import sys
@@ -206,3 +207,33 @@ def test_strict_triangles_match_a_dense_mask(lower):
         np.testing.assert_array_equal(
             ptr, np.r_[0, np.cumsum(np.bincount(cols[keep], minlength=40))]
         )
+
+
+KERNELS_SCRIPT = """
+import threading
+import scipy.sparse as sp
+from faceretarget.geometry import _factor_kernels, factorized
+seen = []
+start = threading.Thread.start
+def counted(self):
+    seen.append((len(_factor_kernels.lu_solve.signatures), len(_factor_kernels.strict_triangle.signatures)))
+    return start(self)
+threading.Thread.start = counted
+def system(n):
+    return (sp.diags([-1.0] * (n - 1), -1) + sp.diags([4.0] * n) + sp.diags([-1.0] * (n - 1), 1)).tocsc()
+factorized.factorize([factorized.SPDFactor(system(50)), factorized.SPDFactor(system(60))])
+print(seen)
+"""
+
+
+def test_factorize_loads_its_kernels_on_the_callers_thread(tmp_path):
+    """numba loading kernels on one worker thread while another ran or loaded others
+    crashed the process now and then (SIGSEGV in LLVM: ~1 run in 3 of the compare example
+    in docs/evaluation.md when the coating fit factorized on background threads, a design
+    since dropped): ``factorize`` compiles or loads them first, so the workers only run
+    them. A fresh process with its own empty numba cache."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    out = subprocess.run(
+        [sys.executable, "-c", KERNELS_SCRIPT], capture_output=True, text=True, env=env, check=True
+    )
+    assert out.stdout.strip() == "[(1, 1), (1, 1)]", out.stdout + out.stderr

@@ -63,3 +63,102 @@ def test_adjoint_filter_is_the_transpose():
     forward = TaubinSmoother(t, len(v), iterations=7)
     adjoint = TaubinSmoother(t, len(v), iterations=7, adjoint=True)
     assert np.sum(b * forward(x)) == pytest.approx(np.sum(adjoint(b) * x), rel=1e-12)
+
+
+# ---- SmoothedDisplacements: smoothing many frames through their column space ------------
+
+
+def _displacements(v, rank, n_frames, seed, noise=0.0):
+    """(C, 3, V) displacements: ``rank`` random smooth-ish fields mixed per frame, + noise."""
+    rng = np.random.default_rng(seed)
+    fields = rng.normal(size=(rank, len(v)))
+    mix = rng.normal(size=(3 * n_frames, rank))
+    rows = mix @ fields + noise * rng.normal(size=(3 * n_frames, len(v)))
+    return np.ascontiguousarray(rows.reshape(n_frames, 3, len(v)))
+
+
+def _exact(smoother, d):
+    """(C, V, 3): every frame smoothed directly (float64 kernel)."""
+    return smoother(np.ascontiguousarray(np.asarray(d, dtype=np.float64).transpose(0, 2, 1)))
+
+
+def test_low_rank_displacements_are_smoothed_in_their_column_space():
+    from faceretarget.geometry.smoothing import SmoothedDisplacements
+
+    v, t = grid_mesh(12, seed=5)
+    smoother = TaubinSmoother(t, len(v), iterations=10)
+    d = _displacements(v, rank=7, n_frames=20, seed=0)
+    want = _exact(smoother, d)
+    got = SmoothedDisplacements(smoother, d.copy())
+    assert got.rank == 7  # 7 rows smoothed instead of 60
+    scale = np.abs(want).max()
+    np.testing.assert_allclose(got.frames(np.arange(20)), want, atol=1e-12 * scale)
+    ids = np.array([3, 0, 141, 77])
+    np.testing.assert_allclose(got.at(ids), want[:, ids], atol=1e-12 * scale)
+    np.testing.assert_allclose(got.frames([5, 2]), want[[5, 2]], atol=1e-12 * scale)
+
+
+def test_low_rank_truncation_honours_the_tolerance():
+    """Singular values decaying over six decades: the rank kept is the fewest whose
+    discarded part is within ``tol`` (relative Frobenius), and the error is within it."""
+    from faceretarget.geometry.smoothing import SmoothedDisplacements
+
+    v, t = grid_mesh(12, seed=6)
+    smoother = TaubinSmoother(t, len(v), iterations=10)
+    rng = np.random.default_rng(1)
+    u, _ = np.linalg.qr(rng.normal(size=(60, 30)))
+    w, _ = np.linalg.qr(rng.normal(size=(len(v), 30)))
+    sigma = 10.0 ** -np.linspace(0, 6, 30)
+    rows = (u * sigma) @ w.T
+    d = np.ascontiguousarray(rows.reshape(20, 3, len(v)))
+    want = _exact(smoother, d)
+    for tol in (1e-2, 1e-4):
+        got = SmoothedDisplacements(smoother, d.copy(), tol=tol, max_share=1.0)
+        tail = np.sqrt(np.cumsum((sigma**2)[::-1])[::-1] / np.sum(sigma**2))
+        assert got.rank == int(np.count_nonzero(tail > tol))
+        err = np.linalg.norm(got.frames(np.arange(20)) - want) / np.linalg.norm(d)
+        assert tol / 20 < err <= 1.05 * tol, (tol, err)  # not far below either: truncated
+
+
+def test_full_rank_displacements_are_smoothed_frame_by_frame():
+    from faceretarget.geometry.smoothing import SmoothedDisplacements
+
+    v, t = grid_mesh(8, seed=7)
+    smoother = TaubinSmoother(t, len(v), iterations=10, dtype=np.float32)
+    d = _displacements(v, rank=2, n_frames=6, seed=2, noise=1.0)  # noise: full rank
+    want = smoother(np.ascontiguousarray(d.transpose(0, 2, 1)))
+    got = SmoothedDisplacements(smoother, d, chunk=4)
+    assert got.rank is None
+    np.testing.assert_array_equal(got.frames(np.arange(6)), want)  # the same kernel calls
+    np.testing.assert_array_equal(got.at([1, 9]), want[:, [1, 9]])
+
+
+def test_filtered_equals_the_filter_applied_to_the_frames():
+    """Another filter (the adjoint) through the column basis equals applying it to the
+    smoothed frames, when that is fewer columns (rank 4 < 3 x 5 frames) and when not."""
+    from faceretarget.geometry.smoothing import SmoothedDisplacements
+
+    v, t = grid_mesh(10, seed=8)
+    smoother = TaubinSmoother(t, len(v), iterations=8)
+    adjoint = TaubinSmoother(t, len(v), iterations=8, adjoint=True)
+    d = _displacements(v, rank=4, n_frames=12, seed=3)
+    got = SmoothedDisplacements(smoother, d)
+    assert got.rank == 4
+    extra = np.random.default_rng(4).normal(size=(2,) + v.shape)
+    for frames in ([0, 3, 4, 9, 11], [7]):  # 4 < 15 columns: the basis; 4 >= 3: direct
+        want = adjoint(np.concatenate([extra, got.frames(frames)]))
+        out = got.filtered(adjoint, frames, extra)
+        assert out.shape == (2 + len(frames),) + v.shape
+        np.testing.assert_allclose(out, want, atol=1e-12 * np.abs(want).max())
+
+
+def test_smoothed_displacements_edge_cases():
+    from faceretarget.geometry.smoothing import SmoothedDisplacements
+
+    v, t = grid_mesh(5, seed=9)
+    smoother = TaubinSmoother(t, len(v), iterations=3)
+    still = SmoothedDisplacements(smoother, np.zeros((4, 3, len(v))))
+    assert still.rank == 0
+    assert not still.frames([1, 2]).any() and still.at([0]).shape == (4, 1, 3)
+    with pytest.raises(ShapeError):
+        SmoothedDisplacements(smoother, np.zeros((4, len(v), 3)))  # frames not coordinate-major
