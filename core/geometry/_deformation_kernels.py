@@ -50,3 +50,42 @@ def gradient_columns(
                     + e[d, 1] * inv_ref[j, 1, col]
                     + e[d, 2] * inv_ref[j, 2, col]
                 )
+
+
+@nb.njit(cache=True)
+def inverse_frames(vertices: np.ndarray, triangles: np.ndarray, out: np.ndarray) -> None:
+    """``out[j] = V_j^-1`` for the frames ``V = [v2 - v1, v3 - v1, n / sqrt|n|]`` (columns) of
+    ``vertices : (V, 3)``, ``triangles : (T, 3)``, by the adjugate: the rows of ``V^-1`` are
+    ``(e2 x c, c x e1, e1 x e2) / det V``. Zero-area triangles give non-finite rows (the
+    caller checks the triangles first)."""
+    for j in range(triangles.shape[0]):
+        a = triangles[j, 0]
+        b = triangles[j, 1]
+        c = triangles[j, 2]
+        e1x = vertices[b, 0] - vertices[a, 0]
+        e1y = vertices[b, 1] - vertices[a, 1]
+        e1z = vertices[b, 2] - vertices[a, 2]
+        e2x = vertices[c, 0] - vertices[a, 0]
+        e2y = vertices[c, 1] - vertices[a, 1]
+        e2z = vertices[c, 2] - vertices[a, 2]
+        nx = e1y * e2z - e1z * e2y
+        ny = e1z * e2x - e1x * e2z
+        nz = e1x * e2y - e1y * e2x
+        s = np.sqrt(np.sqrt(nx * nx + ny * ny + nz * nz))
+        cx = nx / s
+        cy = ny / s
+        cz = nz / s
+        # rows: e2 x c, c x e1, e1 x e2 (= n), over det = e1 . (e2 x c)
+        r0x = e2y * cz - e2z * cy
+        r0y = e2z * cx - e2x * cz
+        r0z = e2x * cy - e2y * cx
+        det = e1x * r0x + e1y * r0y + e1z * r0z
+        out[j, 0, 0] = r0x / det
+        out[j, 0, 1] = r0y / det
+        out[j, 0, 2] = r0z / det
+        out[j, 1, 0] = (cy * e1z - cz * e1y) / det
+        out[j, 1, 1] = (cz * e1x - cx * e1z) / det
+        out[j, 1, 2] = (cx * e1y - cy * e1x) / det
+        out[j, 2, 0] = nx / det
+        out[j, 2, 1] = ny / det
+        out[j, 2, 2] = nz / det

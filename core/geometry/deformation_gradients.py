@@ -118,9 +118,15 @@ def deformation_gradients(
 def reference_inverse(
     reference: np.ndarray, triangles: np.ndarray, what: str = "deformation gradients (reference)"
 ) -> np.ndarray:
-    """(T, 3, 3) inverse frames ``V^-1`` of a reference mesh (checked for zero-area triangles)."""
+    """(T, 3, 3) inverse frames ``V^-1`` of a reference mesh (checked for zero-area triangles),
+    in closed form (numba; ``np.linalg.inv`` of the frames is the reference in the tests)."""
+    from ._deformation_kernels import inverse_frames
+
     check_triangles(reference, triangles, what)
-    return np.linalg.inv(triangle_frames(reference, triangles))
+    t = np.ascontiguousarray(triangles, dtype=np.int64)
+    out = np.empty((t.shape[0], 3, 3))
+    inverse_frames(np.ascontiguousarray(reference, dtype=np.float64), t, out)
+    return out
 
 
 def gradient_columns(
@@ -402,19 +408,29 @@ class DeformationTransfer:
         return self._set_gauge(out, mean_displacement)
 
     def _set_gauge(self, out: np.ndarray, mean_displacement: np.ndarray | None) -> np.ndarray:
-        means = self.component_means(out - self.reference)
+        means = self.component_means(out, reference=self.reference)
         want = (
             np.zeros_like(means)
             if mean_displacement is None
             else np.asarray(mean_displacement, dtype=np.float64).reshape(means.shape)
         )
-        return out + (want - means)[:, self.labels, :]
+        shift = want - means
+        return out + (shift if self.n_components == 1 else shift[:, self.labels, :])
 
-    def component_means(self, displacement: np.ndarray) -> np.ndarray:
-        """(F, C, 3) gauge-weighted mean of ``displacement : (F, V, 3)`` over each connected component."""
+    def component_means(
+        self, displacement: np.ndarray, *, reference: np.ndarray | None = None
+    ) -> np.ndarray:
+        """(F, C, 3) gauge-weighted mean of ``displacement : (F, V, 3)`` over each connected
+        component; of ``displacement - reference`` when ``reference (V, 3)`` is given (the
+        weights sum to 1 per component: on one component the difference is not formed)."""
         d = np.asarray(displacement, dtype=np.float64)
         if self.n_components == 1:
-            return np.einsum("v,fvk->fk", self.gauge_weights, d)[:, None, :]
+            means = np.einsum("v,fvk->fk", self.gauge_weights, d)[:, None, :]
+            if reference is not None:
+                means -= self.gauge_weights @ np.asarray(reference, dtype=np.float64)
+            return means
+        if reference is not None:
+            d = d - reference
         out = np.empty((d.shape[0], self.n_components, 3))
         for f in range(d.shape[0]):
             for k in range(3):

@@ -366,7 +366,7 @@ class CoatingModel:
     def transfer_bases(self, bases: np.ndarray) -> np.ndarray:
         """Feature-preserving deformation transfer of smooth source meshes (eq. 9-11)."""
         ref = self.source.smooth_reference
-        means = self.transfer.component_means(bases - ref) * self.ratio
+        means = self.transfer.component_means(bases, reference=ref) * self.ratio
         return self.transfer.transfer(
             ref, bases, source_feature_lines=self.source_lines or None, mean_displacement=means
         )
