@@ -17,11 +17,16 @@ Rows for ``run_all.py`` (``--json``), on the markers case at 300 frames: default
 ``Animation.vertices`` of the result (issue 16 item 5: 300 x 9,409 under 20 ms) against the
 same product written as one numpy matmul.
 
-Run: ``python benchmarks/bench_cross_rig.py [--quick] [--json] [--repeat N] [--frames 300 1200] [--seeds 0 1 2] [--fidelity]``.
+``--extra-examples`` prints the dense figure with the case's 7 example pairs and with 9 more,
+one per shape whose meaning the target changes (how much of the remaining error is example
+coverage rather than method).
+
+Run: ``python benchmarks/bench_cross_rig.py [--quick] [--json] [--repeat N] [--frames 300 1200] [--seeds 0 1 2] [--fidelity] [--extra-examples]``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 import sys
 import time
@@ -114,6 +119,58 @@ def fidelity(frames: list[int], seeds: list[int]) -> None:
             )
 
 
+#: Shapes whose meaning the case's target changes (cross-family mixes, ``cases.cross_rig``)
+#: and that its 7 example pairs cover little or not at all (``--extra-examples``).
+EXTRA_EXAMPLE_SHAPES = (
+    "mouthClose",
+    "mouthFunnel",
+    "mouthStretch_L",
+    "mouthStretch_R",
+    "mouthRollLower",
+    "mouthUpperUp_L",
+    "mouthUpperUp_R",
+    "mouthSmile_L",
+    "mouthSmile_R",
+)
+
+
+def with_extra_examples(case):
+    """The case with one more example pair per :data:`EXTRA_EXAMPLE_SHAPES` (that shape at 0.8
+    on the source rig and on the target rig): how much of the dense error is example coverage."""
+    names = list(case.target.blendshapes.names)
+    w = np.zeros((len(EXTRA_EXAMPLE_SHAPES), len(names)))
+    for i, shape in enumerate(EXTRA_EXAMPLE_SHAPES):
+        w[i, names.index(shape)] = 0.8
+    src, tgt = case.source, case.target
+    extra = list(EXTRA_EXAMPLE_SHAPES)
+    src = src.replace(
+        examples=np.concatenate([src.examples, src.rig.evaluate(w)]),
+        example_names=list(src.example_names) + extra,
+    )
+    tgt = tgt.replace(
+        examples=np.concatenate([tgt.examples, tgt.blendshapes.evaluate(w)]),
+        example_names=list(tgt.example_names) + extra,
+    )
+    return dataclasses.replace(case, source=src, target=tgt)
+
+
+def extra_examples(frames: list[int], seeds: list[int]) -> None:
+    """Dense spacetime with the case's 7 example pairs and with 9 more (one per shape of
+    :data:`EXTRA_EXAMPLE_SHAPES`), against the bounded per-frame fit on markers."""
+    print(f"{'frames':>6s} {'seed':>4s} {'bounded pf':>10s} {'st dense':>15s} {'+9 examples':>15s}")
+    for n in frames:
+        for seed in seeds:
+            markers = fr.cases.cross_rig(seed=seed, n_frames=n, source_kind="markers")
+            mesh = fr.cases.cross_rig(seed=seed, n_frames=n)
+            base = measure(markers, "spacetime_rangepf", {"lower": 0.0, "upper": 1.0}, 0)[0]
+            row = [measure(c, "spacetime", {}, 0)[0] for c in (mesh, with_extra_examples(mesh))]
+            print(
+                f"{n:6d} {seed:4d} {base:10.3f} "
+                + " ".join(f"{f'{r:6.3f} ({100 * (1 - r / base):+4.0f}%)':>15s}" for r in row),
+                flush=True,
+            )
+
+
 def main(argv=None) -> dict:
     parser = C.parser(__doc__)
     parser.add_argument(
@@ -121,10 +178,18 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--fidelity", action="store_true", help="errors only, one row per seed")
+    parser.add_argument(
+        "--extra-examples",
+        action="store_true",
+        help="errors only: dense spacetime with 9 more single-shape example pairs",
+    )
     args = parser.parse_args(argv)
     frames = args.frames or ([300] if args.quick else [300, 1200])
     if args.fidelity:
         fidelity(frames, args.seeds)
+        return {}
+    if args.extra_examples:
+        extra_examples(frames, args.seeds)
         return {}
     repeat = C.repeats(args)
     result = {
