@@ -187,7 +187,7 @@ def main(argv=None) -> dict:
         print(
             f"coating fit {', '.join(f'{x:.2f}' for x in fits)} s; retarget {', '.join(f'{x:.2f}' for x in rets)} s; "
             f"last setup (factorizations) {r.timings_['setup_s']:.2f} s; candidates smoothed through "
-            f"{r.model_.smoothing_rank} columns of {3 * min(n, r.max_selection_frames)}"
+            f"{r.model_.smoothing_rank} rows of {3 * min(n, r.max_selection_frames)}"
         )
 
         # ---- deformation_transfer baseline ----------------------------------------------------

@@ -25,16 +25,21 @@ RIDGE_EPS = 1e-9
 PIVOT_RTOL = 1e-13
 
 #: Smoothing many frames through the column space of their displacements
-#: (``geometry.smoothing.SmoothedDisplacements``): the fewest basis columns whose discarded
-#: energy is at most ``LOW_RANK_TOL^2`` of the displacements' (relative Frobenius error at
-#: most ``LOW_RANK_TOL``). 1e-6 is below what the float32 smoothing kernel already loses on
-#: absolute positions (~6e-8 of the coordinates, 2e-6 to 1e-5 of the displacements of the
-#: synthetic and ICT faces, whose displacements are 3-4% of the coordinates).
+#: (``geometry.smoothing.SmoothedDisplacements``): the fewest basis rows whose discarded
+#: eigenvalues sum to at most ``LOW_RANK_TOL^2`` of their total, i.e. a truncation error of
+#: at most ``LOW_RANK_TOL`` of the displacements' Frobenius norm over all frames together
+#: (one frame up to ~2x that of its own). On the coating test case the bases' smoothed
+#: displacements are then within 8e-7 of a float64 smoothing, where the float32 kernel on
+#: absolute positions lost 1.7e-5; below ~1e-7 the rank starts to follow the float32
+#: rounding of the stored displacements (1e-9: 71 of 120 rows instead of 29).
 LOW_RANK_TOL = 1e-6
 
 #: The low-rank path is taken only when it smooths at most this share of the ``3C``
-#: coordinate columns (its two passes over the displacements cost ~0.1 of smoothing them all).
-LOW_RANK_MAX_SHARE = 0.8
+#: coordinate rows (its float64 rows then take no more memory than the float32 input),
+#: and for at most ``LOW_RANK_MAX_ROWS`` rows (the ``(3C)^2`` eigenproblem: 750 rows for the
+#: coating's default 250 candidates).
+LOW_RANK_MAX_SHARE = 0.5
+LOW_RANK_MAX_ROWS = 1500
 
 #: Head-motion estimation (``geometry.head_motion``): rigidity weights ``1 / (eps^2 + m_i^2)``
 #: of the markers, ``m_i`` = RMS displacement of marker i over the expression basis, with

@@ -118,15 +118,9 @@ def deformation_gradients(
 def reference_inverse(
     reference: np.ndarray, triangles: np.ndarray, what: str = "deformation gradients (reference)"
 ) -> np.ndarray:
-    """(T, 3, 3) inverse frames ``V^-1`` of a reference mesh (checked for zero-area triangles),
-    in closed form (numba; ``np.linalg.inv`` of the frames is the reference in the tests)."""
-    from ._deformation_kernels import inverse_frames
-
+    """(T, 3, 3) inverse frames ``V^-1`` of a reference mesh (checked for zero-area triangles)."""
     check_triangles(reference, triangles, what)
-    t = np.ascontiguousarray(triangles, dtype=np.int64)
-    out = np.empty((t.shape[0], 3, 3))
-    inverse_frames(np.ascontiguousarray(reference, dtype=np.float64), t, out)
-    return out
+    return np.linalg.inv(triangle_frames(reference, triangles))
 
 
 def gradient_columns(
@@ -421,8 +415,8 @@ class DeformationTransfer:
         self, displacement: np.ndarray, *, reference: np.ndarray | None = None
     ) -> np.ndarray:
         """(F, C, 3) gauge-weighted mean of ``displacement : (F, V, 3)`` over each connected
-        component; of ``displacement - reference`` when ``reference (V, 3)`` is given (the
-        weights sum to 1 per component: on one component the difference is not formed)."""
+        component; of ``displacement - reference`` when ``reference (V, 3)`` is given (on one
+        component as ``sum w d - sum w r``, by linearity, without forming the difference)."""
         d = np.asarray(displacement, dtype=np.float64)
         if self.n_components == 1:
             means = np.einsum("v,fvk->fk", self.gauge_weights, d)[:, None, :]

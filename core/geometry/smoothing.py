@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .. import config
-from ..errors import ShapeError
+from ..errors import NumericalError, ShapeError
 from .laplacian import umbrella_operator
 
 __all__ = [
@@ -124,16 +124,21 @@ class SmoothedDisplacements:
     motions for hundreds of rows). With ``A A^T = Q diag(lam) Q^T`` and ``Q_r`` the
     eigenvectors of the ``r`` largest eigenvalues, ``A ~ Q_r (Q_r^T A)``, so the smoothed
     rows are ``Q_r G(Q_r^T A)``: ``r`` coordinate rows are smoothed instead of ``3C``. ``r``
-    is the fewest whose discarded eigenvalues sum to at most ``tol^2`` of the total (the
-    relative Frobenius error of ``A`` is then at most ``tol``, that of the smoothed rows at
-    most ~1.04 ``tol``: Taubin's filter amplifies its pass band by at most
-    ``((1 - lam k)(1 - mu k))^N`` ~ 1.03 at the defaults). When ``r`` exceeds ``max_share``
-    of the rows every frame is smoothed (in chunks of ``chunk`` frames) and :attr:`rank` is
-    None.
+    is the fewest whose discarded eigenvalues sum to at most ``tol^2`` of their total: the
+    truncation error of ``A`` is at most ``tol ||A||_F`` over all frames together (one frame
+    may carry more than its share: up to ~2x ``tol`` of its own norm was measured), and the
+    filter changes it by its gain, ~1 (Taubin's pass band; ``||G||_2`` 1.06 on a 12 x 12
+    grid). The criterion is relative, so the rank does not depend on the length unit.
 
-    displacements : (C, 3, V) float32 or float64, C-contiguous: each frame coordinate-major
-        (the layout in which ``A A^T`` is a product of contiguous rows). The dense path
-        overwrites it with the smoothed displacements (it is work space then).
+    When ``r`` exceeds ``max_share`` of the rows, or the rows are more than ``max_rows`` or
+    than ``V`` (the ``(3C)^2`` eigenproblem would outgrow the data), every frame is smoothed
+    (in chunks of ``chunk`` frames) and :attr:`rank` is None.
+
+    displacements : (C, 3, V) float32 or float64, C-contiguous, finite: each frame
+        coordinate-major (the layout in which ``A A^T`` is a product of contiguous rows).
+        The dense path overwrites it with the smoothed displacements (it is work space
+        then). Memory besides it: ``(3C)^2`` float64 twice, ``r V`` float64 (at most
+        ``max_share`` of the input's rows) and one chunk.
     """
 
     #: Vertices per block of the two passes over the displacements (float64 copies of
@@ -147,51 +152,70 @@ class SmoothedDisplacements:
         *,
         tol: float = config.LOW_RANK_TOL,
         max_share: float = config.LOW_RANK_MAX_SHARE,
+        max_rows: int = config.LOW_RANK_MAX_ROWS,
         chunk: int = 32,
     ) -> None:
         d = displacements
         n_vertices = smoother.n_vertices
-        if d.ndim != 3 or d.shape[1:] != (3, n_vertices) or not d.flags.c_contiguous:
+        if (
+            d.ndim != 3
+            or d.shape[1:] != (3, n_vertices)
+            or d.dtype not in (np.float32, np.float64)
+            or not d.flags.c_contiguous
+        ):
             raise ShapeError(
-                f"SmoothedDisplacements: expected C-contiguous (C, 3, {n_vertices}), got {d.shape}"
+                f"SmoothedDisplacements: expected C-contiguous float32 or float64 (C, 3, {n_vertices}), "
+                f"got {d.dtype} {d.shape}{'' if d.flags.c_contiguous else ' (not C-contiguous)'}"
             )
         n_frames = d.shape[0]
-        self.n_frames, self.n_vertices = n_frames, n_vertices
+        self.n_frames, self.n_vertices, self._chunk = n_frames, n_vertices, max(1, int(chunk))
         rows = d.reshape(3 * n_frames, n_vertices)
+        self.rank: int | None = None
+        if rows.shape[0] > min(max_rows, n_vertices):
+            self._smooth_all(smoother, d)
+            return
         gram = np.zeros((rows.shape[0], rows.shape[0]))
-        for v0 in range(0, n_vertices, self.BLOCK):
-            blk = rows[:, v0 : v0 + self.BLOCK].astype(np.float64)
-            gram += blk @ blk.T
+        with np.errstate(over="ignore", invalid="ignore"):  # checked just below
+            for v0 in range(0, n_vertices, self.BLOCK):
+                blk = rows[:, v0 : v0 + self.BLOCK].astype(np.float64)
+                gram += blk @ blk.T
+        if not np.isfinite(gram).all():
+            raise NumericalError(
+                "SmoothedDisplacements: the displacements hold NaN, infinite or overflowing values; "
+                "check the meshes (and their head-motion removal) for non-finite vertices"
+            )
         lam, q = np.linalg.eigh(gram)
         lam, q = np.maximum(lam[::-1], 0.0), q[:, ::-1]
         tail = np.cumsum(lam[::-1])[::-1]  # tail[k] = sum of lam[k:]
         total = float(tail[0]) if tail.size else 0.0
         rank = int(np.count_nonzero(tail > tol * tol * total))
-        self.rank: int | None = rank
         if rank > max_share * rows.shape[0]:
-            self.rank = None
-            for start in range(0, n_frames, chunk):
-                part = d[start : start + chunk]
-                part[:] = smoother(part.transpose(0, 2, 1)).transpose(0, 2, 1)
-            self._dense = d
+            self._smooth_all(smoother, d)
             return
+        self.rank = rank
         self._mix = np.ascontiguousarray(q[:, :rank])  # (3C, r): Q_r
-        padded = 3 * -(-rank // 3)  # whole "frames" of three rows for the kernel
-        reduced = np.zeros((padded, n_vertices))  # Q_r^T A
+        reduced = np.zeros((3 * -(-rank // 3), n_vertices))  # Q_r^T A, whole "frames" of 3 rows
         for v0 in range(0, n_vertices, self.BLOCK):
             blk = rows[:, v0 : v0 + self.BLOCK].astype(np.float64)
             reduced[:rank, v0 : v0 + blk.shape[1]] = self._mix.T @ blk
         self._smooth = self._apply(smoother, reduced)[:rank]  # (r, V): G (Q_r^T A)
 
-    @staticmethod
-    def _apply(smoother: TaubinSmoother, rows: np.ndarray) -> np.ndarray:
-        """``smoother`` on coordinate rows ``(3n, V)`` -> ``(3n, V)`` float64."""
+    def _smooth_all(self, smoother: TaubinSmoother, d: np.ndarray) -> None:
+        """The dense path: every frame smoothed, in place, a chunk at a time."""
+        for start in range(0, d.shape[0], self._chunk):
+            part = d[start : start + self._chunk]
+            part[:] = smoother(part.transpose(0, 2, 1)).transpose(0, 2, 1)
+        self._dense = d
+
+    def _apply(self, smoother: TaubinSmoother, rows: np.ndarray) -> np.ndarray:
+        """``smoother`` on coordinate rows ``(3n, V)`` float64, in place, a chunk at a time."""
         n_vertices = rows.shape[1]
-        if not rows.shape[0]:
-            return np.zeros((0, n_vertices))
-        frames = rows.reshape(-1, 3, n_vertices).transpose(0, 2, 1)
-        out = smoother(np.ascontiguousarray(frames))
-        return np.ascontiguousarray(out.transpose(0, 2, 1)).reshape(-1, n_vertices)
+        step = 3 * self._chunk
+        for start in range(0, rows.shape[0], step):
+            part = rows[start : start + step].reshape(-1, 3, n_vertices)
+            out = smoother(np.ascontiguousarray(part.transpose(0, 2, 1)))
+            part[:] = out.transpose(0, 2, 1)
+        return rows
 
     def at(self, vertex_ids: npt.ArrayLike) -> np.ndarray:
         """(C, n, 3) float64: every frame's smoothed displacements at ``vertex_ids`` (n,)."""

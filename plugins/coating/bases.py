@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from faceretarget.errors import ShapeError
 from faceretarget.geometry.mesh_ops import translated
 
 __all__ = [
@@ -117,6 +118,10 @@ class BasisSpace:
             adjoint_bases = adjoint(b)
         if adjoint_bases is not None:  # G^T B, (3V, K)
             lifted = np.ascontiguousarray(adjoint_bases, dtype=np.float64)
+            if lifted.shape != b.shape:
+                raise ShapeError(
+                    f"BasisSpace: adjoint_bases must have the bases' shape {b.shape}, got {lifted.shape}"
+                )
             self.adjoint_matrix = lifted.reshape(b.shape[0], -1).T
 
     def weights(self, smooth: np.ndarray) -> np.ndarray:

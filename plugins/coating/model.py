@@ -64,9 +64,9 @@ __all__ = [
 LINE_PROPORTION_SCALE = 0.1
 #: The candidates' displacements are held (float32, coordinate-major) when they fit in this
 #: many bytes and smoothed through their column space (``SmoothedDisplacements``: rank-many
-#: columns instead of every frame's three); above it (e.g. 250 candidates at 160K vertices)
-#: every candidate is smoothed chunk by chunk and the chosen frames are smoothed again.
-#: At 80K vertices and 130 candidates: 126 MB.
+#: rows instead of every frame's three; its float64 rows take at most as much again); above
+#: it (e.g. 250 candidates at 160K vertices) every candidate is smoothed chunk by chunk and
+#: the chosen frames are smoothed again. At 80K vertices and 130 candidates: 126 MB.
 CANDIDATE_CACHE_BYTES = 256 * 2**20
 
 
@@ -294,7 +294,7 @@ class CoatingModel:
         frames into the target's frame. Candidates are at most ``max_frames`` evenly spaced
         frames (all of them for shorter sequences): neighbouring frames of a 30-60 fps
         capture are near duplicates. Only candidate frames are read. The stopping error is
-        relative to :func:`face_size` of the source. ``smoothing_rank`` records the columns
+        relative to :func:`face_size` of the source. ``smoothing_rank`` records the rows
         smoothed through :class:`SmoothedDisplacements` (None: every candidate smoothed).
         """
         height = face_size(self.source.reference, self.triangles)
@@ -303,9 +303,12 @@ class CoatingModel:
         candidates = np.unique(
             np.linspace(0, n_frames - 1, min(n_frames, int(max_frames))).round().astype(np.int64)
         )
+        # displacements from the reference are smoothed (G S = G R + G (S - R)): in float32
+        # they keep ~7 digits of the motion, where absolute positions kept ~7 of the face
+        ref = self.source.reference
+        offset = self.source.smooth_reference - self.source_center
         if candidates.size * self.n_vertices * 3 * 4 <= CANDIDATE_CACHE_BYTES:
-            # displacements from the reference, smoothed through their column space
-            ref = self.source.reference
+            # all candidates at once, through their column space
             moved = np.empty((candidates.size, 3, self.n_vertices), dtype=np.float32)
             for sl in frame_chunks(candidates.size, chunk):
                 picked = candidates[sl]
@@ -313,15 +316,14 @@ class CoatingModel:
                     0, 2, 1
                 )
             smoothed = SmoothedDisplacements(self.source.smoother, moved, chunk=chunk)
-            offset = self.source.smooth_reference - self.source_center
             samples = (smoothed.at(ids) + offset[ids]).reshape(candidates.size, -1)
         else:
             smoothed = None
             samples = np.empty((candidates.size, 3 * ids.size))
             for sl in frame_chunks(candidates.size, chunk):
                 picked = candidates[sl]
-                smooth = self.source.smooth(local_of(picked, np.asarray(vertices[picked])))
-                samples[sl] = (smooth[:, ids] - self.source_center).reshape(smooth.shape[0], -1)
+                smooth = self.source.smooth(local_of(picked, np.asarray(vertices[picked])) - ref)
+                samples[sl] = (smooth[:, ids] + offset[ids]).reshape(smooth.shape[0], -1)
                 del smooth
         reference = (self.source.smooth_reference[ids] - self.source_center).ravel()
         chosen, history = select_bases(
@@ -343,7 +345,9 @@ class CoatingModel:
         elif frames:
             picked = np.asarray(frames)
             raw = np.asarray(vertices[np.sort(picked)])[np.argsort(np.argsort(picked))]
-            bases.append(self.source.smooth(local_of(picked, raw)))
+            bases.append(
+                self.source.smooth_reference + self.source.smooth(local_of(picked, raw) - ref)
+            )
         del smoothed
         self.set_source_bases(np.concatenate(bases), adjoint_bases=adjoint_bases)
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from faceretarget.errors import ConfigError
+from faceretarget.errors import ConfigError, ShapeError
 from faceretarget.geometry.factorized import SPDFactor
 from faceretarget.geometry.laplacian import cotangent_laplacian, uniform_laplacian
 from faceretarget.geometry.local_frames import VertexFrames, frame_neighbors, to_local, to_world
@@ -95,6 +95,16 @@ class MultiScale:
             smooth_reference = smoother(ref)
         else:
             smoother, adjoint, smooth_reference = shared
+            for what, filt in (("smoother", smoother), ("adjoint", adjoint)):
+                if filt.n_vertices != n or filt.iterations != int(iterations):
+                    raise ConfigError(
+                        f"MultiScale: the shared {what} is for {filt.n_vertices} vertices and {filt.iterations} "
+                        f"iterations; this mesh has {n} vertices and iterations={iterations}"
+                    )
+            if np.shape(smooth_reference) != ref.shape:
+                raise ShapeError(
+                    f"MultiScale: the shared smooth reference must be {ref.shape}, got {np.shape(smooth_reference)}"
+                )
         self.smoother, self.adjoint = smoother, adjoint
         if laplacian == "uniform":
             lap = uniform_laplacian(tri, n)

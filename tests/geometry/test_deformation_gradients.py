@@ -223,17 +223,3 @@ def test_transfer_forms_the_gradient_columns_a_few_meshes_at_a_time(monkeypatch)
     meshes[3, c] = 0.5 * (meshes[3, a] + meshes[3, b])
     with pytest.raises(DegenerateGeometryError, match=r"in mesh 3 \(ids \[4\]"):
         dt.transfer(v, meshes, source_feature_lines={"mouth": chain})
-
-
-def test_reference_inverse_equals_the_inverse_of_the_frames():
-    """The closed-form inverse frames (numba, adjugate) against ``np.linalg.inv``."""
-    from faceretarget.geometry.deformation_gradients import reference_inverse, triangle_frames
-
-    v, t = grid_mesh(9, seed=11)
-    v = v + 0.3 * np.random.default_rng(2).normal(size=v.shape)  # skewed, tilted triangles
-    want = np.linalg.inv(triangle_frames(v, t))
-    got = reference_inverse(v, t)
-    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12 * np.abs(want).max())
-    np.testing.assert_allclose(
-        got @ triangle_frames(v, t), np.broadcast_to(np.eye(3), got.shape), atol=1e-10
-    )

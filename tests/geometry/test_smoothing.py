@@ -153,6 +153,7 @@ def test_filtered_equals_the_filter_applied_to_the_frames():
 
 
 def test_smoothed_displacements_edge_cases():
+    from faceretarget.errors import NumericalError
     from faceretarget.geometry.smoothing import SmoothedDisplacements
 
     v, t = grid_mesh(5, seed=9)
@@ -160,5 +161,54 @@ def test_smoothed_displacements_edge_cases():
     still = SmoothedDisplacements(smoother, np.zeros((4, 3, len(v))))
     assert still.rank == 0
     assert not still.frames([1, 2]).any() and still.at([0]).shape == (4, 1, 3)
-    with pytest.raises(ShapeError):
+    none = SmoothedDisplacements(smoother, np.zeros((0, 3, len(v))))
+    assert none.rank == 0 and none.at([1, 2]).shape == (0, 2, 3)
+    one = _displacements(v, rank=3, n_frames=1, seed=5)
+    np.testing.assert_allclose(
+        SmoothedDisplacements(smoother, one.copy()).frames([0]), _exact(smoother, one), atol=1e-12
+    )
+    with pytest.raises(ShapeError, match="C-contiguous"):
         SmoothedDisplacements(smoother, np.zeros((4, len(v), 3)))  # frames not coordinate-major
+    with pytest.raises(ShapeError, match="not C-contiguous"):
+        SmoothedDisplacements(smoother, np.zeros((3, len(v), 4)).transpose(0, 2, 1))
+    with pytest.raises(ShapeError, match="int64"):  # the dense path would truncate into it
+        SmoothedDisplacements(smoother, np.zeros((4, 3, len(v)), dtype=np.int64))
+    for bad in (np.nan, np.inf, 1e200):  # a non-finite Gram would read as rank 0: zeros
+        d = np.zeros((4, 3, len(v)))
+        d[2, 1, 7] = bad
+        with pytest.raises(NumericalError, match="non-finite"):
+            SmoothedDisplacements(smoother, d)
+
+
+def test_float32_displacements_take_the_low_rank_path():
+    """The coating stores the candidates' displacements in float32: the rank and the
+    smoothed rows are those of the float64 data to float32 accuracy."""
+    from faceretarget.geometry.smoothing import SmoothedDisplacements
+
+    v, t = grid_mesh(12, seed=12)
+    smoother = TaubinSmoother(t, len(v), iterations=10)
+    d = _displacements(v, rank=5, n_frames=20, seed=6)
+    got = SmoothedDisplacements(smoother, d.astype(np.float32))
+    assert got.rank == 5
+    want = _exact(smoother, d)
+    assert np.abs(got.frames(np.arange(20)) - want).max() < 1e-6 * np.abs(want).max()
+
+
+def test_the_low_rank_path_only_where_it_pays():
+    """Rank 7 of 60 rows: the basis when at most ``max_share`` of the rows (share 0.12: up
+    to 7.2 rows), every frame otherwise (share 0.1: 6 rows); more rows than ``max_rows`` or
+    than vertices: every frame, without the eigenproblem."""
+    from faceretarget.geometry.smoothing import SmoothedDisplacements
+
+    v, t = grid_mesh(12, seed=13)
+    smoother = TaubinSmoother(t, len(v), iterations=5)
+    d = _displacements(v, rank=7, n_frames=20, seed=7)
+    want = _exact(smoother, d)
+    for share, rank in ((0.12, 7), (0.1, None)):
+        got = SmoothedDisplacements(smoother, d.copy(), max_share=share)
+        assert got.rank == rank
+        np.testing.assert_allclose(got.frames(np.arange(20)), want, atol=1e-12 * np.abs(want).max())
+    assert SmoothedDisplacements(smoother, d.copy(), max_rows=59).rank is None
+    small, tt = grid_mesh(4, seed=14)  # 16 vertices, 60 rows
+    few = _displacements(small, rank=2, n_frames=20, seed=8)
+    assert SmoothedDisplacements(TaubinSmoother(tt, 16, iterations=5), few).rank is None
