@@ -63,6 +63,18 @@ def _umbrella_step(
     """out = x + lam * (W x - x) for a row-stochastic W (CSR)."""
     n, c = x.shape
     keep = 1.0 - lam
+    if c == 3:  # one mesh a block: the same operations, unrolled (a loop of 3 is scalar)
+        for i in range(n):
+            out[i, 0] = keep * x[i, 0]
+            out[i, 1] = keep * x[i, 1]
+            out[i, 2] = keep * x[i, 2]
+            for p in range(indptr[i], indptr[i + 1]):
+                j = indices[p]
+                w = lam * weights[p]
+                out[i, 0] += w * x[j, 0]
+                out[i, 1] += w * x[j, 1]
+                out[i, 2] += w * x[j, 2]
+        return
     for i in range(n):
         for k in range(c):
             out[i, k] = keep * x[i, k]

@@ -212,3 +212,31 @@ def test_the_low_rank_path_only_where_it_pays():
     small, tt = grid_mesh(4, seed=14)  # 16 vertices, 60 rows
     few = _displacements(small, rank=2, n_frames=20, seed=8)
     assert SmoothedDisplacements(TaubinSmoother(tt, 16, iterations=5), few).rank is None
+
+
+def test_one_mesh_blocks_equal_wider_blocks_exactly():
+    """A block of exactly one mesh's 3 columns takes the kernel's unrolled path: the same
+    operations in the same order as wider blocks, so the same bits in either precision."""
+    from faceretarget.geometry._laplacian_kernels import taubin_frames
+
+    v, t = grid_mesh(9, seed=15)
+    frames = v + 0.05 * np.random.default_rng(3).normal(size=(2,) + v.shape)
+    smoother = TaubinSmoother(t, len(v), iterations=6)
+    for dtype in (np.float32, np.float64):
+        outs = []
+        for blocks in (2, 1):  # 2 blocks: one mesh each (unrolled); 1 block of 6 columns
+            out = np.empty(frames.shape)
+            taubin_frames(
+                smoother.indptr,
+                smoother.indices,
+                smoother.weights,
+                frames,
+                out,
+                6,
+                smoother.lam,
+                smoother.mu,
+                blocks,
+                np.empty(0, dtype=dtype),
+            )
+            outs.append(out)
+        np.testing.assert_array_equal(outs[0], outs[1])
