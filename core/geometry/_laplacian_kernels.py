@@ -293,3 +293,30 @@ def frame_apply(
             )
         bad[f] = count
     return bad
+
+
+@nb.njit(cache=True)
+def best_two(src: np.ndarray, dst: np.ndarray, score: np.ndarray, out: np.ndarray) -> None:
+    """For each vertex ``i``, ``out[i] = (best, second)``: the ``dst`` of its two directed
+    edges ``src == i`` ranked first by ``score`` (highest first, ties: lower ``dst``); the
+    best twice for a vertex of one edge. The order of ``np.lexsort((dst, -score, src))``
+    in one pass; every vertex must have an edge."""
+    n = out.shape[0]
+    top = np.full(n, -np.inf)
+    nxt = np.full(n, -np.inf)
+    out[:, 0] = -1
+    out[:, 1] = -1
+    for e in range(src.shape[0]):
+        i, j, s = src[e], dst[e], score[e]
+        b = out[i, 0]
+        if b < 0 or s > top[i] or (s == top[i] and j < b):
+            out[i, 1] = b
+            nxt[i] = top[i]
+            out[i, 0] = j
+            top[i] = s
+        elif out[i, 1] < 0 or s > nxt[i] or (s == nxt[i] and j < out[i, 1]):
+            out[i, 1] = j
+            nxt[i] = s
+    for i in range(n):
+        if out[i, 1] < 0:
+            out[i, 1] = out[i, 0]

@@ -58,15 +58,11 @@ def frame_neighbors(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     edge = edge - np.einsum("ij,ij->i", edge, n)[:, None] * n
     length = np.linalg.norm(edge, axis=1) * np.maximum(np.linalg.norm(axis, axis=1), 1e-300)
     score = np.einsum("ij,ij->i", edge, axis) / np.maximum(length, 1e-300)
-    order = np.lexsort((dst, -score, src))  # by vertex, best score first (ties: lower id)
-    first = np.searchsorted(src[order], np.arange(n_vertices))
-    best = dst[order[first]]
-    second_pos = np.minimum(first + 1, order.size - 1)
-    has_second = degree > 1
-    second = np.where(
-        has_second & (src[order[second_pos]] == np.arange(n_vertices)), dst[order[second_pos]], best
-    )
-    return np.stack([best, second], axis=1).astype(np.int64)
+    from ._laplacian_kernels import best_two
+
+    out = np.empty((n_vertices, 2), dtype=np.int64)
+    best_two(src, dst, score, out)  # by vertex, best score first (ties: lower id)
+    return out
 
 
 class VertexFrames:

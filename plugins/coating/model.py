@@ -312,9 +312,12 @@ class CoatingModel:
             moved = np.empty((candidates.size, 3, self.n_vertices), dtype=np.float32)
             for sl in frame_chunks(candidates.size, chunk):
                 picked = candidates[sl]
-                moved[sl] = (local_of(picked, np.asarray(vertices[picked])) - ref).transpose(
-                    0, 2, 1
-                )
+                local = np.asarray(local_of(picked, np.asarray(vertices[picked])), dtype=np.float64)
+                if not local.flags.writeable or np.may_share_memory(local, vertices):
+                    local = local.copy()
+                local -= ref
+                moved[sl] = local.transpose(0, 2, 1)
+                del local
             smoothed = SmoothedDisplacements(self.source.smoother, moved, chunk=chunk)
             samples = (smoothed.at(ids) + offset[ids]).reshape(candidates.size, -1)
         else:

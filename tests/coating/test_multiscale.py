@@ -133,3 +133,24 @@ def test_bad_settings():
         MultiScale(v, t, iterations=5, laplacian="spectral", screening=0.1)
     with pytest.raises(ConfigError):
         MultiScale(v, t, iterations=5, laplacian="uniform", screening=0.0)
+
+
+@pytest.mark.parametrize("jitter", [0.0, 0.3])
+def test_frame_neighbors_match_sorting_every_edge(jitter):
+    """The one-pass selection (numba) against sorting all directed edges; a grid without
+    jitter has exact score ties (broken by the lower vertex id), and a strip's corner
+    vertices few edges."""
+    from naive.coating import frame_neighbors as naive_neighbors
+    from naive.coating import grid_mesh
+
+    from faceretarget.geometry.local_frames import frame_neighbors
+
+    for n in (3, 9):
+        v, t = grid_mesh(n, seed=2, jitter=jitter)
+        np.testing.assert_array_equal(frame_neighbors(v, t), naive_neighbors(v, t))
+    # vertex 0 sees its two neighbours at +-45 degrees from x: an exact tie, the lower id first
+    fan = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [1.0, -1.0, 0.0], [2.0, 0.0, 0.0]])
+    tris = np.array([[0, 2, 1], [1, 2, 3]])
+    got = frame_neighbors(fan, tris)
+    np.testing.assert_array_equal(got, naive_neighbors(fan, tris))
+    assert got[0].tolist() == [1, 2]
