@@ -44,8 +44,6 @@ def strict_triangle(
 
 @nb.njit(parallel=True, cache=True)
 def lu_solve(
-    perm_r: np.ndarray,
-    perm_c: np.ndarray,
     l_ptr: np.ndarray,
     l_ind: np.ndarray,
     l_val: np.ndarray,
@@ -53,47 +51,31 @@ def lu_solve(
     u_ind: np.ndarray,
     u_val: np.ndarray,
     u_diag: np.ndarray,
-    rhs: np.ndarray,
-    out: np.ndarray,
+    x: np.ndarray,
     n_blocks: int,
 ) -> None:
-    """Solve ``A out = rhs`` for ``P_r A P_c = L U`` (SuperLU's ``perm_r``, ``perm_c``): L unit
-    lower (strict part stored), U upper (strict part stored, diagonal in ``u_diag``), both
-    CSC; ``rhs``, ``out : (n, k)``. Each thread permutes its block of columns into a
-    contiguous work array (``z[perm_r[i]] = rhs[i]``), solves ``L U z = P_r rhs`` in place and
-    writes ``out[i] = z[perm_c[i]]``: no permuted copies of the whole right-hand side."""
-    n, k = rhs.shape
+    """Solve ``L U z = x`` in place; L unit lower (strict part stored), U upper (strict part
+    stored, diagonal in ``u_diag``), both CSC; ``x : (n, k)``."""
+    n, k = x.shape
     step = (k + n_blocks - 1) // n_blocks
     for b in nb.prange(n_blocks):
         c0 = b * step
         c1 = min(k, c0 + step)
-        if c1 <= c0:
-            continue
-        w = c1 - c0
-        x = np.empty((n, w))
-        for i in range(n):
-            r = perm_r[i]
-            for c in range(w):
-                x[r, c] = rhs[i, c0 + c]
         for j in range(n):
             for p in range(l_ptr[j], l_ptr[j + 1]):
                 i = l_ind[p]
-                v = l_val[p]
-                for c in range(w):
-                    x[i, c] -= v * x[j, c]
+                w = l_val[p]
+                for c in range(c0, c1):
+                    x[i, c] -= w * x[j, c]
         for j in range(n - 1, -1, -1):
             d = u_diag[j]
-            for c in range(w):
+            for c in range(c0, c1):
                 x[j, c] /= d
             for p in range(u_ptr[j], u_ptr[j + 1]):
                 i = u_ind[p]
-                v = u_val[p]
-                for c in range(w):
-                    x[i, c] -= v * x[j, c]
-        for i in range(n):
-            r = perm_c[i]
-            for c in range(w):
-                out[i, c0 + c] = x[r, c]
+                w = u_val[p]
+                for c in range(c0, c1):
+                    x[i, c] -= w * x[j, c]
 
 
 @nb.njit(parallel=True, cache=True)

@@ -150,24 +150,13 @@ class SPDFactor:
 
         from ._factor_kernels import lu_solve
 
-        cols = np.ascontiguousarray(b.reshape(self.n, -1))
+        cols = b.reshape(self.n, -1)
         blocks = max(1, min(get_num_threads(), cols.shape[1] // _MIN_BLOCK_COLUMNS))
         l, u = self._l, self._u
-        x = np.empty((self.n, cols.shape[1]), dtype=np.float64)
-        lu_solve(
-            self._perm_r,
-            self._perm_c,
-            l[0],
-            l[1],
-            l[2],
-            u[0],
-            u[1],
-            u[2],
-            self._u_diag,
-            cols,
-            x,
-            blocks,
-        )
+        y = np.empty((self.n, cols.shape[1]), dtype=np.float64)
+        y[self._perm_r] = cols
+        lu_solve(l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, y, blocks)
+        x = y[self._perm_c]
         return x[:, 0] if b.ndim == 1 else x
 
     def solve_frames(self, rhs: np.ndarray, add: np.ndarray | None = None) -> np.ndarray:

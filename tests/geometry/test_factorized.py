@@ -238,33 +238,3 @@ def test_factorize_loads_its_kernels_on_the_callers_thread(tmp_path):
     )
     seen = eval(out.stdout.strip())  # one entry per worker thread started (one or two)
     assert seen and all(entry == (1, 1) for entry in seen), out.stdout + out.stderr
-
-
-def test_triangular_solve_applies_both_permutations():
-    """``lu_solve`` against SuperLU's own solve on a non-symmetric matrix factorized with
-    partial pivoting, whose row and column permutations differ (the SPD factors' are equal,
-    so swapping them would go unseen there)."""
-    from faceretarget.geometry._factor_kernels import lu_solve
-
-    rng = np.random.default_rng(9)
-    n = 40
-    m = sp.random(n, n, density=0.15, random_state=3, format="csc") + sp.diags(
-        rng.uniform(0.5, 1.5, n)
-    )
-    lu = scipy.sparse.linalg.splu(m.tocsc(), permc_spec="COLAMD")
-    assert not np.array_equal(lu.perm_r, lu.perm_c)
-    low = factorized._strict(lu.L.tocsc(), lower=True)
-    up = factorized._strict(lu.U.tocsc(), lower=False)
-    rhs = rng.normal(size=(n, 5))
-    out = np.empty_like(rhs)
-    lu_solve(
-        lu.perm_r.astype(np.int64),
-        lu.perm_c.astype(np.int64),
-        *low,
-        *up,
-        lu.U.tocsc().diagonal(),
-        rhs,
-        out,
-        2,
-    )
-    np.testing.assert_allclose(out, lu.solve(rhs), rtol=1e-10, atol=1e-10)
