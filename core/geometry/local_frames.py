@@ -36,6 +36,20 @@ def frame_neighbors(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     projected onto the tangent plane, is best aligned with the global x axis (y where
     the normal is nearly along x). Raises DegenerateGeometryError for isolated vertices.
     """
+    from ._laplacian_kernels import best_two
+
+    src, dst, score = tangent_scores(vertices, triangles)
+    out = np.empty((np.asarray(vertices).shape[0], 2), dtype=np.int64)
+    best_two(src, dst, score, out)  # by vertex, best score first (ties: lower id)
+    return out
+
+
+def tangent_scores(
+    vertices: np.ndarray, triangles: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every directed edge ``src -> dst`` (E2,) and its ``score`` (E2,): the cosine between the
+    edge projected onto ``src``'s tangent plane and the global x axis (y where the normal is
+    nearly along x), as :func:`frame_neighbors` ranks them."""
     v = np.asarray(vertices, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     n_vertices = v.shape[0]
@@ -58,11 +72,7 @@ def frame_neighbors(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     edge = edge - np.einsum("ij,ij->i", edge, n)[:, None] * n
     length = np.linalg.norm(edge, axis=1) * np.maximum(np.linalg.norm(axis, axis=1), 1e-300)
     score = np.einsum("ij,ij->i", edge, axis) / np.maximum(length, 1e-300)
-    from ._laplacian_kernels import best_two
-
-    out = np.empty((n_vertices, 2), dtype=np.int64)
-    best_two(src, dst, score, out)  # by vertex, best score first (ties: lower id)
-    return out
+    return src, dst, score
 
 
 class VertexFrames:

@@ -239,28 +239,14 @@ def weights_edit(bases, center, weights, constraints, window, mu, lambda_w, metr
 
 def frame_neighbors(vertices, triangles):
     """Tangent neighbours by sorting every directed edge (vertex, best score first, ties:
-    lower id) with ``np.lexsort``: the first two of each vertex (the best twice for one edge)."""
-    from faceretarget.geometry.mesh_ops import unique_edges, vertex_normals
+    lower id) with ``np.lexsort``: the first two of each vertex (the best twice for one edge).
+    The scores are the library's (``local_frames.tangent_scores``); the selection is checked."""
+    from faceretarget.geometry.local_frames import tangent_scores
 
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    n_vertices = v.shape[0]
-    normals = vertex_normals(v, t)
-    e = unique_edges(t)
-    src = np.concatenate([e[:, 0], e[:, 1]])
-    dst = np.concatenate([e[:, 1], e[:, 0]])
-    n = normals[src]
-    axis = np.where(
-        np.abs(n[:, :1]) > 0.9, np.array([[0.0, 1.0, 0.0]]), np.array([[1.0, 0.0, 0.0]])
-    )
-    axis = axis - np.einsum("ij,ij->i", axis, n)[:, None] * n
-    edge = v[dst] - v[src]
-    edge = edge - np.einsum("ij,ij->i", edge, n)[:, None] * n
-    length = np.linalg.norm(edge, axis=1) * np.maximum(np.linalg.norm(axis, axis=1), 1e-300)
-    score = np.einsum("ij,ij->i", edge, axis) / np.maximum(length, 1e-300)
+    src, dst, score = tangent_scores(vertices, triangles)
     order = np.lexsort((dst, -score, src))
-    out = np.empty((n_vertices, 2), dtype=np.int64)
-    for i in range(n_vertices):
+    out = np.empty((np.asarray(vertices).shape[0], 2), dtype=np.int64)
+    for i in range(out.shape[0]):
         mine = order[src[order] == i]
         out[i] = dst[mine[0]], dst[mine[1] if len(mine) > 1 else mine[0]]
     return out
