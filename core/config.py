@@ -29,9 +29,8 @@ PIVOT_RTOL = 1e-13
 #: eigenvalues sum to at most ``LOW_RANK_TOL^2`` of their total, i.e. a truncation error of
 #: at most ``LOW_RANK_TOL`` of the displacements' Frobenius norm over all frames together
 #: (one frame up to ~2x that of its own). The coating's test holds the bases' smoothed
-#: displacements within 2e-6 of a float64 smoothing (the float32 kernel on absolute
-#: positions lost about ten times that); below ~1e-7 the rank starts to follow the float32
-#: rounding of the stored displacements (1e-9: 71 of 120 rows instead of 29).
+#: displacements within 2e-6 of a float64 smoothing; below ~1e-7 the rank starts to follow
+#: the float32 rounding of the stored displacements (1e-9: 71 of 120 rows instead of 29).
 LOW_RANK_TOL = 1e-6
 
 #: The low-rank path is taken only when it smooths at most this share of the ``3C``

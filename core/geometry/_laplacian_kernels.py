@@ -300,7 +300,7 @@ def best_two(src: np.ndarray, dst: np.ndarray, score: np.ndarray, out: np.ndarra
     """For each vertex ``i``, ``out[i] = (best, second)``: the ``dst`` of its two directed
     edges ``src == i`` ranked first by ``score`` (highest first, ties: lower ``dst``); the
     best twice for a vertex of one edge. The order of ``np.lexsort((dst, -score, src))``
-    in one pass; every vertex must have an edge."""
+    in one pass, for finite scores (the caller checks them); every vertex must have an edge."""
     n = out.shape[0]
     top = np.full(n, -np.inf)
     nxt = np.full(n, -np.inf)

@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .._validate import readonly
-from ..errors import DegenerateGeometryError, ShapeError
+from ..errors import DegenerateGeometryError, NonFiniteError, ShapeError
 from .mesh_ops import unique_edges, vertex_normals
 
 if TYPE_CHECKING:
@@ -53,6 +53,11 @@ def tangent_scores(
     v = np.asarray(vertices, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     n_vertices = v.shape[0]
+    if not np.isfinite(v).all():
+        raise NonFiniteError(
+            f"local frames: {int(np.count_nonzero(~np.isfinite(v).all(axis=1)))} vertex/vertices "
+            "are NaN or infinite; give a finite reference mesh"
+        )
     normals = vertex_normals(v, t)
     e = unique_edges(t)
     src = np.concatenate([e[:, 0], e[:, 1]])
@@ -72,6 +77,10 @@ def tangent_scores(
     edge = edge - np.einsum("ij,ij->i", edge, n)[:, None] * n
     length = np.linalg.norm(edge, axis=1) * np.maximum(np.linalg.norm(axis, axis=1), 1e-300)
     score = np.einsum("ij,ij->i", edge, axis) / np.maximum(length, 1e-300)
+    if not np.isfinite(score).all():  # coordinates so large that the products overflow
+        raise NonFiniteError(
+            "local frames: the reference mesh's coordinates overflow (above ~1e150); rescale it"
+        )
     return src, dst, score
 
 

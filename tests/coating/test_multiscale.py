@@ -137,20 +137,34 @@ def test_bad_settings():
 
 @pytest.mark.parametrize("jitter", [0.0, 0.3])
 def test_frame_neighbors_match_sorting_every_edge(jitter):
-    """The one-pass selection (numba) against sorting all directed edges; a grid without
-    jitter has exact score ties (broken by the lower vertex id), and a strip's corner
-    vertices few edges."""
+    """The one-pass selection (numba) against sorting all directed edges, on grids, and on
+    a fan whose centre sees exact score ties: its two neighbours at +-45 degrees from x,
+    the higher id met first (the tie goes to the lower id, not to the first seen), and a
+    tie for second place behind a unique best."""
     from naive.coating import frame_neighbors as naive_neighbors
     from naive.coating import grid_mesh
 
+    from faceretarget.errors import NonFiniteError
     from faceretarget.geometry.local_frames import frame_neighbors
 
     for n in (3, 9):
         v, t = grid_mesh(n, seed=2, jitter=jitter)
         np.testing.assert_array_equal(frame_neighbors(v, t), naive_neighbors(v, t))
-    # vertex 0 sees its two neighbours at +-45 degrees from x: an exact tie, the lower id first
-    fan = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [1.0, -1.0, 0.0], [2.0, 0.0, 0.0]])
-    tris = np.array([[0, 2, 1], [1, 2, 3]])
+    fan = np.array([[1.0, 1.0, 0.0], [0.0, 0.0, 0.0], [1.0, -1.0, 0.0], [2.0, 0.0, 0.0]])
+    tris = np.array([[1, 2, 0], [0, 2, 3]])
     got = frame_neighbors(fan, tris)
     np.testing.assert_array_equal(got, naive_neighbors(fan, tris))
-    assert got[0].tolist() == [1, 2]
+    assert got[1].tolist() == [0, 2]
+    # centre 2 of a wider fan: best 4 straight along x, then 3 and 0 at +-45 degrees (3 met
+    # first: directed edges to higher ids come first)
+    star = np.array(
+        [[1.0, 1.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 0.0], [1.0, -1.0, 0.0], [2.0, 0.0, 0.0]]
+    )
+    tris = np.array([[2, 3, 4], [2, 4, 0], [2, 0, 1]])
+    got = frame_neighbors(star, tris)
+    np.testing.assert_array_equal(got, naive_neighbors(star, tris))
+    assert got[2].tolist() == [4, 0]
+    bad = fan.copy()
+    bad[3, 0] = np.nan
+    with pytest.raises(NonFiniteError):
+        frame_neighbors(bad, np.array([[1, 2, 0], [0, 2, 3]]))

@@ -238,3 +238,20 @@ def test_factorize_loads_its_kernels_on_the_callers_thread(tmp_path):
     )
     seen = eval(out.stdout.strip())  # one entry per worker thread started (one or two)
     assert seen and all(entry == (1, 1) for entry in seen), out.stdout + out.stderr
+
+
+def test_solves_with_unequal_row_and_column_permutations():
+    """Zero diagonal entries make SuperLU pivot off the diagonal, so its row and column
+    permutations differ: ``solve`` and ``solve_frames`` must apply each where it belongs
+    (the SPD systems of the library never show it: swapping them went unseen there)."""
+    d = np.diag(np.arange(1.0, 13.0))
+    d[0, 0] = d[1, 1] = 0.0
+    d[0, 1] = d[1, 0] = 1.0
+    d[0, 5], d[4, 0] = 3.0, 2.0
+    fac = SPDFactor(sp.csc_matrix(d))
+    rhs = np.random.default_rng(4).normal(size=(12, 3))
+    np.testing.assert_allclose(fac.solve(rhs), np.linalg.solve(d, rhs), atol=1e-12)
+    assert not np.array_equal(fac._perm_r, fac._perm_c) and fac._order is None
+    frames = np.stack([rhs, 2 * rhs])  # (2, 12, 3)
+    want = np.stack([np.linalg.solve(d, f) for f in frames])
+    np.testing.assert_allclose(fac.solve_frames(frames), want, atol=1e-12)
