@@ -204,13 +204,11 @@ class SmoothedDisplacements:
 
     def _smooth_all(self, smoother: TaubinSmoother, d: np.ndarray) -> None:
         """The dense path: every frame smoothed, in place, a chunk at a time."""
-        for start in range(0, d.shape[0], self._chunk):
-            part = d[start : start + self._chunk]
-            part[:] = smoother(part.transpose(0, 2, 1)).transpose(0, 2, 1)
+        self._apply(smoother, d.reshape(-1, d.shape[2]))
         self._dense = d
 
     def _apply(self, smoother: TaubinSmoother, rows: np.ndarray) -> np.ndarray:
-        """``smoother`` on coordinate rows ``(3n, V)`` float64, in place, a chunk at a time."""
+        """``smoother`` on coordinate rows ``(3n, V)``, in place, a chunk of frames at a time."""
         n_vertices = rows.shape[1]
         step = 3 * self._chunk
         for start in range(0, rows.shape[0], step):

@@ -38,11 +38,11 @@ from faceretarget.geometry.deformation_gradients import DeformationTransfer
 from faceretarget.geometry.factorized import SPDFactor, factorize
 from faceretarget.geometry.local_frames import frame_neighbors
 from faceretarget.geometry.mesh_ops import face_areas, unique_edges, vertex_adjacency
-from faceretarget.geometry.smoothing import SmoothedDisplacements, TaubinSmoother
+from faceretarget.geometry.smoothing import SmoothedDisplacements
 
 from .alignment import frame_chunks
 from .bases import BasisSpace, blend, blend_flat, select_bases, selection_vertices
-from .multiscale import MultiScale
+from .multiscale import MultiScale, filter_pair
 
 __all__ = [
     "CoatingModel",
@@ -212,11 +212,7 @@ class CoatingModel:
         canonical = (src - tgt.mean(axis=0)) @ canonical_axes(tgt)
         neighbors = frame_neighbors(canonical, self.triangles)
         # one topology: one smoothing filter and its adjoint, both references in one call
-        n = src.shape[0]
-        smoother = TaubinSmoother(self.triangles, n, iterations=iterations, dtype=np.float32)
-        adjoint = TaubinSmoother(
-            self.triangles, n, iterations=iterations, dtype=np.float64, adjoint=True
-        )
+        smoother, adjoint = filter_pair(self.triangles, src.shape[0], iterations)
         smooth_src, smooth_tgt = smoother(np.stack([src, tgt]))
         self.source = MultiScale(
             src,

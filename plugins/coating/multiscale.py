@@ -30,11 +30,24 @@ from faceretarget.geometry.laplacian import cotangent_laplacian, uniform_laplaci
 from faceretarget.geometry.local_frames import VertexFrames, frame_neighbors, to_local, to_world
 from faceretarget.geometry.smoothing import TaubinSmoother
 
-__all__ = ["MultiScale", "FLOAT32_CONDITION"]
+__all__ = ["MultiScale", "FLOAT32_CONDITION", "filter_pair"]
 
 #: Largest bound on the Poisson system's condition number at which ``solve_dtype="auto"``
 #: solves in float32 (relative error ~cond x 6e-8 of the detail offsets: at most ~6e-6).
 FLOAT32_CONDITION = 100.0
+
+
+def filter_pair(
+    triangles: np.ndarray, n_vertices: int, iterations: int, smooth_dtype=np.float32
+) -> tuple[TaubinSmoother, TaubinSmoother]:
+    """The smoothing filter ``G`` of a topology (``smooth_dtype`` kernel) and its adjoint ``G^T``
+    (float64: it forms the right-hand sides of the basis weights)."""
+    return (
+        TaubinSmoother(triangles, n_vertices, iterations=iterations, dtype=smooth_dtype),
+        TaubinSmoother(
+            triangles, n_vertices, iterations=iterations, dtype=np.float64, adjoint=True
+        ),
+    )
 
 
 class MultiScale:
@@ -90,8 +103,7 @@ class MultiScale:
         self.n_vertices = n
         self.triangles = tri
         if shared is None:
-            smoother = TaubinSmoother(tri, n, iterations=iterations, dtype=smooth_dtype)
-            adjoint = TaubinSmoother(tri, n, iterations=iterations, dtype=np.float64, adjoint=True)
+            smoother, adjoint = filter_pair(tri, n, iterations, smooth_dtype)
             smooth_reference = smoother(ref)
         else:
             smoother, adjoint, smooth_reference = shared
