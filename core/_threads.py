@@ -131,7 +131,7 @@ def worker_count(n_tasks: int) -> int:
 
 def in_threads(tasks: Sequence[Callable[[], _R]], workers: int) -> list[_R]:
     """Run ``tasks`` (work that releases the GIL: numba ``nogil`` kernels, one-thread BLAS,
-    SuperLU) on ``workers`` threads, in order on the calling thread when ``workers <= 1``.
+    QDLDL) on ``workers`` threads, in order on the calling thread when ``workers <= 1``.
     Returns their results in order; the first error is raised once all have ended."""
     if workers <= 1 or len(tasks) <= 1:
         return [task() for task in tasks]

@@ -12,7 +12,7 @@ with c_i the closest target point of x_i (boundary vertices: the closest point o
 matched target boundary loop), w_i in {0, 1} rejecting matches that face away, lie on
 the target's border or are far outliers, L the uniform graph Laplacian of the source
 and x0 the warped source. Each solve factorizes the sparse SPD system once for the three
-coordinates (SuperLU through :class:`~faceretarget.geometry.factorized.SPDFactor`).
+coordinates (an LDL^T factorization through :class:`~faceretarget.geometry.factorized.SPDFactor`).
 
 The fit does not depend on units or placement: both meshes are first brought into one
 canonical frame (each centred on its landmarks' centroid and scaled to unit RMS landmark

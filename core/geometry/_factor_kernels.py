@@ -1,7 +1,7 @@
-"""numba triangular solves with many right-hand sides, and the extraction of the strict
-triangles they read (compiled lazily, cached).
+"""numba triangular solves with many right-hand sides (compiled lazily, cached).
 
-The factors are CSC matrices from SuperLU; right-hand sides are row-major ``(n, k)``
+The factors are the strict triangles of an LDL^T factorization as CSC matrices (unit lower
+``L``, upper ``U = D L^T`` with its diagonal apart); right-hand sides are row-major ``(n, k)``
 blocks so each factor entry updates a contiguous run of ``k`` values. Columns are split
 into blocks solved in parallel; each column's arithmetic is the same whatever the
 split, so results do not depend on the number of threads.
@@ -11,35 +11,6 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
-
-
-@nb.njit(cache=True, nogil=True)
-def strict_triangle(
-    indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, lower: bool, index_like: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(indptr, indices, values)`` of the entries of a CSC matrix strictly below
-    (``lower``) or above its diagonal, in their stored order; indices in the dtype of
-    ``index_like`` (an empty array). Two passes over the entries, no temporaries."""
-    n = indptr.shape[0] - 1
-    ptr = np.zeros(n + 1, dtype=np.int64)
-    for j in range(n):
-        count = 0
-        for p in range(indptr[j], indptr[j + 1]):
-            i = indices[p]
-            if (lower and i > j) or (not lower and i < j):
-                count += 1
-        ptr[j + 1] = ptr[j] + count
-    rows = np.empty(ptr[n], dtype=index_like.dtype)
-    values = np.empty(ptr[n], dtype=np.float64)
-    k = 0
-    for j in range(n):
-        for p in range(indptr[j], indptr[j + 1]):
-            i = indices[p]
-            if (lower and i > j) or (not lower and i < j):
-                rows[k] = i
-                values[k] = data[p]
-                k += 1
-    return ptr, rows, values
 
 
 @nb.njit(parallel=True, cache=True)

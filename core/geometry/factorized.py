@@ -1,15 +1,16 @@
 """Sparse symmetric positive-definite factorizations reused for many right-hand sides.
 
-:class:`SPDFactor` factorizes once with SuperLU (symmetric minimum-degree ordering,
-diagonal pivoting) and solves blocks of right-hand sides with numba triangular solves
-that read each factor entry once per block: at 80K unknowns a block of 96 columns costs
-about 4 ms a column instead of 6-12 ms through SuperLU's own solve. Never use
+:class:`SPDFactor` factorizes once as ``L D L^T`` (QDLDL, approximate minimum-degree
+ordering: half the work and memory of an LU, no pivoting needed for a positive-definite
+matrix) and solves blocks of right-hand sides with numba triangular solves that read each
+factor entry once per block: at 80K unknowns a block of 96 columns costs about 4 ms a
+column instead of 6-12 ms through SuperLU's own solve. Never use
 ``scipy.sparse.linalg.spsolve`` on big systems (see PERF_NOTES): it refactorizes every
 call and can exhaust memory without raising.
 
 A factor pickles as its matrix and is refactorized on first use after unpickling. Only
-the factors' arrays are kept (not SuperLU's object), in the strict-triangle CSC form the
-solves read.
+the factors' arrays are kept (not the factorization's solver object), in the
+strict-triangle CSC form the solves read.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
-import scipy.sparse.linalg as sla
 
 from .._threads import in_threads, worker_count
 from ..errors import ConfigError, NumericalError, ShapeError
@@ -38,7 +38,8 @@ class SPDFactor:
 
     Parameters
     ----------
-    matrix : (n, n) scipy sparse, symmetric positive definite
+    matrix : (n, n) scipy sparse, symmetric positive definite (else NumericalError on
+        first use)
     what : str
         Name used in error messages ("the Poisson system of the target mesh").
     frames_dtype : float64 (default) or float32
@@ -46,8 +47,7 @@ class SPDFactor:
         the factor's memory traffic (~1.3x faster at 80K unknowns) at a relative error of
         about ``cond(A) * 6e-8``: only for well-conditioned systems, such as a screened
         uniform Laplacian (condition number ~20). float64 is used anyway when a factor value
-        does not fit float32, or without symmetric pivoting (then :meth:`solve_frames` goes
-        through :meth:`solve`).
+        does not fit float32.
     """
 
     def __init__(
@@ -57,7 +57,7 @@ class SPDFactor:
         what: str = "matrix",
         frames_dtype: npt.DTypeLike = np.float64,
     ) -> None:
-        # a canonical copy: SuperLU sorts and sums in place, and the caller's matrix stays as given
+        # a canonical copy (sorted, duplicates summed); the caller's matrix stays as given
         m = sp.csc_matrix(matrix, dtype=np.float64, copy=True)
         if m.shape[0] != m.shape[1]:
             raise ShapeError(f"{what}: expected a square matrix, got {m.shape}")
@@ -77,9 +77,9 @@ class SPDFactor:
         return int(self.matrix.shape[0])
 
     def _factor(self) -> None:
-        """Factorize (once). Only the factors' arrays are kept, not SuperLU's object: scipy
-        frees that object's memory only on the thread that created it (scipy issue 15921),
-        and :func:`factorize` creates it on a worker thread."""
+        """Factorize (once): ``A[p][:, p] = (I + L) diag(d) (I + L)^T`` by QDLDL with an AMD
+        ordering. Only the factors' arrays are kept, in the unit-lower / upper strict-triangle
+        CSC form the solves read (``U = diag(d) L^T``)."""
         if self._ready:
             return
         m = self.matrix
@@ -87,31 +87,37 @@ class SPDFactor:
             raise NumericalError(
                 f"{self.what}: the matrix holds NaN or infinite entries; check the input geometry"
             )
-        try:
-            lu = sla.splu(
-                m,
-                permc_spec="MMD_AT_PLUS_A",
-                diag_pivot_thresh=0.0,
-                options={"SymmetricMode": True},
+        diagonal = m.diagonal()
+        if not np.all(diagonal > 0):
+            i = int(np.argmin(diagonal > 0))
+            raise NumericalError(
+                f"{self.what}: not positive definite (diagonal entry {i} is {diagonal[i]:.3g}); "
+                "the system is singular or was assembled wrong"
             )
+        try:
+            low, d, order = _ldl(sp.triu(m, format="csc"))
         except RuntimeError as exc:
             raise NumericalError(
                 f"{self.what}: factorization failed ({exc}); the system is singular (a mesh part without anchor?)"
             ) from None
-        try:
-            low = lu.L.tocsc()
-            up = lu.U.tocsc()
-            perm_r, perm_c = lu.perm_r.astype(np.int64), lu.perm_c.astype(np.int64)
-        finally:
-            del lu  # freed here, on the thread that made it
-        diag = up.diagonal()
-        if not np.all(np.isfinite(diag)) or np.any(diag == 0):
+        if not (np.all(np.isfinite(d)) and np.all(d > 0)):
             raise NumericalError(
-                f"{self.what}: zero pivot in the factorization; the system is singular"
+                f"{self.what}: not positive definite (pivot {float(np.min(d)):.3g}); the system is "
+                "singular (a mesh part without anchor?)"
             )
-        self._l = _strict(low, lower=True)
-        self._u = _strict(up, lower=False)
-        self._u_diag = diag.astype(np.float64)
+        index = np.int32 if self.n < 2**31 else np.int64
+        rows = low.tocsr()  # row j of L = column j of L^T
+        self._l = (
+            low.indptr.astype(np.int64),
+            low.indices.astype(index, copy=False),
+            low.data.astype(np.float64, copy=False),
+        )
+        self._u = (
+            rows.indptr.astype(np.int64),
+            rows.indices.astype(index, copy=False),
+            rows.data * d[rows.indices],  # U[i, j] = d_i L[j, i]
+        )
+        self._u_diag = np.asarray(d, dtype=np.float64)
         # the values solve_frames reads, in its precision (the same arrays for float64); a
         # pivot that float32 cannot hold (overflow, underflow to 0) keeps float64
         values = tuple(
@@ -119,14 +125,7 @@ class SPDFactor:
         )
         usable = all(np.isfinite(a).all() for a in values) and bool(np.all(values[2] != 0))
         self._frame_values = values if usable else (self._l[2], self._u[2], self._u_diag)
-        self._perm_r = perm_r
-        self._perm_c = perm_c
-        # symmetric pivoting (the normal case here): pivot i is original index order[i]
-        self._order = (
-            np.argsort(self._perm_r).astype(np.int64)
-            if np.array_equal(self._perm_r, self._perm_c)
-            else None
-        )
+        self._order = np.asarray(order, dtype=np.int64)  # pivot i is original index order[i]
         self._ready = True
         probe = np.cos(np.arange(self.n, dtype=np.float64))
         res = m @ self.solve(probe) - probe
@@ -153,10 +152,10 @@ class SPDFactor:
         cols = b.reshape(self.n, -1)
         blocks = max(1, min(get_num_threads(), cols.shape[1] // _MIN_BLOCK_COLUMNS))
         l, u = self._l, self._u
-        y = np.empty((self.n, cols.shape[1]), dtype=np.float64)
-        y[self._perm_r] = cols
+        y = cols[self._order]
         lu_solve(l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, y, blocks)
-        x = y[self._perm_c]
+        x = np.empty_like(y)
+        x[self._order] = y
         return x[:, 0] if b.ndim == 1 else x
 
     def solve_frames(self, rhs: np.ndarray, add: np.ndarray | None = None) -> np.ndarray:
@@ -169,10 +168,6 @@ class SPDFactor:
             )
         a = np.zeros_like(r) if add is None else np.ascontiguousarray(add, dtype=np.float64)
         self._factor()
-        if self._order is None:
-            cols = np.ascontiguousarray(r.transpose(1, 0, 2).reshape(self.n, -1))
-            x = self.solve(cols).reshape(self.n, r.shape[0], r.shape[2]).transpose(1, 0, 2)
-            return a + x
         from numba import get_num_threads
 
         from ._factor_kernels import lu_solve_frames
@@ -208,26 +203,19 @@ def _load_kernels() -> None:
         _kernels_loaded = True
 
 
-def _strict(
-    m: sp.csc_matrix | sp.csc_array, *, lower: bool
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(indptr, indices, values) of the entries of CSC ``m`` strictly below (``lower``) or
-    above the diagonal; int32 indices where they fit (half the index traffic of the solves)."""
-    from ._factor_kernels import strict_triangle
+def _ldl(upper: sp.csc_matrix) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray]:
+    """QDLDL of the matrix whose upper triangle (diagonal included) is ``upper``: strictly
+    lower ``L`` (CSC), pivots ``d (n,)`` and the AMD ordering ``p (n,)`` with
+    ``A[p][:, p] = (I + L) diag(d) (I + L)^T``. The solver object is not kept."""
+    import qdldl
 
-    index = np.int32 if m.shape[0] < 2**31 else np.int64
-    return strict_triangle(
-        m.indptr.astype(np.int64, copy=False),
-        m.indices,
-        m.data.astype(np.float64, copy=False),
-        lower,
-        np.empty(0, dtype=index),
-    )
+    low, d, order = qdldl.Solver(upper).factors()
+    return low, np.asarray(d), np.asarray(order)
 
 
 def factorize(factors: Iterable[SPDFactor]) -> None:
     """Factorize several matrices now, side by side on ``_threads.worker_count`` threads
-    (SuperLU and the factor extraction release the GIL: two factorizations of 80K unknowns
+    (QDLDL and the factor extraction release the GIL: two factorizations of 80K unknowns
     take about the time of one on two cores). The first error is raised."""
     todo = list({id(f): f for f in factors if not f._ready}.values())  # each once
     if len(todo) > 1:
