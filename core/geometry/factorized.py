@@ -1,12 +1,12 @@
 """Sparse symmetric positive-definite factorizations reused for many right-hand sides.
 
 :class:`SPDFactor` factorizes once as ``L D L^T`` (QDLDL, approximate minimum-degree
-ordering: half the work and memory of an LU, no pivoting needed for a positive-definite
-matrix) and solves blocks of right-hand sides with numba triangular solves that read each
-factor entry once per block: at 80K unknowns a block of 96 columns costs about 4 ms a
-column instead of 6-12 ms through SuperLU's own solve. Never use
-``scipy.sparse.linalg.spsolve`` on big systems (see PERF_NOTES): it refactorizes every
-call and can exhaust memory without raising.
+ordering; no pivoting is needed for a positive-definite matrix, and only one triangle is
+computed: about half the work of an LU) and solves blocks of right-hand sides with numba
+triangular solves that read each factor entry once per block (``L`` and ``U = D L^T``,
+stored apart so that both sweeps read columns). Never use
+``scipy.sparse.linalg.spsolve`` on big systems: it refactorizes every call and can exhaust
+memory without raising.
 
 A factor pickles as its matrix and is refactorized on first use after unpickling. Only
 the factors' arrays are kept (not the factorization's solver object), in the
@@ -103,7 +103,7 @@ class SPDFactor:
         if not (np.all(np.isfinite(d)) and np.all(d > 0)):
             raise NumericalError(
                 f"{self.what}: not positive definite (pivot {float(np.min(d)):.3g}); the system is "
-                "singular (a mesh part without anchor?)"
+                "indefinite or singular (a mesh part without anchor?)"
             )
         index = np.int32 if self.n < 2**31 else np.int64
         rows = low.tocsr()  # row j of L = column j of L^T
@@ -209,14 +209,14 @@ def _ldl(upper: sp.csc_matrix) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray]:
     ``A[p][:, p] = (I + L) diag(d) (I + L)^T``. The solver object is not kept."""
     import qdldl
 
-    low, d, order = qdldl.Solver(upper).factors()
+    low, d, order = qdldl.Solver(upper, upper=True).factors()
     return low, np.asarray(d), np.asarray(order)
 
 
 def factorize(factors: Iterable[SPDFactor]) -> None:
     """Factorize several matrices now, side by side on ``_threads.worker_count`` threads
-    (QDLDL and the factor extraction release the GIL: two factorizations of 80K unknowns
-    take about the time of one on two cores). The first error is raised."""
+    (QDLDL's ordering and factorization, the bulk of the time, release the GIL; building
+    the factors' arrays mostly does not). The first error is raised."""
     todo = list({id(f): f for f in factors if not f._ready}.values())  # each once
     if len(todo) > 1:
         _load_kernels()
