@@ -397,11 +397,13 @@ class DeformationTransfer:
         r = np.asarray(rhs, dtype=np.float64)
         n_frames = r.shape[1] // 3
         x = np.zeros((self.n_vertices, r.shape[1]))
-        x[self.free] = self.factor.solve(r[self.free])
+        self.factor.solve_rows(r, self.free, x)
         out = x.reshape(self.n_vertices, n_frames, 3).transpose(1, 0, 2)
         return self._set_gauge(out, mean_displacement)
 
     def _set_gauge(self, out: np.ndarray, mean_displacement: np.ndarray | None) -> np.ndarray:
+        """Shift ``out (F, V, 3)`` (solve_rhs' scratch) in place so that each component's
+        gauge-weighted mean displacement is ``mean_displacement`` (default zero)."""
         means = self.component_means(out, reference=self.reference)
         want = (
             np.zeros_like(means)
@@ -409,7 +411,8 @@ class DeformationTransfer:
             else np.asarray(mean_displacement, dtype=np.float64).reshape(means.shape)
         )
         shift = want - means
-        return out + (shift if self.n_components == 1 else shift[:, self.labels, :])
+        out += shift if self.n_components == 1 else shift[:, self.labels, :]
+        return out
 
     def component_means(
         self, displacement: np.ndarray, *, reference: np.ndarray | None = None

@@ -252,3 +252,24 @@ def test_the_ordering_is_applied_on_both_sides():
     frames = np.stack([rhs, 2 * rhs])
     want = np.stack([np.linalg.solve(m.toarray(), f) for f in frames])
     np.testing.assert_allclose(fac.solve_frames(frames), want, atol=1e-12)
+
+
+def test_solve_rows_is_solve_on_the_rows_in_place():
+    """``solve_rows(rhs, rows, out)`` is ``out[rows] = solve(rhs[rows])`` bit for bit, and
+    leaves the other rows of ``out`` alone (the deformation transfer's free vertices)."""
+    m = _system(11)
+    fac = SPDFactor(m)
+    rng = np.random.default_rng(5)
+    rows = np.sort(rng.choice(fac.n + 9, fac.n, replace=False))  # 9 rows are not solved for
+    rhs = rng.normal(size=(fac.n + 9, 6))
+    out = np.full((fac.n + 9, 6), 7.0)
+    got = fac.solve_rows(rhs, rows, out)
+    assert got is out
+    want = np.full_like(out, 7.0)
+    want[rows] = fac.solve(rhs[rows])
+    np.testing.assert_array_equal(out, want)
+    np.testing.assert_allclose(m @ out[rows], rhs[rows], atol=1e-10)
+    with pytest.raises(ShapeError, match="solve_rows"):
+        fac.solve_rows(rhs, rows[:-1], out)
+    with pytest.raises(ShapeError, match="solve_rows"):
+        fac.solve_rows(rhs, rows, out.astype(np.float32))
