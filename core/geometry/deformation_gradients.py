@@ -54,10 +54,6 @@ __all__ = [
     "deformation_transfer",
 ]
 
-#: Bytes of deformation-gradient columns :meth:`DeformationTransfer.transfer` forms at a time
-#: (each mesh's ``(3T, 3)`` float64 block is ``72 T`` bytes).
-_GRADIENT_BLOCK_BYTES = 32 * 2**20
-
 
 def check_triangles(
     vertices: np.ndarray, triangles: np.ndarray, what: str = "deformation gradients"
@@ -511,7 +507,7 @@ class DeformationTransfer:
         # the gradient columns (3T, 3) a mesh, 11 MB at 160K triangles, a few meshes at a
         # time: one (3T, 3F) block for 28 meshes (307 MB) cost 0.3 s more in fresh pages
         n = dfm.shape[0]
-        per = max(1, _GRADIENT_BLOCK_BYTES // (72 * max(1, self.triangles.shape[0])))
+        per = max(1, config.SCRATCH_BLOCK_BYTES // (72 * max(1, self.triangles.shape[0])))
         rhs = np.empty((self.n_vertices, 3 * n))
         for start in range(0, n, per):
             sl = slice(start, min(n, start + per))

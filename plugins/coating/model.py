@@ -34,6 +34,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
+from faceretarget import config
 from faceretarget.geometry.deformation_gradients import DeformationTransfer
 from faceretarget.geometry.factorized import SPDFactor, factorize
 from faceretarget.geometry.local_frames import frame_neighbors
@@ -303,10 +304,12 @@ class CoatingModel:
         # they keep ~7 digits of the motion, where absolute positions kept ~7 of the face
         ref = self.source.reference
         offset = self.source.smooth_reference - self.source_center
+        # frames read a step: their float64 copies stay below glibc's fresh-page size
+        step = min(chunk, max(1, config.SCRATCH_BLOCK_BYTES // (24 * self.n_vertices)))
         if candidates.size * self.n_vertices * 3 * 4 <= CANDIDATE_CACHE_BYTES:
             # all candidates at once, through their column space
             moved = np.empty((candidates.size, 3, self.n_vertices), dtype=np.float32)
-            for sl in frame_chunks(candidates.size, chunk):
+            for sl in frame_chunks(candidates.size, step):
                 picked = candidates[sl]
                 local = np.asarray(local_of(picked, np.asarray(vertices[picked])), dtype=np.float64)
                 if not local.flags.writeable or np.may_share_memory(local, vertices):
@@ -319,7 +322,7 @@ class CoatingModel:
         else:
             smoothed = None
             samples = np.empty((candidates.size, 3 * ids.size))
-            for sl in frame_chunks(candidates.size, chunk):
+            for sl in frame_chunks(candidates.size, step):
                 picked = candidates[sl]
                 smooth = self.source.smooth(local_of(picked, np.asarray(vertices[picked])) - ref)
                 samples[sl] = (smooth[:, ids] + offset[ids]).reshape(smooth.shape[0], -1)

@@ -164,3 +164,31 @@ def test_blend_is_the_centred_sum_without_centring_the_bases():
     np.testing.assert_array_equal(
         blend(bases, center, np.zeros((1, 4)))[0], np.tile(center, (7, 1))
     )
+
+
+def test_candidates_are_read_in_steps_below_the_scratch_size(monkeypatch):
+    """The candidate frames are read and moved a few at a time so that their float64
+    copies stay below ``config.SCRATCH_BLOCK_BYTES`` (glibc serves larger blocks from fresh
+    pages every step): 5 frames a step here instead of ``chunk_frames`` = 16, on both
+    paths, with the same bases bit for bit."""
+    from faceretarget import config
+    from faceretarget.plugins.coating import model
+
+    low, _ = _fitted(monkeypatch, 2**30)
+    direct, _ = _fitted(monkeypatch, 0)
+    m = low.model_.n_vertices
+    monkeypatch.setattr(config, "SCRATCH_BLOCK_BYTES", 5 * 24 * m)
+    steps = []
+    chunks = model.frame_chunks
+
+    def counted(n, step):
+        steps.append(step)
+        return chunks(n, step)
+
+    monkeypatch.setattr(model, "frame_chunks", counted)
+    low_small, _ = _fitted(monkeypatch, 2**30)
+    direct_small, calls = _fitted(monkeypatch, 0)
+    assert steps == [5, 5], steps
+    assert calls[1:9] == [5] * 8, calls
+    np.testing.assert_array_equal(low_small.model_.source_bases, low.model_.source_bases)
+    np.testing.assert_array_equal(direct_small.model_.source_bases, direct.model_.source_bases)

@@ -215,7 +215,7 @@ def test_transfer_forms_the_gradient_columns_a_few_meshes_at_a_time(monkeypatch)
     monkeypatch.setattr(
         dg, "gradient_columns", lambda *a, **k: calls.append(a[1].shape[0]) or columns(*a, **k)
     )
-    monkeypatch.setattr(dg, "_GRADIENT_BLOCK_BYTES", 2 * 72 * t.shape[0])  # two meshes a block
+    monkeypatch.setattr(dg.config, "SCRATCH_BLOCK_BYTES", 2 * 72 * t.shape[0])  # two meshes a block
     blocks = dt.transfer(v, meshes, source_feature_lines={"mouth": chain})
     assert calls == [2, 2, 1]
     np.testing.assert_array_equal(blocks, whole)
