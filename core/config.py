@@ -40,7 +40,8 @@ LOW_RANK_TOL = 1e-6
 LOW_RANK_MAX_SHARE = 0.5
 LOW_RANK_MAX_ROWS = 1500
 
-#: Largest temporary a loop over chunks of frames allocates per step: glibc serves blocks of
+#: Largest temporary of one step of the chunked loops that use it (the coating fit's
+#: candidate frames, the deformation transfer's gradient blocks): glibc serves blocks of
 #: 32 MiB and more from fresh pages every time (the kernel zeroes them: 18-23 ms to allocate
 #: and fill 59 MiB on the project's machine), smaller ones from memory freed by the step
 #: before (1.2-2.5 ms for 29 MiB).

@@ -158,7 +158,14 @@ class SPDFactor:
         (n,)`` distinct row indices: what ``out[rows] = solve(rhs[rows])`` does, with one
         gather and one scatter instead of three copies of the right-hand sides."""
         self._factor()
-        idx = np.asarray(rows, dtype=np.int64)
+        idx = np.asarray(rows)
+        if idx.dtype.kind not in "iu" or idx.shape != (self.n,):
+            raise ShapeError(
+                f"{self.what}: solve_rows needs ({self.n},) integer row indices, got {idx.dtype} {idx.shape}"
+            )
+        idx = idx.astype(np.int64, copy=False)
+        if np.unique(idx).size != idx.size:
+            raise ShapeError(f"{self.what}: solve_rows needs distinct rows, some are repeated")
         b = np.asarray(rhs)
         if (
             idx.shape != (self.n,)

@@ -273,3 +273,12 @@ def test_solve_rows_is_solve_on_the_rows_in_place():
         fac.solve_rows(rhs, rows[:-1], out)
     with pytest.raises(ShapeError, match="solve_rows"):
         fac.solve_rows(rhs, rows, out.astype(np.float32))
+    single = np.zeros_like(out)  # other dtypes are solved in float64, as by solve
+    fac.solve_rows(rhs.astype(np.float32), rows, single)
+    np.testing.assert_array_equal(single[rows], fac.solve(rhs.astype(np.float32)[rows]))
+    mask = np.zeros(fac.n + 9, dtype=bool)
+    mask[rows] = True
+    with pytest.raises(ShapeError, match="integer row indices"):
+        fac.solve_rows(rhs, mask[: fac.n], out)  # a boolean mask is not row indices
+    with pytest.raises(ShapeError, match="distinct rows"):
+        fac.solve_rows(rhs, np.r_[rows[:-1], rows[0]], out)
