@@ -47,6 +47,12 @@ LOW_RANK_MAX_ROWS = 1500
 #: before (1.2-2.5 ms for 29 MiB).
 SCRATCH_BLOCK_BYTES = 24 * 2**20
 
+
+def scratch_items(item_bytes: int) -> int:
+    """How many items of ``item_bytes`` one step of such a loop takes (at least one)."""
+    return max(1, SCRATCH_BLOCK_BYTES // max(1, int(item_bytes)))
+
+
 #: Head-motion estimation (``geometry.head_motion``): rigidity weights ``1 / (eps^2 + m_i^2)``
 #: of the markers, ``m_i`` = RMS displacement of marker i over the expression basis, with
 #: ``eps`` this fraction of the face size (RMS radius of the neutral markers; 0.02 = 1.2 mm

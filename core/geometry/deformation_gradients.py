@@ -507,7 +507,7 @@ class DeformationTransfer:
         # the gradient columns (3T, 3) a mesh, 11 MB at 160K triangles, a few meshes at a
         # time: one (3T, 3F) block for 28 meshes (307 MB) cost 0.3 s more in fresh pages
         n = dfm.shape[0]
-        per = max(1, config.SCRATCH_BLOCK_BYTES // (72 * max(1, self.triangles.shape[0])))
+        per = config.scratch_items(72 * self.triangles.shape[0])
         rhs = np.empty((self.n_vertices, 3 * n))
         for start in range(0, n, per):
             sl = slice(start, min(n, start + per))

@@ -146,10 +146,7 @@ class SPDFactor:
                 f"{self.what}: right-hand side must be ({self.n},) or ({self.n}, k), got {b.shape}"
             )
         cols = b.reshape(self.n, -1)
-        y = cols[self._order]
-        self._solve_pivoted(y)
-        x = np.empty_like(y)
-        x[self._order] = y
+        x = self._solve_at(cols, self._order, np.empty(cols.shape))
         return x[:, 0] if b.ndim == 1 else x
 
     def solve_rows(self, rhs: np.ndarray, rows: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -167,33 +164,27 @@ class SPDFactor:
         if np.unique(idx).size != idx.size:
             raise ShapeError(f"{self.what}: solve_rows needs distinct rows, some are repeated")
         b = np.asarray(rhs)
-        if (
-            idx.shape != (self.n,)
-            or b.ndim != 2
-            or out.ndim != 2
-            or out.shape != b.shape
-            or out.dtype != np.float64
-        ):
+        if b.ndim != 2 or out.ndim != 2 or out.shape != b.shape or out.dtype != np.float64:
             raise ShapeError(
-                f"{self.what}: solve_rows needs rows ({self.n},) and float64 out shaped like the "
-                f"2-D rhs, got rows {idx.shape}, rhs {b.shape}, out {out.dtype} {out.shape}"
+                f"{self.what}: solve_rows needs a float64 out shaped like the 2-D rhs, "
+                f"got rhs {b.shape}, out {out.dtype} {out.shape}"
             )
-        pivoted = idx[self._order]  # pivot i is row rows[order[i]]
-        y = np.ascontiguousarray(b[pivoted], dtype=np.float64)
-        self._solve_pivoted(y)
-        out[pivoted] = y
-        return out
+        return self._solve_at(b, idx[self._order], out)  # pivot i is row rows[order[i]]
 
-    def _solve_pivoted(self, y: np.ndarray) -> None:
-        """The triangular solves, in place, on right-hand sides ``y (n, k)`` already in pivot
-        order (C-contiguous float64)."""
+    def _solve_at(self, rhs: np.ndarray, pivoted: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """``out[pivoted] = x`` for ``A x = rhs[pivoted]`` in pivot order (``pivoted[i]``: the
+        row of ``rhs`` and ``out`` of pivot i): one gather, the triangular solves in place on
+        it, one scatter; returns ``out``."""
         from numba import get_num_threads
 
         from ._factor_kernels import lu_solve
 
+        y = np.ascontiguousarray(rhs[pivoted], dtype=np.float64)
         blocks = max(1, min(get_num_threads(), y.shape[1] // _MIN_BLOCK_COLUMNS))
         l, u = self._l, self._u
         lu_solve(l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, y, blocks)
+        out[pivoted] = y
+        return out
 
     def solve_frames(self, rhs: np.ndarray, add: np.ndarray | None = None) -> np.ndarray:
         """Solve for per-frame right-hand sides ``rhs : (C, n, 3)``; returns ``add + x``

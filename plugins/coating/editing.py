@@ -308,7 +308,7 @@ class Influence:
             cols.append(f - g * totals[labels])
         self.functionals = np.stack(cols)  # (R, V)
         z = np.zeros((n, len(cols)))
-        z[dt.free] = dt.factor.solve(self.functionals[:, dt.free].T)
+        dt.factor.solve_rows(self.functionals.T, dt.free, z)
         means = np.stack(
             [
                 np.bincount(labels, weights=g * z[:, r], minlength=dt.n_components)

@@ -305,7 +305,7 @@ class CoatingModel:
         ref = self.source.reference
         offset = self.source.smooth_reference - self.source_center
         # frames read a step: their float64 copies stay below glibc's fresh-page size
-        step = min(chunk, max(1, config.SCRATCH_BLOCK_BYTES // (24 * self.n_vertices)))
+        step = min(chunk, config.scratch_items(24 * self.n_vertices))
         if candidates.size * self.n_vertices * 3 * 4 <= CANDIDATE_CACHE_BYTES:
             # all candidates at once, through their column space
             moved = np.empty((candidates.size, 3, self.n_vertices), dtype=np.float32)
