@@ -311,11 +311,9 @@ class CoatingModel:
             moved = np.empty((candidates.size, 3, self.n_vertices), dtype=np.float32)
             for sl in frame_chunks(candidates.size, step):
                 picked = candidates[sl]
-                local = np.asarray(local_of(picked, np.asarray(vertices[picked])), dtype=np.float64)
-                if not local.flags.writeable or np.may_share_memory(local, vertices):
-                    local = local.copy()
-                local -= ref
-                moved[sl] = local.transpose(0, 2, 1)
+                local = local_of(picked, np.asarray(vertices[picked]))
+                # the difference in float64, rounded once into the float32 store (no temporary)
+                np.subtract(local, ref, out=moved[sl].transpose(0, 2, 1), casting="same_kind")
                 del local
             smoothed = SmoothedDisplacements(self.source.smoother, moved, chunk=chunk)
             samples = (smoothed.at(ids) + offset[ids]).reshape(candidates.size, -1)
