@@ -6,9 +6,15 @@ import numba as nb
 import numpy as np
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(cache=True, nogil=True)
 def gradient_columns(
-    points: np.ndarray, triangles: np.ndarray, inv_ref: np.ndarray, out: np.ndarray, bad: np.ndarray
+    points: np.ndarray,
+    triangles: np.ndarray,
+    inv_ref: np.ndarray,
+    out: np.ndarray,
+    bad: np.ndarray,
+    start: int,
+    stop: int,
 ) -> None:
     """Deformation gradients of a batch of meshes, laid out as least-squares columns.
 
@@ -16,17 +22,17 @@ def gradient_columns(
     reference frames ``V^-1``. Writes ``out[3j + c, 3f + d] = Q_fj[d, c]`` with
     ``Q = [v2 - v1, v3 - v1, n / sqrt|n|] V^-1`` (Sumner & Popovic eq. 1-4), and
     ``bad[f, j] = True`` where triangle ``j`` of mesh ``f`` has (near) zero area
-    (``|n| <= 1e-12 (|e1|^2 + |e2|^2)``).
+    (``|n| <= 1e-12 (|e1|^2 + |e2|^2)``), for the items ``i = f T + j`` in ``start:stop``
+    (serial, ``nogil``: callers run blocks of items on threads).
     """
-    n_frames = points.shape[0]
     n_tri = triangles.shape[0]
-    for i in nb.prange(n_frames * n_tri):
+    e = np.empty((3, 3))
+    for i in range(start, stop):
         f = i // n_tri
         j = i - f * n_tri
         a = triangles[j, 0]
         b = triangles[j, 1]
         c = triangles[j, 2]
-        e = np.empty((3, 3))
         scale = 0.0
         for d in range(3):
             e[d, 0] = points[f, b, d] - points[f, a, d]

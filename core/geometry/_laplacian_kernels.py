@@ -1,8 +1,10 @@
 """numba kernels for Laplacians, Taubin smoothing and per-vertex frames.
 
-Compiled lazily (imported inside the functions that use them) and cached. No kernel
-uses ``fastmath`` or a parallel reduction, so results do not depend on the number of
-threads or on how many frames are batched together.
+Compiled lazily (imported inside the functions that use them) and cached. The kernels are
+serial and ``nogil``: callers run blocks of columns or frames side by side on Python
+threads (``_threads.in_blocks``). No kernel uses ``fastmath`` or a reduction across
+blocks, so results do not depend on the number of threads or on how many frames are
+batched together.
 """
 
 from __future__ import annotations
@@ -12,8 +14,9 @@ import numpy as np
 
 from ._mesh_ops_kernels import vertex_normal_sums
 
-#: Columns per thread block of :func:`taubin_frames` are a multiple of this (whole SIMD
-#: vectors: a block of 21 float32 columns ran 1.6x slower per column than one of 24).
+#: Columns per block of :func:`taubin_frames` are a multiple of this when a block has more
+#: (whole SIMD vectors: a block of 21 float32 columns ran 1.6x slower per column than one
+#: of 24).
 SIMD_COLUMNS = 8
 
 
@@ -85,7 +88,7 @@ def _umbrella_step(
                 out[i, k] += w * x[j, k]
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(cache=True, nogil=True)
 def taubin_frames(
     indptr: np.ndarray,
     indices: np.ndarray,
@@ -95,40 +98,35 @@ def taubin_frames(
     iterations: int,
     lam: float,
     mu: float,
-    n_blocks: int,
+    c0: int,
+    c1: int,
     proto: np.ndarray,
 ) -> None:
-    """Taubin smoothing of meshes ``points : (C, V, 3)`` into ``out`` (float64, same shape).
+    """Taubin smoothing of meshes ``points : (C, V, 3)`` into ``out`` (float64, same shape),
+    for the coordinate columns ``c0:c1`` of the ``3C`` (column ``k`` is coordinate ``k % 3``
+    of mesh ``k // 3``).
 
-    The ``3C`` coordinate columns are split into ``n_blocks`` blocks; each thread gathers
-    its block into a contiguous ``(V, w)`` array of ``proto.dtype`` (float32 halves the
-    memory traffic), runs every iteration on it and scatters the result: one parallel
-    region, no per-step barrier, no transposed copies outside the kernel.
+    The block is gathered into a contiguous ``(V, c1 - c0)`` array of ``proto.dtype``
+    (float32 halves the memory traffic), every iteration runs on it and the result is
+    scattered: no per-step barrier, no transposed copies outside the kernel.
     """
-    n_frames, n = points.shape[0], points.shape[1]
-    c = 3 * n_frames
-    step = (c + n_blocks - 1) // n_blocks
-    if step > SIMD_COLUMNS:  # whole vectors per block (not for a few columns: every thread works)
-        step = (step + SIMD_COLUMNS - 1) // SIMD_COLUMNS * SIMD_COLUMNS
+    n = points.shape[1]
+    if c1 <= c0:
+        return
     w = weights.astype(proto.dtype)
     lam_t = proto.dtype.type(lam)
     mu_t = proto.dtype.type(mu)
-    for b in nb.prange(n_blocks):
-        c0 = b * step
-        c1 = min(c, c0 + step)
-        if c1 <= c0:
-            continue
-        a = np.empty((n, c1 - c0), dtype=proto.dtype)
-        for i in range(n):
-            for k in range(c0, c1):
-                a[i, k - c0] = points[k // 3, i, k % 3]
-        buf = np.empty_like(a)
-        for _ in range(iterations):
-            _umbrella_step(indptr, indices, w, a, buf, lam_t)
-            _umbrella_step(indptr, indices, w, buf, a, mu_t)
-        for i in range(n):
-            for k in range(c0, c1):
-                out[k // 3, i, k % 3] = a[i, k - c0]
+    a = np.empty((n, c1 - c0), dtype=proto.dtype)
+    for i in range(n):
+        for k in range(c0, c1):
+            a[i, k - c0] = points[k // 3, i, k % 3]
+    buf = np.empty_like(a)
+    for _ in range(iterations):
+        _umbrella_step(indptr, indices, w, a, buf, lam_t)
+        _umbrella_step(indptr, indices, w, buf, a, mu_t)
+    for i in range(n):
+        for k in range(c0, c1):
+            out[k // 3, i, k % 3] = a[i, k - c0]
 
 
 @nb.njit(cache=True, inline="always")
@@ -201,7 +199,7 @@ def _rotate(
     return tx * a + bx * b + nx * c, ty * a + by * b + ny * c, tz * a + bz * b + nz * c
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(cache=True, nogil=True)
 def vertex_frames(
     points: np.ndarray,
     triangles: np.ndarray,
@@ -221,7 +219,7 @@ def vertex_frames(
     """
     n_frames, n_vertices = points.shape[0], points.shape[1]
     bad = np.zeros(n_frames, dtype=np.int64)
-    for f in nb.prange(n_frames):
+    for f in range(n_frames):
         normals = np.empty((n_vertices, 3))
         vertex_normal_sums(points[f], triangles, normals)
         count = 0
@@ -242,7 +240,7 @@ def vertex_frames(
     return bad
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(cache=True, nogil=True)
 def frame_apply(
     points: np.ndarray,
     triangles: np.ndarray,
@@ -266,7 +264,7 @@ def frame_apply(
     n_frames, n_vertices = points.shape[0], points.shape[1]
     matrix = m_ptr.shape[0] == n_vertices + 1
     bad = np.zeros(n_frames, dtype=np.int64)
-    for f in nb.prange(n_frames):
+    for f in range(n_frames):
         normals = np.empty((n_vertices, 3))
         vertex_normal_sums(points[f], triangles, normals)
         count = 0

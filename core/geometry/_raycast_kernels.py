@@ -283,7 +283,7 @@ def cast_one(
     return best_tri, best_t, best_u, best_v
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def cast_lines(
     node_lo: np.ndarray,
     node_hi: np.ndarray,
@@ -303,50 +303,8 @@ def cast_lines(
     out_u: np.ndarray,
     out_v: np.ndarray,
 ) -> None:
-    """:func:`cast_one` for every line (threads over lines); writes triangle (-1 = miss), t, u, v."""
-    for r in nb.prange(origins.shape[0]):
-        out_tri[r], out_t[r], out_u[r], out_v[r] = cast_one(
-            node_lo,
-            node_hi,
-            left,
-            right,
-            start,
-            count,
-            order,
-            vertices,
-            triangles,
-            origins[r, 0],
-            origins[r, 1],
-            origins[r, 2],
-            directions[r, 0],
-            directions[r, 1],
-            directions[r, 2],
-            max_dist[r],
-            both,
-        )
-
-
-@nb.njit(cache=True, nogil=True)
-def cast_lines_serial(
-    node_lo: np.ndarray,
-    node_hi: np.ndarray,
-    left: np.ndarray,
-    right: np.ndarray,
-    start: np.ndarray,
-    count: np.ndarray,
-    order: np.ndarray,
-    vertices: np.ndarray,
-    triangles: np.ndarray,
-    origins: np.ndarray,
-    directions: np.ndarray,
-    max_dist: np.ndarray,
-    both: bool,
-    out_tri: np.ndarray,
-    out_t: np.ndarray,
-    out_u: np.ndarray,
-    out_v: np.ndarray,
-) -> None:
-    """:func:`cast_lines` without threads (small batches: waking the pool costs more)."""
+    """:func:`cast_one` for every line; writes triangle (-1 = miss), t, u, v (serial,
+    ``nogil``: callers run blocks of lines on threads)."""
     for r in range(origins.shape[0]):
         out_tri[r], out_t[r], out_u[r], out_v[r] = cast_one(
             node_lo,
@@ -503,7 +461,7 @@ def closest_one(
     return best_tri, ba, bb, bc, best
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, nogil=True)
 def closest_points(
     node_lo: np.ndarray,
     node_hi: np.ndarray,
@@ -520,8 +478,9 @@ def closest_points(
     out_bary: np.ndarray,
     out_d2: np.ndarray,
 ) -> None:
-    """:func:`closest_one` for every point (threads over points)."""
-    for q in nb.prange(points.shape[0]):
+    """:func:`closest_one` for every point (serial, ``nogil``: callers run blocks of points
+    on threads)."""
+    for q in range(points.shape[0]):
         out_tri[q], out_bary[q, 0], out_bary[q, 1], out_bary[q, 2], out_d2[q] = closest_one(
             node_lo,
             node_hi,

@@ -130,6 +130,7 @@ def gradient_columns(
     zero-area triangles of a deformed mesh (numbered from ``first`` when the meshes are a
     slice of a longer sequence).
     """
+    from .._threads import in_blocks
     from ._deformation_kernels import gradient_columns as kernel
 
     p = np.asarray(deformed)
@@ -140,7 +141,8 @@ def gradient_columns(
     out = np.empty((3 * t.shape[0], 3 * p.shape[0]))
     bad = np.zeros((p.shape[0], t.shape[0]), dtype=np.bool_)
     inv = np.ascontiguousarray(inverse, dtype=np.float64)
-    kernel(readonly(p), readonly(t), readonly(inv), out, bad)  # read-only: one specialization
+    p, t, inv = readonly(p), readonly(t), readonly(inv)  # read-only: one specialization
+    in_blocks(kernel, p.shape[0] * t.shape[0], lambda a, b: (p, t, inv, out, bad, a, b))
     if bad.any():
         f = int(np.flatnonzero(bad.any(axis=1))[0])
         ids = np.flatnonzero(bad[f])

@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from .._threads import in_threads, worker_count
+from .._threads import in_blocks, in_threads, worker_count
 from ..errors import ConfigError, NumericalError, ShapeError
 
 __all__ = ["SPDFactor", "factorize"]
@@ -175,14 +175,17 @@ class SPDFactor:
         """``out[pivoted] = x`` for ``A x = rhs[pivoted]`` in pivot order (``pivoted[i]``: the
         row of ``rhs`` and ``out`` of pivot i): one gather, the triangular solves in place on
         it, one scatter; returns ``out``."""
-        from numba import get_num_threads
-
         from ._factor_kernels import lu_solve
 
         y = np.ascontiguousarray(rhs[pivoted], dtype=np.float64)
-        blocks = max(1, min(get_num_threads(), y.shape[1] // _MIN_BLOCK_COLUMNS))
+        k = y.shape[1]
         l, u = self._l, self._u
-        lu_solve(l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, y, blocks)
+        in_blocks(
+            lu_solve,
+            k,
+            lambda c0, c1: (l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, y, c0, c1),
+            parts=max(1, min(worker_count(k), k // _MIN_BLOCK_COLUMNS)),
+        )
         out[pivoted] = y
         return out
 
@@ -196,16 +199,16 @@ class SPDFactor:
             )
         a = np.zeros_like(r) if add is None else np.ascontiguousarray(add, dtype=np.float64)
         self._factor()
-        from numba import get_num_threads
-
         from ._factor_kernels import lu_solve_frames
 
         out = np.empty_like(r)
-        blocks = max(1, min(get_num_threads(), r.shape[0] * r.shape[2]))
         l, u = self._l, self._u
         l_val, u_val, u_diag = self._frame_values
-        lu_solve_frames(
-            self._order, l[0], l[1], l_val, u[0], u[1], u_val, u_diag, r, a, out, blocks
+        order = self._order
+        in_blocks(
+            lu_solve_frames,
+            3 * r.shape[0],
+            lambda c0, c1: (order, l[0], l[1], l_val, u[0], u[1], u_val, u_diag, r, a, out, c0, c1),
         )
         return out
 

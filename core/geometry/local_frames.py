@@ -14,7 +14,8 @@ are roughly aligned.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -84,6 +85,16 @@ def tangent_scores(
     return src, dst, score
 
 
+def _by_frames(kernel: Any, n_frames: int, args: Callable[[int, int], tuple]) -> np.ndarray:
+    """A frames kernel (``vertex_frames`` or ``frame_apply``: serial, ``nogil``, returning
+    the per-mesh count of undefined frames) run on blocks of frames side by side; the
+    counts of all ``n_frames`` meshes."""
+    from .._threads import in_blocks
+
+    counts = in_blocks(kernel, n_frames, args)
+    return np.concatenate(counts) if counts else np.zeros(0, dtype=np.int64)
+
+
 class VertexFrames:
     """Computes per-vertex frames of meshes of one topology (numba, batched over frames).
 
@@ -142,7 +153,11 @@ class VertexFrames:
 
         p, single = self._points(points, "points")
         out = np.empty(p.shape[:2] + (3, 3), dtype=np.float64)
-        self._check(kernel(p, self.triangles, self.neighbors, out))
+        self._check(
+            _by_frames(
+                kernel, len(p), lambda a, b: (p[a:b], self.triangles, self.neighbors, out[a:b])
+            )
+        )
         return out[0] if single else out
 
     def apply(self, points: np.ndarray, vectors: np.ndarray, *, inverse: bool) -> np.ndarray:
@@ -155,18 +170,13 @@ class VertexFrames:
         p, single = self._points(points, "points")
         vec = np.ascontiguousarray(np.asarray(vectors, dtype=np.float64).reshape(p.shape))
         out = np.empty(p.shape, dtype=np.float64)
-        none = np.zeros(1, dtype=np.int64)
+        none, empty = np.zeros(1, dtype=np.int64), np.zeros(1)
+        tri, nbr, inv = self.triangles, self.neighbors, bool(inverse)
         self._check(
-            frame_apply(
-                p,
-                self.triangles,
-                self.neighbors,
-                vec,
-                out,
-                bool(inverse),
-                none,
-                none,
-                np.zeros(1),
+            _by_frames(
+                frame_apply,
+                len(p),
+                lambda a, b: (p[a:b], tri, nbr, vec[a:b], out[a:b], inv, none, none, empty),
             )
         )
         return out[0] if single else out
@@ -186,17 +196,17 @@ class VertexFrames:
         p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(s.shape))
         m = sp.csr_matrix(matrix)
         out = np.empty(s.shape, dtype=np.float64)
+        ptr, ind, val = (
+            m.indptr.astype(np.int64),
+            m.indices.astype(np.int64),
+            m.data.astype(np.float64),
+        )
+        tri, nbr = self.triangles, self.neighbors
         self._check(
-            frame_apply(
-                s,
-                self.triangles,
-                self.neighbors,
-                p,
-                out,
-                True,
-                m.indptr.astype(np.int64),
-                m.indices.astype(np.int64),
-                m.data.astype(np.float64),
+            _by_frames(
+                frame_apply,
+                len(s),
+                lambda a, b: (s[a:b], tri, nbr, p[a:b], out[a:b], True, ptr, ind, val),
             )
         )
         return out[0] if single else out

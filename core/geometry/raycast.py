@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from .._threads import in_blocks, worker_count
 from .._validate import check_finite, readonly
 from ..errors import ShapeError
 
@@ -38,7 +39,7 @@ __all__ = [
     "walk_rays",
 ]
 
-#: Fewest queries for which the threaded kernels are used (below, waking the pool costs more).
+#: Fewest queries for which the kernels run on several threads (below, starting them costs more).
 PARALLEL_MIN = 2048
 #: Most triangles a walk (:func:`walk_rays`) crosses before giving up.
 WALK_STEPS = 64
@@ -268,6 +269,11 @@ def _refine_lines(
     return t, u, v
 
 
+def _parts(n: int) -> int:
+    """Blocks of ``n`` queries: one below :data:`PARALLEL_MIN`, else a thread's each."""
+    return 1 if n < PARALLEL_MIN else worker_count(n)
+
+
 class RayCaster:
     """Repeated queries on one mesh: builds the BVH / Embree scene once, on first use.
 
@@ -360,8 +366,13 @@ class RayCaster:
         n = len(o)
         tri = np.empty(n, np.int64)
         t, u, v = np.empty(n), np.empty(n), np.empty(n)
-        kernel = k.cast_lines if n >= PARALLEL_MIN else k.cast_lines_serial
-        kernel(*self.bvh.arrays, o, d, limit, bool(both), tri, t, u, v)
+        bvh, both = self.bvh.arrays, bool(both)
+        in_blocks(
+            k.cast_lines,
+            n,
+            lambda a, b: (*bvh, o[a:b], d[a:b], limit[a:b], both, tri[a:b], t[a:b], u[a:b], v[a:b]),
+            parts=_parts(n),
+        )
         return tri, t, u, v
 
     def _cast_brute(
@@ -418,7 +429,13 @@ class RayCaster:
         tri = np.empty(n, np.int64)
         bary = np.empty((n, 3))
         d2 = np.empty(n)
-        k.closest_points(*self.bvh.arrays, readonly(p), limit * limit, tri, bary, d2)
+        bvh, p, limit2 = self.bvh.arrays, readonly(p), limit * limit
+        in_blocks(
+            k.closest_points,
+            n,
+            lambda a, b: (*bvh, p[a:b], limit2[a:b], tri[a:b], bary[a:b], d2[a:b]),
+            parts=_parts(n),
+        )
         hits = _hits(self.vertices, self.triangles, tri, bary, np.sqrt(d2))
         found = tri >= 0
         a = self.vertices[self.triangles[tri[found], 0]]

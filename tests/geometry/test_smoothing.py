@@ -224,19 +224,21 @@ def test_one_mesh_blocks_equal_wider_blocks_exactly():
     smoother = TaubinSmoother(t, len(v), iterations=6)
     for dtype in (np.float32, np.float64):
         outs = []
-        for blocks in (2, 1):  # 2 blocks: one mesh each (unrolled); 1 block of 6 columns
+        for blocks in ([(0, 3), (3, 6)], [(0, 6)]):  # one mesh each (unrolled); 6 columns
             out = np.empty(frames.shape)
-            taubin_frames(
-                smoother.indptr,
-                smoother.indices,
-                smoother.weights,
-                frames,
-                out,
-                6,
-                smoother.lam,
-                smoother.mu,
-                blocks,
-                np.empty(0, dtype=dtype),
-            )
+            for c0, c1 in blocks:
+                taubin_frames(
+                    smoother.indptr,
+                    smoother.indices,
+                    smoother.weights,
+                    frames,
+                    out,
+                    6,
+                    smoother.lam,
+                    smoother.mu,
+                    c0,
+                    c1,
+                    np.empty(0, dtype=dtype),
+                )
             outs.append(out)
         np.testing.assert_array_equal(outs[0], outs[1])
