@@ -3,8 +3,9 @@
 ``compare`` and ``batch`` hand their runs to :func:`run_supervised` as groups of
 :class:`Task` (the runs of one plugin module form a group, so its numba kernels compile
 once per worker). Up to ``workers`` processes each take a group and run its tasks one by
-one; a worker moving on to another plugin's tasks is replaced first, so a failure is
-always charged to the plugin that caused it. A task that does not finish within its
+one; a worker moving on to another owner's tasks is replaced first, so a failure is
+always charged to the owner that caused it (a third-party plugin, or the built-ins
+together: :func:`plugin_owner`). A task that does not finish within its
 ``timeout`` has its worker killed with everything it started (a plugin stuck in compiled
 code, or one that started helper processes, cannot be stopped any other way) and the
 rest of its group goes on in a fresh worker. A worker that dies
@@ -61,6 +62,19 @@ _SHEPHERD = os.path.join(os.path.dirname(os.path.abspath(__file__)), "_shepherd.
 
 #: Seconds a shepherd gets to kill its worker's process tree before it is killed itself.
 _SHEPHERD_GRACE = 10.0
+
+
+#: The owner (:class:`Task`) of every built-in plugin's tasks: the built-ins are one
+#: distribution (ours: a crash there is our bug whichever built-in ran before), so they share
+#: workers; a worker starting afresh (interpreter, imports, cases, cached kernels) cost
+#: ~1-2 s of CPU, 7 times in a demo. A third-party plugin's tasks keep a worker of their own.
+BUILTIN_OWNER = ("built-in plugins",)
+
+
+def plugin_owner(plugin: str, builtin: bool) -> Hashable:
+    """The :class:`Task` owner of a plugin's tasks: :data:`BUILTIN_OWNER` for a built-in,
+    else the plugin itself (a worker never mixes two third-party plugins' tasks)."""
+    return BUILTIN_OWNER if builtin else ("plugin", plugin)
 
 
 @dataclass(frozen=True)

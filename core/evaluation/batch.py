@@ -96,6 +96,8 @@ class Job:
     #: the manifest does not say, run_batch's ``timeout`` applies
     timeout: float | None | str = RUN_DEFAULT
     replace: bool = False  # replace an existing output (run_batch(redo=True)); never an input
+    #: who answers for the job in a worker (:func:`._workers.plugin_owner`); None: its module
+    owner: Hashable = None
 
 
 @dataclass
@@ -179,6 +181,7 @@ def load_manifest(path: PathLike, *, registry: Registry | None = None) -> list[J
     from ..io._atomic import note_input
     from ..io._common import check_regular, open_regular
     from ..registry import registry as _registry
+    from ._workers import plugin_owner
     from .harness import parse_case_spec
 
     registry = registry or _registry()
@@ -297,6 +300,7 @@ def load_manifest(path: PathLike, *, registry: Registry | None = None) -> list[J
                 writer_name=writer.name,
                 origin=f"plugin {info.plugin.name} ({info.plugin.origin})",
                 timeout=timeout,
+                owner=plugin_owner(info.plugin.name, info.plugin.builtin),
             )
         )
     inputs = {str(Path(v).resolve()): j.name for j in jobs for v in job_inputs(j)}
@@ -518,7 +522,9 @@ def _supervised(
                 run_job,
                 (job,),
                 _job_timeout(job, timeout),
-                owner=getattr(job.cls, "__module__", job.method),
+                owner=job.owner
+                if job.owner is not None
+                else getattr(job.cls, "__module__", job.method),
             )
         ]
         for job in jobs

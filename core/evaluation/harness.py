@@ -30,7 +30,7 @@ import os
 import time
 import traceback
 import tracemalloc
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Hashable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -167,6 +167,17 @@ def _methods(methods: Iterable[str | type[Retargeter]] | None, registry: Registr
     if len(set(names)) != len(names):
         raise ConfigError(f"methods: each retargeter once please; got {names}")
     return out
+
+
+def _owner(method: _Method) -> Hashable:
+    """Who answers for ``method``'s runs in a worker (:func:`._workers.plugin_owner`); a
+    class passed directly (not registered): its module."""
+    from ..registry import DISTRIBUTION
+    from ._workers import plugin_owner
+
+    if method.distribution == "local":
+        return ("module", method.cls.__module__)
+    return plugin_owner(method.plugin, method.distribution == DISTRIBUTION)
 
 
 def _from_info(info: RetargeterInfo) -> _Method:
@@ -730,7 +741,7 @@ def _isolated(
                     _run_item,
                     (m, per_method[m.name], cname, case),
                     timeout,
-                    owner=m.cls.__module__,
+                    owner=_owner(m),
                 )
             )
 

@@ -256,10 +256,12 @@ def isolated_groups(
     chosen: Sequence[tuple[Preset, str]], given: Mapping[str, Any], timeout: float | None
 ) -> list[list[Task]]:
     """The presets of :func:`chosen_presets` as worker tasks (key :class:`PresetKey`),
-    grouped by the plugin that registered them (a worker never mixes plugins' tasks).
+    grouped by the plugin that registered them (owned as :func:`._workers.plugin_owner` says).
     ``given``: the caller's cases by name, as case objects or case specs."""
-    from ._workers import Task
+    from ..registry import registry
+    from ._workers import Task, plugin_owner
 
+    builtin = {p.name for p in registry().plugins if p.builtin}
     groups: dict[str, list[Task]] = {}
     for preset, plugin in chosen:
         groups.setdefault(plugin, []).append(
@@ -268,7 +270,7 @@ def isolated_groups(
                 _run_in_worker,
                 (preset, dict(given)),
                 timeout,
-                owner=("preset", plugin),
+                owner=plugin_owner(plugin, plugin in builtin),
             )
         )
     return list(groups.values())

@@ -150,6 +150,10 @@ def test_manifest_resolves_paths_and_merges_defaults(tmp_path, fake_registry):
         and b.cls is fakes.NeutralFake
     )
     assert a.timeout == b.timeout == RUN_DEFAULT  # the run's time limit applies
+    from faceretarget.evaluation._workers import plugin_owner
+
+    plugin = fake_registry.resolve("fake_neutral").plugin  # workers: one per owner
+    assert b.owner == plugin_owner(plugin.name, plugin.builtin) is not None
     path.write_text(
         path.read_text()
         .replace('name = "second"', 'name = "second"\ntimeout = 0')

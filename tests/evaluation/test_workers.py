@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import worker_tasks as t
 
+import faceretarget as fr
 from faceretarget.evaluation._workers import DIED, DONE, ERROR, TIMEOUT, Task, run_supervised
 
 
@@ -394,3 +395,39 @@ def test_compare_in_workers_leaves_this_process_environment_alone(monkeypatch):
         metrics=["vertex_error_rms"],
     )
     assert len(result.runs) == 2 and seen == [None, None]
+
+
+def test_the_built_ins_share_workers_and_third_party_plugins_keep_their_own():
+    """A worker starting afresh cost 1-2 s of CPU (7 times in a demo): the built-ins, one
+    distribution, share workers; two third-party plugins never share one."""
+    from faceretarget.evaluation._workers import plugin_owner
+
+    assert plugin_owner("coating", True) == plugin_owner("spacetime", True)
+    assert plugin_owner("mine", False) != plugin_owner("theirs", False)
+    assert plugin_owner("coating", True) != plugin_owner("coating", False)
+    groups = [
+        [Task("c", t.pid, owner=plugin_owner("coating", True))],
+        [Task("x", t.pid, owner=plugin_owner("mine", False))],
+        [Task("s", t.pid, owner=plugin_owner("spacetime", True))],
+    ]
+    got, order = outcomes(groups, workers=1)
+    assert order == ["c", "s", "x"]
+    assert got["c"].value == got["s"].value != got["x"].value
+
+
+def test_compare_and_presets_give_the_built_ins_one_owner():
+    from faceretarget.evaluation._workers import BUILTIN_OWNER
+    from faceretarget.evaluation.harness import _methods, _owner
+    from faceretarget.evaluation.presets import chosen_presets, isolated_groups
+    from faceretarget.registry import registry
+
+    methods = _methods(["coating", "spacetime", "layers"], registry())
+    assert {_owner(m) for m in methods} == {BUILTIN_OWNER}
+    groups = isolated_groups(chosen_presets(), {}, None)
+    assert len(groups) > 1 and {task.owner for g in groups for task in g} == {BUILTIN_OWNER}
+
+    class Local(fr.Retargeter):  # a class handed over directly: answerable as its module
+        pass
+
+    (local,) = _methods([Local], registry())
+    assert _owner(local) == ("module", __name__)
