@@ -151,18 +151,25 @@ def in_blocks(
     align: int = 1,
 ) -> list[Any]:
     """``kernel(*args(start, stop))`` for the :func:`blocks` of ``range(n)``, side by side on
-    :func:`worker_count` threads (``parts`` blocks if given): the serial, ``nogil`` numba
+    :func:`worker_count` threads (``parts`` blocks if given; one block on a thread that runs
+    one of :func:`in_threads`' tasks, which are side by side already): the serial, ``nogil`` numba
     kernel's work split without numba's parallel backend (a ``prange`` kernel took 1-1.4 s
     longer to compile, in every fresh process). Returns the kernel's results in block order.
 
     The kernel is compiled or loaded for these argument types on the calling thread first:
     numba loading kernels on one thread while another ran others crashed now and then.
     """
+    if getattr(_inside, "task", False):
+        parts = 1  # already on one of in_threads' threads: no threads of threads
     ranges = blocks(n, worker_count(n) if parts is None else parts, align)
     calls = [args(a, b) for a, b in ranges]
     if not calls:
         return []
-    kernel.compile(tuple(kernel.typeof_pyval(a) for a in calls[0]))
+    overloads = getattr(kernel, "overloads", None)  # None: a plain function (NUMBA_DISABLE_JIT)
+    if overloads is not None:
+        sig = tuple(kernel.typeof_pyval(a) for a in calls[0])
+        if sig not in overloads:  # compile() takes numba's compiler lock even when compiled
+            kernel.compile(sig)
     return in_threads([functools.partial(kernel, *c) for c in calls], len(calls))
 
 
@@ -173,5 +180,17 @@ def in_threads(tasks: Sequence[Callable[[], _R]], workers: int) -> list[_R]:
     if workers <= 1 or len(tasks) <= 1:
         return [task() for task in tasks]
     with ThreadPoolExecutor(min(workers, len(tasks))) as pool:
-        futures = [pool.submit(task) for task in tasks]
+        futures = [pool.submit(_as_task, task) for task in tasks]
         return [future.result() for future in futures]
+
+
+#: ``task`` is True on a thread while it runs one of :func:`in_threads`' tasks.
+_inside = threading.local()
+
+
+def _as_task(task: Callable[[], _R]) -> _R:
+    _inside.task = True
+    try:
+        return task()
+    finally:
+        _inside.task = False

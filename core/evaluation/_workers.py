@@ -84,8 +84,8 @@ class Task:
     key : identifies the task in its :class:`Outcome`
     timeout : seconds allowed once the worker has loaded the task (None or 0: no limit;
         :func:`faceretarget.config.check_timeout`)
-    owner : who is answerable for the task (e.g. the plugin module); a worker never
-        runs tasks of two owners
+    owner : who is answerable for the task (:func:`plugin_owner`: a third-party plugin, or
+        the built-ins together); a worker never runs tasks of two owners
     """
 
     key: Hashable

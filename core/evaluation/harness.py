@@ -148,6 +148,7 @@ class _Method:
     plugin: str
     distribution: str
     version: str
+    builtin: bool = False  # one of our own plugins (they share workers)
 
 
 def _methods(methods: Iterable[str | type[Retargeter]] | None, registry: Registry) -> list[_Method]:
@@ -170,19 +171,17 @@ def _methods(methods: Iterable[str | type[Retargeter]] | None, registry: Registr
 
 
 def _owner(method: _Method) -> Hashable:
-    """Who answers for ``method``'s runs in a worker (:func:`._workers.plugin_owner`); a
-    class passed directly (not registered): its module."""
-    from ..registry import DISTRIBUTION
+    """Who answers for ``method``'s runs in a worker (:func:`._workers.plugin_owner`; a
+    class passed directly: its module, as a third-party plugin)."""
     from ._workers import plugin_owner
 
-    if method.distribution == "local":
-        return ("module", method.cls.__module__)
-    return plugin_owner(method.plugin, method.distribution == DISTRIBUTION)
+    return plugin_owner(method.plugin, method.builtin)
 
 
 def _from_info(info: RetargeterInfo) -> _Method:
+    plugin = info.plugin
     return _Method(
-        info.name, info.cls, info.plugin.name, info.plugin.distribution, info.plugin.version
+        info.name, info.cls, plugin.name, plugin.distribution, plugin.version, plugin.builtin
     )
 
 
@@ -718,10 +717,12 @@ def _isolated(
     on_run: Callable[[Run], None],
     reproductions: Sequence[tuple[Any, str]] = (),
     on_preset: Callable[[str, Any], None] | None = None,
+    builtin: frozenset[str] = frozenset(),
 ) -> None:
     """Every run in a supervised worker process (killed after ``timeout`` seconds); with
     ``reproductions`` (:func:`.presets.chosen_presets`) their presets too, each one task
-    whose result goes to ``on_preset(name, result)``.
+    whose result goes to ``on_preset(name, result)``. ``builtin``: the names of the
+    built-in plugins (they share workers: :func:`._workers.plugin_owner`).
 
     The methods of one module (sharing numba kernels) form one group, so each worker
     compiles them once; a run that overruns or kills its worker is recorded as an error
@@ -747,7 +748,7 @@ def _isolated(
 
     from .presets import PresetKey, isolated_groups, outcome_result
 
-    preset_groups = isolated_groups(reproductions, refs, timeout)
+    preset_groups = isolated_groups(reproductions, refs, timeout, builtin)
 
     def on_outcome(outcome: Outcome) -> None:
         if isinstance(outcome.key, PresetKey):
@@ -910,6 +911,7 @@ def compare(
             on_run,
             reproductions,
             on_preset,
+            frozenset(p.name for p in registry.plugins if p.builtin),
         )
     else:
         for cname, case in resolved.items():

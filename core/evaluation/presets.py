@@ -23,7 +23,7 @@ when it has some (each preset is one task, so two presets run side by side on tw
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, cast
 
@@ -219,11 +219,13 @@ def run_presets(
         pool = Cases(given)
         out = [run_preset(preset, pool) for preset, _ in chosen]
     else:
+        from ..registry import registry
         from ._workers import run_supervised, single_threaded_environ
 
         done: dict[str, PresetResult] = {}
+        builtin = {p.name for p in registry().plugins if p.builtin}
         run_supervised(
-            isolated_groups(chosen, given, timeout),
+            isolated_groups(chosen, given, timeout, builtin),
             workers=max(1, min(n_jobs, len(chosen))),
             on_outcome=lambda outcome: done.update([outcome_result(chosen, outcome)]),
             env=single_threaded_environ(),
@@ -253,15 +255,17 @@ def _run_in_worker(preset: Preset, given: dict[str, Any]) -> PresetResult:
 
 
 def isolated_groups(
-    chosen: Sequence[tuple[Preset, str]], given: Mapping[str, Any], timeout: float | None
+    chosen: Sequence[tuple[Preset, str]],
+    given: Mapping[str, Any],
+    timeout: float | None,
+    builtin: Collection[str] = (),
 ) -> list[list[Task]]:
     """The presets of :func:`chosen_presets` as worker tasks (key :class:`PresetKey`),
-    grouped by the plugin that registered them (owned as :func:`._workers.plugin_owner` says).
+    grouped by the plugin that registered them (owned as :func:`._workers.plugin_owner` says,
+    ``builtin``: the names of the built-in plugins).
     ``given``: the caller's cases by name, as case objects or case specs."""
-    from ..registry import registry
     from ._workers import Task, plugin_owner
 
-    builtin = {p.name for p in registry().plugins if p.builtin}
     groups: dict[str, list[Task]] = {}
     for preset, plugin in chosen:
         groups.setdefault(plugin, []).append(

@@ -79,8 +79,9 @@ class TaubinSmoother:
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """Smooth ``points : (V, 3)`` or ``(F, V, 3)``; returns float64 of the same shape.
 
-        The kernel gathers blocks of coordinate columns per thread itself, so frames are
-        read in place (float32 or float64, C order) without transposed copies.
+        Blocks of coordinate columns run side by side on threads; the kernel gathers its
+        block itself, so frames are read in place (float32 or float64, C order) without
+        transposed copies.
         """
         from .._threads import in_blocks, worker_count
         from ._laplacian_kernels import SIMD_COLUMNS, taubin_frames

@@ -246,3 +246,18 @@ def test_no_kernel_uses_numbas_parallel_backend():
         if "parallel=True" in p.read_text() or "prange(" in p.read_text()
     ]
     assert offenders == [], offenders
+
+
+def test_in_blocks_on_a_task_thread_runs_one_block_and_takes_plain_functions():
+    """No threads of threads (normalmesh casts rays from its chunks' threads); a plain
+    function (``NUMBA_DISABLE_JIT=1``) is run as it is."""
+    seen = []
+
+    def kernel(a, b):
+        seen.append((a, b))
+        return b - a
+
+    assert _threads.in_blocks(kernel, 9, lambda a, b: (a, b), parts=3) == [3, 3, 3]
+    seen.clear()
+    got = in_threads([lambda: _threads.in_blocks(kernel, 9, lambda a, b: (a, b), parts=3)] * 2, 2)
+    assert got == [[9], [9]] and seen == [(0, 9), (0, 9)]

@@ -416,18 +416,30 @@ def test_the_built_ins_share_workers_and_third_party_plugins_keep_their_own():
 
 
 def test_compare_and_presets_give_the_built_ins_one_owner():
-    from faceretarget.evaluation._workers import BUILTIN_OWNER
+    from faceretarget.evaluation._workers import BUILTIN_OWNER, plugin_owner
     from faceretarget.evaluation.harness import _methods, _owner
     from faceretarget.evaluation.presets import chosen_presets, isolated_groups
     from faceretarget.registry import registry
 
+    builtin = frozenset(p.name for p in registry().plugins if p.builtin)
     methods = _methods(["coating", "spacetime", "layers"], registry())
     assert {_owner(m) for m in methods} == {BUILTIN_OWNER}
-    groups = isolated_groups(chosen_presets(), {}, None)
+    groups = isolated_groups(chosen_presets(), {}, None, builtin)
     assert len(groups) > 1 and {task.owner for g in groups for task in g} == {BUILTIN_OWNER}
+    assert BUILTIN_OWNER not in {
+        task.owner for g in isolated_groups(chosen_presets(), {}, None) for task in g
+    }
 
     class Local(fr.Retargeter):  # a class handed over directly: answerable as its module
         pass
 
     (local,) = _methods([Local], registry())
-    assert _owner(local) == ("module", __name__)
+    assert _owner(local) == plugin_owner(__name__, False)
+
+
+def test_a_third_party_plugin_keeps_a_worker_of_its_own(fake_registry):
+    from faceretarget.evaluation._workers import BUILTIN_OWNER, plugin_owner
+    from faceretarget.evaluation.harness import _methods, _owner
+
+    (fake,) = _methods(["fake_neutral"], fake_registry)
+    assert _owner(fake) == plugin_owner(fake.plugin, False) != BUILTIN_OWNER

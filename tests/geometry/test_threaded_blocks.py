@@ -52,10 +52,12 @@ def _everything(v, t, frames, rng):
     out["coating"] = vf.coating(frames, frames[::-1], lap)
     out["gradients"] = gradient_columns(reference_inverse(v, t), frames, t)
     points = frames[3] + 0.01 * rng.normal(size=v.shape)
-    hits = raycast.closest_points(v, t, points)
-    out["closest"] = (hits.triangle, hits.barycentric, hits.distance)
+    limits = np.linspace(0.0, 0.05, n)[rng.permutation(n)]  # per query: some found, some not
     caster = raycast.RayCaster(v, t, backend="bvh")
-    lines = caster.cast(points, np.tile([0.1, 0.2, 1.0], (n, 1)))
+    hits = caster.closest(points, max_distance=limits)
+    lines = caster.cast(points, np.tile([0.1, 0.2, 1.0], (n, 1)), max_distance=limits)
+    assert 0 < hits.hit.sum() < n and 0 < lines.hit.sum() < n
+    out["closest"] = (hits.triangle, hits.barycentric, hits.distance)
     out["cast"] = (lines.triangle, lines.barycentric, lines.distance)
     return out
 
