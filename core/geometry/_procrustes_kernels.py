@@ -17,6 +17,9 @@ import numpy as np
 
 from ._nnls_kernels import FASTMATH
 
+#: Most Jacobi sweeps of :func:`_rotation_3d` (a 4 x 4 converges in 4-6).
+_JACOBI_SWEEPS = 30
+
 
 @nb.njit(cache=True, nogil=True)
 def transform_points(
@@ -89,38 +92,84 @@ def _missing(x: np.ndarray, p: int, dim: int) -> bool:
     return np.isnan(total)
 
 
-@nb.njit(cache=True, inline="always")
-def _det(m: np.ndarray, dim: int) -> float:
-    """Determinant of a small square matrix (explicit for 2 x 2 and 3 x 3: no allocation;
-    larger by Gaussian elimination with partial pivoting, not ``np.linalg.det``, whose
-    LAPACK wrapper would be compiled into every caller)."""
-    if dim == 2:
-        return m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
-    if dim == 3:
-        return (
-            m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
-            - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
-            + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])
-        )
-    a = m.copy()
-    det = 1.0
-    for k in range(dim):
-        p = k
-        for i in range(k + 1, dim):
-            if abs(a[i, k]) > abs(a[p, k]):
-                p = i
-        if a[p, k] == 0.0:
-            return 0.0
-        if p != k:
-            det = -det
-            for j in range(dim):
-                a[k, j], a[p, j] = a[p, j], a[k, j]
-        det *= a[k, k]
-        for i in range(k + 1, dim):
-            f = a[i, k] / a[k, k]
-            for j in range(k + 1, dim):
-                a[i, j] -= f * a[k, j]
-    return det
+@nb.njit(cache=True)
+def _rotation_2d(cov: np.ndarray, rot: np.ndarray) -> None:
+    """The rotation ``R`` maximising ``tr(R^T cov)`` for a 2 x 2 ``cov``, in closed form:
+    ``(cos, sin)`` along ``(cov00 + cov11, cov10 - cov01)`` (the identity for a zero one)."""
+    a = cov[0, 0] + cov[1, 1]
+    b = cov[1, 0] - cov[0, 1]
+    norm = np.sqrt(a * a + b * b)
+    c, s = (a / norm, b / norm) if norm > 0.0 else (1.0, 0.0)
+    rot[0, 0], rot[0, 1], rot[1, 0], rot[1, 1] = c, -s, s, c
+
+
+@nb.njit(cache=True)
+def _rotation_3d(cov: np.ndarray, n: np.ndarray, v: np.ndarray, rot: np.ndarray) -> None:
+    """The proper rotation ``R`` maximising ``tr(R^T cov)`` for a 3 x 3 ``cov = sum w x r^T``
+    (Horn 1987, closed-form absolute orientation with unit quaternions): the unit
+    eigenvector ``q`` of the largest eigenvalue of the symmetric 4 x 4 ``N`` built from
+    ``S = cov^T`` (Horn's eq. for N), by cyclic Jacobi rotations; ``R = R(q)``. The same
+    rotation as Kabsch's SVD with its reflection fix, without LAPACK in the kernel (which
+    took 1-1.5 s more to compile in every fresh process). ``n``, ``v``: (4, 4) scratch."""
+    sxx, sxy, sxz = cov[0, 0], cov[1, 0], cov[2, 0]
+    syx, syy, syz = cov[0, 1], cov[1, 1], cov[2, 1]
+    szx, szy, szz = cov[0, 2], cov[1, 2], cov[2, 2]
+    n[0, 0], n[1, 1] = sxx + syy + szz, sxx - syy - szz
+    n[2, 2], n[3, 3] = -sxx + syy - szz, -sxx - syy + szz
+    n[0, 1] = n[1, 0] = syz - szy
+    n[0, 2] = n[2, 0] = szx - sxz
+    n[0, 3] = n[3, 0] = sxy - syx
+    n[1, 2] = n[2, 1] = sxy + syx
+    n[1, 3] = n[3, 1] = szx + sxz
+    n[2, 3] = n[3, 2] = syz + szy
+    total = 0.0
+    for i in range(4):
+        for j in range(4):
+            v[i, j] = 1.0 if i == j else 0.0
+            total += n[i, j] * n[i, j]
+    for _ in range(_JACOBI_SWEEPS):
+        off = 0.0
+        for p in range(3):
+            for q in range(p + 1, 4):
+                off += n[p, q] * n[p, q]
+        if off <= 1e-32 * total:
+            break
+        for p in range(3):
+            for q in range(p + 1, 4):
+                apq = n[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (n[q, q] - n[p, p]) / (2.0 * apq)  # Jacobi rotation zeroing n[p, q]
+                t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(4):
+                    akp, akq = n[k, p], n[k, q]
+                    n[k, p], n[k, q] = c * akp - s * akq, s * akp + c * akq
+                for k in range(4):
+                    apk, aqk = n[p, k], n[q, k]
+                    n[p, k], n[q, k] = c * apk - s * aqk, s * apk + c * aqk
+                for k in range(4):
+                    vkp, vkq = v[k, p], v[k, q]
+                    v[k, p], v[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+    best = 0
+    for i in range(1, 4):
+        if n[i, i] > n[best, best]:
+            best = i
+    q0, q1, q2, q3 = v[0, best], v[1, best], v[2, best], v[3, best]
+    norm = np.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    q0, q1, q2, q3 = q0 / norm, q1 / norm, q2 / norm, q3 / norm
+    rot[0, 0] = q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3
+    rot[0, 1] = 2.0 * (q1 * q2 - q0 * q3)
+    rot[0, 2] = 2.0 * (q1 * q3 + q0 * q2)
+    rot[1, 0] = 2.0 * (q2 * q1 + q0 * q3)
+    rot[1, 1] = q0 * q0 - q1 * q1 + q2 * q2 - q3 * q3
+    rot[1, 2] = 2.0 * (q2 * q3 - q0 * q1)
+    rot[2, 0] = 2.0 * (q3 * q1 - q0 * q2)
+    rot[2, 1] = 2.0 * (q3 * q2 + q0 * q1)
+    rot[2, 2] = q0 * q0 - q1 * q1 - q2 * q2 + q3 * q3
 
 
 @nb.njit(cache=True, fastmath=FASTMATH)
@@ -136,7 +185,9 @@ def kabsch(
 ) -> int:
     """Weighted rigid (or similarity) Procrustes of a reference onto each frame (Kabsch /
     Umeyama): ``frame ~ s R ref + t`` with ``R`` a proper rotation, frame by frame (a frame
-    alone gives the same numbers as inside a batch).
+    alone gives the same numbers as inside a batch). ``R`` maximises ``tr(R^T cov)`` for the
+    weighted cross-covariance ``cov``: :func:`_rotation_2d` or :func:`_rotation_3d`, the
+    rotation of the SVD with its reflection fix; ``s = tr(R^T cov) / var(ref)``.
 
     ``reference (R, N, D)`` and ``weights (W, N)`` (non-negative): one for every frame (R = 1,
     W = 1) or one a frame (R = F, W = F); ``frames (F, N, D)``, a point with a NaN
@@ -147,6 +198,8 @@ def kabsch(
     n_frames, n_points, dim = frames.shape
     cov = np.empty((dim, dim))
     rot = np.empty((dim, dim))
+    quartic = np.empty((4, 4))
+    vecs = np.empty((4, 4))
     mu_r = np.empty(dim)
     mu_x = np.empty(dim)
     first_skipped = -1
@@ -193,20 +246,16 @@ def kabsch(
             for j in range(dim):
                 a = ref[p, j] - mu_r[j]
                 var_r += w * a * a
-        u, sig, vt = np.linalg.svd(cov)
-        sign = -1.0 if _det(u, dim) * _det(vt, dim) < 0.0 else 1.0  # det(u vt) = +-1
-        for i in range(dim):
-            for j in range(dim):
-                t = 0.0
-                for k in range(dim):
-                    fk = sign if k == dim - 1 else 1.0
-                    t += u[i, k] * fk * vt[k, j]
-                rot[i, j] = t
+        if dim == 2:
+            _rotation_2d(cov, rot)
+        else:
+            _rotation_3d(cov, quartic, vecs, rot)
         s = 1.0
         if with_scale:
-            tr = 0.0
-            for k in range(dim):
-                tr += sig[k] * (sign if k == dim - 1 else 1.0)
+            tr = 0.0  # tr(R^T cov): the sum of the singular values, the last one signed
+            for i in range(dim):
+                for j in range(dim):
+                    tr += rot[i, j] * cov[i, j]
             s = tr / max(var_r, 1e-300)
         scale[f] = s
         for i in range(dim):

@@ -134,22 +134,39 @@ def test_no_plugin_kernel_repeats_a_shared_one():
     assert {"vertex_normals", "kabsch", "transform_points"} <= set(shared)
 
 
-def test_small_determinant_matches_numpy_in_every_dimension():
-    """``_det``: closed forms for 2 and 3, elimination with pivoting beyond (no LAPACK
-    wrapper compiled into kabsch); singular and permutation-needing matrices included."""
-    import numba as nb
-
-    from faceretarget.geometry._procrustes_kernels import _det
-
-    @nb.njit
-    def det(m, dim):
-        return _det(m, dim)
-
-    rng = np.random.default_rng(0)
-    for dim in (2, 3, 4, 5, 7):
-        for m in [rng.normal(size=(dim, dim)) for _ in range(20)] + [
-            np.ones((dim, dim)),  # singular
-            np.eye(dim)[::-1].copy(),  # a zero pivot at every step without row exchanges
-        ]:
-            want = np.linalg.det(m)
-            assert abs(det(m, dim) - want) <= 1e-10 * max(1.0, abs(want)), (dim, m)
+@pytest.mark.parametrize("dim", [2, 3])
+def test_rotations_match_the_svd_on_hard_configurations(dim):
+    """The kernel's rotation (2-D closed form, 3-D Horn quaternion by Jacobi: no LAPACK
+    compiled into it) against Kabsch's SVD with its reflection fix: exact rotations
+    (180 degrees included, where the quaternion's scalar part is 0), mirrored data (the best
+    orthogonal map is a reflection: the proper rotation must be returned), flat and many
+    random noisy frames."""
+    rng = np.random.default_rng(11)
+    frames, refs = [], []
+    for seed in range(40):
+        ref = rng.normal(size=(7, dim))
+        if seed % 5 == 1:
+            ref[:, -1] = 0.0  # coplanar (3-D) / on a line (2-D)
+        rot = Rotation.random(random_state=seed).as_matrix()[:dim, :dim]
+        if dim == 2:
+            a = rng.uniform(-np.pi, np.pi)
+            rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        if seed % 5 == 2:
+            rot = np.diag([-1.0, -1.0, 1.0][:dim]) if dim == 3 else -np.eye(2)  # 180 degrees
+        if seed % 5 == 3:
+            rot = rot @ np.diag([1.0] * (dim - 1) + [-1.0])  # a reflection
+        x = ref @ rot.T * 1.3 + rng.normal(size=dim)
+        if seed % 5 in (3, 4):
+            x += 0.2 * rng.normal(size=x.shape)
+        refs.append(ref)
+        frames.append(x)
+    refs, frames = np.array(refs), np.array(frames)
+    w = np.ones((len(frames), 7))
+    for scale in (False, True):
+        rot, trans, s = procrustes.fit_rigid(refs, frames, w, scale=scale)
+        for f in range(len(frames)):
+            want = _umeyama(refs[f], frames[f], w[f], scale)
+            np.testing.assert_allclose(rot[f], want[0], atol=1e-12, err_msg=f"frame {f}")
+            np.testing.assert_allclose(trans[f], want[1], atol=1e-12, err_msg=f"frame {f}")
+            np.testing.assert_allclose(s[f], want[2], rtol=1e-12, err_msg=f"frame {f}")
+            assert np.isclose(np.linalg.det(rot[f]), 1.0)
