@@ -6,6 +6,10 @@ children come after their parent, which makes refitting one reverse sweep. Queri
 
 - lines (rays in both directions, or one) -> nearest hit by |t|, Moller-Trumbore in float64;
 - points -> closest point on the surface (Ericson, Real-Time Collision Detection 5.1.5).
+
+The small helpers are plain ``njit`` functions (LLVM inlines them into the queries): with
+numba's own ``inline="always"`` the queries took 0.5-1 s longer to compile in every fresh
+process and ran no faster (40K lines or points at 80K vertices, 25 runs, three alternations).
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ _STACK = 256  # traversal stack; tree depth is at most 63 code bits + log2 of a 
 _BARY_EPS = 1e-10  # barycentric slack so a line through a shared edge hits one of its triangles
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def line_triangle(
     vertices: np.ndarray,
     triangles: np.ndarray,
@@ -62,7 +66,7 @@ def line_triangle(
     return True, t, u, v
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _inside(u: float, v: float) -> bool:
     return u >= -_BARY_EPS and v >= -_BARY_EPS and u + v <= 1.0 + _BARY_EPS
 
@@ -163,7 +167,7 @@ def refit_bounds(
                 node_hi[node, k] = max(node_hi[a, k], node_hi[b, k])
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _slab(
     lo: np.ndarray,
     hi: np.ndarray,
@@ -203,7 +207,7 @@ def _slab(
     return a, b
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _abs_lower(a: float, b: float) -> float:
     if a <= 0.0 <= b:
         return 0.0
@@ -327,7 +331,7 @@ def cast_lines(
         )
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _box_dist2(lo: np.ndarray, hi: np.ndarray, node: int, p0: float, p1: float, p2: float) -> float:
     d = 0.0
     for k in range(3):
