@@ -717,12 +717,11 @@ def _isolated(
     on_run: Callable[[Run], None],
     reproductions: Sequence[tuple[Any, str]] = (),
     on_preset: Callable[[str, Any], None] | None = None,
-    builtin: frozenset[str] = frozenset(),
+    registry: Registry | None = None,
 ) -> None:
     """Every run in a supervised worker process (killed after ``timeout`` seconds); with
-    ``reproductions`` (:func:`.presets.chosen_presets`) their presets too, each one task
-    whose result goes to ``on_preset(name, result)``. ``builtin``: the names of the
-    built-in plugins (they share workers: :func:`._workers.plugin_owner`).
+    ``reproductions`` (:func:`.presets.chosen_presets` from ``registry``) their presets too,
+    each one task whose result goes to ``on_preset(name, result)``.
 
     The methods of one module (sharing numba kernels) form one group, so each worker
     compiles them once; a run that overruns or kills its worker is recorded as an error
@@ -748,7 +747,7 @@ def _isolated(
 
     from .presets import PresetKey, isolated_groups, outcome_result
 
-    preset_groups = isolated_groups(reproductions, refs, timeout, builtin)
+    preset_groups = isolated_groups(reproductions, refs, timeout, registry)
 
     def on_outcome(outcome: Outcome) -> None:
         if isinstance(outcome.key, PresetKey):
@@ -911,7 +910,7 @@ def compare(
             on_run,
             reproductions,
             on_preset,
-            frozenset(p.name for p in registry.plugins if p.builtin),
+            registry,
         )
     else:
         for cname, case in resolved.items():

@@ -23,7 +23,7 @@ when it has some (each preset is one task, so two presets run side by side on tw
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, cast
 
@@ -219,13 +219,11 @@ def run_presets(
         pool = Cases(given)
         out = [run_preset(preset, pool) for preset, _ in chosen]
     else:
-        from ..registry import registry
         from ._workers import run_supervised, single_threaded_environ
 
         done: dict[str, PresetResult] = {}
-        builtin = {p.name for p in registry().plugins if p.builtin}
         run_supervised(
-            isolated_groups(chosen, given, timeout, builtin),
+            isolated_groups(chosen, given, timeout),
             workers=max(1, min(n_jobs, len(chosen))),
             on_outcome=lambda outcome: done.update([outcome_result(chosen, outcome)]),
             env=single_threaded_environ(),
@@ -258,13 +256,16 @@ def isolated_groups(
     chosen: Sequence[tuple[Preset, str]],
     given: Mapping[str, Any],
     timeout: float | None,
-    builtin: Collection[str] = (),
+    registry: Registry | None = None,
 ) -> list[list[Task]]:
-    """The presets of :func:`chosen_presets` as worker tasks (key :class:`PresetKey`),
-    grouped by the plugin that registered them (owned as :func:`._workers.plugin_owner` says,
-    ``builtin``: the names of the built-in plugins).
-    ``given``: the caller's cases by name, as case objects or case specs."""
+    """The presets of :func:`chosen_presets` (chosen from ``registry``, default the global
+    one) as worker tasks (key :class:`PresetKey`), grouped by the plugin that registered
+    them (owned as :func:`._workers.plugin_owner` says). ``given``: the caller's cases by
+    name, as case objects or case specs."""
+    from ..registry import registry as _registry
     from ._workers import Task, plugin_owner
+
+    builtin = {p.name for p in (registry or _registry()).plugins if p.builtin}
 
     groups: dict[str, list[Task]] = {}
     for preset, plugin in chosen:

@@ -416,18 +416,21 @@ def test_the_built_ins_share_workers_and_third_party_plugins_keep_their_own():
 
 
 def test_compare_and_presets_give_the_built_ins_one_owner():
+    from types import SimpleNamespace
+
     from faceretarget.evaluation._workers import BUILTIN_OWNER, plugin_owner
     from faceretarget.evaluation.harness import _methods, _owner
     from faceretarget.evaluation.presets import chosen_presets, isolated_groups
     from faceretarget.registry import registry
 
-    builtin = frozenset(p.name for p in registry().plugins if p.builtin)
     methods = _methods(["coating", "spacetime", "layers"], registry())
     assert {_owner(m) for m in methods} == {BUILTIN_OWNER}
-    groups = isolated_groups(chosen_presets(), {}, None, builtin)
-    assert len(groups) > 1 and {task.owner for g in groups for task in g} == {BUILTIN_OWNER}
+    for given in (None, registry()):  # the global registry by default
+        groups = isolated_groups(chosen_presets(), {}, None, given)
+        assert len(groups) > 1 and {task.owner for g in groups for task in g} == {BUILTIN_OWNER}
+    no_builtins = SimpleNamespace(plugins=[])  # a registry where these plugins are third-party
     assert BUILTIN_OWNER not in {
-        task.owner for g in isolated_groups(chosen_presets(), {}, None) for task in g
+        task.owner for g in isolated_groups(chosen_presets(), {}, None, no_builtins) for task in g
     }
 
     class Local(fr.Retargeter):  # a class handed over directly: answerable as its module
