@@ -53,6 +53,13 @@ def scratch_items(item_bytes: int) -> int:
     return max(1, SCRATCH_BLOCK_BYTES // max(1, int(item_bytes)))
 
 
+#: Variables from which ``geometry.banded_qp.nonneg_qp_block_tridiagonal`` factors its
+#: steps by blocks (numba): below, LAPACK's banded Cholesky takes about as long (the
+#: coating edit's 28-basis knot problems: even at 3,640 variables, 1.5x faster by blocks
+#: from ~11,000) and a call compiles nothing (the first block factor compiles for ~1 s).
+BLOCK_QP_MIN_VARIABLES = 8192
+
+
 #: Head-motion estimation (``geometry.head_motion``): rigidity weights ``1 / (eps^2 + m_i^2)``
 #: of the markers, ``m_i`` = RMS displacement of marker i over the expression basis, with
 #: ``eps`` this fraction of the face size (RMS radius of the neutral markers; 0.02 = 1.2 mm

@@ -13,16 +13,22 @@ are taken as the free set and solved exactly; if that satisfies the optimality c
 (free variables >= 0, gradient >= 0 on the others, each to rounding) it is returned, so
 the result is the exact optimum up to rounding, not an interior iterate.
 ``nonneg_qp_band`` takes the upper band itself (e.g. from ``block_tridiagonal_band``), so
-a caller that knows the structure never builds a sparse matrix.
+a caller that knows the structure never builds a sparse matrix;
+``nonneg_qp_block_tridiagonal`` takes the blocks of a block-tridiagonal ``H`` and factors
+each step by blocks (numba, :mod:`._banded_qp_kernels`), without the band's fill-in.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.linalg.blas import dsbmv as sbmv
 
+from .. import config
 from .._threads import blas_single_threaded
 from ..errors import ShapeError
 
@@ -30,6 +36,7 @@ __all__ = [
     "block_tridiagonal_band",
     "nonneg_qp_band",
     "nonneg_qp_banded",
+    "nonneg_qp_block_tridiagonal",
     "sub_band",
     "to_upper_band",
 ]
@@ -151,31 +158,133 @@ def nonneg_qp_band(
         raise ShapeError(f"nonneg_qp_band: the band must be (u + 1, {n}), got {ab.shape}")
     if n == 0:
         return np.zeros(0), {"steps": 0, "exact": True, "kkt": 0.0}
-    diag = ab[-1]
-    h_scale = max(float(np.abs(diag).max()), np.finfo(float).tiny)
+    return _interior_point(_Band(ab), r, start, lambda: ab)
+
+
+@blas_single_threaded  # the polish's banded Cholesky, as above
+def nonneg_qp_block_tridiagonal(
+    diagonal: np.ndarray, upper: np.ndarray, rhs: np.ndarray, start: np.ndarray | None = None
+) -> tuple[np.ndarray, dict]:
+    """:func:`nonneg_qp_banded` for a block-tridiagonal ``H`` given by its blocks:
+    ``diagonal (n, K, K)`` (symmetric) and ``upper (n - 1, K, K)`` (block ``(t, t + 1)``),
+    as for :func:`block_tridiagonal_band`; ``rhs, start : (n K,)``. The same interior
+    point and polish as :func:`nonneg_qp_band` (same answer to rounding); from
+    ``config.BLOCK_QP_MIN_VARIABLES`` variables each step's factorization is by blocks
+    (:mod:`._banded_qp_kernels`) instead of LAPACK's banded Cholesky, which fills the
+    whole band of ``2K - 1`` in."""
+    diagonal = np.ascontiguousarray(diagonal, dtype=np.float64)
+    upper = np.ascontiguousarray(upper, dtype=np.float64)
+    n, k = (diagonal.shape + (0, 0))[:2]
+    if diagonal.shape != (n, k, k) or upper.shape != (max(n - 1, 0), k, k):
+        raise ShapeError(
+            f"nonneg_qp_block_tridiagonal: blocks (n, K, K) and (n - 1, K, K), got {diagonal.shape} and {upper.shape}"
+        )
+    r = np.asarray(rhs, dtype=np.float64).ravel()
+    if r.size != n * k:
+        raise ShapeError(
+            f"nonneg_qp_block_tridiagonal: rhs must have n K = {n * k} entries, got {r.size}"
+        )
+    if r.size == 0:
+        return np.zeros(0), {"steps": 0, "exact": True, "kkt": 0.0}
+    if r.size < config.BLOCK_QP_MIN_VARIABLES:  # as fast by the band, and nothing to compile
+        ab = np.asfortranarray(block_tridiagonal_band(diagonal, upper))
+        return _interior_point(_Band(ab), r, start, lambda: ab)
+
+    def band() -> np.ndarray:  # for the polish only
+        return np.asfortranarray(block_tridiagonal_band(diagonal, upper))
+
+    return _interior_point(_Blocks(diagonal, upper), r, start, band)
+
+
+class _Operator(Protocol):
+    """What the interior point needs of ``H``: its diagonal, ``H x``, a factor of
+    ``H + diag(d)`` (None if not positive definite) and solves with it."""
+
+    diagonal: np.ndarray
+
+    def matvec(self, x: np.ndarray) -> np.ndarray: ...
+
+    def factor(self, d: np.ndarray) -> Any: ...
+
+    def solve(self, factor: Any, b: np.ndarray) -> np.ndarray: ...
+
+
+class _Band:
+    """``H`` as its upper band: LAPACK's banded Cholesky and BLAS' ``dsbmv``."""
+
+    def __init__(self, ab: np.ndarray) -> None:
+        self.ab = ab
+        self.diagonal = ab[-1]
+
+    def matvec(self, x: np.ndarray) -> np.ndarray:
+        return _matvec(self.ab, x)
+
+    def factor(self, d: np.ndarray) -> np.ndarray | None:
+        return _factor(self.ab, d)
+
+    def solve(self, factor: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return sla.cho_solve_banded((factor, False), b, check_finite=False)
+
+
+class _Blocks:
+    """``H`` as its blocks: the block Cholesky, solve and product of :mod:`._banded_qp_kernels`."""
+
+    def __init__(self, diagonal: np.ndarray, upper: np.ndarray) -> None:
+        from . import _banded_qp_kernels
+
+        self.kernels = _banded_qp_kernels
+        self.blocks = (diagonal, upper)
+        self.diagonal = np.diagonal(diagonal, axis1=1, axis2=2).ravel()
+        self.low = np.empty_like(diagonal)
+        self.offt = np.empty_like(upper)
+
+    def matvec(self, x: np.ndarray) -> np.ndarray:
+        out = np.empty_like(x)
+        self.kernels.block_matvec(*self.blocks, np.ascontiguousarray(x), out)
+        return out
+
+    def factor(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        ok = self.kernels.block_cholesky(
+            *self.blocks, np.ascontiguousarray(d, dtype=np.float64), self.low, self.offt
+        )
+        return (self.low, self.offt) if ok else None  # one factor at a time: reused in place
+
+    def solve(self, factor: tuple[np.ndarray, np.ndarray], b: np.ndarray) -> np.ndarray:
+        out = np.empty_like(b)
+        self.kernels.block_solve(*factor, np.ascontiguousarray(b, dtype=np.float64), out)
+        return out
+
+
+def _interior_point(
+    ops: _Operator, r: np.ndarray, start: np.ndarray | None, band: Callable[[], np.ndarray]
+) -> tuple[np.ndarray, dict]:
+    """Mehrotra's predictor-corrector on ``ops`` (``H``'s product, factor of ``H + diag(d)``
+    and solve), then the polish on the upper band ``band()`` of ``H``."""
+    n = r.size
+    h_scale = max(float(np.abs(ops.diagonal).max()), np.finfo(float).tiny)
     r_scale = max(float(np.abs(r).max()), np.finfo(float).tiny)
-    x, z = _start(ab, r, start, h_scale, r_scale)
+    x, z = _start(ops, r, start, h_scale, r_scale)
     steps = 0
     for steps in range(1, MAX_STEPS + 1):  # noqa: B007 (reported)
-        grad = _matvec(ab, x) - r
+        grad = ops.matvec(x) - r
         dual = grad - z  # stationarity residual: H x - r - z = 0
         mu = float(x @ z) / n
         x_max = max(float(x.max()), r_scale / h_scale)  # not 0 when every bound binds
         # stop at the rounding floor of H x - r, and a duality measure TOL of the objective's scale
         if np.abs(dual).max() <= TOL * (r_scale + h_scale * x_max) and mu <= TOL * r_scale * x_max:
             break
-        factor = _factor(ab, z / x)
+        factor = ops.factor(z / x)
         if factor is None:
             break
-        dx_a, dz_a = _newton(factor, dual, x, z, -x * z)
+        dx_a, dz_a = _newton(ops, factor, dual, x, z, -x * z)
         a_p, a_d = _to_boundary(x, dx_a), _to_boundary(z, dz_a)
         mu_aff = float((x + a_p * dx_a) @ (z + a_d * dz_a)) / n
         sigma = (mu_aff / mu) ** 3 if mu > 0 else 0.0
-        dx, dz = _newton(factor, dual, x, z, -x * z - dx_a * dz_a + sigma * mu)
+        dx, dz = _newton(ops, factor, dual, x, z, -x * z - dx_a * dz_a + sigma * mu)
         alpha = STEP_FRACTION * min(_to_boundary(x, dx), _to_boundary(z, dz))
         x = x + alpha * dx
         z = z + alpha * dz
-    out, exact, kkt = _polish(ab, r, x, z, r_scale)
+    out, exact, kkt = _polish(band(), r, x, z, r_scale)
     return out, {"steps": steps, "exact": exact, "kkt": kkt}
 
 
@@ -185,17 +294,17 @@ def _matvec(ab: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 def _newton(
-    factor: np.ndarray, dual: np.ndarray, x: np.ndarray, z: np.ndarray, comp: np.ndarray
+    ops: _Operator, factor: Any, dual: np.ndarray, x: np.ndarray, z: np.ndarray, comp: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Newton step towards ``H x - r - z = 0`` and ``x z + (z dx + x dz) = x z + comp``:
-    ``(H + Z/X) dx = -dual + comp / x``, ``dz = (comp - z dx) / x``; ``factor`` is the banded
-    Cholesky factor of ``H + Z/X``."""
-    dx = sla.cho_solve_banded((factor, False), -dual + comp / x, check_finite=False)
+    ``(H + Z/X) dx = -dual + comp / x``, ``dz = (comp - z dx) / x``; ``factor`` is
+    ``ops``' factor of ``H + Z/X``."""
+    dx = ops.solve(factor, -dual + comp / x)
     return dx, (comp - z * dx) / x
 
 
 def _start(
-    ab: np.ndarray,
+    ops: _Operator,
     r: np.ndarray,
     start: np.ndarray | None,
     h_scale: float,
@@ -206,15 +315,11 @@ def _start(
     the interior, with multipliers from its gradient, both balanced so that ``x . z`` is
     not dominated by a few pairs."""
     if start is None:
-        factor = _factor(ab, np.full(r.size, 1e-8 * h_scale))
-        x = (
-            np.full(r.size, r_scale / h_scale)
-            if factor is None
-            else sla.cho_solve_banded((factor, False), r, check_finite=False)
-        )
+        factor = ops.factor(np.full(r.size, 1e-8 * h_scale))
+        x = np.full(r.size, r_scale / h_scale) if factor is None else ops.solve(factor, r)
     else:
         x = np.asarray(start, dtype=np.float64).ravel().copy()
-    z = _matvec(ab, x) - r
+    z = ops.matvec(x) - r
     x += max(-1.5 * float(x.min()), 0.0)
     z += max(-1.5 * float(z.min()), 0.0)
     x = np.maximum(x, 1e-8 * max(float(x.max()), r_scale / h_scale))

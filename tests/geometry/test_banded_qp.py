@@ -1,11 +1,20 @@
-"""The banded non-negative QP (interior point + polish) against brute force and scipy."""
+"""The banded non-negative QP (interior point + polish) against brute force and scipy, and
+its block-tridiagonal form (numba block Cholesky) against dense numpy and the band."""
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from naive.qp import block_tridiagonal, nonneg_qp_enumerate, nonneg_qp_scipy
+from naive.qp import (
+    block_tridiagonal,
+    block_tridiagonal_dense,
+    blocks_of,
+    nonneg_qp_enumerate,
+    nonneg_qp_scipy,
+)
 
+from faceretarget import config
 from faceretarget.errors import ShapeError
+from faceretarget.geometry import banded_qp
 from faceretarget.geometry.banded_qp import (
     POLISH_TOL,
     _free_set_solve,
@@ -13,6 +22,7 @@ from faceretarget.geometry.banded_qp import (
     block_tridiagonal_band,
     nonneg_qp_band,
     nonneg_qp_banded,
+    nonneg_qp_block_tridiagonal,
     sub_band,
     to_upper_band,
 )
@@ -180,3 +190,117 @@ def test_the_band_must_match_the_right_hand_side():
         nonneg_qp_band(np.ones((2, 4)), np.ones(3))
     with pytest.raises(ShapeError):
         nonneg_qp_band(np.ones(3), np.ones(3))
+
+
+# ---------------------------------------------------------------------------------------
+# the block-tridiagonal form
+# ---------------------------------------------------------------------------------------
+@pytest.fixture
+def by_blocks(monkeypatch):
+    """Factor by blocks whatever the size (small problems use the band by default)."""
+    monkeypatch.setattr(config, "BLOCK_QP_MIN_VARIABLES", 0)
+
+
+def _random_blocks(seed, n, k):
+    """Distinct blocks making an SPD matrix, those above the diagonal not symmetric (a
+    transposed or shifted block would show), and a positive shift."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(n, k, k))
+    upper = rng.normal(size=(max(n - 1, 0), k, k))
+    diagonal = a @ a.transpose(0, 2, 1) + 4.0 * k * np.eye(k)  # diagonally dominant by blocks
+    return diagonal, upper, rng.uniform(0.1, 2.0, n * k)
+
+
+@pytest.mark.parametrize(("n", "k"), [(1, 1), (1, 4), (2, 3), (7, 5), (30, 2)])
+def test_block_kernels_against_dense_numpy(n, k):
+    from faceretarget.geometry._banded_qp_kernels import block_cholesky, block_matvec, block_solve
+
+    diagonal, upper, shift = _random_blocks(n * 10 + k, n, k)
+    dense = block_tridiagonal_dense(diagonal, upper) + np.diag(shift)
+    low, offt = np.empty_like(diagonal), np.empty_like(upper)
+    assert block_cholesky(diagonal, upper, shift, low, offt)
+    factor = np.zeros_like(dense)
+    for t in range(n):
+        factor[t * k : (t + 1) * k, t * k : (t + 1) * k] = low[t]
+    for t in range(n - 1):
+        factor[(t + 1) * k : (t + 2) * k, t * k : (t + 1) * k] = offt[t].T
+    np.testing.assert_allclose(factor, np.linalg.cholesky(dense), rtol=1e-12, atol=1e-12)
+    b = np.random.default_rng(n).normal(size=n * k)
+    out = np.empty(n * k)
+    block_solve(low, offt, b, out)
+    np.testing.assert_allclose(out, np.linalg.solve(dense, b), rtol=1e-10, atol=1e-12)
+    in_place = b.copy()
+    block_solve(low, offt, in_place, in_place)
+    np.testing.assert_array_equal(in_place, out)
+    block_matvec(diagonal, upper, b, out)
+    np.testing.assert_allclose(out, (dense - np.diag(shift)) @ b, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("where", ["coupling", "last pivot"])
+def test_block_cholesky_refuses_a_matrix_that_is_not_positive_definite(where):
+    from faceretarget.geometry._banded_qp_kernels import block_cholesky
+
+    diagonal, upper, shift = _random_blocks(5, 4, 3)
+    low, offt = np.empty_like(diagonal), np.empty_like(upper)
+    if where == "coupling":
+        upper[2] *= 100.0  # block 3's Schur complement turns indefinite
+    else:
+        diagonal[-1, -1, -1] = -100.0  # the very last pivot: no later step would see a NaN
+    dense = block_tridiagonal_dense(diagonal, upper) + np.diag(shift)
+    assert np.linalg.eigvalsh(dense).min() < 0
+    assert not block_cholesky(diagonal, upper, shift, low, offt)
+
+
+@pytest.mark.parametrize("seed", range(16))
+def test_block_form_takes_the_band_forms_steps_and_answer(seed, by_blocks):
+    """The same interior point on the same matrix: the same number of steps, the same
+    exactness, the same answer to rounding, on small to 40 x 28 problems over 0-6 decades."""
+    rng = np.random.default_rng(seed)
+    n, k = (40, 28) if seed < 2 else (int(rng.integers(1, 30)), int(rng.integers(1, 6)))
+    h, r = block_tridiagonal(seed, n, k, decades=int(rng.integers(0, 7)), ridge=1e-6)
+    want, want_info = nonneg_qp_banded(h, r)
+    got, info = nonneg_qp_block_tridiagonal(*blocks_of(h, n, k), r)
+    assert info["steps"] == want_info["steps"] and info["exact"] == want_info["exact"]
+    np.testing.assert_allclose(got, want, atol=1e-10 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_block_form_is_exact_on_small_problems_against_enumeration(seed, by_blocks):
+    rng = np.random.default_rng(seed)
+    n, k = int(rng.integers(1, 5)), int(rng.integers(1, 4))
+    h, r = block_tridiagonal(seed, n, k, decades=int(rng.integers(0, 3)))
+    want = nonneg_qp_enumerate(h.toarray(), r)
+    start = None if seed % 2 else np.zeros(r.size)
+    got, info = nonneg_qp_block_tridiagonal(*blocks_of(h, n, k), r, start)
+    assert info["exact"] and (got >= 0).all()
+    np.testing.assert_allclose(got, want, atol=1e-9 * max(np.abs(want).max(), 1e-300))
+
+
+def test_block_form_checks_its_shapes(by_blocks):
+    with pytest.raises(ShapeError):
+        nonneg_qp_block_tridiagonal(np.zeros((3, 2, 2)), np.zeros((3, 2, 2)), np.ones(6))
+    with pytest.raises(ShapeError):
+        nonneg_qp_block_tridiagonal(np.zeros((3, 2, 2)), np.zeros((2, 2, 2)), np.ones(5))
+    got, info = nonneg_qp_block_tridiagonal(np.zeros((0, 2, 2)), np.zeros((0, 2, 2)), np.zeros(0))
+    assert got.shape == (0,) and info["exact"]
+
+
+def test_block_form_factors_by_blocks_from_its_threshold_only(monkeypatch):
+    """Below ``config.BLOCK_QP_MIN_VARIABLES`` the band (nothing to compile), from it the blocks."""
+    used = []
+
+    class Spy(banded_qp._Blocks):
+        def factor(self, d):
+            used.append(d.size)
+            return super().factor(d)
+
+    monkeypatch.setattr(banded_qp, "_Blocks", Spy)
+    h, r = block_tridiagonal(0, 6, 3, decades=1)
+    diagonal, upper = blocks_of(h, 6, 3)
+    monkeypatch.setattr(config, "BLOCK_QP_MIN_VARIABLES", 19)
+    small, _ = nonneg_qp_block_tridiagonal(diagonal, upper, r)
+    assert not used
+    monkeypatch.setattr(config, "BLOCK_QP_MIN_VARIABLES", 18)
+    large, _ = nonneg_qp_block_tridiagonal(diagonal, upper, r)
+    assert used and set(used) == {18}
+    np.testing.assert_allclose(large, small, atol=1e-12 * np.abs(small).max())

@@ -48,3 +48,27 @@ def block_tridiagonal(seed, n, k, decades, ridge=0.0):
     h = sp.kron(lap, sp.csr_matrix(b.T @ b)).tocsc()
     h = h + ridge * float(h.diagonal().mean()) * sp.identity(n * k, format="csc")
     return h.tocsc(), rng.normal(size=n * k) * rng.uniform(0.1, 100)
+
+
+def blocks_of(hessian, n, k):
+    """The diagonal ``(n, K, K)`` and upper ``(n - 1, K, K)`` blocks of a block-tridiagonal
+    matrix of ``n x n`` blocks, read off its dense form."""
+    dense = hessian.toarray() if sp.issparse(hessian) else np.asarray(hessian)
+    diagonal = np.stack([dense[t * k : (t + 1) * k, t * k : (t + 1) * k] for t in range(n)])
+    upper = np.zeros((max(n - 1, 0), k, k))
+    for t in range(n - 1):
+        upper[t] = dense[t * k : (t + 1) * k, (t + 1) * k : (t + 2) * k]
+    return diagonal, upper
+
+
+def block_tridiagonal_dense(diagonal, upper):
+    """The dense ``(n K, n K)`` matrix of the blocks (``upper[t]`` at block ``(t, t + 1)``,
+    its transpose at ``(t + 1, t)``)."""
+    n, k = diagonal.shape[0], diagonal.shape[1]
+    dense = np.zeros((n * k, n * k))
+    for t in range(n):
+        dense[t * k : (t + 1) * k, t * k : (t + 1) * k] = diagonal[t]
+    for t in range(n - 1):
+        dense[t * k : (t + 1) * k, (t + 1) * k : (t + 2) * k] = upper[t]
+        dense[(t + 1) * k : (t + 2) * k, t * k : (t + 1) * k] = upper[t].T
+    return dense
