@@ -323,8 +323,15 @@ class Influence:
 def velocity_metric(bases, center, edge_len: float) -> np.ndarray:
     """(K, K) metric ``G = B^T B / (V h^2)`` (+ a 1e-6 relative ridge) of the bases ``(K, V, 3)``."""
     b = np.asarray(bases, dtype=np.float64)
-    flat = (b - center).reshape(b.shape[0], -1)
-    gram = flat @ flat.T / (b.shape[1] * float(edge_len) ** 2)
+    k, n = b.shape[0], b.shape[1]
+    d = b - center  # in the layout of ``bases``
+    if d.flags.c_contiguous:
+        flat = d.reshape(k, -1)
+        gram = flat @ flat.T
+    else:  # vertex-major (the retarget's bases): the (V, 3K) rows' Gram, no transposing copy
+        rows = np.transpose(d, (1, 0, 2)).reshape(n, 3 * k)
+        gram = (rows.T @ rows).reshape(k, 3, k, 3).trace(axis1=1, axis2=3)
+    gram = gram / (n * float(edge_len) ** 2)
     return gram + 1e-6 * max(float(np.trace(gram)) / gram.shape[0], np.finfo(float).tiny) * np.eye(
         gram.shape[0]
     )

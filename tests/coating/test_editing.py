@@ -20,6 +20,7 @@ from faceretarget.plugins.coating.editing import (
     _knot_change,
     solve_bases,
     solve_weights,
+    velocity_metric,
 )
 from faceretarget.plugins.coating.retargeter import CoatingRetargeter
 
@@ -743,3 +744,25 @@ def test_the_alternation_stops_at_the_first_step_that_changes_the_objective_litt
     monkeypatch.setattr(editing, "_REL_STOP", 0.0)
     history = edit()
     assert len(steps) > 3 and len(history) == len(steps)
+
+
+@pytest.mark.parametrize("layout", ["frame-major", "vertex-major", "strided"])
+def test_velocity_metric_is_the_bases_gram_in_any_layout(layout):
+    """``G = (B - c)(B - c)^T / (V h^2)`` plus its ridge, whatever the memory layout of the
+    bases (the retarget's are vertex-major, an edit's frame-major)."""
+    rng = np.random.default_rng(7)
+    k, n, h = 5, 40, 0.3
+    bases = rng.normal(size=(k, n, 3))
+    center = rng.normal(size=(n, 3))
+    flat = (bases - center).reshape(k, -1)
+    gram = flat @ flat.T / (n * h**2)
+    want = gram + 1e-6 * np.trace(gram) / k * np.eye(k)
+    given = {
+        "frame-major": bases,
+        "vertex-major": np.transpose(
+            np.ascontiguousarray(np.transpose(bases, (1, 0, 2))), (1, 0, 2)
+        ),
+        "strided": np.repeat(bases, 2, axis=1)[:, ::2],
+    }[layout]
+    np.testing.assert_array_equal(given, bases)
+    np.testing.assert_allclose(velocity_metric(given, center, h), want, rtol=1e-13)
