@@ -1,6 +1,7 @@
 """Greedy basis selection and non-negative weights (eq. 6-8)."""
 
 import numpy as np
+import pytest
 
 from faceretarget.plugins.coating.bases import BasisSpace, blend, select_bases
 
@@ -150,16 +151,22 @@ def test_bases_when_the_candidates_are_not_low_rank(monkeypatch):
     np.testing.assert_allclose(b.space.adjoint_matrix, a.space.adjoint_matrix, atol=2e-6 * lift)
 
 
-def test_blend_is_the_centred_sum_without_centring_the_bases():
+@pytest.mark.parametrize("frames", [1, 3, 5, 12])
+@pytest.mark.parametrize("layout", ["frame-major", "vertex-major"])
+def test_blend_is_the_centred_sum_without_centring_the_bases(frames, layout):
     """eq. 8 as written (centre + sum of weighted centred bases) against blend, which adds
-    the weighted bases and the leftover weight of the centre; weights not summing to 1."""
+    the weighted bases and the leftover weight of the centre; weights not summing to 1; the
+    bases frame-major or vertex-major (the retarget's layout: the product of their rows for a
+    few frames), distinct coordinates (a crossed x, y, z would show)."""
     rng = np.random.default_rng(5)
     bases = rng.normal(size=(4, 7, 3)) + [3.0, -2.0, 10.0]
+    if layout == "vertex-major":
+        bases = np.transpose(np.ascontiguousarray(np.transpose(bases, (1, 0, 2))), (1, 0, 2))
     center = np.array([3.1, -1.9, 9.8])
-    weights = rng.uniform(0.0, 0.8, size=(5, 4))
+    weights = rng.uniform(0.0, 0.8, size=(frames, 4))
     want = center + np.einsum("tk,kvd->tvd", weights, bases - center)
     got = blend(bases, center, weights)
-    assert got.shape == (5, 7, 3)
+    assert got.shape == (frames, 7, 3) and got.flags.c_contiguous
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
     np.testing.assert_array_equal(
         blend(bases, center, np.zeros((1, 4)))[0], np.tile(center, (7, 1))
