@@ -101,13 +101,8 @@ def block_tridiagonal_band(diagonal: np.ndarray, upper: np.ndarray) -> np.ndarra
     """The upper band ``(2K, n K)`` of the symmetric block-tridiagonal matrix with diagonal
     blocks ``diagonal (n, K, K)`` (symmetric) and blocks ``upper (n - 1, K, K)`` above them
     (block ``(t, t + 1)`` is ``upper[t]``), in :func:`to_upper_band`'s storage with ``u = 2K - 1``."""
-    diagonal = np.asarray(diagonal, dtype=np.float64)
-    upper = np.asarray(upper, dtype=np.float64)
-    n, k = (diagonal.shape + (0, 0))[:2]
-    if diagonal.shape != (n, k, k) or upper.shape != (max(n - 1, 0), k, k):
-        raise ShapeError(
-            f"block_tridiagonal_band: blocks (n, K, K) and (n - 1, K, K), got {diagonal.shape} and {upper.shape}"
-        )
+    diagonal, upper = _checked_blocks(diagonal, upper, "block_tridiagonal_band")
+    n, k = diagonal.shape[:2]
     u = 2 * k - 1
     ab = np.zeros((u + 1, n * k))
     rows, cols = np.triu_indices(k)  # entry (t K + i, t K + j), i <= j: ab[u + i - j, t K + j]
@@ -117,6 +112,21 @@ def block_tridiagonal_band(diagonal: np.ndarray, upper: np.ndarray) -> np.ndarra
         i, j = np.meshgrid(np.arange(k), np.arange(k), indexing="ij")
         view[u - k + i - j, 1:, j] = upper.transpose(1, 2, 0)
     return ab
+
+
+def _checked_blocks(
+    diagonal: np.ndarray, upper: np.ndarray, who: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """``diagonal (n, K, K)`` and ``upper (n - 1, K, K)`` as C-ordered float64 arrays, or a
+    ShapeError naming ``who``."""
+    diagonal = np.ascontiguousarray(diagonal, dtype=np.float64)
+    upper = np.ascontiguousarray(upper, dtype=np.float64)
+    n, k = (diagonal.shape + (0, 0))[:2]
+    if diagonal.shape != (n, k, k) or upper.shape != (max(n - 1, 0), k, k):
+        raise ShapeError(
+            f"{who}: blocks (n, K, K) and (n - 1, K, K), got {diagonal.shape} and {upper.shape}"
+        )
+    return diagonal, upper
 
 
 def nonneg_qp_banded(
@@ -172,13 +182,8 @@ def nonneg_qp_block_tridiagonal(
     ``config.BLOCK_QP_MIN_VARIABLES`` variables each step's factorization is by blocks
     (:mod:`._banded_qp_kernels`) instead of LAPACK's banded Cholesky, which fills the
     whole band of ``2K - 1`` in."""
-    diagonal = np.ascontiguousarray(diagonal, dtype=np.float64)
-    upper = np.ascontiguousarray(upper, dtype=np.float64)
-    n, k = (diagonal.shape + (0, 0))[:2]
-    if diagonal.shape != (n, k, k) or upper.shape != (max(n - 1, 0), k, k):
-        raise ShapeError(
-            f"nonneg_qp_block_tridiagonal: blocks (n, K, K) and (n - 1, K, K), got {diagonal.shape} and {upper.shape}"
-        )
+    diagonal, upper = _checked_blocks(diagonal, upper, "nonneg_qp_block_tridiagonal")
+    n, k = diagonal.shape[:2]
     r = np.asarray(rhs, dtype=np.float64).ravel()
     if r.size != n * k:
         raise ShapeError(

@@ -140,12 +140,7 @@ def test_block_tridiagonal_band_is_the_band_of_the_blocks(n, k):
     diagonal = rng.normal(size=(n, k, k))
     diagonal = diagonal + diagonal.transpose(0, 2, 1)
     upper = rng.normal(size=(n - 1, k, k))
-    dense = np.zeros((n * k, n * k))
-    for t in range(n):
-        dense[t * k : (t + 1) * k, t * k : (t + 1) * k] = diagonal[t]
-    for t in range(n - 1):
-        dense[t * k : (t + 1) * k, (t + 1) * k : (t + 2) * k] = upper[t]
-        dense[(t + 1) * k : (t + 2) * k, t * k : (t + 1) * k] = upper[t].T
+    dense = block_tridiagonal_dense(diagonal, upper)
     got = block_tridiagonal_band(diagonal, upper)
     u = 2 * k - 1
     assert got.shape == (u + 1, n * k)
