@@ -1296,9 +1296,9 @@ class Animation:
 
     def compute(self) -> Animation:
         """Evaluate the vertices now if they are lazy (blendshape results: ``neutral + weights @
-        deltas`` and the head motion, one BLAS product; ~17 ms for 300 frames x 9,409 vertices,
-        ``benchmarks/bench_cross_rig.py``; a :class:`FrameSource`: every frame, a chunk at a
-        time); returns ``self``. Reading :attr:`vertices` does the same on first use: call
+        deltas`` and the head motion, one BLAS product, timed for 300 frames x 9,409 vertices
+        in docs/performance.md; a :class:`FrameSource`: every frame, a chunk at a time);
+        returns ``self``. Reading :attr:`vertices` does the same on first use: call
         this to choose when the time and memory are spent."""
         _ = self.vertices
         return self
