@@ -54,9 +54,9 @@ def scratch_items(item_bytes: int) -> int:
 
 
 #: Variables from which ``geometry.banded_qp.nonneg_qp_block_tridiagonal`` factors its
-#: steps by blocks (numba): below, LAPACK's banded Cholesky takes about as long (the
-#: coating edit's 28-basis knot problems: even at 3,640 variables, 1.5x faster by blocks
-#: from ~11,000) and a call compiles nothing (the first block factor compiles for ~1 s).
+#: steps by blocks (numba). Below, LAPACK's banded Cholesky takes about as long and a call
+#: compiles nothing (the block kernels compile for ~1 s); the coating edit's 28-basis knot
+#: problems ran as fast either way at 3,640 variables, 1.5x faster by blocks at 11,200.
 BLOCK_QP_MIN_VARIABLES = 8192
 
 

@@ -2,10 +2,12 @@
 (compiled lazily, cached).
 
 A symmetric block-tridiagonal ``H`` has diagonal blocks ``diagonal (n, K, K)`` and blocks
-``upper (n - 1, K, K)`` above them (block ``(t, t + 1)`` is ``upper[t]``). Its Cholesky
-factor ``H + diag(shift) = L L^T`` is block lower-bidiagonal: diagonal blocks ``low[t]``
-(lower triangular) and below them ``L[t + 1, t] = offt[t]^T`` with ``offt[t] = low[t]^-1
-upper[t]``. By blocks (Golub & Van Loan 2013, sec. 4.5.3, block tridiagonal Cholesky)::
+``upper (n - 1, K, K)`` above them (block ``(t, t + 1)`` is ``upper[t]``); like LAPACK's
+band storage (``block_tridiagonal_band``), only the upper triangle of a diagonal block is
+read, so both forms see the same matrix. Its Cholesky factor ``H + diag(shift) = L L^T``
+is block lower-bidiagonal: diagonal blocks ``low[t]`` (lower triangular) and below them
+``L[t + 1, t] = offt[t]^T`` with ``offt[t] = low[t]^-1 upper[t]``. The Cholesky
+recurrences by blocks::
 
     low[t] low[t]^T = diagonal[t] + diag(shift_t) - offt[t - 1]^T offt[t - 1]
     low[t] offt[t]  = upper[t]
@@ -30,15 +32,15 @@ def block_cholesky(
     diagonal: np.ndarray, upper: np.ndarray, shift: np.ndarray, low: np.ndarray, offt: np.ndarray
 ) -> bool:
     """Factor ``H + diag(shift)`` into ``low (n, K, K)`` and ``offt (n - 1, K, K)`` (see the
-    module); ``shift : (n K,)``. False if a pivot is not positive (not positive definite
-    to rounding); the factors are then partial."""
+    module; the diagonal blocks' upper triangles); ``shift : (n K,)``. False if a pivot is
+    not positive or NaN (not positive definite to rounding); the factors are then partial."""
     n, k = diagonal.shape[0], diagonal.shape[1]
     for t in range(n):
         lt = low[t]  # the lower triangle of the shifted block, factored in place
-        for i in range(k):
-            for j in range(i + 1):
-                lt[i, j] = diagonal[t, i, j]
-            lt[i, i] += shift[t * k + i]
+        for j in range(k):  # the upper triangle of the block, transposed
+            for i in range(j, k):
+                lt[i, j] = diagonal[t, j, i]
+            lt[j, j] += shift[t * k + j]
         if t > 0:  # minus L[t, t-1] L[t, t-1]^T = offt^T offt, a row of offt at a time
             c = offt[t - 1]
             for q in range(k):
@@ -120,14 +122,17 @@ def block_solve(low: np.ndarray, offt: np.ndarray, rhs: np.ndarray, out: np.ndar
 
 @nb.njit(cache=True, nogil=True, fastmath=FASTMATH)
 def block_matvec(diagonal: np.ndarray, upper: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
-    """``out = H x`` for the block-tridiagonal ``H`` (``x, out : (n K,)``, not aliased)."""
+    """``out = H x`` for the block-tridiagonal ``H`` (``x, out : (n K,)``, not aliased; the
+    diagonal blocks' upper triangles)."""
     n, k = diagonal.shape[0], diagonal.shape[1]
     for t in range(n):
         base = t * k
         d = diagonal[t]
-        for i in range(k):
+        for i in range(k):  # the upper triangle of the block and its transpose
             acc = 0.0
-            for j in range(k):
+            for j in range(i):
+                acc += d[j, i] * x[base + j]
+            for j in range(i, k):
                 acc += d[i, j] * x[base + j]
             if t < n - 1:
                 u = upper[t]

@@ -166,6 +166,8 @@ def nonneg_qp_band(
     n = r.size
     if ab.ndim != 2 or ab.shape[1] != n:
         raise ShapeError(f"nonneg_qp_band: the band must be (u + 1, {n}), got {ab.shape}")
+    if start is not None and np.size(start) != n:
+        raise ShapeError(f"nonneg_qp_band: start must have {n} entries, got {np.size(start)}")
     if n == 0:
         return np.zeros(0), {"steps": 0, "exact": True, "kkt": 0.0}
     return _interior_point(_Band(ab), r, start, lambda: ab)
@@ -178,17 +180,19 @@ def nonneg_qp_block_tridiagonal(
     """:func:`nonneg_qp_banded` for a block-tridiagonal ``H`` given by its blocks:
     ``diagonal (n, K, K)`` (symmetric) and ``upper (n - 1, K, K)`` (block ``(t, t + 1)``),
     as for :func:`block_tridiagonal_band`; ``rhs, start : (n K,)``. The same interior
-    point and polish as :func:`nonneg_qp_band` (same answer to rounding); from
+    point and polish as :func:`nonneg_qp_band` (the same matrix: the upper triangles of
+    the diagonal blocks; the same answer to rounding); from
     ``config.BLOCK_QP_MIN_VARIABLES`` variables each step's factorization is by blocks
     (:mod:`._banded_qp_kernels`) instead of LAPACK's banded Cholesky, which fills the
     whole band of ``2K - 1`` in."""
     diagonal, upper = _checked_blocks(diagonal, upper, "nonneg_qp_block_tridiagonal")
     n, k = diagonal.shape[:2]
     r = np.asarray(rhs, dtype=np.float64).ravel()
-    if r.size != n * k:
-        raise ShapeError(
-            f"nonneg_qp_block_tridiagonal: rhs must have n K = {n * k} entries, got {r.size}"
-        )
+    for name, value in (("rhs", r), ("start", start)):
+        if value is not None and np.size(value) != n * k:
+            raise ShapeError(
+                f"nonneg_qp_block_tridiagonal: {name} must have n K = {n * k} entries, got {np.size(value)}"
+            )
     if r.size == 0:
         return np.zeros(0), {"steps": 0, "exact": True, "kkt": 0.0}
     if r.size < config.BLOCK_QP_MIN_VARIABLES:  # as fast by the band, and nothing to compile
@@ -203,7 +207,8 @@ def nonneg_qp_block_tridiagonal(
 
 class _Operator(Protocol):
     """What the interior point needs of ``H``: its diagonal, ``H x``, a factor of
-    ``H + diag(d)`` (None if not positive definite) and solves with it."""
+    ``H + diag(d)`` (None if not positive definite) and solves with it. A new factor may
+    reuse the memory of the last one (``_Blocks``): one factor is used at a time."""
 
     diagonal: np.ndarray
 

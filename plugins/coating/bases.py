@@ -151,9 +151,12 @@ def blend(bases: np.ndarray, center: np.ndarray, weights: np.ndarray) -> np.ndar
     rows (a copy of the bases' size)."""
     b = np.asarray(bases, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
-    k, n, c = b.shape[0], b.shape[1], w.shape[0]
+    k, n = b.shape[0], b.shape[1]
+    if w.ndim != 2 or w.shape[1] != k:
+        raise ShapeError(f"blend: weights must be (C, {k}) for {k} bases, got {w.shape}")
+    c = w.shape[0]
     rows = np.transpose(b, (1, 0, 2))
-    if rows.flags.c_contiguous and c <= _FEW_FRAMES:
+    if rows.flags.c_contiguous and 0 < c <= _FEW_FRAMES:
         lift = np.zeros((k, 3, c, 3))  # lift[i, d, t, e] = w[t, i] (d = e)
         for d in range(3):
             lift[:, d, :, d] = w.T

@@ -328,7 +328,7 @@ def velocity_metric(bases, center, edge_len: float) -> np.ndarray:
     if d.flags.c_contiguous:
         flat = d.reshape(k, -1)
         gram = flat @ flat.T
-    else:  # vertex-major (the retarget's bases): the (V, 3K) rows' Gram, no transposing copy
+    else:  # the (V, 3K) rows' Gram: no copy for vertex-major bases (the retarget's)
         rows = np.transpose(d, (1, 0, 2)).reshape(n, 3 * k)
         gram = (rows.T @ rows).reshape(k, 3, k, 3).trace(axis1=1, axis2=3)
     gram = gram / (n * float(edge_len) ** 2)
@@ -446,8 +446,8 @@ def _knot_change(
 def _nnls_band(diagonal, upper, rhs, start) -> np.ndarray:
     """``argmin 1/2 x^T H x - rhs . x`` s.t. ``x >= 0`` for the knots' block-tridiagonal ``H``
     (``diagonal (n, K, K)``, ``upper (n - 1, K, K)``): a primal-dual interior point method
-    (:func:`faceretarget.geometry.banded_qp.nonneg_qp_block_tridiagonal`), 15-25 block
-    Cholesky steps whatever the conditioning. An active-set method cycles here (the metric
+    (:func:`faceretarget.geometry.banded_qp.nonneg_qp_block_tridiagonal`), 15-25 Cholesky
+    steps whatever the conditioning (by blocks for large problems, by the band below). An active-set method cycles here (the metric
     couples the bases: ``H`` is not an M-matrix) and ADMM stalls (condition number ~1e13):
     the 3,640-variable full problem of a whole-shot edit (130 frames x 28 bases) took
     3.1-3.7 s by ADMM, 5,000 iterations without reaching the optimum, and takes 60 ms this

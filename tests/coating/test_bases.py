@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from faceretarget.errors import ShapeError
 from faceretarget.plugins.coating.bases import BasisSpace, blend, select_bases
 
 
@@ -199,3 +200,13 @@ def test_candidates_are_read_in_steps_below_the_scratch_size(monkeypatch):
     assert calls[1:9] == [5] * 8, calls
     np.testing.assert_array_equal(low_small.model_.source_bases, low.model_.source_bases)
     np.testing.assert_array_equal(direct_small.model_.source_bases, direct.model_.source_bases)
+
+
+@pytest.mark.parametrize("layout", ["frame-major", "vertex-major"])
+def test_blend_of_no_frames_and_weights_of_the_wrong_size(layout):
+    bases = np.random.default_rng(6).normal(size=(4, 7, 3))
+    if layout == "vertex-major":
+        bases = np.transpose(np.ascontiguousarray(np.transpose(bases, (1, 0, 2))), (1, 0, 2))
+    assert blend(bases, np.zeros(3), np.zeros((0, 4))).shape == (0, 7, 3)
+    with pytest.raises(ShapeError, match=r"\(C, 4\)"):
+        blend(bases, np.zeros(3), np.ones((2, 1)))  # one weight for 4 bases: not broadcast

@@ -231,7 +231,7 @@ def test_block_kernels_against_dense_numpy(n, k):
     np.testing.assert_allclose(out, (dense - np.diag(shift)) @ b, rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("where", ["coupling", "last pivot"])
+@pytest.mark.parametrize("where", ["coupling", "last pivot", "zero pivot", "NaN"])
 def test_block_cholesky_refuses_a_matrix_that_is_not_positive_definite(where):
     from faceretarget.geometry._banded_qp_kernels import block_cholesky
 
@@ -239,10 +239,17 @@ def test_block_cholesky_refuses_a_matrix_that_is_not_positive_definite(where):
     low, offt = np.empty_like(diagonal), np.empty_like(upper)
     if where == "coupling":
         upper[2] *= 100.0  # block 3's Schur complement turns indefinite
-    else:
+    elif where == "last pivot":
         diagonal[-1, -1, -1] = -100.0  # the very last pivot: no later step would see a NaN
-    dense = block_tridiagonal_dense(diagonal, upper) + np.diag(shift)
-    assert np.linalg.eigvalsh(dense).min() < 0
+    elif where == "zero pivot":  # exactly singular: no division by the zero pivot
+        diagonal[0] = 0.0
+        upper[0] = 0.0
+        shift[:3] = 0.0
+    else:
+        diagonal[1, 0, 2] = np.nan
+    if where != "NaN":
+        dense = block_tridiagonal_dense(diagonal, upper) + np.diag(shift)
+        assert np.linalg.eigvalsh(dense).min() <= 0
     assert not block_cholesky(diagonal, upper, shift, low, offt)
 
 
@@ -253,8 +260,9 @@ def test_block_form_takes_the_band_forms_steps_and_answer(seed, by_blocks):
     rng = np.random.default_rng(seed)
     n, k = (40, 28) if seed < 2 else (int(rng.integers(1, 30)), int(rng.integers(1, 6)))
     h, r = block_tridiagonal(seed, n, k, decades=int(rng.integers(0, 7)), ridge=1e-6)
-    want, want_info = nonneg_qp_banded(h, r)
-    got, info = nonneg_qp_block_tridiagonal(*blocks_of(h, n, k), r)
+    start = None if seed % 2 else rng.uniform(0.0, 1.0, n * k)  # a start changes the steps
+    want, want_info = nonneg_qp_banded(h, r, start)
+    got, info = nonneg_qp_block_tridiagonal(*blocks_of(h, n, k), r, start)
     assert info["steps"] == want_info["steps"] and info["exact"] == want_info["exact"]
     np.testing.assert_allclose(got, want, atol=1e-10 * np.abs(want).max())
 
@@ -299,3 +307,46 @@ def test_block_form_factors_by_blocks_from_its_threshold_only(monkeypatch):
     large, _ = nonneg_qp_block_tridiagonal(diagonal, upper, r)
     assert used and set(used) == {18}
     np.testing.assert_allclose(large, small, atol=1e-12 * np.abs(small).max())
+
+
+def test_a_start_of_the_wrong_size_is_refused(by_blocks):
+    h, r = block_tridiagonal(0, 5, 3, decades=1)
+    with pytest.raises(ShapeError, match="start"):
+        nonneg_qp_block_tridiagonal(*blocks_of(h, 5, 3), r, np.ones(4))
+    with pytest.raises(ShapeError, match="start"):
+        nonneg_qp_band(to_upper_band(h)[0], r, np.ones(16))
+
+
+def test_both_forms_read_the_upper_triangle_of_the_diagonal_blocks(by_blocks):
+    """Diagonal blocks whose lower triangles hold other numbers (even NaN): the band stores
+    the upper triangles, and the blocks read the same, in the factor and in the product."""
+    from faceretarget.geometry._banded_qp_kernels import block_matvec
+
+    n, k = 6, 4
+    h, r = block_tridiagonal(3, n, k, decades=2, ridge=1e-3)
+    diagonal, upper = blocks_of(h, n, k)
+    lower = np.tril_indices(k, -1)
+    skewed = diagonal.copy()
+    skewed[:, lower[0], lower[1]] += np.random.default_rng(3).normal(size=(n, lower[0].size))
+    x = np.random.default_rng(4).normal(size=n * k)
+    out = np.empty(n * k)
+    block_matvec(skewed, upper, x, out)
+    np.testing.assert_allclose(out, h @ x, rtol=1e-12, atol=1e-12)
+    want, want_info = nonneg_qp_banded(h, r)
+    skewed[0, 1, 0] = np.nan
+    got, info = nonneg_qp_block_tridiagonal(skewed, upper, r)
+    assert info["steps"] == want_info["steps"] and info["exact"] == want_info["exact"]
+    np.testing.assert_allclose(got, want, atol=1e-10 * np.abs(want).max())
+
+
+def test_an_indefinite_matrix_stops_both_forms_alike(by_blocks):
+    """The factor fails at the first step: both forms stop there and return the same."""
+    h, r = block_tridiagonal(1, 8, 3, decades=0)
+    diagonal, upper = blocks_of(h, 8, 3)
+    upper[4] *= 50.0
+    dense = block_tridiagonal_dense(diagonal, upper)
+    assert np.linalg.eigvalsh(dense).min() < 0
+    want, want_info = nonneg_qp_band(block_tridiagonal_band(diagonal, upper), r)
+    got, info = nonneg_qp_block_tridiagonal(diagonal, upper, r)
+    assert info == want_info
+    np.testing.assert_array_equal(got, want)
