@@ -195,14 +195,14 @@ def nonneg_qp_block_tridiagonal(
             )
     if r.size == 0:
         return np.zeros(0), {"steps": 0, "exact": True, "kkt": 0.0}
-    if r.size < config.BLOCK_QP_MIN_VARIABLES:  # as fast by the band, and nothing to compile
-        ab = np.asfortranarray(block_tridiagonal_band(diagonal, upper))
-        return _interior_point(_Band(ab), r, start, lambda: ab)
 
-    def band() -> np.ndarray:  # for the polish only
+    def band() -> np.ndarray:
         return np.asfortranarray(block_tridiagonal_band(diagonal, upper))
 
-    return _interior_point(_Blocks(diagonal, upper), r, start, band)
+    if r.size < config.BLOCK_QP_MIN_VARIABLES:  # as fast by the band, and nothing to compile
+        ab = band()
+        return _interior_point(_Band(ab), r, start, lambda: ab)
+    return _interior_point(_Blocks(diagonal, upper), r, start, band)  # the band for the polish
 
 
 class _Operator(Protocol):

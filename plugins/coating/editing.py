@@ -447,11 +447,11 @@ def _nnls_band(diagonal, upper, rhs, start) -> np.ndarray:
     """``argmin 1/2 x^T H x - rhs . x`` s.t. ``x >= 0`` for the knots' block-tridiagonal ``H``
     (``diagonal (n, K, K)``, ``upper (n - 1, K, K)``): a primal-dual interior point method
     (:func:`faceretarget.geometry.banded_qp.nonneg_qp_block_tridiagonal`), 15-25 Cholesky
-    steps whatever the conditioning (by blocks for large problems, by the band below). An active-set method cycles here (the metric
-    couples the bases: ``H`` is not an M-matrix) and ADMM stalls (condition number ~1e13):
-    the 3,640-variable full problem of a whole-shot edit (130 frames x 28 bases) took
-    3.1-3.7 s by ADMM, 5,000 iterations without reaching the optimum, and takes 60 ms this
-    way, with a lower objective."""
+    steps whatever the conditioning (by blocks for large problems, by the band below). An
+    active-set method cycles here (the metric couples the bases: ``H`` is not an M-matrix)
+    and ADMM stalls (condition number ~1e13): the 3,640-variable full problem of a
+    whole-shot edit (130 frames x 28 bases) took 3.1-3.7 s by ADMM, 5,000 iterations
+    without reaching the optimum, and takes 60 ms this way, with a lower objective."""
     return nonneg_qp_block_tridiagonal(diagonal, upper, rhs, start)[0]
 
 
