@@ -285,3 +285,20 @@ def test_batch_on_a_running_scheduler(tmp_path, fake_registry):
         )
     assert [r.status for r in summary.results] == ["done"] * 4
     assert len(list((tmp_path / "out").glob("*.fnpz"))) == 4
+
+
+def test_the_supervisor_gives_each_task_its_jobs_owner(monkeypatch):
+    """Workers are shared by owner (:func:`._workers.plugin_owner`): the tasks carry the
+    owner the manifest gave each job; a job without one is owned by its class's module."""
+    from faceretarget.evaluation import _workers, batch
+
+    seen = []
+    monkeypatch.setattr(
+        _workers, "run_supervised", lambda groups, **_: seen.extend(t for g in groups for t in g)
+    )
+    jobs = [
+        batch.Job("a", "s", "c", "m", {}, "a.npz", cls=fakes.NeutralFake, owner=("built-ins",)),
+        batch.Job("b", "s", "c", "m", {}, "b.npz", cls=fakes.NeutralFake),
+    ]
+    batch._supervised(jobs, 1, None, lambda result: None)
+    assert [t.owner for t in seen] == [("built-ins",), fakes.NeutralFake.__module__]
