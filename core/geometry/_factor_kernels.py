@@ -98,3 +98,26 @@ def lu_solve_frames(
         o = order[i]
         for c in range(c0, c1):
             out[c // 3, o, c % 3] = add[c // 3, o, c % 3] + x[i, c - c0]
+
+
+@nb.njit(cache=True, nogil=True)
+def permute_rows(x: np.ndarray, source: np.ndarray) -> None:
+    """``x[i] = x[source[i]]`` for every row ``i`` of ``x : (n, k)`` at once, in place
+    (``source``: a permutation of ``range(n)``), one cycle of the permutation at a time:
+    every row is moved once, through one row of scratch."""
+    n = x.shape[0]
+    done = np.zeros(n, dtype=np.bool_)
+    held = np.empty(x.shape[1], dtype=x.dtype)
+    for start in range(n):
+        if done[start]:
+            continue
+        held[:] = x[start]
+        i = start
+        while True:
+            done[i] = True
+            j = source[i]
+            if j == start:
+                x[i] = held
+                break
+            x[i] = x[j]
+            i = j

@@ -385,17 +385,31 @@ class DeformationTransfer:
             out += self.sigma * (self.line_operator.T @ target)
         return out
 
-    def solve_rhs(self, rhs: np.ndarray, mean_displacement: np.ndarray | None = None) -> np.ndarray:
+    def solve_rhs(
+        self,
+        rhs: np.ndarray,
+        mean_displacement: np.ndarray | None = None,
+        *,
+        overwrite_rhs: bool = False,
+    ) -> np.ndarray:
         """Solve the normal equations for ``rhs : (V, 3F)`` -> vertices ``(F, V, 3)``.
 
         mean_displacement : (F, C, 3), optional
             Mean displacement from the target reference of each connected component
             (default zero).
+        overwrite_rhs : bool
+            Solve in ``rhs`` itself when it is C-contiguous float64 (the result is then a
+            view of it) instead of in a copy.
         """
         r = np.asarray(rhs, dtype=np.float64)
+        if r.ndim != 2 or r.shape[0] != self.n_vertices or r.shape[1] % 3:
+            raise ShapeError(
+                f"DeformationTransfer.solve_rhs: rhs must be ({self.n_vertices}, 3F), got {r.shape}"
+            )
         n_frames = r.shape[1] // 3
-        x = np.zeros((self.n_vertices, r.shape[1]))
-        self.factor.solve_rows(r, self.free, x)
+        x = r if overwrite_rhs and r.flags.c_contiguous else np.array(r, order="C")
+        self.factor.solve_rows(x, self.free, x)
+        x[self.anchors] = 0.0
         out = x.reshape(self.n_vertices, n_frames, 3).transpose(1, 0, 2)
         return self._set_gauge(out, mean_displacement)
 
@@ -520,7 +534,7 @@ class DeformationTransfer:
                 columns, None if lines is None else lines[sl]
             )
             del columns
-        out = self.solve_rhs(rhs, mean_displacement)
+        out = self.solve_rhs(rhs, mean_displacement, overwrite_rhs=True)
         return out[0] if single else out
 
 

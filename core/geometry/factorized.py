@@ -153,7 +153,11 @@ class SPDFactor:
         """Solve ``A x = rhs[rows]`` and write ``x`` into ``out[rows]`` (the other rows of
         ``out`` are left as they are); returns ``out``. ``rhs``, ``out : (m, k)``, ``rows :
         (n,)`` distinct row indices: what ``out[rows] = solve(rhs[rows])`` does, with one
-        gather and one scatter instead of three copies of the right-hand sides."""
+        gather and one scatter instead of three copies of the right-hand sides.
+
+        ``out`` may be ``rhs`` itself (C-contiguous float64): the rows are then put in pivot
+        order, solved and put back in place, and no copy of the right-hand sides is made
+        (a fresh ``(m, k)`` array costs page faults, ~0.15 s at 80K x 84 here)."""
         self._factor()
         idx = np.asarray(rows)
         if idx.dtype.kind not in "iu" or idx.shape != (self.n,):
@@ -169,7 +173,36 @@ class SPDFactor:
                 f"{self.what}: solve_rows needs a float64 out shaped like the 2-D rhs, "
                 f"got rhs {b.shape}, out {out.dtype} {out.shape}"
             )
-        return self._solve_at(b, idx[self._order], out)  # pivot i is row rows[order[i]]
+        pivoted = idx[self._order]  # pivot i is row rows[order[i]]
+        if out is b:
+            return self._solve_in_place(out, pivoted)
+        return self._solve_at(b, pivoted, out)
+
+    def _solve_in_place(self, x: np.ndarray, pivoted: np.ndarray) -> np.ndarray:
+        """``x[pivoted] = solve(x[pivoted])`` without copies: the rows of ``x (m, k)`` are
+        permuted so that pivot ``i`` is row ``i`` (the rows not solved for after them), solved
+        as the first ``n`` rows, and permuted back. Returns ``x``."""
+        from ._factor_kernels import lu_solve, permute_rows
+
+        if not x.flags.c_contiguous:
+            raise ShapeError(f"{self.what}: solve_rows in place needs a C-contiguous out")
+        rest = np.ones(x.shape[0], dtype=bool)
+        rest[pivoted] = False
+        source = np.concatenate([pivoted, np.flatnonzero(rest)])
+        permute_rows(x, source)
+        head = x[: self.n]
+        k = x.shape[1]
+        l, u = self._l, self._u
+        in_blocks(
+            lu_solve,
+            k,
+            lambda c0, c1: (l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, head, c0, c1),
+            parts=max(1, min(worker_count(k), k // _MIN_BLOCK_COLUMNS)),
+        )
+        back = np.empty_like(source)
+        back[source] = np.arange(source.size)
+        permute_rows(x, back)
+        return x
 
     def _solve_at(self, rhs: np.ndarray, pivoted: np.ndarray, out: np.ndarray) -> np.ndarray:
         """``out[pivoted] = x`` for ``A x = rhs[pivoted]`` in pivot order (``pivoted[i]``: the

@@ -585,7 +585,8 @@ class DeformationTransferRetargeter(_MeshTransfer):
         for sl, motion, local in self._local_chunks(source, source_motion):
             means = self.transfer_.component_means(local - ref) * self.ratio_
             columns = gradient_columns(self.inverse_, local, self.source_triangles_)
-            out = self.transfer_.solve_rhs(self.transfer_.rhs_columns(columns), means)
+            rhs = self.transfer_.rhs_columns(columns)
+            out = self.transfer_.solve_rhs(rhs, means, overwrite_rhs=True)
             yield sl, motion, to_world(motion, self.output_(out))
 
     def _retarget(self, source: Source) -> Animation:

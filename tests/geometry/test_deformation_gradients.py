@@ -223,3 +223,28 @@ def test_transfer_forms_the_gradient_columns_a_few_meshes_at_a_time(monkeypatch)
     meshes[3, c] = 0.5 * (meshes[3, a] + meshes[3, b])
     with pytest.raises(DegenerateGeometryError, match=r"in mesh 3 \(ids \[4\]"):
         dt.transfer(v, meshes, source_feature_lines={"mouth": chain})
+
+
+def test_solve_rhs_in_its_right_hand_sides_or_a_copy():
+    """``overwrite_rhs`` solves in the caller's array (the result a view of it) with the same
+    numbers as the default, which leaves the right-hand sides as they were; the components'
+    anchor vertices stay at the reference in both."""
+    v, t = grid_mesh(6, seed=4)
+    two = np.concatenate([t, t + v.shape[0]])  # two components: two anchors
+    ref = np.concatenate([v, v + 3.0])
+    dt = DeformationTransfer(_target(ref), two)
+    rng = np.random.default_rng(4)
+    meshes = ref + 0.05 * rng.normal(size=(3,) + ref.shape)
+    rhs = dt.rhs_columns(gradient_columns(reference_inverse(ref, two), meshes, two))
+    kept = rhs.copy()
+    want = dt.solve_rhs(rhs)
+    np.testing.assert_array_equal(rhs, kept)
+    got = dt.solve_rhs(rhs, overwrite_rhs=True)
+    np.testing.assert_array_equal(got, want)
+    assert np.shares_memory(got, rhs)
+    x = got.transpose(1, 0, 2).reshape(
+        ref.shape[0], -1
+    )  # (V, 3F): the gauge shift is in N's null space
+    np.testing.assert_allclose(dt.normal_matrix[dt.free] @ x, kept[dt.free], atol=1e-9)
+    with pytest.raises(ShapeError, match="solve_rhs"):
+        dt.solve_rhs(rhs[:, :4])

@@ -254,6 +254,39 @@ def test_the_ordering_is_applied_on_both_sides():
     np.testing.assert_allclose(fac.solve_frames(frames), want, atol=1e-12)
 
 
+def test_solve_rows_into_its_own_right_hand_sides():
+    """``solve_rows(x, rows, x)`` (no copies) gives ``solve_rows(x, rows, out)`` bit for bit
+    and leaves the rows not solved for as they were; a strided ``x`` is refused."""
+    m = _system(11)
+    fac = SPDFactor(m)
+    rng = np.random.default_rng(6)
+    rows = rng.choice(fac.n + 9, fac.n, replace=False)  # unsorted, 9 rows not solved for
+    rhs = rng.normal(size=(fac.n + 9, 5))
+    want = fac.solve_rows(rhs, rows, np.zeros_like(rhs))
+    x = rhs.copy()
+    assert fac.solve_rows(x, rows, x) is x
+    np.testing.assert_array_equal(x[rows], want[rows])
+    others = np.setdiff1d(np.arange(fac.n + 9), rows)
+    np.testing.assert_array_equal(x[others], rhs[others])
+    strided = np.zeros((fac.n + 9, 10))[:, ::2]
+    with pytest.raises(ShapeError, match="C-contiguous"):
+        fac.solve_rows(strided, rows, strided)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 40])
+def test_permute_rows_is_fancy_indexing(n):
+    """The in-place kernel moves rows as ``x[source]`` does, for permutations with cycles of
+    every length (fixed points included)."""
+    from faceretarget.geometry._factor_kernels import permute_rows
+
+    rng = np.random.default_rng(n)
+    for source in (rng.permutation(n), np.arange(n), np.roll(np.arange(n), 1)):
+        x = rng.normal(size=(n, 3))
+        want = x[source]
+        permute_rows(x, source)
+        np.testing.assert_array_equal(x, want)
+
+
 def test_solve_rows_is_solve_on_the_rows_in_place():
     """``solve_rows(rhs, rows, out)`` is ``out[rows] = solve(rhs[rows])`` bit for bit, and
     leaves the other rows of ``out`` alone (the deformation transfer's free vertices)."""
