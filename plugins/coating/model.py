@@ -333,10 +333,12 @@ class CoatingModel:
         self.basis_frames = frames
         self.selection_rms = history
         self.smoothing_rank = None if smoothed is None else smoothed.rank
-        bases = [self.source.smooth_reference[None]]
+        bases = np.empty((1 + len(frames), self.n_vertices, 3))  # the reference, then the frames
+        bases[0] = self.source.smooth_reference
         adjoint_bases = None
         if frames and smoothed is not None:
-            bases.append(self.source.smooth_reference + smoothed.frames(chosen))
+            smoothed.frames(chosen, out=bases[1:])
+            bases[1:] += self.source.smooth_reference
             # G^T (b - c) of every basis from G^T of (reference - c) and of the displacements'
             # smoothed column basis (fewer columns than the bases; linear, so exact)
             lifted = smoothed.filtered(self.source.adjoint, chosen, offset[None])
@@ -345,11 +347,10 @@ class CoatingModel:
         elif frames:
             picked = np.asarray(frames)
             raw = np.asarray(vertices[np.sort(picked)])[np.argsort(np.argsort(picked))]
-            bases.append(
-                self.source.smooth_reference + self.source.smooth(local_of(picked, raw) - ref)
-            )
+            bases[1:] = self.source.smooth(local_of(picked, raw) - ref)
+            bases[1:] += self.source.smooth_reference
         del smoothed
-        self.set_source_bases(np.concatenate(bases), adjoint_bases=adjoint_bases)
+        self.set_source_bases(bases, adjoint_bases=adjoint_bases)
 
     def set_source_bases(self, bases: np.ndarray, adjoint_bases: np.ndarray | None = None) -> None:
         """Use ``bases (K, V, 3)`` (smooth source meshes, the reference first) and transfer them;
@@ -363,9 +364,11 @@ class CoatingModel:
         )
         self._source_flat = self.space.matrix.T  # (K, 3V) rows of bases - center
         self.target_bases = self.transfer_bases(self.source_bases)
-        self._target_flat = (self.target_bases - self.target_center).reshape(
-            self.target_bases.shape[0], -1
-        )
+        # one (K, 3V) array: the difference of the vertex-major bases would come out
+        # vertex-major, and its reshape would copy it again
+        flat = np.empty(self.target_bases.shape)
+        np.subtract(self.target_bases, self.target_center, out=flat)
+        self._target_flat = flat.reshape(flat.shape[0], -1)
 
     def transfer_bases(self, bases: np.ndarray) -> np.ndarray:
         """Feature-preserving deformation transfer of smooth source meshes (eq. 9-11)."""
