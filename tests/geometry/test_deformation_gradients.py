@@ -248,3 +248,19 @@ def test_solve_rhs_in_its_right_hand_sides_or_a_copy():
     np.testing.assert_allclose(dt.normal_matrix[dt.free] @ x, kept[dt.free], atol=1e-9)
     with pytest.raises(ShapeError, match="solve_rhs"):
         dt.solve_rhs(rhs[:, :4])
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_reference_inverse_is_the_frames_inverse(scale):
+    """The closed-form inverse frames are LAPACK's inverse of :func:`triangle_frames` to
+    rounding, in any length unit and for thin triangles; a batch of meshes is refused."""
+    v, t = grid_mesh(9, seed=3)
+    v = v * scale
+    v[5] += [0.3 * scale, 0.0, 0.0]  # stretched and thin triangles around vertex 5
+    frames = triangle_frames(v, t)
+    want = np.linalg.inv(frames)
+    got = reference_inverse(v, t)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-13 * np.abs(want).max())
+    np.testing.assert_allclose(got @ frames, np.broadcast_to(np.eye(3), frames.shape), atol=1e-12)
+    with pytest.raises(ShapeError, match=r"\(V, 3\)"):
+        reference_inverse(np.stack([v, v]), t)
