@@ -152,6 +152,32 @@ def test_filtered_equals_the_filter_applied_to_the_frames():
         np.testing.assert_allclose(out, want, atol=1e-12 * np.abs(want).max())
 
 
+def test_frames_and_filtered_a_few_frames_at_a_time(monkeypatch):
+    """Frames formed a block at a time (scratch for two frames) into the caller's ``out``, and
+    ``filtered`` by blocks, give the whole-block numbers; a wrong ``out`` is refused."""
+    from faceretarget import config
+    from faceretarget.errors import ShapeError
+    from faceretarget.geometry.smoothing import SmoothedDisplacements
+
+    v, t = grid_mesh(10, seed=9)
+    smoother = TaubinSmoother(t, len(v), iterations=8)
+    adjoint = TaubinSmoother(t, len(v), iterations=8, adjoint=True)
+    got = SmoothedDisplacements(smoother, _displacements(v, rank=4, n_frames=12, seed=5))
+    ids = [11, 0, 7, 3, 3, 9, 1]
+    extra = np.random.default_rng(5).normal(size=(1,) + v.shape)
+    whole, lifted = got.frames(ids), got.filtered(adjoint, ids, extra)
+    monkeypatch.setattr(config, "SCRATCH_BLOCK_BYTES", 2 * 24 * len(v))
+    out = np.full((len(ids),) + v.shape, np.nan)
+    assert got.frames(ids, out=out) is out
+    scale = np.abs(whole).max()
+    np.testing.assert_allclose(out, whole, rtol=0, atol=1e-14 * scale)
+    np.testing.assert_allclose(
+        got.filtered(adjoint, ids, extra), lifted, rtol=0, atol=1e-14 * scale
+    )
+    with pytest.raises(ShapeError, match="out must be"):
+        got.frames(ids, out=out[1:])
+
+
 def test_smoothed_displacements_edge_cases():
     from faceretarget.errors import NumericalError
     from faceretarget.geometry.smoothing import SmoothedDisplacements
