@@ -222,19 +222,29 @@ class SPDFactor:
         out[pivoted] = y
         return out
 
-    def solve_frames(self, rhs: np.ndarray, add: np.ndarray | None = None) -> np.ndarray:
+    def solve_frames(
+        self, rhs: np.ndarray, add: np.ndarray | None = None, *, out: np.ndarray | None = None
+    ) -> np.ndarray:
         """Solve for per-frame right-hand sides ``rhs : (C, n, 3)``; returns ``add + x``
-        (``(C, n, 3)``, ``add`` default zero) without transposed copies."""
+        (``(C, n, 3)``, ``add`` default zero) without transposed copies, written into ``out``
+        when given (C-contiguous float64; it may be ``rhs`` or ``add`` themselves: each
+        column is read before it is written)."""
         r = np.ascontiguousarray(rhs, dtype=np.float64)
         if r.ndim != 3 or r.shape[1] != self.n:
             raise ShapeError(
                 f"{self.what}: right-hand sides must be (C, {self.n}, 3), got {r.shape}"
             )
         a = np.zeros_like(r) if add is None else np.ascontiguousarray(add, dtype=np.float64)
+        if out is None:
+            out = np.empty_like(r)
+        elif out.shape != r.shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+            raise ShapeError(
+                f"{self.what}: solve_frames' out must be C-contiguous float64 {r.shape}, "
+                f"got {out.dtype} {out.shape}"
+            )
         self._factor()
         from ._factor_kernels import lu_solve_frames
 
-        out = np.empty_like(r)
         l, u = self._l, self._u
         l_val, u_val, u_diag = self._frame_values
         order = self._order

@@ -160,16 +160,26 @@ class VertexFrames:
         )
         return out[0] if single else out
 
-    def apply(self, points: np.ndarray, vectors: np.ndarray, *, inverse: bool) -> np.ndarray:
+    def apply(
+        self,
+        points: np.ndarray,
+        vectors: np.ndarray,
+        *,
+        inverse: bool,
+        overwrite_vectors: bool = False,
+    ) -> np.ndarray:
         """Frames of ``points`` applied to ``vectors`` (same shape, (…, V, 3)) without storing them.
 
         ``inverse=True``: world -> local (``F^T d``); ``False``: local -> world (``F c``).
+        ``overwrite_vectors``: write the result into ``vectors`` when they are C-contiguous
+        float64 (each vertex's vector is read before it is written; they must not share
+        memory with ``points``), else into a new array.
         """
         from ._laplacian_kernels import frame_apply
 
         p, single = self._points(points, "points")
         vec = np.ascontiguousarray(np.asarray(vectors, dtype=np.float64).reshape(p.shape))
-        out = np.empty(p.shape, dtype=np.float64)
+        out = vec if overwrite_vectors else np.empty(p.shape)  # vec: theirs, or a copy
         none, empty = np.zeros(1, dtype=np.int64), np.zeros(1)
         tri, nbr, inv = self.triangles, self.neighbors, bool(inverse)
         self._check(

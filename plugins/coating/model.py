@@ -391,7 +391,8 @@ class CoatingModel:
         weights = self.space.weights_of_raw(local)
         smooth = self.source_smooth(weights)
         coating = self.source.coating(local, smooth)
-        return weights, coating - self.source.reference_coating
+        coating -= self.source.reference_coating
+        return weights, coating
 
     def source_smooth(self, weights: np.ndarray) -> np.ndarray:
         """The source frames' smooth meshes as the bases see them, ``B_t`` -> ``(C, V, 3)``."""
@@ -421,4 +422,4 @@ class CoatingModel:
         smooth = self.smooth_target(weights, bases)
         coating = np.multiply(details, self.detail_scale, dtype=np.float64)  # one pass from float32
         coating += self.target.reference_coating
-        return self.target.reconstruct(smooth, coating)
+        return self.target.reconstruct(smooth, coating, overwrite_coating=True)

@@ -164,16 +164,23 @@ class MultiScale:
         return to_local(frames, xi)
 
     def reconstruct(
-        self, smooth: np.ndarray, coating: np.ndarray, frames: np.ndarray | None = None
+        self,
+        smooth: np.ndarray,
+        coating: np.ndarray,
+        frames: np.ndarray | None = None,
+        *,
+        overwrite_coating: bool = False,
     ) -> np.ndarray:
-        """``S = S~ + M^-1 (F(S~) c)`` for ``smooth, coating : (C, V, 3)`` (eq. 2 / 5)."""
+        """``S = S~ + M^-1 (F(S~) c)`` for ``smooth, coating : (C, V, 3)`` (eq. 2 / 5).
+        ``overwrite_coating``: work in ``coating`` (C-contiguous float64; the result may be
+        it) instead of two new arrays of its size."""
         s = np.asarray(smooth, dtype=np.float64)
         xi = (
-            self.frames.apply(s, coating, inverse=False)
+            self.frames.apply(s, coating, inverse=False, overwrite_vectors=overwrite_coating)
             if frames is None
             else to_world(frames, coating)
         )
-        return self.factor.solve_frames(xi, s)
+        return self.factor.solve_frames(xi, s, out=xi)
 
     def decompose(self, points: np.ndarray):
         """``(smooth, coating)`` of meshes ``(C, V, 3)``."""

@@ -37,6 +37,12 @@ def test_decomposition_reconstructs_exactly(laplacian, solve_dtype, tol):
     smooth, coating = ms.decompose(frames)
     back = ms.reconstruct(smooth, coating)
     assert np.abs(back - frames).max() < tol * np.abs(v).max()
+    work = coating.copy()  # in the coating's memory, the same numbers
+    np.testing.assert_array_equal(ms.reconstruct(smooth, work, overwrite_coating=True), back)
+    np.testing.assert_array_equal(
+        ms.frames.apply(smooth, coating, inverse=False),
+        ms.frames.apply(smooth, coating.copy(), inverse=False, overwrite_vectors=True),
+    )
     np.testing.assert_allclose(
         ms.reconstruct(ms.smooth_reference[None], ms.reference_coating[None])[0],
         v,

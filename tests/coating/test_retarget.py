@@ -518,8 +518,12 @@ def test_reference_frames_instead_of_eq16_frames_fail_the_invariance(monkeypatch
     monkeypatch.setattr(
         MultiScale,
         "reconstruct",
-        lambda self, smooth, c, frames=None: reconstruct(
-            self, smooth, c, reference(self, np.shape(smooth)[0]) if frames is None else frames
+        lambda self, smooth, c, frames=None, **kw: reconstruct(
+            self,
+            smooth,
+            c,
+            reference(self, np.shape(smooth)[0]) if frames is None else frames,
+            **kw,
         ),
     )
     assert _fold_change() > 0.4

@@ -52,6 +52,12 @@ def test_solve_frames_adds_the_solution_in_the_chosen_precision(dtype, tol):
     assert again.frames_dtype == dtype
     np.testing.assert_array_equal(again.solve_frames(rhs, add), got)
     assert all(a.dtype == dtype for a in again._frame_values)
+    for into in (0, 1):  # into the caller's rhs or add: each column read before written
+        arrays = [rhs.copy(), add.copy()]
+        assert fac.solve_frames(*arrays, out=arrays[into]) is arrays[into]
+        np.testing.assert_array_equal(arrays[into], got)
+    with pytest.raises(ShapeError, match="out must be"):
+        fac.solve_frames(rhs, add, out=np.empty((5, fac.n, 3), dtype=np.float32))
     with pytest.raises(ConfigError, match="frames_dtype"):
         SPDFactor(m, frames_dtype=np.int32)
 
