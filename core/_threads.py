@@ -20,7 +20,14 @@ from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, ParamSpec, TypeVar
 
-__all__ = ["single_threaded_blas", "worker_count", "in_threads", "in_blocks", "blocks"]
+__all__ = [
+    "single_threaded_blas",
+    "worker_count",
+    "in_threads",
+    "in_blocks",
+    "blocks",
+    "touched_meanwhile",
+]
 
 _P = ParamSpec("_P")
 _R = TypeVar("_R")
@@ -194,3 +201,25 @@ def _as_task(task: Callable[[], _R]) -> _R:
         return task()
     finally:
         _inside.task = False
+
+
+#: Bytes between the writes that fault in a new array's pages (one a 4 KiB page).
+_PAGE_BYTES = 4096
+
+
+def touched_meanwhile(shape: tuple[int, ...]) -> tuple[Any, Callable[[], None]]:
+    """A new float64 array of ``shape`` whose pages a background thread faults in (one
+    write a page), and the call that waits for it. For a large result that only a later
+    step fills, while the step before it runs on one core: the first writes to a fresh
+    array (page faults, the kernel zeroing each page) are then off the critical path.
+    Contents are unspecified, as with ``np.empty``."""
+    import numpy as np
+
+    out = np.empty(shape)
+    flat = out.reshape(-1)
+    step = _PAGE_BYTES // out.itemsize
+    if worker_count(2) < 2 or flat.size < 64 * step:
+        return out, lambda: None
+    thread = threading.Thread(target=flat[::step].fill, args=(0.0,), daemon=True)
+    thread.start()
+    return out, thread.join

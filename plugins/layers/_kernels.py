@@ -320,7 +320,7 @@ def _rigid_system(G, c, U, alpha, W, layer_of, offsets, cd, q, s, Vt):
     G -= cd * np.dot(Vt.T, Vt)
 
 
-@nb.njit(cache=True, fastmath=FASTMATH)
+@nb.njit(cache=True, fastmath=FASTMATH, nogil=True)
 def solve_frames(
     H,
     used,

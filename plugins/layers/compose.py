@@ -20,6 +20,7 @@ from functools import partial
 import numpy as np
 
 from faceretarget._threads import in_threads, single_threaded_blas, worker_count
+from faceretarget.errors import ShapeError
 
 from .model import CharacterModel
 
@@ -49,8 +50,10 @@ def world_vertices(
     beta: np.ndarray,
     head_motion: np.ndarray | None = None,
     extra: np.ndarray | None = None,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Eq. 5: ``(F, V, 3)`` character vertices for ``beta (F, m, K)`` and head motion ``(F, 4, 4)``.
+    """Eq. 5: ``(F, V, 3)`` character vertices for ``beta (F, m, K)`` and head motion ``(F, 4, 4)``,
+    written into ``out`` (C-contiguous float64) when given.
 
     Without ``head_motion`` the local (neutral-frame) vertices. ``extra (F, M)``: weights
     of the character's residual block (its blendshape deltas), when it has one. Frames go
@@ -62,7 +65,13 @@ def world_vertices(
     (streaming) only reads the rows of each block whose coefficient is not zero.
     """
     n_frames = beta.shape[0]
-    out = np.empty((n_frames, character.n_vertices, 3))
+    shape = (n_frames, character.n_vertices, 3)
+    if out is None:
+        out = np.empty(shape)
+    elif out.shape != shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise ShapeError(
+            f"world_vertices: out must be C-contiguous float64 {shape}, got {out.dtype} {out.shape}"
+        )
     motion = (
         np.tile(np.eye(4), (n_frames, 1, 1))
         if head_motion is None

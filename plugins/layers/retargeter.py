@@ -18,7 +18,7 @@ from collections.abc import Iterable, Iterator
 import numpy as np
 
 from faceretarget import manifest
-from faceretarget._threads import blas_single_threaded, single_threaded_blas
+from faceretarget._threads import blas_single_threaded, single_threaded_blas, touched_meanwhile
 from faceretarget._validate import short_repr
 from faceretarget.errors import (
     CapabilityError,
@@ -398,6 +398,8 @@ class LayersRetargeter(Retargeter):
     @blas_single_threaded
     def _retarget(self, source: Source) -> Animation:
         markers, tracks, known, note = self._inputs(source)
+        if self.projection_ is None:  # the solve runs on one core: the other faults the result in
+            out, touched = touched_meanwhile((markers.shape[0], self.character_.n_vertices, 3))
         obs, params, residual, _ = self._solve(markers, tracks, known)
         beta = compose.region_coefficients(
             params.weights, params.coefficients, self.actor_.layer_of
@@ -412,8 +414,9 @@ class LayersRetargeter(Retargeter):
         if self.projection_ is not None:
             weights = compose.project(self.projection_, beta, extra=residual)
             return Animation(weights=weights, rig=self.rig_, **common)
+        touched()
         vertices = compose.world_vertices(
-            self.character_, beta, common["head_motion"], extra=residual
+            self.character_, beta, common["head_motion"], extra=residual, out=out
         )
         return Animation(vertices=vertices, triangles=self.triangles_, **common)
 

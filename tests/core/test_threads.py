@@ -261,3 +261,29 @@ def test_in_blocks_on_a_task_thread_runs_one_block_and_takes_plain_functions():
     seen.clear()
     got = in_threads([lambda: _threads.in_blocks(kernel, 9, lambda a, b: (a, b), parts=3)] * 2, 2)
     assert got == [[9], [9]] and seen == [(0, 9), (0, 9)]
+
+
+def test_touched_meanwhile_gives_an_array_of_the_shape_and_a_wait(monkeypatch):
+    """A large array is touched on a thread that the wait joins; small ones, or one worker,
+    start no thread. Either way the array is writable and of the shape asked."""
+    started = []
+    real = threading.Thread
+
+    class Spy(real):
+        def start(self):
+            started.append(self)
+            super().start()
+
+    monkeypatch.setattr(_threads.threading, "Thread", Spy)
+    big, wait = _threads.touched_meanwhile((64, 512, 3))
+    wait()
+    assert big.shape == (64, 512, 3) and big.dtype == np.float64
+    if worker_count(2) >= 2:
+        assert len(started) == 1 and not started[0].is_alive()
+        assert not big.reshape(-1)[:: 4096 // 8].any()  # one zero a page
+    small, wait = _threads.touched_meanwhile((3, 4))
+    wait()
+    monkeypatch.setattr(_threads, "worker_count", lambda n: 1)
+    alone, wait = _threads.touched_meanwhile((64, 512, 3))
+    wait()
+    assert len(started) <= 1 and small.shape == (3, 4) and alone.shape == (64, 512, 3)

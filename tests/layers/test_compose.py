@@ -103,6 +103,19 @@ def test_world_vertices_with_a_residual_block_do_not_depend_on_the_threads(
     np.testing.assert_allclose(got[1], dense, rtol=0, atol=1e-12 * np.abs(dense).max())
 
 
+def test_world_vertices_into_the_callers_array(with_residual):
+    """``out=`` receives exactly the vertices of a fresh result; a wrong ``out`` is refused."""
+    from faceretarget.errors import ShapeError
+
+    character, beta, motion = with_residual
+    want = compose.world_vertices(character, beta, motion)
+    out = np.full_like(want, np.nan)
+    assert compose.world_vertices(character, beta, motion, out=out) is out
+    np.testing.assert_array_equal(out, want)
+    with pytest.raises(ShapeError, match="out must be"):
+        compose.world_vertices(character, beta, motion, out=out[:, :-1])
+
+
 def test_blendshape_projection_is_the_nnls_solution():
     case = fr.cases.synthetic(resolution=300, n_frames=6)
     plain = LayersRetargeter().fit(case.source, case.target).retarget(case.source)
