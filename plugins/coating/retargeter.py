@@ -21,6 +21,7 @@ from typing import ClassVar
 import numpy as np
 
 from faceretarget import manifest
+from faceretarget._threads import touched_meanwhile
 from faceretarget.errors import InputError, OutputError, TopologyMismatchError
 from faceretarget.geometry.deformation_gradients import (
     DeformationTransfer,
@@ -347,7 +348,7 @@ class CoatingRetargeter(_MeshTransfer):
     def _retarget(self, source: Source) -> Animation:
         n_frames = source.n_frames
         n_target = self.target_.neutral.n_vertices
-        out = np.empty((n_frames, n_target, 3))
+        out, touched = touched_meanwhile((n_frames, n_target, 3))  # while the first chunk runs
         motion = np.empty((n_frames, 4, 4))
         weights = np.empty((n_frames, self.n_bases_))
         details = (
@@ -357,6 +358,7 @@ class CoatingRetargeter(_MeshTransfer):
         )
         source_motion, info = self._source_motion(source)
         for sl, m, frames, w, d in self._chunks(source, source_motion):
+            touched()
             out[sl] = frames
             motion[sl] = m
             weights[sl] = w

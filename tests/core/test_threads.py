@@ -287,3 +287,33 @@ def test_touched_meanwhile_gives_an_array_of_the_shape_and_a_wait(monkeypatch):
     alone, wait = _threads.touched_meanwhile((64, 512, 3))
     wait()
     assert len(started) <= 1 and small.shape == (3, 4) and alone.shape == (64, 512, 3)
+
+
+@pytest.mark.parametrize("plugin", ["coating", "layers"])
+def test_results_wait_for_their_pages_to_be_touched_before_writing(plugin, monkeypatch):
+    """The retargeters write their result only after the touching thread has ended: a
+    stand-in whose (late) touching happens inside the wait would wipe frames written
+    before it, and it must be waited for."""
+    import importlib
+
+    module = importlib.import_module(f"faceretarget.plugins.{plugin}.retargeter")
+    cls = {"coating": "CoatingRetargeter", "layers": "LayersRetargeter"}[plugin]
+    case = fr.cases.synthetic(resolution=300, n_frames=6)
+    fitted = getattr(module, cls)().fit(case.source, case.target)
+    want = np.asarray(fitted.retarget(case.source).vertices)
+    waits = []
+
+    def late(shape):
+        out = np.empty(shape)
+
+        def wait():
+            if not waits:
+                out.reshape(-1)[::512] = 0.0  # the touching, all of it now
+            waits.append(True)
+
+        return out, wait
+
+    monkeypatch.setattr(module, "touched_meanwhile", late)
+    got = np.asarray(fitted.retarget(case.source).vertices)
+    assert waits, "the result was written without waiting for the touching thread"
+    np.testing.assert_array_equal(got, want)
