@@ -279,9 +279,8 @@ class SmoothedDisplacements:
         out = np.empty((n + ids.size, n_vertices, 3))
         out[:n] = applied[: 3 * n].reshape(n, 3, n_vertices).transpose(0, 2, 1)
         step = config.scratch_items(24 * n_vertices)
-        for start in range(
-            0, ids.size, step
-        ):  # (3k, V) = Q_r[cols] H G (Q_r^T A), a block of frames at a time
+        # (3k, V) = Q_r[cols] H G (Q_r^T A), a block of frames at a time
+        for start in range(0, ids.size, step):
             block = ids[start : start + step]
             cols = (3 * block[:, None] + np.arange(3)).ravel()
             body = self._mix[cols] @ applied[3 * n : 3 * n + r]
