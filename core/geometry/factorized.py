@@ -182,7 +182,7 @@ class SPDFactor:
         """``x[pivoted] = solve(x[pivoted])`` without copies: the rows of ``x (m, k)`` are
         permuted so that pivot ``i`` is row ``i`` (the rows not solved for after them), solved
         as the first ``n`` rows, and permuted back. Returns ``x``."""
-        from ._factor_kernels import lu_solve, permute_rows
+        from ._factor_kernels import permute_rows
 
         if not x.flags.c_contiguous:
             raise ShapeError(f"{self.what}: solve_rows in place needs a C-contiguous out")
@@ -190,15 +190,7 @@ class SPDFactor:
         rest[pivoted] = False
         source = np.concatenate([pivoted, np.flatnonzero(rest)])
         permute_rows(x, source)
-        head = x[: self.n]
-        k = x.shape[1]
-        l, u = self._l, self._u
-        in_blocks(
-            lu_solve,
-            k,
-            lambda c0, c1: (l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, head, c0, c1),
-            parts=max(1, min(worker_count(k), k // _MIN_BLOCK_COLUMNS)),
-        )
+        self._solve_pivoted(x[: self.n])
         back = np.empty_like(source)
         back[source] = np.arange(source.size)
         permute_rows(x, back)
@@ -208,9 +200,16 @@ class SPDFactor:
         """``out[pivoted] = x`` for ``A x = rhs[pivoted]`` in pivot order (``pivoted[i]``: the
         row of ``rhs`` and ``out`` of pivot i): one gather, the triangular solves in place on
         it, one scatter; returns ``out``."""
+        y = np.ascontiguousarray(rhs[pivoted], dtype=np.float64)
+        self._solve_pivoted(y)
+        out[pivoted] = y
+        return out
+
+    def _solve_pivoted(self, y: np.ndarray) -> None:
+        """The triangular solves, in place, on ``y : (n, k)`` (C-contiguous float64) whose row
+        ``i`` is pivot ``i``; blocks of columns side by side on threads."""
         from ._factor_kernels import lu_solve
 
-        y = np.ascontiguousarray(rhs[pivoted], dtype=np.float64)
         k = y.shape[1]
         l, u = self._l, self._u
         in_blocks(
@@ -219,8 +218,6 @@ class SPDFactor:
             lambda c0, c1: (l[0], l[1], l[2], u[0], u[1], u[2], self._u_diag, y, c0, c1),
             parts=max(1, min(worker_count(k), k // _MIN_BLOCK_COLUMNS)),
         )
-        out[pivoted] = y
-        return out
 
     def solve_frames(
         self, rhs: np.ndarray, add: np.ndarray | None = None, *, out: np.ndarray | None = None
