@@ -164,15 +164,19 @@ class SPDFactor:
             raise ShapeError(
                 f"{self.what}: solve_rows needs ({self.n},) integer row indices, got {idx.dtype} {idx.shape}"
             )
-        idx = idx.astype(np.int64, copy=False)
-        if np.unique(idx).size != idx.size:
-            raise ShapeError(f"{self.what}: solve_rows needs distinct rows, some are repeated")
         b = np.asarray(rhs)
         if b.ndim != 2 or out.ndim != 2 or out.shape != b.shape or out.dtype != np.float64:
             raise ShapeError(
                 f"{self.what}: solve_rows needs a float64 out shaped like the 2-D rhs, "
                 f"got rhs {b.shape}, out {out.dtype} {out.shape}"
             )
+        m = b.shape[0]
+        idx = idx.astype(np.int64, copy=False)
+        if idx.size and (idx.min() < -m or idx.max() >= m):
+            raise ShapeError(f"{self.what}: solve_rows' row indices must be in [-{m}, {m})")
+        idx = idx % m if idx.size else idx  # as numpy reads negative indices
+        if np.unique(idx).size != idx.size:
+            raise ShapeError(f"{self.what}: solve_rows needs distinct rows, some are repeated")
         pivoted = idx[self._order]  # pivot i is row rows[order[i]]
         if out is b:
             return self._solve_in_place(out, pivoted)

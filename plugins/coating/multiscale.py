@@ -180,7 +180,7 @@ class MultiScale:
             if frames is None
             else to_world(frames, coating)
         )
-        return self.factor.solve_frames(xi, s, out=xi)
+        return self.factor.solve_frames(xi, s, out=xi if xi.flags.c_contiguous else None)
 
     def decompose(self, points: np.ndarray):
         """``(smooth, coating)`` of meshes ``(C, V, 3)``."""

@@ -38,6 +38,10 @@ def test_decomposition_reconstructs_exactly(laplacian, solve_dtype, tol):
     back = ms.reconstruct(smooth, coating)
     assert np.abs(back - frames).max() < tol * np.abs(v).max()
     work = coating.copy()  # in the coating's memory, the same numbers
+    fortran = np.asfortranarray(ms.frames(smooth))  # frames given in any memory order
+    np.testing.assert_allclose(
+        ms.reconstruct(smooth, coating, fortran), back, rtol=0, atol=1e-12 * np.abs(v).max()
+    )
     np.testing.assert_array_equal(ms.reconstruct(smooth, work, overwrite_coating=True), back)
     np.testing.assert_array_equal(
         ms.frames.apply(smooth, coating, inverse=False),

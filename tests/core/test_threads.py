@@ -279,8 +279,7 @@ def test_touched_meanwhile_gives_an_array_of_the_shape_and_a_wait(monkeypatch):
     wait()
     assert big.shape == (64, 512, 3) and big.dtype == np.float64
     if worker_count(2) >= 2:
-        assert len(started) == 1 and not started[0].is_alive()
-        assert not big.reshape(-1)[:: 4096 // 8].any()  # one zero a page
+        assert len(started) == 1 and not started[0].is_alive()  # ended once waited for
     small, wait = _threads.touched_meanwhile((3, 4))
     wait()
     monkeypatch.setattr(_threads, "worker_count", lambda n: 1)

@@ -267,7 +267,7 @@ def test_solve_rows_into_its_own_right_hand_sides():
     fac = SPDFactor(m)
     rng = np.random.default_rng(6)
     rows = rng.choice(fac.n + 9, fac.n, replace=False)  # unsorted, 9 rows not solved for
-    rhs = rng.normal(size=(fac.n + 9, 5))
+    rhs = rng.normal(size=(fac.n + 9, 12))  # two blocks of columns on two threads
     want = fac.solve_rows(rhs, rows, np.zeros_like(rhs))
     x = rhs.copy()
     assert fac.solve_rows(x, rows, x) is x
@@ -277,6 +277,17 @@ def test_solve_rows_into_its_own_right_hand_sides():
     strided = np.zeros((fac.n + 9, 10))[:, ::2]
     with pytest.raises(ShapeError, match="C-contiguous"):
         fac.solve_rows(strided, rows, strided)
+    wrapped = np.where(rows > 4, rows - (fac.n + 9), rows)  # negative rows, as numpy reads them
+    for where in (lambda x: np.zeros_like(x), lambda x: x):  # a copy, in place
+        x = rhs.copy()
+        np.testing.assert_array_equal(fac.solve_rows(x, wrapped, where(x))[rows], want[rows])
+    for bad in (np.r_[rows[:-1], -(fac.n + 10)], np.r_[rows[:-1], fac.n + 9]):
+        with pytest.raises(ShapeError, match=r"must be in \[-"):
+            fac.solve_rows(rhs.copy(), bad, rhs.copy())
+    clash = rows.copy()
+    clash[-1] = clash[0] - (fac.n + 9)  # -1 and m - 1: one row twice
+    with pytest.raises(ShapeError, match="distinct rows"):
+        fac.solve_rows(rhs, clash, np.zeros_like(rhs))
 
 
 @pytest.mark.parametrize("n", [1, 2, 7, 40])
