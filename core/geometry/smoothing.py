@@ -245,19 +245,28 @@ class SmoothedDisplacements:
             raise ShapeError(
                 f"SmoothedDisplacements.frames: out must be float64 {shape}, got {out.dtype} {out.shape}"
             )
+        return self._frames_into(ids, out)
+
+    def _frames_into(
+        self, ids: np.ndarray, out: np.ndarray, basis: np.ndarray | None = None
+    ) -> np.ndarray:
+        """``out (k, V, 3)`` = :meth:`frames` ``ids``, a few frames at a time; of ``Q_r basis``
+        when ``basis (r, V)`` (another filter of the smoothed rows ``G (Q_r^T A)``) is given."""
         step = config.scratch_items(24 * self.n_vertices)
         for start in range(0, ids.size, step):
             block = ids[start : start + step]
-            out[start : start + block.size] = self._rows(block).transpose(0, 2, 1)
+            out[start : start + block.size] = self._rows(block, basis).transpose(0, 2, 1)
         return out
 
-    def _rows(self, frame_ids: npt.ArrayLike) -> np.ndarray:
-        """(k, 3, V) float64: :meth:`frames`, coordinate-major."""
+    def _rows(self, frame_ids: npt.ArrayLike, basis: np.ndarray | None = None) -> np.ndarray:
+        """(k, 3, V) float64: :meth:`frames` (of ``basis``, as for :meth:`_frames_into`),
+        coordinate-major."""
         ids = np.asarray(frame_ids, dtype=np.int64)
         if self.rank is None:
             return self._dense[ids].astype(np.float64)
         cols = (3 * ids[:, None] + np.arange(3)).ravel()
-        return (self._mix[cols] @ self._smooth).reshape(ids.size, 3, self.n_vertices)
+        rows = self._smooth if basis is None else basis
+        return (self._mix[cols] @ rows).reshape(ids.size, 3, self.n_vertices)
 
     def filtered(
         self, smoother: TaubinSmoother, frame_ids: npt.ArrayLike, also: np.ndarray
@@ -278,15 +287,7 @@ class SmoothedDisplacements:
         applied = self._apply(smoother, rows)
         out = np.empty((n + ids.size, n_vertices, 3))
         out[:n] = applied[: 3 * n].reshape(n, 3, n_vertices).transpose(0, 2, 1)
-        step = config.scratch_items(24 * n_vertices)
-        # (3k, V) = Q_r[cols] H G (Q_r^T A), a block of frames at a time
-        for start in range(0, ids.size, step):
-            block = ids[start : start + step]
-            cols = (3 * block[:, None] + np.arange(3)).ravel()
-            body = self._mix[cols] @ applied[3 * n : 3 * n + r]
-            out[n + start : n + start + block.size] = body.reshape(
-                block.size, 3, n_vertices
-            ).transpose(0, 2, 1)
+        self._frames_into(ids, out[n:], applied[3 * n : 3 * n + r])  # Q_r H G (Q_r^T A)
         return out
 
 
