@@ -137,37 +137,22 @@ class BasisSpace:
         return translated(meshes, -self.center).reshape(np.shape(meshes)[0], -1)
 
 
-#: Frames up to which :func:`blend` of vertex-major bases multiplies their ``(V, 3K)`` rows
-#: (3x the arithmetic, no copy) rather than copying them into ``(K, 3V)`` rows first.
-_FEW_FRAMES = 8
-
-
 def blend(bases: np.ndarray, center: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """``center + sum_i w_ti (b_i - center)`` -> ``(C, V, 3)`` (eq. 8), formed as
     ``sum_i w_ti b_i + (1 - sum_i w_ti) center``: no ``(K, V, 3)`` copy of the centred bases
     (54 MB and 0.1 s at 80K vertices and 28 bases, for each frame or chunk of an edited
-    result). Vertex-major bases (the retarget's layout) and a few frames: the product of
-    their ``(V, 3K)`` rows and ``w^T kron I_3``, without reordering them into ``(K, 3V)``
-    rows (a copy of the bases' size)."""
+    result). The bases' ``(K, 3V)`` rows are read in place when they are a matrix (C order,
+    or deformation transfer's ``(V, 3, K)`` layout: Fortran order)."""
     b = np.asarray(bases, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
     k, n = b.shape[0], b.shape[1]
     if w.ndim != 2 or w.shape[1] != k:
         raise ShapeError(f"blend: weights must be (C, {k}) for {k} bases, got {w.shape}")
-    c = w.shape[0]
-    rows = np.transpose(b, (1, 0, 2))
-    if rows.flags.c_contiguous and 0 < c <= _FEW_FRAMES:
-        lift = np.zeros((k, 3, c, 3))  # lift[i, d, t, e] = w[t, i] (d = e)
-        for d in range(3):
-            lift[:, d, :, d] = w.T
-        product = rows.reshape(n, 3 * k) @ lift.reshape(3 * k, 3 * c)  # (V, 3C)
-        out = np.ascontiguousarray(product.reshape(n, c, 3).transpose(1, 0, 2)).reshape(c, -1)
-    else:
-        out = w @ b.reshape(k, -1)
+    out = w @ b.reshape(k, -1)
     tiled = np.tile(np.asarray(center, dtype=np.float64), n)
     for row, rest in zip(out, 1.0 - w.sum(axis=1)):
         row += rest * tiled
-    return out.reshape(c, n, 3)
+    return out.reshape(w.shape[0], n, 3)
 
 
 def blend_flat(weights: np.ndarray, flat: np.ndarray, center: np.ndarray) -> np.ndarray:

@@ -324,14 +324,8 @@ def velocity_metric(bases, center, edge_len: float) -> np.ndarray:
     """(K, K) metric ``G = B^T B / (V h^2)`` (+ a 1e-6 relative ridge) of the bases ``(K, V, 3)``."""
     b = np.asarray(bases, dtype=np.float64)
     k, n = b.shape[0], b.shape[1]
-    d = b - center  # in the layout of ``bases``
-    if d.flags.c_contiguous:
-        flat = d.reshape(k, -1)
-        gram = flat @ flat.T
-    else:  # the (V, 3K) rows' Gram: no copy for vertex-major bases (the retarget's)
-        rows = np.transpose(d, (1, 0, 2)).reshape(n, 3 * k)
-        gram = (rows.T @ rows).reshape(k, 3, k, 3).trace(axis1=1, axis2=3)
-    gram = gram / (n * float(edge_len) ** 2)
+    flat = (b - center).reshape(k, -1)  # in the bases' layout: a view for the retarget's
+    gram = (flat @ flat.T) / (n * float(edge_len) ** 2)
     return gram + 1e-6 * max(float(np.trace(gram)) / gram.shape[0], np.finfo(float).tiny) * np.eye(
         gram.shape[0]
     )

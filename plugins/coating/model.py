@@ -364,11 +364,6 @@ class CoatingModel:
         )
         self._source_flat = self.space.matrix.T  # (K, 3V) rows of bases - center
         self.target_bases = self.transfer_bases(self.source_bases)
-        # one (K, 3V) array: the difference of the vertex-major bases would come out
-        # vertex-major, and its reshape would copy it again
-        flat = np.empty(self.target_bases.shape)
-        np.subtract(self.target_bases, self.target_center, out=flat)
-        self._target_flat = flat.reshape(flat.shape[0], -1)
 
     def transfer_bases(self, bases: np.ndarray) -> np.ndarray:
         """Feature-preserving deformation transfer of smooth source meshes (eq. 9-11)."""
@@ -411,9 +406,7 @@ class CoatingModel:
 
     def smooth_target(self, weights: np.ndarray, bases: np.ndarray | None = None) -> np.ndarray:
         """Target smooth frames ``T~_t`` (eq. 8) -> ``(C, V, 3)``."""
-        if bases is None or bases is self.target_bases:
-            return blend_flat(weights, self._target_flat, self.target_center)
-        return blend(bases, self.target_center, weights)
+        return blend(self.target_bases if bases is None else bases, self.target_center, weights)
 
     def synthesize(
         self, weights: np.ndarray, details: np.ndarray, bases: np.ndarray | None = None

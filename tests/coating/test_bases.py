@@ -152,17 +152,23 @@ def test_bases_when_the_candidates_are_not_low_rank(monkeypatch):
     np.testing.assert_allclose(b.space.adjoint_matrix, a.space.adjoint_matrix, atol=2e-6 * lift)
 
 
+def _in_layout(bases: np.ndarray, layout: str) -> np.ndarray:
+    """``bases (K, V, 3)`` stored frame-major, vertex-major (``(V, K, 3)``) or as deformation
+    transfer returns them (``(V, 3, K)``)."""
+    order = {"frame-major": (0, 1, 2), "vertex-major": (1, 0, 2), "transfer": (1, 2, 0)}[layout]
+    stored = np.ascontiguousarray(np.transpose(bases, order))
+    return np.transpose(stored, np.argsort(order))
+
+
 @pytest.mark.parametrize("frames", [1, 3, 5, 12])
-@pytest.mark.parametrize("layout", ["frame-major", "vertex-major"])
+@pytest.mark.parametrize("layout", ["frame-major", "vertex-major", "transfer"])
 def test_blend_is_the_centred_sum_without_centring_the_bases(frames, layout):
     """eq. 8 as written (centre + sum of weighted centred bases) against blend, which adds
     the weighted bases and the leftover weight of the centre; weights not summing to 1; the
-    bases frame-major or vertex-major (the retarget's layout: the product of their rows for a
-    few frames), distinct coordinates (a crossed x, y, z would show)."""
+    bases in any memory layout (the retarget's is deformation transfer's), distinct
+    coordinates (a crossed x, y, z would show)."""
     rng = np.random.default_rng(5)
-    bases = rng.normal(size=(4, 7, 3)) + [3.0, -2.0, 10.0]
-    if layout == "vertex-major":
-        bases = np.transpose(np.ascontiguousarray(np.transpose(bases, (1, 0, 2))), (1, 0, 2))
+    bases = _in_layout(rng.normal(size=(4, 7, 3)) + [3.0, -2.0, 10.0], layout)
     center = np.array([3.1, -1.9, 9.8])
     weights = rng.uniform(0.0, 0.8, size=(frames, 4))
     want = center + np.einsum("tk,kvd->tvd", weights, bases - center)
@@ -202,11 +208,24 @@ def test_candidates_are_read_in_steps_below_the_scratch_size(monkeypatch):
     np.testing.assert_array_equal(direct_small.model_.source_bases, direct.model_.source_bases)
 
 
-@pytest.mark.parametrize("layout", ["frame-major", "vertex-major"])
+@pytest.mark.parametrize("layout", ["frame-major", "vertex-major", "transfer"])
 def test_blend_of_no_frames_and_weights_of_the_wrong_size(layout):
-    bases = np.random.default_rng(6).normal(size=(4, 7, 3))
-    if layout == "vertex-major":
-        bases = np.transpose(np.ascontiguousarray(np.transpose(bases, (1, 0, 2))), (1, 0, 2))
+    bases = _in_layout(np.random.default_rng(6).normal(size=(4, 7, 3)), layout)
     assert blend(bases, np.zeros(3), np.zeros((0, 4))).shape == (0, 7, 3)
     with pytest.raises(ShapeError, match=r"\(C, 4\)"):
         blend(bases, np.zeros(3), np.ones((2, 1)))  # one weight for 4 bases: not broadcast
+
+
+def test_target_bases_are_kept_once_and_blended_in_place(monkeypatch):
+    """The transferred bases are the model's only copy of the target bases: their ``(K, 3V)``
+    rows are a view (deformation transfer's layout), which every blend reads as a matrix,
+    and the smooth target frames are eq. 8 on them."""
+    r, _ = _fitted(monkeypatch, 2**30)
+    m = r.model_
+    bases = m.target_bases
+    rows = bases.reshape(bases.shape[0], -1)
+    assert np.shares_memory(rows, bases)
+    weights = np.random.default_rng(8).uniform(0.0, 0.5, size=(3, bases.shape[0]))
+    want = m.target_center + np.einsum("tk,kvd->tvd", weights, bases - m.target_center)
+    scale = np.abs(bases).max()
+    np.testing.assert_allclose(m.smooth_target(weights), want, rtol=0, atol=1e-13 * scale)

@@ -661,8 +661,11 @@ def test_edit_resynthesizes_only_the_frames_read(setup, monkeypatch):
     assert out.provenance["diagnostics"]["last_edit"]["changed_frames"] == changed.size > 0
     copy = pickle.loads(pickle.dumps(out))  # a lazy result pickles (worker processes)
     assert not copy.is_computed
-    np.testing.assert_array_equal(copy.frames([t]), out.frames([t]))
-    np.testing.assert_array_equal(out.vertices, eager)
+    # to rounding: BLAS rounds a blend of one frame, of a few, and of bases unpickled in
+    # another memory layout differently (~1e-16 relative)
+    tol = 1e-13 * np.abs(eager).max()
+    np.testing.assert_allclose(copy.frames([t]), out.frames([t]), rtol=0, atol=tol)
+    np.testing.assert_allclose(out.vertices, eager, rtol=0, atol=tol)
 
 
 def test_edit_errors(setup):
@@ -746,10 +749,10 @@ def test_the_alternation_stops_at_the_first_step_that_changes_the_objective_litt
     assert len(steps) > 3 and len(history) == len(steps)
 
 
-@pytest.mark.parametrize("layout", ["frame-major", "vertex-major", "strided"])
+@pytest.mark.parametrize("layout", ["frame-major", "vertex-major", "transfer", "strided"])
 def test_velocity_metric_is_the_bases_gram_in_any_layout(layout):
     """``G = (B - c)(B - c)^T / (V h^2)`` plus its ridge, whatever the memory layout of the
-    bases (the retarget's are vertex-major, an edit's frame-major)."""
+    bases (the retarget's are deformation transfer's ``(V, 3, K)``, an edit's frame-major)."""
     rng = np.random.default_rng(7)
     k, n, h = 5, 40, 0.3
     bases = rng.normal(size=(k, n, 3))
@@ -762,6 +765,7 @@ def test_velocity_metric_is_the_bases_gram_in_any_layout(layout):
         "vertex-major": np.transpose(
             np.ascontiguousarray(np.transpose(bases, (1, 0, 2))), (1, 0, 2)
         ),
+        "transfer": np.transpose(np.ascontiguousarray(np.transpose(bases, (1, 2, 0))), (2, 0, 1)),
         "strided": np.repeat(bases, 2, axis=1)[:, ::2],
     }[layout]
     np.testing.assert_array_equal(given, bases)

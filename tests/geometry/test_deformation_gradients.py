@@ -210,6 +210,8 @@ def test_transfer_forms_the_gradient_columns_a_few_meshes_at_a_time(monkeypatch)
     lines = dt.line_targets(v, meshes, {"mouth": chain})
     rhs = dt.rhs_columns(gradient_columns(reference_inverse(v, t), meshes, t), lines)
     np.testing.assert_array_equal(whole, dt.solve_rhs(rhs, dt.component_means(meshes - v)))
+    rows = whole.reshape(len(meshes), -1)  # stored (V, 3, F): the meshes' rows are a view
+    assert np.shares_memory(rows, whole) and rows.flags.f_contiguous
     calls = []
     columns = dg.gradient_columns
     monkeypatch.setattr(
