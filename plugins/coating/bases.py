@@ -105,10 +105,24 @@ class BasisSpace:
         is linear and keeps constants), so frames need not be smoothed one by one.
     adjoint_bases : (K, V, 3), optional
         ``G^T (bases - center)`` when the caller has it (then ``adjoint`` is not called).
+    centred : bool
+        ``bases`` are already ``bases - center`` (float64, C order): kept without a copy.
     """
 
-    def __init__(self, bases: np.ndarray, center: np.ndarray, adjoint=None, adjoint_bases=None):
-        b = np.asarray(bases, dtype=np.float64) - center
+    def __init__(
+        self,
+        bases: np.ndarray,
+        center: np.ndarray,
+        adjoint=None,
+        adjoint_bases=None,
+        *,
+        centred: bool = False,
+    ):
+        b = (
+            np.ascontiguousarray(bases, dtype=np.float64)
+            if centred
+            else np.asarray(bases, dtype=np.float64) - center
+        )
         self.center = np.asarray(center, dtype=np.float64)
         # (3V, K) Fortran-ordered views of the (K, 3V) rows: BLAS reads them as they are
         self.matrix = b.reshape(b.shape[0], -1).T

@@ -333,12 +333,13 @@ class CoatingModel:
         self.basis_frames = frames
         self.selection_rms = history
         self.smoothing_rank = None if smoothed is None else smoothed.rank
-        bases = np.empty((1 + len(frames), self.n_vertices, 3))  # the reference, then the frames
-        bases[0] = self.source.smooth_reference
+        # the bases centred on the source's centre, the reference first, then the frames
+        centred = np.empty((1 + len(frames), self.n_vertices, 3))
+        centred[0] = offset
         adjoint_bases = None
         if frames and smoothed is not None:
-            smoothed.frames(chosen, out=bases[1:])
-            bases[1:] += self.source.smooth_reference
+            smoothed.frames(chosen, out=centred[1:])
+            centred[1:] += offset
             # G^T (b - c) of every basis from G^T of (reference - c) and of the displacements'
             # smoothed column basis (fewer columns than the bases; linear, so exact)
             lifted = smoothed.filtered(self.source.adjoint, chosen, offset[None])
@@ -347,30 +348,54 @@ class CoatingModel:
         elif frames:
             picked = np.asarray(frames)
             raw = np.asarray(vertices[np.sort(picked)])[np.argsort(np.argsort(picked))]
-            bases[1:] = self.source.smooth(local_of(picked, raw) - ref)
-            bases[1:] += self.source.smooth_reference
+            centred[1:] = self.source.smooth(local_of(picked, raw) - ref)
+            centred[1:] += offset
         del smoothed
-        self.set_source_bases(bases, adjoint_bases=adjoint_bases)
+        self._use_bases(centred, adjoint_bases)
 
     def set_source_bases(self, bases: np.ndarray, adjoint_bases: np.ndarray | None = None) -> None:
         """Use ``bases (K, V, 3)`` (smooth source meshes, the reference first) and transfer them;
         ``adjoint_bases``: ``G^T (bases - center)`` when known (else computed here)."""
-        self.source_bases = np.asarray(bases, dtype=np.float64)
+        self._use_bases(np.asarray(bases, dtype=np.float64) - self.source_center, adjoint_bases)
+
+    def _use_bases(self, centred: np.ndarray, adjoint_bases: np.ndarray | None) -> None:
+        """:meth:`set_source_bases` of the bases minus the source centre, ``centred (K, V, 3)``
+        (kept as they are: the basis space's matrix)."""
         self.space = BasisSpace(
-            self.source_bases,
+            centred,
             self.source_center,
             adjoint=self.source.adjoint,
             adjoint_bases=adjoint_bases,
+            centred=True,
         )
         self._source_flat = self.space.matrix.T  # (K, 3V) rows of bases - center
-        self.target_bases = self.transfer_bases(self.source_bases)
+        # deformation gradients and mean displacements do not see the translation
+        self.target_bases = self._transfer(
+            self.source.smooth_reference - self.source_center, centred
+        )
+
+    @property
+    def source_bases(self) -> np.ndarray:
+        """(K, V, 3) the source bases (smooth source meshes, the reference first); a new array."""
+        k = self._source_flat.shape[0]
+        return self._source_flat.reshape(k, self.n_vertices, 3) + self.source_center
+
+    @property
+    def n_bases(self) -> int:
+        return int(self._source_flat.shape[0])
 
     def transfer_bases(self, bases: np.ndarray) -> np.ndarray:
         """Feature-preserving deformation transfer of smooth source meshes (eq. 9-11)."""
-        ref = self.source.smooth_reference
-        means = self.transfer.component_means(bases, reference=ref) * self.ratio
+        return self._transfer(self.source.smooth_reference, np.asarray(bases, dtype=np.float64))
+
+    def _transfer(self, reference: np.ndarray, bases: np.ndarray) -> np.ndarray:
+        """:meth:`transfer_bases` of ``bases`` from ``reference`` (both moved alike or not)."""
+        means = self.transfer.component_means(bases, reference=reference) * self.ratio
         return self.transfer.transfer(
-            ref, bases, source_feature_lines=self.source_lines or None, mean_displacement=means
+            reference,
+            bases,
+            source_feature_lines=self.source_lines or None,
+            mean_displacement=means,
         )
 
     # -- per frame -------------------------------------------------------------------------

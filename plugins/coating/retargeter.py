@@ -291,7 +291,7 @@ class CoatingRetargeter(_MeshTransfer):
             max_frames=int(self.max_selection_frames),
         )
         self.model_ = model
-        self.n_bases_ = len(model.source_bases)
+        self.n_bases_ = model.n_bases
         self.basis_frames_ = list(model.basis_frames)
         self.fit_head_motion_ = info
         self.timings_ = {

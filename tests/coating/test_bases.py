@@ -62,6 +62,21 @@ def test_weights_of_raw_frames_through_the_adjoint_filter():
     np.testing.assert_allclose(space.weights_of_raw(raw), space.weights(smooth(raw)), atol=1e-9)
 
 
+def test_basis_space_keeps_centred_bases_as_given():
+    """``centred=True``: the bases minus the centre are the space's matrix without a copy,
+    with the weights of the bases given absolute."""
+    rng = np.random.default_rng(9)
+    bases = rng.normal(size=(4, 30, 3)) + [5.0, -3.0, 8.0]
+    center = bases[0].mean(axis=0)
+    centred = bases - center
+    space = BasisSpace(centred, center, centred=True)
+    assert np.shares_memory(space.matrix, centred)
+    plain = BasisSpace(bases, center)
+    np.testing.assert_array_equal(space.matrix, plain.matrix)
+    frames = bases[:2] + 0.01 * rng.normal(size=(2, 30, 3))
+    np.testing.assert_array_equal(space.weights(frames), plain.weights(frames))
+
+
 def _fitted(monkeypatch, cache_bytes):
     """A coating fit on a small synthetic case; returns (retargeter, frames of each smoothing call)."""
     import faceretarget as fr
@@ -229,3 +244,19 @@ def test_target_bases_are_kept_once_and_blended_in_place(monkeypatch):
     want = m.target_center + np.einsum("tk,kvd->tvd", weights, bases - m.target_center)
     scale = np.abs(bases).max()
     np.testing.assert_allclose(m.smooth_target(weights), want, rtol=0, atol=1e-13 * scale)
+
+
+def test_source_bases_centred_once_and_transferred_as_given_absolute(monkeypatch):
+    """The fit keeps the source bases once, centred (the basis space's matrix), and transfers
+    them from the centred reference: the target bases of the absolute bases to rounding, and
+    ``source_bases`` gives them back absolute, the smooth reference first."""
+    r, _ = _fitted(monkeypatch, 2**30)
+    m = r.model_
+    k = m.n_bases
+    assert np.shares_memory(m.space.matrix, m._source_flat) and m.space.matrix.shape[1] == k
+    absolute = m.source_bases
+    scale = np.abs(absolute).max()
+    np.testing.assert_allclose(absolute[0], m.source.smooth_reference, rtol=0, atol=1e-14 * scale)
+    want = m.transfer_bases(absolute)
+    moved = np.abs(want - want[0]).max()
+    np.testing.assert_allclose(m.target_bases, want, rtol=0, atol=1e-12 * moved)
