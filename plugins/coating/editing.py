@@ -278,7 +278,8 @@ def _apply_change(bases0, z, coef):
     """``bases0 + sum_r z_r coef[r]`` -> ``(K, n, 3)`` for ``z : (n, R)``."""
     k = coef.shape[1]
     delta = (z @ coef.reshape(coef.shape[0], -1)).reshape(z.shape[0], k, 3)
-    return bases0 + np.transpose(delta, (1, 0, 2))
+    out = np.empty_like(bases0)  # in the layout of bases0: its (K, 3n) rows stay a view
+    return np.add(bases0, np.transpose(delta, (1, 0, 2)), out=out)
 
 
 def solve_bases(bases0, center, weights, constraints, mu, lambda_b, influence):

@@ -770,3 +770,24 @@ def test_velocity_metric_is_the_bases_gram_in_any_layout(layout):
     }[layout]
     np.testing.assert_array_equal(given, bases)
     np.testing.assert_allclose(velocity_metric(given, center, h), want, rtol=1e-13)
+
+
+@pytest.mark.parametrize("layout", ["frame-major", "transfer"])
+def test_changed_bases_keep_the_layout_of_the_bases(layout):
+    """An edit's new bases ``b0 + sum_r z_r coef_r`` keep the memory layout of ``b0``: the
+    retarget's (deformation transfer's ``(V, 3, K)``) stays one whose ``(K, 3V)`` rows are a
+    view, so blends of an edited result read them without copying them."""
+    from faceretarget.plugins.coating.editing import _apply_change
+
+    rng = np.random.default_rng(12)
+    k, n, r = 4, 10, 2
+    bases = rng.normal(size=(k, n, 3))
+    given = (
+        bases
+        if layout == "frame-major"
+        else np.ascontiguousarray(bases.transpose(1, 2, 0)).transpose(2, 0, 1)
+    )
+    z, coef = rng.normal(size=(n, r)), rng.normal(size=(r, k, 3))
+    got = _apply_change(given, z, coef)
+    np.testing.assert_allclose(got, bases + np.einsum("nr,rkd->knd", z, coef), rtol=0, atol=1e-14)
+    assert np.shares_memory(got, got.reshape(k, -1))
