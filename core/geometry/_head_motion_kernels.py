@@ -2,7 +2,8 @@
 
 The Gauss-Newton iteration of the head motion, one frame at a time until that frame
 converges. Each step needs only the per-frame moments ``P (3, 18)`` of the gain matrix and
-the markers (see ``head_motion._moments``), so a step is a few hundred flops.
+the markers (see ``head_motion._moments``), so a step is a few hundred flops. A converged
+frame also gets its rigid coordinates (the significance gate's ``z``, ``_log_map``).
 """
 
 from __future__ import annotations
@@ -36,6 +37,32 @@ def _rodrigues(v0: float, v1: float, v2: float, out: np.ndarray) -> None:
     out[2, 1] = s * v0 + c * v1 * v2
 
 
+@nb.njit(cache=True, inline="always")
+def _log_map(r: np.ndarray, out: np.ndarray) -> None:
+    """The rotation vector of the rotation ``r (3, 3)`` into ``out[:3]`` (angle from atan2 of
+    the skew part's length and the trace; near 180 degrees the axis from ``R + I``)."""
+    v0 = 0.5 * (r[2, 1] - r[1, 2])
+    v1 = 0.5 * (r[0, 2] - r[2, 0])
+    v2 = 0.5 * (r[1, 0] - r[0, 1])
+    sin = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    cos = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)
+    if cos < 0.0 and sin < 1e-6:  # the skew part vanishes: the axis is R + I's largest column
+        best, col = -1.0, 0
+        for j in range(3):
+            norm2 = 0.0
+            for i in range(3):
+                e = r[i, j] + (1.0 if i == j else 0.0)
+                norm2 += e * e
+            if norm2 > best:
+                best, col = norm2, j
+        scale = math.pi / math.sqrt(best)
+        for i in range(3):
+            out[i] = (r[i, col] + (1.0 if i == col else 0.0)) * scale
+        return
+    scale = math.atan2(sin, cos) / sin if sin > 1e-12 else 1.0
+    out[0], out[1], out[2] = v0 * scale, v1 * scale, v2 * scale
+
+
 #: Largest frame-to-frame rotation (radians) through which a warm start is extrapolated;
 #: beyond it (a cut between shots) the previous frame is the start.
 EXTRAPOLATE_STEP = 0.2
@@ -55,11 +82,13 @@ def gauss_newton(
     tol: float,
     iterations: np.ndarray,
     warm: np.ndarray,
+    coords: np.ndarray,
 ) -> None:
     """Iterate every frame in place on ``rot (F, 3, 3)``, ``trans (F, 3)``.
 
     ``iterations[f]`` receives the steps frame ``f`` took, or -1 if it did not converge in
-    ``max_iter`` steps. Where ``warm[f]`` is set, frame ``f`` starts from frame ``f - 1``'s
+    ``max_iter`` steps; a converged frame's ``coords[f] (6,)`` receives the rigid
+    coordinates of its motion about the centre ``c``: ``size * log(R)`` and ``R c + t - c``. Where ``warm[f]`` is set, frame ``f`` starts from frame ``f - 1``'s
     result when that converged (head motion is continuous), its rotation extrapolated at
     constant angular velocity from frames ``f - 2, f - 1`` when both converged and turned
     less than :data:`EXTRAPOLATE_STEP` apart (about one step a frame fewer on smooth
@@ -142,4 +171,13 @@ def gauss_newton(
             move = max(abs(step[3]), abs(step[4]), abs(step[5]))
             if big <= tol and move <= tol * size:
                 iterations[f] = it + 1
+                r = rot[f]
+                _log_map(r, coords[f])
+                for i in range(3):
+                    coords[f, i] *= size
+                    coords[f, 3 + i] = (
+                        (r[i, 0] * centre[0] + r[i, 1] * centre[1] + r[i, 2] * centre[2])
+                        + trans[f, i]
+                        - centre[i]
+                    )
                 break

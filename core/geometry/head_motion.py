@@ -362,8 +362,9 @@ class HeadMotionModel:
                 if return_info
                 else out
             )
-        # common case: nothing missing (inf would make the sum inf or NaN)
-        if np.isfinite(np.sum(x)):
+        # common case: nothing missing (inf would make the sum inf or NaN), one pattern
+        shared = bool(np.isfinite(np.sum(x)))
+        if shared:
             valid = np.broadcast_to(w > 0, (n_frames, n))
             x0 = x
         else:
@@ -373,7 +374,7 @@ class HeadMotionModel:
                 )
             valid = ~np.isnan(x).any(axis=2) & (w > 0)
             x0 = np.where(valid[..., None], x, 0.0)
-        counts = valid.sum(axis=1)
+        counts = valid[:1].sum(axis=1) if shared else valid.sum(axis=1)
         if counts.min() < 3:
             f = int(np.argmax(counts < 3))
             raise DegenerateGeometryError(
@@ -381,7 +382,7 @@ class HeadMotionModel:
             )
         size, centre = self.size, self.centre
 
-        if valid[:1].all() and (n_frames == 1 or valid.all()):
+        if shared or (valid[:1].all() and (n_frames == 1 or valid.all())):
             patterns, which = valid[:1].copy(), np.zeros(n_frames, dtype=np.intp)
         else:
             patterns, which = np.unique(valid, axis=0, return_inverse=True)
@@ -397,13 +398,13 @@ class HeadMotionModel:
         moments = _moments(pat.rows, which, x0)
         warm = np.ones(n_frames, dtype=np.bool_)
         warm[weak_frames] = False  # those keep their Procrustes start
-        iterations, done = _gauss_newton(
+        iterations, done, coords = _gauss_newton(
             moments, pat.sums, pat.offsets, which, centre, size, rot, trans, max_iter, tol, warm
         )
         if not done.all():  # far from the identity (e.g. > 150 degrees): restart from Procrustes
             again = np.flatnonzero(~done)
             sub_rot, sub_trans, _ = procrustes.fit_rigid(ref, x[again], weights=w)
-            more, done_again = _gauss_newton(
+            more, done_again, coords[again] = _gauss_newton(
                 moments[again],
                 pat.sums,
                 pat.offsets,
@@ -423,20 +424,20 @@ class HeadMotionModel:
                     "check the reference and the markers (same order, same units)"
                 )
 
-        keep = keep_local and bool(valid.all())
+        out = np.zeros((n_frames, 4, 4))  # the fitted motion; the identity if the gate says so
+        out[:, 3, 3] = 1.0
+        out[:, :3, :3] = rot
+        out[:, :3, 3] = trans
+        keep = keep_local and bool(valid[:1].all() if shared else valid.all())
         evidence, local = _evidence(
-            x0, valid, ref, w, self.basis, rot, trans, centre, size, pat, which, window, keep
+            x0, valid, ref, w, self.basis, out, coords, size, pat, which, window, keep
         )
         detected = significance is None or evidence > significance
-        if local is not None and not detected:  # the identity was returned
-            local = x - ref
-        out = np.zeros((n_frames, 4, 4))
-        out[:, 3, 3] = 1.0
-        if detected:
-            out[:, :3, :3] = rot
-            out[:, :3, 3] = trans
-        else:
+        if not detected:
+            if local is not None:
+                local = x - ref
             out[:, :3, :3] = np.eye(3)
+            out[:, :3, 3] = 0.0
         if return_info:
             info = HeadMotionInfo(
                 bool(detected), float(evidence), w.copy(), int(iterations), weak_frames, local
@@ -451,9 +452,8 @@ def _evidence(
     ref: np.ndarray,
     w: np.ndarray,
     basis: np.ndarray | None,
-    rot: np.ndarray,
-    trans: np.ndarray,
-    centre: np.ndarray,
+    motion: np.ndarray,
+    z: np.ndarray,
     size: float,
     pattern: _Pattern,
     which: np.ndarray,
@@ -466,13 +466,11 @@ def _evidence(
 
     ``c0_f - c1_f`` (what the head motion explains beyond the expressions) is the quadratic
     form of the expression-eliminated rigid normal matrix (Schur complement) at the fitted
-    motion; the remaining residual ``c1_f`` is computed exactly.
+    motion's rigid coordinates ``z (F, 6)`` (the kernel's ``coords``); the remaining residual
+    ``c1_f`` is computed exactly, removing ``motion (F, 4, 4)`` from the markers.
     """
     schur, ainv = pattern.schur, pattern.ainv
-    n_frames = rot.shape[0]
-    z = np.empty((n_frames, 6))
-    z[:, :3] = _rotation_vectors(rot) * size
-    z[:, 3:] = np.einsum("fij,j->fi", rot, centre) + trans - centre  # x = R (n - c) + c + t'
+    n_frames = z.shape[0]
     if schur.shape[0] == 1:
         gain = np.einsum("fk,fk->f", z @ schur[0], z)
     else:
@@ -483,10 +481,10 @@ def _evidence(
     if shared:
         wd = np.repeat(valid[0] * w, 3)
         unused = wd == 0
-    kept = _local_residual(x0, rot, trans, ref) if keep else None
+    kept = procrustes.remove(motion, x0, ref) if keep else None
     for start in range(0, n_frames, _RESIDUAL_CHUNK):  # scratch bounded by the chunk, not the shot
         sl = slice(start, start + _RESIDUAL_CHUNK)
-        local = kept[sl] if kept is not None else _local_residual(x0[sl], rot[sl], trans[sl], ref)
+        local = kept[sl] if kept is not None else procrustes.remove(motion[sl], x0[sl], ref)
         if shared:
             y = local.reshape(len(local), -1)
             if unused.any():  # never with keep (every sample valid): y is a view of kept
@@ -627,14 +625,6 @@ def _gains(
     return gains, schur, ainv, ~keep.all(axis=1)  # type: ignore[return-value]
 
 
-def _local_residual(
-    x0: np.ndarray, rot: np.ndarray, trans: np.ndarray, ref: np.ndarray
-) -> np.ndarray:
-    """``R^T (x - t) - n`` per frame and marker ``(F, N, 3)`` (one pass of
-    :func:`procrustes.remove`'s kernel)."""
-    return procrustes.remove(procrustes.to_matrix(rot, trans), x0, ref)
-
-
 def _moments(rows: np.ndarray, which: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """What the gains need of the markers, once: the gain applied to the local residual
     ``y = R^T (x - t) - n`` is ``sum_ab P[b, k, a] R[b, a] - s[k] . (R^T t) - g[k]`` with
@@ -655,25 +645,6 @@ def _moments(rows: np.ndarray, which: np.ndarray, x0: np.ndarray) -> np.ndarray:
     return moments
 
 
-def _rotation_vectors(rot: np.ndarray) -> np.ndarray:
-    """Log map: ``(F, 3, 3)`` rotations -> ``(F, 3)`` rotation vectors."""
-    skew = 0.5 * np.stack(
-        [rot[:, 2, 1] - rot[:, 1, 2], rot[:, 0, 2] - rot[:, 2, 0], rot[:, 1, 0] - rot[:, 0, 1]],
-        axis=1,
-    )
-    sin = np.sqrt(np.sum(skew * skew, axis=1))
-    cos = 0.5 * (np.trace(rot, axis1=1, axis2=2) - 1.0)
-    angle = np.arctan2(sin, cos)
-    out = skew * np.where(sin > 1e-12, angle / np.where(sin > 1e-12, sin, 1.0), 1.0)[:, None]
-    flip = (cos < 0) & (sin < 1e-6)  # near 180 degrees: the axis from R + I
-    if flip.any():
-        sym = rot[flip] + np.eye(3)
-        col = np.argmax(np.sum(sym * sym, axis=1), axis=1)
-        axis = sym[np.arange(len(col)), :, col]
-        out[flip] = np.pi * axis / np.linalg.norm(axis, axis=1, keepdims=True)
-    return out
-
-
 def _gauss_newton(
     moments: np.ndarray,
     sums: np.ndarray,
@@ -686,13 +657,15 @@ def _gauss_newton(
     max_iter: int,
     tol: float,
     warm: npt.ArrayLike | None = None,
-) -> tuple[int, np.ndarray]:
+) -> tuple[int, np.ndarray, np.ndarray]:
     """Gauss-Newton steps on ``rot (F, 3, 3)`` / ``trans (F, 3)`` in place (numba kernel, one
     frame at a time until it converges; frames where ``warm (F,)`` is set start from the
-    previous frame's result); returns (most steps taken, converged (F,))."""
+    previous frame's result); returns (most steps taken, converged (F,), the converged
+    frames' rigid coordinates ``z (F, 6)`` for the gate, see :func:`_evidence`)."""
     from ._head_motion_kernels import gauss_newton
 
     steps = np.empty(rot.shape[0], dtype=np.int64)
+    coords = np.zeros((rot.shape[0], 6))
     warm = (
         np.zeros(rot.shape[0], dtype=np.bool_)
         if warm is None
@@ -711,9 +684,10 @@ def _gauss_newton(
         float(tol),
         steps,
         warm,
+        coords,
     )
     done = steps >= 0
-    return int(np.where(done, steps, max_iter).max(initial=0)), done
+    return int(np.where(done, steps, max_iter).max(initial=0)), done, coords
 
 
 def _projection(basis: np.ndarray, wd: np.ndarray, ainv: np.ndarray) -> np.ndarray:

@@ -284,15 +284,16 @@ def motion_to_target(motion: np.ndarray | None, frame: np.ndarray) -> np.ndarray
 
     Rotations are kept; translations are converted to the target's length unit (see
     :func:`unit_ratio`; ``frame`` = T is the landmark similarity from target to source).
+    Returns ``motion`` itself when both are in the same unit (nothing to convert).
     """
     if motion is None:
         return None
     motion = np.asarray(motion, dtype=np.float64)
-    if np.array_equal(motion, np.broadcast_to(np.eye(4), motion.shape)):
+    ratio = unit_ratio(float(np.cbrt(np.linalg.det(frame[:3, :3]))))
+    if ratio == 1.0:
         return motion
-    scale = float(np.cbrt(np.linalg.det(frame[:3, :3])))
     out = motion.copy()
-    out[:, :3, 3] /= unit_ratio(scale)
+    out[:, :3, 3] /= ratio
     return out
 
 

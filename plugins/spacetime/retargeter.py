@@ -510,7 +510,8 @@ class SpacetimeRetargeter(Retargeter):
         params = self.params_
         local = None  # (F, N, 3) marker deltas, head motion removed, if the estimate gives them
         if source.head_motion is not None:
-            motion, how = np.asarray(source.head_motion, dtype=np.float64), "given"
+            # a copy: the result's head motion must not be the caller's array
+            motion, how = np.array(source.head_motion, dtype=np.float64), "given"
         elif params["remove_head_motion"]:
             # joint fit with the shapes at the markers, weighted to the markers expressions move
             # least, and gated: exactly the identity unless the head motion is significant
@@ -557,7 +558,7 @@ class SpacetimeRetargeter(Retargeter):
             "examples": list(self.examples_used_),
             "velocity_error": float(terms["velocity"].sum()),
             "position_error": float(terms["position"].sum()),
-            "fraction_in_range": float(inside.mean()),
+            "fraction_in_range": np.count_nonzero(inside) / inside.size,
             "alpha_effective": system.alpha,
             "prior_decay_frames": system.decay_frames(),
             "face_size": self.face_size_,

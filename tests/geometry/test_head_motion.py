@@ -303,6 +303,50 @@ def test_extrapolated_start_saves_a_step():
     assert angles(motion[:, :3, :3], rot).max() < 1e-6
 
 
+@pytest.mark.parametrize(
+    "angle", [0.0, 1e-13, 1e-7, 0.3, 2.0, np.pi - 1e-3, np.pi - 1e-7, np.pi - 1e-9, np.pi]
+)
+def test_log_map_is_the_rotation_vector_up_to_180_degrees(angle):
+    """The kernel's log map (the gate's rigid coordinates) against scipy's rotation vector,
+    also within 1e-6 of 180 degrees, where the skew part vanishes and the axis comes from
+    ``R + I`` (its sign is then arbitrary; the angle is then pi, within that 1e-6)."""
+    from faceretarget.geometry._head_motion_kernels import _log_map
+
+    for axis in ([0.48, -0.6, 0.64], [0.0, 0.0, 1.0], [-0.8, 0.6, 0.0]):
+        v = angle * np.array(axis)
+        rot = Rotation.from_rotvec(v).as_matrix()
+        out = np.empty(3)
+        _log_map(rot, out)
+        want = Rotation.from_matrix(rot).as_rotvec()
+        if angle > 3.0 and np.dot(out, want) < 0:
+            want = -want
+        np.testing.assert_allclose(out, want, rtol=0, atol=1e-6 if angle > 3.0 else 1e-15)
+
+
+def test_the_gate_gets_the_rigid_coordinates_of_the_fitted_motion(monkeypatch):
+    """The Gauss-Newton kernel hands the gate each frame's ``z``: the rotation vector times
+    the face size and ``R c + t - c`` (the motion about the weighted centre ``c``)."""
+    import faceretarget.geometry.head_motion as hm
+
+    seen = {}
+    original = hm._evidence
+    monkeypatch.setattr(
+        hm,
+        "_evidence",
+        lambda *a: (seen.update(motion=a[5].copy(), z=a[6].copy()), original(*a))[1],
+    )
+    ref, x, basis, _ = face(n_frames=20, degrees=6.0)
+    model = HeadMotionModel(ref, basis=basis)
+    motion, info = model.estimate(x, return_info=True)
+    assert info.detected and np.array_equal(seen["motion"], motion)
+    rot, trans, c = motion[:, :3, :3], motion[:, :3, 3], model.centre
+    np.testing.assert_allclose(
+        seen["z"][:, :3], model.size * Rotation.from_matrix(rot).as_rotvec(), rtol=0, atol=1e-14
+    )
+    np.testing.assert_allclose(seen["z"][:, 3:], rot @ c + trans - c, rtol=0, atol=1e-13)
+    assert np.abs(seen["z"]).max() > 0.05 * model.size  # a real motion, not the identity
+
+
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 0.0099, 0.0101, 0.099, 0.5, 3.0])
 def test_rodrigues_to_rounding_on_both_sides_of_its_series(angle):
     """The kernel's rotation of a rotation vector (Taylor series below 0.01 rad, sin / cos
