@@ -213,6 +213,8 @@ def test_given_head_motion_is_used_and_reapplied(make_toy):
     assert anim.provenance["diagnostics"]["head_motion"] == "given"
     assert np.array_equal(anim.head_motion, toy.motion)
     assert np.abs(anim.weights - toy.weights).max() < 1e-7
+    # the result's motion is its own: changing it leaves the source (and the caller's array)
+    assert not np.shares_memory(anim.head_motion, source.head_motion)
 
 
 def test_no_head_motion_removal_keeps_world_coordinates(make_toy):
