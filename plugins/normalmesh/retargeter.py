@@ -43,6 +43,7 @@ from functools import partial
 from typing import ClassVar
 
 import numpy as np
+import scipy.sparse as sp
 
 from faceretarget import manifest
 from faceretarget._validate import as_array, readonly
@@ -599,6 +600,7 @@ class NormalMeshRetargeter(Retargeter):
             "source_motion": motion,
             "motion": target_motion,
         }
+        self._samplers()  # built before the threads share them
         size = min(CHUNK_FRAMES, max(1, -(-n_frames // MIN_CHUNKS)))
         chunks = [range(a, min(a + size, n_frames)) for a in range(0, n_frames, size)]
         in_threads(
@@ -606,6 +608,19 @@ class NormalMeshRetargeter(Retargeter):
             worker_count(len(chunks)),
         )
         return out
+
+    def _samplers(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """``(P, V)`` sparse barycentric matrices of the source points the sliding and the
+        dense fallback read (a frame's points in one sparse product, not a gather of three
+        corners a point), built on first use (absent from older pickles)."""
+        samplers = self.__dict__.get("samplers_")
+        if samplers is None:
+            n = len(self.source_neutral_)
+            samplers = self.__dict__["samplers_"] = (
+                _barycentric_matrix(self.slide_corners_, self.slide_barycentric_, n),
+                _barycentric_matrix(self.dense_corners_, self.dense_barycentric_, n),
+            )
+        return samplers
 
     def _run_chunk(self, perf: MeshSequence, frames: range, level: int | None, out: dict) -> None:
         from faceretarget.geometry._mesh_ops_kernels import vertex_normals
@@ -625,6 +640,7 @@ class NormalMeshRetargeter(Retargeter):
         sliding = self.sliding == "transfer"
         dense = self.dense_vertices_
         w = self.coverage_[dense][:, None]
+        slide_at, dense_at = self._samplers()
         for f in frames:
             rot = np.ascontiguousarray(out["source_motion"][f, :3, :3])
             local = (
@@ -648,9 +664,7 @@ class NormalMeshRetargeter(Retargeter):
             finest = levels[-1]
             if sliding:
                 y = np.ascontiguousarray(positions[-1])
-                material = np.einsum(
-                    "pk,pkd->pd", self.slide_barycentric_, local[self.slide_corners_]
-                )
+                material = slide_at @ local
                 y_normals, t_normals = np.empty_like(y), np.empty_like(finest)
                 # read-only inputs, as geometry.mesh_ops passes them: one compiled kernel
                 vertex_normals(readonly(y), readonly(finest_tri), y_normals)
@@ -670,10 +684,7 @@ class NormalMeshRetargeter(Retargeter):
                 finest = slid
             result = carry(self.attachment_, finest)
             if dense.size:
-                moved = (
-                    np.einsum("pk,pkd->pd", self.dense_barycentric_, local[self.dense_corners_])
-                    - self.dense_source0_
-                )
+                moved = dense_at @ local - self.dense_source0_
                 fallback = self.target_neutral_[dense] + self.dense_map_.one(moved)
                 result[dense] = w * result[dense] + (1.0 - w) * fallback
             rot_t = np.ascontiguousarray(out["motion"][f, :3, :3].T)
@@ -722,6 +733,15 @@ class NormalMeshRetargeter(Retargeter):
         return MeshSequence(
             frames, self.hierarchy_.triangles(level), fps=source.fps, reference=frames[0]
         )
+
+
+def _barycentric_matrix(corners: np.ndarray, bary: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """``(P, V)`` CSR with row ``p`` holding ``bary[p]`` at the vertices ``corners[p] (3,)``."""
+    rows = np.repeat(np.arange(len(corners)), 3)
+    return sp.csr_matrix(
+        (np.asarray(bary, dtype=np.float64).ravel(), (rows, np.asarray(corners).ravel())),
+        shape=(len(corners), n_vertices),
+    )
 
 
 def _area(points: np.ndarray, triangles: np.ndarray) -> float:
