@@ -332,6 +332,7 @@ class NormalMeshRetargeter(Retargeter):
 
     def _fit(self, source: Source, target: TargetRig) -> None:
         self._check_params()
+        self.__dict__.pop("samplers_", None)  # built from the previous fit's points
         src_lm, tgt_lm = self._feature_points(source, target)
         src_ex, tgt_ex, names = self._paired_examples(source, target)
         src_ex = np.asarray(src_ex, dtype=np.float64)

@@ -284,7 +284,7 @@ def motion_to_target(motion: np.ndarray | None, frame: np.ndarray) -> np.ndarray
 
     Rotations are kept; translations are converted to the target's length unit (see
     :func:`unit_ratio`; ``frame`` = T is the landmark similarity from target to source).
-    Returns ``motion`` itself when both are in the same unit (nothing to convert).
+    Returns ``motion`` itself (as a float64 array) when both are in the same unit.
     """
     if motion is None:
         return None

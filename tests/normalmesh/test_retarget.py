@@ -276,3 +276,27 @@ def test_a_short_shot_is_split_for_the_threads_with_the_same_result(
     one_by_one = fitted.retarget(human_case.source)
     assert len(seen) == 10
     np.testing.assert_array_equal(one_by_one.vertices, anim.vertices)
+
+
+def test_a_refit_retargets_like_a_fresh_retargeter(human_case):
+    """Fitting a used retargeter again (here to the same source, stretched 3% / shrunk 2%)
+    forgets what its retargets kept of the last fit: the frames equal a fresh fit's."""
+    s = human_case.source
+    perf = s.performance
+    stretch = np.diag([1.03, 1.0, 0.98])
+    moved = Source(
+        MeshSequence(
+            np.asarray(perf.vertices) @ stretch,
+            perf.triangles,
+            fps=perf.fps,
+            reference=np.asarray(perf.reference.vertices) @ stretch,
+        ),
+        landmarks=s.landmarks,
+        examples=None if s.examples is None else np.asarray(s.examples) @ stretch,
+        example_names=s.example_names,
+    )
+    again = fr.get("normalmesh").fit(s, human_case.target)
+    again.retarget(s)
+    again.fit(moved, human_case.target)
+    fresh = fr.get("normalmesh").fit(moved, human_case.target)
+    np.testing.assert_array_equal(again.retarget(moved).vertices, fresh.retarget(moved).vertices)
