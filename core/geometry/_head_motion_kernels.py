@@ -88,11 +88,12 @@ def gauss_newton(
 
     ``iterations[f]`` receives the steps frame ``f`` took, or -1 if it did not converge in
     ``max_iter`` steps; a converged frame's ``coords[f] (6,)`` receives the rigid
-    coordinates of its motion about the centre ``c``: ``size * log(R)`` and ``R c + t - c``. Where ``warm[f]`` is set, frame ``f`` starts from frame ``f - 1``'s
-    result when that converged (head motion is continuous), its rotation extrapolated at
-    constant angular velocity from frames ``f - 2, f - 1`` when both converged and turned
-    less than :data:`EXTRAPOLATE_STEP` apart (about one step a frame fewer on smooth
-    motion); elsewhere it starts from the given ``rot``/``trans``.
+    coordinates of its motion about the centre ``c``: ``size * log(R)`` and ``R c + t - c``.
+    Where ``warm[f]`` is set, frame ``f`` starts from frame ``f - 1``'s result when that
+    converged (head motion is continuous), its rotation extrapolated at constant angular
+    velocity from frames ``f - 2, f - 1`` when both converged and turned less than
+    :data:`EXTRAPOLATE_STEP` apart (about one step a frame fewer on smooth motion);
+    elsewhere it starts from the given ``rot``/``trans``.
     """
     n_frames = rot.shape[0]
     step = np.empty(6)

@@ -254,9 +254,9 @@ def test_large_rotations_converge(degrees):
     assert angles(estimate_head_motion(ref, moved, basis=basis), truth).max() < 1e-6
 
 
-def test_cut_between_far_apart_head_poses_converges_in_every_frame():
-    """Frames start from the previous frame's result; a cut to a pose 170 degrees away must
-    still land on the true motion (warm start falls back when it does not converge)."""
+def cut_to_a_far_pose():
+    """8 frames of :func:`face` whose last 4 jump to a pose 170 degrees away: reference,
+    moved markers, basis, true motion."""
     ref, x, basis, _ = face(n_frames=8)
     truth = np.tile(np.eye(4), (8, 1, 1))
     truth[4:, :3, :3] = Rotation.from_rotvec(
@@ -264,6 +264,13 @@ def test_cut_between_far_apart_head_poses_converges_in_every_frame():
     ).as_matrix()
     truth[4:, :3, 3] = [4.0, 1.0, -2.0]
     moved = np.einsum("fij,fnj->fni", truth[:, :3, :3], x) + truth[:, None, :3, 3]
+    return ref, moved, basis, truth
+
+
+def test_cut_between_far_apart_head_poses_converges_in_every_frame():
+    """Frames start from the previous frame's result; a cut to a pose 170 degrees away must
+    still land on the true motion (warm start falls back when it does not converge)."""
+    ref, moved, basis, truth = cut_to_a_far_pose()
     assert (
         angles(estimate_head_motion(ref, moved, basis=basis, significance=None), truth).max() < 1e-6
     )
@@ -273,13 +280,7 @@ def test_frames_restarted_from_procrustes_keep_their_motion_through_the_gate():
     """Too few steps for the cut's frames to converge from the previous pose: they restart
     from weighted Procrustes, and the gate sees their motion (their rigid coordinates come
     from the restart), so the motion is detected and kept."""
-    ref, x, basis, _ = face(n_frames=8)
-    truth = np.tile(np.eye(4), (8, 1, 1))
-    truth[4:, :3, :3] = Rotation.from_rotvec(
-        np.radians(170.0) * np.array([0.0, 1.0, 0.0])
-    ).as_matrix()
-    truth[4:, :3, 3] = [4.0, 1.0, -2.0]
-    moved = np.einsum("fij,fnj->fni", truth[:, :3, :3], x) + truth[:, None, :3, 3]
+    ref, moved, basis, truth = cut_to_a_far_pose()
     motion, info = estimate_head_motion(ref, moved, basis=basis, max_iter=6, return_info=True)
     assert info.detected and info.evidence > 1e3 * config.HEAD_MOTION_SIGNIFICANCE
     assert angles(motion, truth).max() < 1e-6
