@@ -59,7 +59,7 @@ from ..errors import CorrespondenceError, CorrespondenceWarning, DegenerateGeome
 from ..geometry.closest import closest_on_polyline
 from ..geometry.factorized import SPDFactor
 from ..geometry.laplacian import uniform_laplacian
-from ..geometry.mesh_ops import unit_rows
+from ..geometry.mesh_ops import barycentric_matrix, unit_rows
 from ..model import Landmarks, Mesh
 from .landmarks import paired_positions, to_barycentric
 from .topology import boundary_loops
@@ -458,11 +458,7 @@ def resample_to_topology(
     lap = uniform_laplacian(tri_s, n)
     lm = to_barycentric(source_landmarks, source_mesh)
     assert lm.barycentric is not None  # to_barycentric returns barycentric landmarks
-    corners = tri_s[lm.triangle_ids]
-    p = sp.csr_matrix(
-        (lm.barycentric.ravel(), (np.repeat(np.arange(len(lm)), 3), corners.ravel())),
-        shape=(len(lm), n),
-    )
+    p = barycentric_matrix(tri_s[lm.triangle_ids], lm.barycentric, n)
     ptp = (p.T @ p) * landmark_weight
     pt_t = (p.T @ tgt_pos) * landmark_weight
     size = _landmark_radius(tgt_pos)  # 1 in the canonical frame

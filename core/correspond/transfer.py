@@ -9,6 +9,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 
 from ..errors import ShapeError
+from ..geometry.mesh_ops import barycentric_matrix
 from ..model import Mesh
 
 __all__ = ["Correspondence", "closest_point_transfer", "transfer_back"]
@@ -34,11 +35,8 @@ class Correspondence:
     @property
     def matrix(self) -> sp.csr_matrix:
         """(P, V) sparse interpolation matrix (three barycentric weights per row)."""
-        corners = self.triangles[self.triangle_ids]
-        rows = np.repeat(np.arange(len(corners)), 3)
-        return sp.csr_matrix(
-            (self.barycentric.ravel(), (rows, corners.ravel())),
-            shape=(len(corners), self.n_vertices),
+        return barycentric_matrix(
+            self.triangles[self.triangle_ids], self.barycentric, self.n_vertices
         )
 
     def apply(self, values: npt.ArrayLike) -> np.ndarray:

@@ -165,3 +165,16 @@ def vertex_adjacency(triangles: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     rows = np.concatenate([e[:, 0], e[:, 1]])
     cols = np.concatenate([e[:, 1], e[:, 0]])
     return sp.csr_matrix((data, (rows, cols)), shape=(n_vertices, n_vertices))
+
+
+def barycentric_matrix(
+    corners: np.ndarray, barycentric: np.ndarray, n_vertices: int
+) -> sp.csr_matrix:
+    """``(P, V)`` CSR interpolation matrix: row ``p`` holds ``barycentric[p] (3,)`` at the
+    vertices ``corners[p] (3,)`` (points on triangles: ``matrix @ vertices`` gives them)."""
+    c = np.asarray(corners)
+    rows = np.repeat(np.arange(len(c)), 3)
+    return sp.csr_matrix(
+        (np.asarray(barycentric, dtype=np.float64).ravel(), (rows, c.ravel())),
+        shape=(len(c), n_vertices),
+    )

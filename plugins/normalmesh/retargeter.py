@@ -53,6 +53,7 @@ from faceretarget.errors import (
     ShapeError,
     TopologyMismatchError,
 )
+from faceretarget.geometry.mesh_ops import barycentric_matrix
 from faceretarget.geometry.procrustes import fit_rigid, to_matrix
 from faceretarget.geometry.raycast import RayCaster
 from faceretarget.model import Animation, Landmarks, MeshSequence, Source, TargetRig
@@ -618,8 +619,8 @@ class NormalMeshRetargeter(Retargeter):
         if samplers is None:
             n = len(self.source_neutral_)
             samplers = self.__dict__["samplers_"] = (
-                _barycentric_matrix(self.slide_corners_, self.slide_barycentric_, n),
-                _barycentric_matrix(self.dense_corners_, self.dense_barycentric_, n),
+                barycentric_matrix(self.slide_corners_, self.slide_barycentric_, n),
+                barycentric_matrix(self.dense_corners_, self.dense_barycentric_, n),
             )
         return samplers
 
@@ -734,15 +735,6 @@ class NormalMeshRetargeter(Retargeter):
         return MeshSequence(
             frames, self.hierarchy_.triangles(level), fps=source.fps, reference=frames[0]
         )
-
-
-def _barycentric_matrix(corners: np.ndarray, bary: np.ndarray, n_vertices: int) -> sp.csr_matrix:
-    """``(P, V)`` CSR with row ``p`` holding ``bary[p]`` at the vertices ``corners[p] (3,)``."""
-    rows = np.repeat(np.arange(len(corners)), 3)
-    return sp.csr_matrix(
-        (np.asarray(bary, dtype=np.float64).ravel(), (rows, np.asarray(corners).ravel())),
-        shape=(len(corners), n_vertices),
-    )
 
 
 def _area(points: np.ndarray, triangles: np.ndarray) -> float:

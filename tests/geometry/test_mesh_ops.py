@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 
 from faceretarget.errors import ShapeError
-from faceretarget.geometry.mesh_ops import face_normals, translated, unit_rows, vertex_normals
+from faceretarget.geometry.mesh_ops import (
+    barycentric_matrix,
+    face_normals,
+    translated,
+    unit_rows,
+    vertex_normals,
+)
 
 
 @pytest.mark.parametrize("scale", [1e-160, 1e-161, 1.0, 1e150])
@@ -140,3 +146,18 @@ def test_unique_edges_are_kept_by_content_and_read_only():
         mesh_ops.unique_edges(t[: 5 + k])
     assert len(mesh_ops._edge_memo) == mesh_ops._EDGE_MEMO_SIZE
     assert mesh_ops.unique_edges(t) is not first
+
+
+def test_barycentric_matrix_interpolates_points_on_triangles():
+    """``barycentric_matrix(corners, bary, V) @ vertices`` is the points, corner by corner;
+    a degenerate row (a corner repeated) sums its weights."""
+    rng = np.random.default_rng(0)
+    vertices = rng.normal(size=(9, 3))
+    corners = rng.integers(0, 9, size=(7, 3))
+    corners[3] = [4, 4, 2]
+    bary = rng.dirichlet([1.0, 1.0, 1.0], size=7)
+    m = barycentric_matrix(corners, bary, 9)
+    assert m.shape == (7, 9)
+    want = sum(bary[:, k, None] * vertices[corners[:, k]] for k in range(3))
+    np.testing.assert_allclose(m @ vertices, want, rtol=0, atol=1e-15)
+    assert m[3, 4] == bary[3, 0] + bary[3, 1]
