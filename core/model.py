@@ -1167,6 +1167,9 @@ class Animation:
             if value is not None and not isinstance(value, Mapping):
                 raise InputError(f"Animation.{label}: expected a dict, got {type(value).__name__}")
         self._vertices = None
+        #: the stored vertices this constructor checked finite (a read-only view): the output
+        #: check (``Retargeter.check_output``) does not read them a second time
+        self._checked_vertices: np.ndarray | None = None
         self._lazy: FrameSource | None = None
         if isinstance(vertices, FrameSource):
             if rig is not None and vertices.n_vertices != rig.neutral.n_vertices:
@@ -1190,7 +1193,7 @@ class Animation:
                 raise TopologyMismatchError(
                     f"Animation: vertices have {arr.shape[1]} vertices but the rig's neutral has {rig.neutral.n_vertices}"
                 )
-            self._vertices = readonly(arr)
+            self._vertices = self._checked_vertices = readonly(arr)
         self.rig = rig
         self.weights = None
         if weights is not None:
