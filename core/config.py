@@ -53,6 +53,13 @@ def scratch_items(item_bytes: int) -> int:
     return max(1, SCRATCH_BLOCK_BYTES // max(1, int(item_bytes)))
 
 
+#: Largest ``[deltas; neutral]`` matrix a :class:`~faceretarget.model.BlendshapeRig` keeps
+#: beside its deltas so that evaluating weights is one matrix product with no separate pass
+#: adding the neutral (300 x 9,409 vertices: 17 -> 14 ms); a larger rig adds the neutral
+#: inside the product instead (its deltas are not copied).
+RIG_AFFINE_MAX_BYTES = 128 * 2**20
+
+
 #: Variables from which ``geometry.banded_qp.nonneg_qp_block_tridiagonal`` factors its
 #: steps by blocks (numba). Below, LAPACK's banded Cholesky takes about as long and a call
 #: compiles nothing (the block kernels compile for ~1 s); the coating edit's 28-basis knot

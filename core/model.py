@@ -596,12 +596,29 @@ class BlendshapeRig:
                 f"BlendshapeRig.evaluate: weights must be (M,) or (F, M) with M={self.n_shapes}, got {w.shape}"
             )
         w = as_float_array(w, "BlendshapeRig.evaluate: weights", w.shape)
-        flat = _affine_rows(
-            w.reshape(-1, self.n_shapes),
-            self.deltas.reshape(self.n_shapes, -1),
-            self.neutral.vertices.reshape(-1),
-        )
+        rows = w.reshape(-1, self.n_shapes)
+        affine = self._affine
+        if affine is not None:
+            flat = _affine_product(rows, affine)
+        else:
+            flat = _affine_rows(
+                rows, self.deltas.reshape(self.n_shapes, -1), self.neutral.vertices.reshape(-1)
+            )
         return flat.reshape(w.shape[:-1] + (self.neutral.n_vertices, 3))
+
+    @cached_property
+    def _affine(self) -> np.ndarray | None:
+        """``(M + 1, 3V)``: the deltas' rows, then the neutral's (see :func:`_affine_product`);
+        None above ``config.RIG_AFFINE_MAX_BYTES``."""
+        from . import config
+
+        m, size = self.n_shapes, self.neutral.vertices.size
+        if (m + 1) * size * 8 > config.RIG_AFFINE_MAX_BYTES:
+            return None
+        out = np.empty((m + 1, size))
+        out[:m] = self.deltas.reshape(m, size)
+        out[m] = self.neutral.vertices.reshape(size)
+        return readonly(out)
 
     def index(self, name: str) -> int:
         """Position of shape ``name`` (exact match; an unknown name is an
@@ -621,6 +638,34 @@ class BlendshapeRig:
 
     def __repr__(self) -> str:
         return f"BlendshapeRig({self.n_shapes} shapes on {self.neutral!r})"
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Without the matrices derived from the deltas (rebuilt on first use): a pickled
+        result does not carry its rig's deltas twice."""
+        return {k: v for k, v in self.__dict__.items() if k not in _RIG_DERIVED}
+
+
+_RIG_DERIVED = frozenset({"delta_matrix", "delta_extent", "_affine"})
+
+
+def _affine_product(w: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    """``[w, 1] @ affine`` (F, K) for (F, M) ``w`` and ``affine (M + 1, K)`` C-contiguous
+    float64: :func:`_affine_rows` with the offset as the product's last row, so that one
+    BLAS ``dgemm`` writes the result once (no pass filling it with the offset first)."""
+    from scipy.linalg.blas import dgemm
+
+    n, m = w.shape
+    lifted = np.empty((m + 1, n), order="F")  # [w, 1]^T, Fortran-ordered for dgemm
+    lifted[:m] = w.T
+    lifted[m] = 1.0
+    out = np.empty((n, affine.shape[1]))
+    if out.size == 0:
+        return out
+    # out.T (K, F), Fortran-ordered, = affine.T @ lifted: transposed views, no copies
+    res = dgemm(1.0, affine.T, lifted, beta=0.0, c=out.T, overwrite_c=True)
+    if not np.shares_memory(res, out):  # not expected (out.T is Fortran-ordered float64)
+        out[:] = res.T
+    return out
 
 
 def _affine_rows(w: np.ndarray, d: np.ndarray, offset: np.ndarray) -> np.ndarray:

@@ -140,6 +140,30 @@ def test_blendshape_rig_evaluate_matches_a_loop_over_frames_and_shapes():
     assert rig.evaluate(np.zeros((0, 5))).shape == (0, 4, 3)
 
 
+def test_blendshape_rig_over_the_affine_cap_adds_the_neutral_inside_the_product(monkeypatch):
+    """A rig whose ``[deltas; neutral]`` matrix would pass ``config.RIG_AFFINE_MAX_BYTES`` keeps
+    no copy of its deltas and evaluates the same vertices (to rounding); pickles carry neither
+    that matrix nor the other matrices derived from the deltas."""
+    import pickle
+
+    from faceretarget import config
+
+    rng = np.random.default_rng(4)
+    v, t = quad()
+    neutral = fr.Mesh(v + rng.normal(size=v.shape), t)
+    deltas = rng.normal(size=(5, 4, 3))
+    w = rng.normal(size=(6, 5))
+    kept = fr.BlendshapeRig(neutral, deltas, [f"s{j}" for j in range(5)])
+    assert kept._affine is not None and kept._affine.shape == (6, 12)
+    monkeypatch.setattr(config, "RIG_AFFINE_MAX_BYTES", 6 * 12 * 8 - 1)
+    capped = fr.BlendshapeRig(neutral, deltas, [f"s{j}" for j in range(5)])
+    assert capped._affine is None
+    np.testing.assert_allclose(capped.evaluate(w), kept.evaluate(w), rtol=0, atol=1e-12)
+    kept.delta_matrix, kept.delta_extent  # noqa: B018 - derived, then pickled
+    state = pickle.loads(pickle.dumps(kept)).__dict__
+    assert not {"_affine", "delta_matrix", "delta_extent"} & set(state)
+
+
 def test_layered_rig_validation():
     poses = {"emotion": np.zeros((3, 4, 3)), "speech": np.zeros((2, 4, 3))}
     masks = np.array([[1, 1, 0, 0], [0, 0, 1, 1.0]])
