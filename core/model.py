@@ -541,6 +541,10 @@ class BlendshapeRig:
     names : sequence of M str
     bounds : (M, 2) float, optional
         Artist weight range per shape (lower, upper); default none.
+
+    The rig views the arrays it is given (float64 ones are not copied) and derives matrices
+    from them on first use (:attr:`delta_matrix`, the ``[deltas; neutral]`` matrix of
+    :meth:`evaluate`): make a new rig rather than change those arrays afterwards.
     """
 
     def __init__(
@@ -1212,9 +1216,6 @@ class Animation:
             if value is not None and not isinstance(value, Mapping):
                 raise InputError(f"Animation.{label}: expected a dict, got {type(value).__name__}")
         self._vertices = None
-        #: the stored vertices this constructor checked finite (a read-only view): the output
-        #: check (``Retargeter.check_output``) does not read them a second time
-        self._checked_vertices: np.ndarray | None = None
         self._lazy: FrameSource | None = None
         if isinstance(vertices, FrameSource):
             if rig is not None and vertices.n_vertices != rig.neutral.n_vertices:
@@ -1238,7 +1239,7 @@ class Animation:
                 raise TopologyMismatchError(
                     f"Animation: vertices have {arr.shape[1]} vertices but the rig's neutral has {rig.neutral.n_vertices}"
                 )
-            self._vertices = self._checked_vertices = readonly(arr)
+            self._vertices = readonly(arr)
         self.rig = rig
         self.weights = None
         if weights is not None:

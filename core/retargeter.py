@@ -349,8 +349,6 @@ def _finite_vertices(animation: Animation, chunk: int = 64) -> bool:
     from .model import apply_head_motion
 
     stored = animation._vertices
-    if stored is not None and stored is getattr(animation, "_checked_vertices", None):
-        return True  # the constructor checked this read-only view
     if stored is not None:
         return all(
             np.isfinite(stored[i : i + chunk]).all() for i in range(0, stored.shape[0], chunk)

@@ -141,9 +141,9 @@ def test_blendshape_rig_evaluate_matches_a_loop_over_frames_and_shapes():
 
 
 def test_blendshape_rig_over_the_affine_cap_adds_the_neutral_inside_the_product(monkeypatch):
-    """A rig whose ``[deltas; neutral]`` matrix would pass ``config.RIG_AFFINE_MAX_BYTES`` keeps
-    no copy of its deltas and evaluates the same vertices (to rounding); pickles carry neither
-    that matrix nor the other matrices derived from the deltas."""
+    """A rig whose ``[deltas; neutral]`` matrix would pass ``config.RIG_AFFINE_MAX_BYTES`` does not
+    build it and evaluates the same vertices (to rounding); pickles carry neither that matrix
+    nor the other matrices derived from the deltas."""
     import pickle
 
     from faceretarget import config
@@ -332,6 +332,20 @@ def test_frame_source_output_is_checked():
         fr.Animation(
             vertices=fr.model.FrameSource(lambda ids: None, 7, 4), weights=np.zeros((3, 1)), rig=rig
         )
+
+
+def test_check_output_reads_vertices_written_after_the_animation_was_made():
+    """The constructor's finiteness check is no proof at output time: the stored vertices are
+    a read-only view of the caller's array, which a plugin may still write into before it
+    returns (or a memory-mapped file may change); the output check reads them again."""
+    from faceretarget.retargeter import _finite_vertices
+
+    v, _ = quad()
+    frames = np.repeat(v[None], 3, axis=0)
+    anim = fr.Animation(vertices=frames)
+    assert _finite_vertices(anim)
+    frames[1, 2, 0] = np.nan
+    assert not _finite_vertices(anim)
 
 
 def test_check_output_finds_nan_in_a_frame_source():
