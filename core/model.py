@@ -26,6 +26,7 @@ if TYPE_CHECKING:
 
 from . import config
 from ._validate import (
+    all_finite,
     as_array,
     as_float_array,
     as_fps,
@@ -520,7 +521,7 @@ def _check_finite_chunked(arr: np.ndarray, name: str) -> None:
     step = max(1, _CHUNK // max(1, flat.shape[1]))
     for start in range(0, flat.shape[0], step):
         block = np.asarray(flat[start : start + step])
-        if not np.isfinite(block).all():
+        if not all_finite(block):
             f, k = (int(i) for i in np.argwhere(~np.isfinite(block))[0])
             raise NonFiniteError(
                 f"{name}: NaN or infinite coordinate at frame {start + f}, vertex {k // 3}"

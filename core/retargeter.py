@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from ._json import jsonable
+from ._validate import all_finite
 from .capabilities import RIG_PARTS, SOURCE_KINDS, Capabilities
 from .errors import CapabilityError, InputError, NonFiniteError, NotFittedError, PluginOutputError
 from .model import Animation, Source, TargetRig
@@ -294,7 +295,7 @@ class Retargeter:
             ("weights", animation.weights),
             ("head motion", animation.head_motion),
         ):
-            if values is not None and not np.isfinite(values).all():
+            if values is not None and not all_finite(values):
                 raise PluginOutputError(f"{who} returned NaN or infinite {what}")
         if not _finite_vertices(animation):
             raise PluginOutputError(f"{who} returned NaN or infinite vertex coordinates")
@@ -350,9 +351,7 @@ def _finite_vertices(animation: Animation, chunk: int = 64) -> bool:
 
     stored = animation._vertices
     if stored is not None:
-        return all(
-            np.isfinite(stored[i : i + chunk]).all() for i in range(0, stored.shape[0], chunk)
-        )
+        return all(all_finite(stored[i : i + chunk]) for i in range(0, stored.shape[0], chunk))
     if animation._lazy is not None:  # a frame source checks what it computes
         try:
             for i in range(0, animation.n_frames, chunk):

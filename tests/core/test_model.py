@@ -334,6 +334,36 @@ def test_frame_source_output_is_checked():
         )
 
 
+@pytest.mark.parametrize(
+    "values, finite",
+    [
+        (np.array([1e308, 1e308, -5.0]), True),  # the sum overflows: the exact test decides
+        (np.array([3e38, 3e38], dtype=np.float32), True),
+        (np.array([1.0, np.nan]), False),
+        (np.array([np.inf, -np.inf]), False),  # the sum is NaN
+        (np.array([1.0, -np.inf]), False),
+        (np.zeros((0, 3)), True),
+    ],
+)
+def test_all_finite_is_exact_whatever_the_sum_does(values, finite):
+    """The summing check (no boolean temporary) against np.isfinite, quietly (no overflow
+    warning); the validators built on it still say where a bad value is."""
+    import warnings
+
+    from faceretarget._validate import all_finite, check_finite
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert all_finite(values) is finite
+    if not finite:
+        with pytest.raises(errors.NonFiniteError, match="first at index"):
+            check_finite(values, "x")
+        frames = np.zeros((3, 2, 3))
+        frames[2, 1, 0] = values[-1]
+        with pytest.raises(errors.NonFiniteError, match="frame 2, vertex 1"):
+            fr.Animation(vertices=frames)
+
+
 def test_check_output_reads_vertices_written_after_the_animation_was_made():
     """The constructor's finiteness check is no proof at output time: the stored vertices are
     a read-only view of the caller's array, which a plugin may still write into before it
