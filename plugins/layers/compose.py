@@ -51,6 +51,7 @@ def world_vertices(
     head_motion: np.ndarray | None = None,
     extra: np.ndarray | None = None,
     out: np.ndarray | None = None,
+    workers: int | None = None,
 ) -> np.ndarray:
     """Eq. 5: ``(F, V, 3)`` character vertices for ``beta (F, m, K)`` and head motion ``(F, 4, 4)``,
     written into ``out`` (C-contiguous float64) when given.
@@ -60,8 +61,9 @@ def world_vertices(
     in chunks: one BLAS product per region into a scratch buffer, then one numba pass
     (``_kernels.assemble``) that adds each vertex's region products to the neutral and
     applies the rigid motion, writing the output once. The chunks are dealt out in turn to
-    ``_threads.worker_count`` threads (the kernel releases the GIL), every product on one
-    BLAS thread, so the numbers do not depend on the thread count. A single frame
+    ``_threads.worker_count`` threads (``workers`` of them when given; the kernel releases
+    the GIL), every product on one BLAS thread, so the numbers do not depend on the thread
+    count. A single frame
     (streaming) only reads the rows of each block whose coefficient is not zero.
     """
     n_frames = beta.shape[0]
@@ -78,7 +80,7 @@ def world_vertices(
         else np.ascontiguousarray(head_motion, dtype=np.float64)
     )
     starts = list(range(0, n_frames, CHUNK))
-    workers = worker_count(len(starts))
+    workers = worker_count(len(starts)) if workers is None else max(1, int(workers))
     runs = [
         partial(_assemble_chunks, character, beta, motion, extra, out, starts[i::workers])
         for i in range(workers)

@@ -14,11 +14,14 @@ equations as read from the paper and where (and why) the defaults depart from it
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import fields
+from functools import partial
 
 import numpy as np
 
 from faceretarget import manifest
-from faceretarget._threads import blas_single_threaded, single_threaded_blas, touched_meanwhile
+from faceretarget._threads import blas_single_threaded, single_threaded_blas
 from faceretarget._validate import short_repr
 from faceretarget.errors import (
     CapabilityError,
@@ -34,7 +37,15 @@ from faceretarget.validation import Interval, check_value, validate_params
 from . import compose
 from .model import build_actor, build_character
 from .residual import build_residual, solve_residual
-from .solver import extract, fit_block, observe, reconstruct, resolve_lip_bias
+from .solver import (
+    Extraction,
+    Observations,
+    extract,
+    fit_block,
+    observe,
+    reconstruct,
+    resolve_lip_bias,
+)
 
 __all__ = ["LayersRetargeter"]
 
@@ -71,6 +82,10 @@ def _lip_markers(value):
 GATE_FRAMES = 200
 #: A size ratio within this fraction of a power of ten is a change of units (m, cm, mm).
 UNIT_TOLERANCE = 0.25
+#: Frames solved at a time while another thread writes the solved frames' vertices
+#: (``LayersRetargeter._solve_into``): each block costs ~2 ms of set-up, and the last one is
+#: written after the solve has ended.
+SOLVE_BLOCK = 128
 
 
 def _motion_map(residual, actor_reference, character_neutral):
@@ -398,27 +413,79 @@ class LayersRetargeter(Retargeter):
     @blas_single_threaded
     def _retarget(self, source: Source) -> Animation:
         markers, tracks, known, note = self._inputs(source)
-        if self.projection_ is None:  # the solve runs on one core: the other faults the result in
-            out, touched = touched_meanwhile((markers.shape[0], self.character_.n_vertices, 3))
-        obs, params, residual, _ = self._solve(markers, tracks, known)
-        beta = compose.region_coefficients(
-            params.weights, params.coefficients, self.actor_.layer_of
-        )
-        extras = self._extras(params, obs, residual)
+        if self.projection_ is None:
+            out = np.empty((markers.shape[0], self.character_.n_vertices, 3))
+            obs, params, residual = self._solve_into(markers, tracks, known, out)
+        else:
+            obs, params, residual, _ = self._solve(markers, tracks, known)
         common = dict(
             head_motion=self._character_motion(obs.head_motion),
             fps=source.fps,
-            extras=extras,
+            extras=self._extras(params, obs, residual),
             provenance={"diagnostics": self._diagnostics(params, note)},
         )
-        if self.projection_ is not None:
-            weights = compose.project(self.projection_, beta, extra=residual)
-            return Animation(weights=weights, rig=self.rig_, **common)
-        touched()
-        vertices = compose.world_vertices(
-            self.character_, beta, common["head_motion"], extra=residual, out=out
+        if self.projection_ is None:
+            return Animation(vertices=out, triangles=self.triangles_, **common)
+        beta = compose.region_coefficients(
+            params.weights, params.coefficients, self.actor_.layer_of
         )
-        return Animation(vertices=vertices, triangles=self.triangles_, **common)
+        weights = compose.project(self.projection_, beta, extra=residual)
+        return Animation(weights=weights, rig=self.rig_, **common)
+
+    def _solve_into(self, markers, tracks, head_motion, out):
+        """:meth:`_solve` of every frame, :data:`SOLVE_BLOCK` frames at a time, while one
+        other thread writes each solved block's character vertices (Eq. 5) into ``out (F, V,
+        3)``: the extraction is a chain from frame to frame on one core, the vertices of the
+        frames solved so far are the other core's work (and its first writes fault the new
+        result's pages in). What that thread has not started when the last block is solved
+        is written here. The same as one solve of all frames, then
+        :func:`.compose.world_vertices`, to rounding (a product over a block's frames may round
+        apart from one over all of them: 3.6e-15 in the 2D alignment, the vertices bitwise on
+        ``benchmarks/bench_layers.py``'s problem). Returns (observations with ``head_motion`` and
+        ``alignment2d`` only, extraction, residual weights or None)."""
+        n_frames = markers.shape[0]
+        pieces, queued, states = [], [], None
+        with ThreadPoolExecutor(1) as writer:
+            for start in range(0, n_frames, SOLVE_BLOCK):
+                rows = slice(start, start + SOLVE_BLOCK)
+                obs, params, residual, states = self._solve(
+                    markers[rows],
+                    None if tracks is None else tracks[rows],
+                    head_motion[rows] if isinstance(head_motion, np.ndarray) else head_motion,
+                    states=states,
+                    frame_offset=start,
+                )
+                beta = compose.region_coefficients(
+                    params.weights, params.coefficients, self.actor_.layer_of
+                )
+                write = partial(
+                    compose.world_vertices,
+                    self.character_,
+                    beta,
+                    self._character_motion(obs.head_motion),
+                    extra=residual,
+                    out=out[rows],
+                    workers=1,
+                )
+                queued.append((writer.submit(write), write))
+                pieces.append((obs, params, residual))
+            for future, write in reversed(queued):  # not started yet: written here
+                if not future.cancel():
+                    break
+                write()
+            for future, _ in queued:
+                if not future.cancelled():
+                    future.result()
+        obs = [p[0] for p in pieces]
+        kept: dict = dict.fromkeys(f.name for f in fields(Observations))
+        kept["head_motion"] = np.concatenate([o.head_motion for o in obs])
+        if obs[0].alignment2d is not None:
+            kept["alignment2d"] = np.concatenate([o.alignment2d for o in obs])
+        params = Extraction(
+            *(np.concatenate([getattr(p[1], f.name) for p in pieces]) for f in fields(Extraction))
+        )
+        residual = None if pieces[0][2] is None else np.concatenate([p[2] for p in pieces])
+        return Observations(**kept), params, residual
 
     def deconstruct(self, source: Source) -> dict:
         """The actor side only: layered parameters and how well they explain the markers (Fig. 8).

@@ -288,7 +288,7 @@ def test_touched_meanwhile_gives_an_array_of_the_shape_and_a_wait(monkeypatch):
     assert len(started) <= 1 and small.shape == (3, 4) and alone.shape == (64, 512, 3)
 
 
-@pytest.mark.parametrize("plugin", ["coating", "layers"])
+@pytest.mark.parametrize("plugin", ["coating"])
 def test_results_wait_for_their_pages_to_be_touched_before_writing(plugin, monkeypatch):
     """The retargeters write their result only after the touching thread has ended: a
     stand-in whose (late) touching happens inside the wait would wipe frames written

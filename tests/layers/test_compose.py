@@ -133,3 +133,80 @@ def test_blendshape_projection_is_the_nnls_solution():
         assert cost(projected.weights[f]) <= cost(ref) * (1 + 1e-9) + 1e-12
     assert projected.weights.min() >= 0
     assert projected.weight_names == rig.names
+
+
+@pytest.fixture(scope="module")
+def whole_shot():
+    """A fitted retargeter (its target has blendshapes: a residual block) and its 20-frame
+    result computed the plain way: one solve of every frame, then Eq. 5."""
+    case = fr.cases.synthetic(resolution=300, n_frames=20)
+    fitted = LayersRetargeter().fit(case.source, case.target)
+    markers, tracks, known, _ = fitted._inputs(case.source)
+    obs, params, residual, _ = fitted._solve(markers, tracks, known)
+    beta = compose.region_coefficients(params.weights, params.coefficients, fitted.actor_.layer_of)
+    motion = fitted._character_motion(obs.head_motion)
+    want = compose.world_vertices(fitted.character_, beta, motion, extra=residual)
+    return case, fitted, params, residual, motion, want
+
+
+class _Idle:
+    """An executor that never runs what it is given (each future stays pending)."""
+
+    def __init__(self, workers):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, fn, *args, **kwargs):
+        import concurrent.futures
+
+        return concurrent.futures.Future()
+
+
+@pytest.mark.parametrize(
+    "block, writer", [(3, "thread"), (7, "thread"), (1000, "thread"), (3, "idle")]
+)
+def test_retarget_solves_blocks_while_another_thread_writes_their_vertices(
+    whole_shot, block, writer, monkeypatch
+):
+    """``LayersRetargeter._solve_into``: blocks of frames solved in one chain (the smoothing's
+    state carried from block to block) while a writer thread computes each solved block's
+    vertices, and what the writer has not started written on the calling thread (``idle``: all
+    of it). The same vertices, head motion and extras as the whole-shot solve."""
+    from faceretarget.plugins.layers import retargeter as module
+
+    case, fitted, params, residual, motion, want = whole_shot
+    assert residual is not None, "the residual block is covered"
+    monkeypatch.setattr(module, "SOLVE_BLOCK", block)
+    if writer == "idle":
+        monkeypatch.setattr(module, "ThreadPoolExecutor", _Idle)
+    anim = fitted.retarget(case.source)
+    tol = 1e-12 * np.abs(want).max()
+    np.testing.assert_allclose(anim.vertices, want, rtol=0, atol=tol)
+    np.testing.assert_allclose(anim.head_motion, motion, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(anim.extras["layer_weights"], params.weights, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(anim.extras["objective"], params.objective, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(anim.extras["residual_weights"], residual, rtol=0, atol=1e-12)
+    assert anim.provenance["diagnostics"]["mean_iterations"] == float(np.mean(params.iterations))
+
+
+def test_retarget_raises_what_the_writer_thread_raised(whole_shot, monkeypatch):
+    from faceretarget.plugins.layers import retargeter as module
+
+    case, fitted = whole_shot[:2]
+    monkeypatch.setattr(module, "SOLVE_BLOCK", 5)
+    real, calls = compose.world_vertices, []
+
+    def failing(*args, **kwargs):
+        calls.append(threading.get_ident())
+        if len(calls) == 2:
+            raise RuntimeError("the writer failed")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(compose, "world_vertices", failing)
+    with pytest.raises(RuntimeError, match="the writer failed"):
+        fitted.retarget(case.source)
