@@ -63,8 +63,8 @@ def world_vertices(
     applies the rigid motion, writing the output once. The chunks are dealt out in turn to
     ``_threads.worker_count`` threads (``workers`` of them when given; the kernel releases
     the GIL), every product on one BLAS thread, so the numbers do not depend on the thread
-    count. A single frame
-    (streaming) only reads the rows of each block whose coefficient is not zero.
+    count. A single frame (streaming) only reads the rows of each block whose coefficient
+    is not zero.
     """
     n_frames = beta.shape[0]
     shape = (n_frames, character.n_vertices, 3)

@@ -443,32 +443,15 @@ class LayersRetargeter(Retargeter):
         apart from one over all of them: 3.6e-15 in the 2D alignment, the vertices bitwise on
         ``benchmarks/bench_layers.py``'s problem). Returns (observations with ``head_motion`` and
         ``alignment2d`` only, extraction, residual weights or None)."""
-        n_frames = markers.shape[0]
-        pieces, queued, states = [], [], None
+        pieces: list = []
+        queued: list = []
         with ThreadPoolExecutor(1) as writer:
-            for start in range(0, n_frames, SOLVE_BLOCK):
-                rows = slice(start, start + SOLVE_BLOCK)
-                obs, params, residual, states = self._solve(
-                    markers[rows],
-                    None if tracks is None else tracks[rows],
-                    head_motion[rows] if isinstance(head_motion, np.ndarray) else head_motion,
-                    states=states,
-                    frame_offset=start,
-                )
-                beta = compose.region_coefficients(
-                    params.weights, params.coefficients, self.actor_.layer_of
-                )
-                write = partial(
-                    compose.world_vertices,
-                    self.character_,
-                    beta,
-                    self._character_motion(obs.head_motion),
-                    extra=residual,
-                    out=out[rows],
-                    workers=1,
-                )
-                queued.append((writer.submit(write), write))
-                pieces.append((obs, params, residual))
+            try:
+                self._solve_blocks(markers, tracks, head_motion, out, writer, pieces, queued)
+            except BaseException:
+                for future, _ in queued:  # nothing more to write
+                    future.cancel()
+                raise
             for future, write in reversed(queued):  # not started yet: written here
                 if not future.cancel():
                     break
@@ -486,6 +469,34 @@ class LayersRetargeter(Retargeter):
         )
         residual = None if pieces[0][2] is None else np.concatenate([p[2] for p in pieces])
         return Observations(**kept), params, residual
+
+    def _solve_blocks(self, markers, tracks, head_motion, out, writer, pieces, queued) -> None:
+        """The loop of :meth:`_solve_into`: each block solved, its writing handed to ``writer``
+        (appended to ``queued`` with the call), its results appended to ``pieces``."""
+        states = None
+        for start in range(0, markers.shape[0], SOLVE_BLOCK):
+            rows = slice(start, start + SOLVE_BLOCK)
+            obs, params, residual, states = self._solve(
+                markers[rows],
+                None if tracks is None else tracks[rows],
+                head_motion[rows] if isinstance(head_motion, np.ndarray) else head_motion,
+                states=states,
+                frame_offset=start,
+            )
+            beta = compose.region_coefficients(
+                params.weights, params.coefficients, self.actor_.layer_of
+            )
+            write = partial(
+                compose.world_vertices,
+                self.character_,
+                beta,
+                self._character_motion(obs.head_motion),
+                extra=residual,
+                out=out[rows],
+                workers=1,
+            )
+            queued.append((writer.submit(write), write))
+            pieces.append((obs, params, residual))
 
     def deconstruct(self, source: Source) -> dict:
         """The actor side only: layered parameters and how well they explain the markers (Fig. 8).

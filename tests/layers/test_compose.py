@@ -210,3 +210,33 @@ def test_retarget_raises_what_the_writer_thread_raised(whole_shot, monkeypatch):
     monkeypatch.setattr(compose, "world_vertices", failing)
     with pytest.raises(RuntimeError, match="the writer failed"):
         fitted.retarget(case.source)
+
+
+def test_retarget_raises_what_a_block_solve_raised_and_stops_writing(whole_shot, monkeypatch):
+    """A block whose solve fails ends the call with its error, and the writes still queued
+    then are cancelled: here the writer is held in block 1's write until block 3 fails, so
+    block 2's write is queued and must never run."""
+    from faceretarget.plugins.layers import retargeter as module
+
+    case, fitted = whole_shot[:2]
+    monkeypatch.setattr(module, "SOLVE_BLOCK", 5)
+    failed, written = threading.Event(), []
+
+    def write(character, beta, motion, extra=None, out=None, workers=None):
+        failed.wait(10)
+        written.append(out.shape[0])
+
+    monkeypatch.setattr(compose, "world_vertices", write)
+    calls = []
+
+    def solve(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            failed.set()
+            raise RuntimeError("block 3 failed")
+        return LayersRetargeter._solve(self, *args, **kwargs)
+
+    monkeypatch.setattr(fitted, "_solve", solve.__get__(fitted))
+    with pytest.raises(RuntimeError, match="block 3 failed"):
+        fitted.retarget(case.source)
+    assert len(written) <= 1, "a write queued before the failure ran after it"

@@ -1,5 +1,7 @@
 """Bad input gives typed errors that name the cause; documented handling of missing markers."""
 
+import warnings
+
 import numpy as np
 import pytest
 from naive.layers import make_problem
@@ -95,6 +97,12 @@ def test_stream_frame_shapes_and_values(problem):
     half[3, 1] = np.nan
     with pytest.raises(errors.NonFiniteError, match="some coordinates NaN"):
         list(r.stream([half]))
+    huge = good + 1e308  # finite, but their sum overflows: accepted, and no warning escapes
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        from faceretarget.plugins.layers.solver import _check_points
+
+        assert _check_points(huge[None], huge.shape[0], 3, "markers") is not None
 
 
 def test_missing_markers_for_many_frames_are_dropped_per_frame(problem):
