@@ -102,14 +102,18 @@ def check_shape(arr: np.ndarray, name: str, shape: Sequence[int | None]) -> None
         raise ShapeError(f"{name}: expected shape {_fmt(shape)}, got {tuple(arr.shape)}")
 
 
-def all_finite(arr: np.ndarray) -> bool:
-    """Whether every value of the float array ``arr`` is finite. One summing pass, with no
-    boolean temporary (a NaN or an infinity makes the sum NaN or infinite); the exact test
-    only when the sum is not finite (a NaN, an infinity, or finite values whose sum overflows)."""
+def sum_finite(arr: np.ndarray) -> bool:
+    """True when the sum of the float array ``arr`` is finite, which proves every value finite
+    (a NaN or an infinity makes the sum NaN or infinite): one pass, no boolean temporary, no
+    warning. False proves nothing (finite values whose sum overflows give it too)."""
     with np.errstate(over="ignore", invalid="ignore"):
-        if np.isfinite(np.sum(arr)):
-            return True
-    return bool(np.isfinite(arr).all())
+        return bool(np.isfinite(np.sum(arr)))
+
+
+def all_finite(arr: np.ndarray) -> bool:
+    """Whether every value of the float array ``arr`` is finite: :func:`sum_finite`, and the
+    exact test only when the sum is not finite."""
+    return sum_finite(arr) or bool(np.isfinite(arr).all())
 
 
 def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False) -> None:

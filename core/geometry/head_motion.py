@@ -59,6 +59,7 @@ import numpy.typing as npt
 
 from .. import config
 from .._threads import blas_single_threaded
+from .._validate import sum_finite
 from ..errors import DegenerateGeometryError, InputError, NonFiniteError, NumericalError, ShapeError
 from . import procrustes
 
@@ -362,8 +363,7 @@ class HeadMotionModel:
                 if return_info
                 else out
             )
-        # common case: nothing missing (inf would make the sum inf or NaN), one pattern
-        shared = bool(np.isfinite(np.sum(x)))
+        shared = sum_finite(x)  # common case: nothing missing, one pattern
         if shared:
             valid = np.broadcast_to(w > 0, (n_frames, n))
             x0 = x

@@ -59,7 +59,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from faceretarget._validate import check_number, check_param
+from faceretarget._validate import check_number, check_param, sum_finite
 from faceretarget.errors import (
     ConfigError,
     DegenerateGeometryError,
@@ -310,9 +310,8 @@ def _check_points(arr, n: int, dim: int, what: str) -> np.ndarray:
     a = np.asarray(arr, dtype=np.float64)
     if a.ndim != 3 or a.shape[1:] != (n, dim):
         raise ShapeError(f"{what}: expected (F, {n}, {dim}) points, got {tuple(a.shape)}")
-    with np.errstate(over="ignore", invalid="ignore"):
-        if np.isfinite(np.sum(a)):  # nothing missing (one pass, no temporaries)
-            return a
+    if sum_finite(a):  # nothing missing
+        return a
     if np.isinf(a).any():
         raise NonFiniteError(f"{what}: infinite coordinates; mark missing samples with NaN")
     partial = np.isnan(a).any(axis=-1) & ~np.isnan(a).all(axis=-1)
